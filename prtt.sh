@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# PRTT developer entry point. Sets the machine up (tools/bootstrap.sh) and then:
+#   ./prtt.sh demo [args]   the main job (see README)
+#   ./prtt.sh test [args]   the whole test suite (pytest; extra args are passed on)
+#   ./prtt.sh slow [args]   the slow, large benchmark-style tests only
+#   ./prtt.sh py ARGS...    run the project's Python (e.g. ./prtt.sh py -m prtt_addon.bench bake)
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+cd "$root"
+tools/bootstrap.sh
+export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
+py="$root/.venv/bin/python"
+cmd="${1:-}"; shift || true
+case "$cmd" in
+    demo) exec "$py" -m prtt_addon demo "$@" ;;
+    test) exec "$py" -m pytest -m "not slow" "$@" ;;
+    slow) exec "$py" -m pytest -m slow "$@" ;;
+    py)   exec "$py" "$@" ;;
+    *) echo "usage: ./prtt.sh demo|test|slow|py ..." >&2; exit 2 ;;
+esac

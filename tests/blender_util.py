@@ -1,0 +1,23 @@
+"""Helpers for tests that drive real Blender through the bpy module."""
+import numpy as np
+import pytest
+
+
+def fresh_bpy():
+    """Import bpy and reset to an empty factory scene (skips if bpy is missing)."""
+    bpy = pytest.importorskip("bpy")
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    return bpy
+
+
+def new_float_image(bpy, name, pixels_file_order):
+    """A float Blender image from (H, W, 3|4) pixels in file order (row 0 = top)."""
+    h, w = pixels_file_order.shape[:2]
+    rgba = np.ones((h, w, 4), dtype=np.float32)
+    rgba[..., :pixels_file_order.shape[2]] = pixels_file_order[..., :4]
+    img = bpy.data.images.new(name, w, h, float_buffer=True, alpha=True)
+    # Non-Color: no colour transform on save/render. Set it before the pixels:
+    # changing it later regenerates the image and drops them.
+    img.colorspace_settings.name = "Non-Color"
+    img.pixels.foreach_set(rgba[::-1].ravel())        # Blender stores bottom row first
+    return img

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Make this checkout runnable on a fresh Debian machine with Python 3.11:
+#   1. the Debian packages in tools/apt-packages.txt (Mesa EGL/llvmpipe, X client libs),
+#   2. a virtual environment .venv with the pins of requirements.txt.
+# Idempotent and quick when nothing changed (a stamp holds the requirements' hash).
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+
+say() { printf '[bootstrap] %s\n' "$*" >&2; }
+
+# --- Debian packages -------------------------------------------------------
+mapfile -t apt_pkgs < <(grep -v '^\s*#' tools/apt-packages.txt | awk 'NF {print $1}')
+missing=()
+for p in "${apt_pkgs[@]}"; do
+    if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+        missing+=("$p")
+    fi
+done
+if ((${#missing[@]})); then
+    say "installing Debian packages: ${missing[*]}"
+    if [[ $(id -u) -eq 0 ]]; then sudo_cmd=(); elif command -v sudo >/dev/null; then sudo_cmd=(sudo); else
+        say "ERROR: need root or sudo to install: ${missing[*]}"; exit 1; fi
+    export DEBIAN_FRONTEND=noninteractive
+    "${sudo_cmd[@]}" apt-get update -qq
+    "${sudo_cmd[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+# --- Python virtual environment --------------------------------------------
+py="${PRTT_PYTHON:-}"
+if [[ -z "$py" ]]; then
+    for cand in python3.11 python3; do
+        if command -v "$cand" >/dev/null && "$cand" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+            py="$cand"; break
+        fi
+    done
+fi
+if [[ -z "$py" ]]; then
+    say "ERROR: Python 3.11 not found (bpy 5.0.1 needs exactly 3.11); set PRTT_PYTHON=/path/to/python3.11"
+    exit 1
+fi
+want="$(sha256sum requirements.txt | cut -d' ' -f1)"
+stamp=".venv/.requirements.sha256"
+if [[ ! -x .venv/bin/python ]] || [[ "$(cat "$stamp" 2>/dev/null)" != "$want" ]]; then
+    say "creating .venv with $("$py" --version) and requirements.txt (bpy is ~370 MB, first time only)"
+    "$py" -m venv .venv
+    .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
+    .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt
+    echo "$want" > "$stamp"
+fi
