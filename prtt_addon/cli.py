@@ -18,6 +18,100 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+class ConsoleProgress:
+    """Human-readable progress for terminals and logs (the worker prints JSON)."""
+
+    def __init__(self, out=None, interval=2.0):
+        import time
+        self.out = out or sys.stdout
+        self.interval = interval
+        self._last = 0.0
+        self._stage = None
+        self._time = time.monotonic
+
+    def __call__(self, e: dict) -> None:
+        t = e.get("type")
+        if t == "progress":
+            key = (e.get("stage"), e.get("set"))
+            now = self._time()
+            if key != self._stage or now - self._last >= self.interval or e.get("fraction") == 1.0:
+                self._stage, self._last = key, now
+                where = f" [{e['set']}]" if e.get("set") else ""
+                rate = f"  {e['rays_per_s'] / 1e6:.1f} Mrays/s" if e.get("rays_per_s") else ""
+                print(f"  {e.get('stage')}{where}: {100 * e.get('fraction', 0):5.1f}%{rate}",
+                      file=self.out, flush=True)
+        elif t == "warning":
+            print(f"  warning: {e['message']}", file=self.out, flush=True)
+        elif t == "error":
+            print(f"prtt: error: {e['message']}", file=sys.stderr, flush=True)
+        elif t == "start":
+            print(f"baking {len(e['sets'])} set(s), {e['triangles']} triangles", file=self.out)
+        elif t == "cancelled":
+            print("cancelled; previous outputs are intact", file=self.out)
+        elif t == "done":
+            if e.get("skipped"):
+                print(f"up to date, nothing baked ({e['manifest']}); --force bakes anyway", file=self.out)
+            else:
+                print(f"done: {e['manifest']}", file=self.out)
+
+
+def _settings_overrides(args) -> dict:
+    o = {}
+    for name in ("rays", "bands", "dilate", "seed", "threads", "sampler", "estimator",
+                 "distribution", "min_rays"):
+        v = getattr(args, name, None)
+        if v is not None:
+            o[name] = v
+    if args.adaptive is not None:
+        o["adaptive_tol"] = args.adaptive
+    if args.half is not None:
+        o["half"] = args.half
+    for flag, key in (("vertex", "vertex_mode"), ("mips", "mips")):
+        if getattr(args, flag):
+            o[key] = True
+    if args.no_analytic:
+        o["analytic"] = False
+    if args.no_normal_maps:
+        o["normal_maps"] = False
+    if args.overlap:
+        o["overlap"] = args.overlap
+    return o
+
+
+def add_bake_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("bake settings (default: the job's, else PRTT's defaults)")
+    g.add_argument("--resolution", type=int, help="texels per side for every set")
+    g.add_argument("--rays", type=int, help="rays per texel (maximum when adaptive), default 256")
+    g.add_argument("--bands", type=int, help="SH bands, default 5 (25 coefficients)")
+    g.add_argument("--dilate", type=int, help="dilation in texels, default 3")
+    g.add_argument("--half", dest="half", action="store_true", default=None, help="float16 EXR (default)")
+    g.add_argument("--float", dest="half", action="store_false", help="float32 EXR")
+    g.add_argument("--adaptive", type=float, metavar="TOL",
+                   help="stop per texel when the RMS standard error is below TOL")
+    g.add_argument("--min-rays", dest="min_rays", type=int, help="first adaptive round, default 64")
+    g.add_argument("--sampler", choices=["sobol", "stratified", "random"])
+    g.add_argument("--distribution", choices=["cosine", "uniform"])
+    g.add_argument("--estimator", choices=["balanced", "control-variate", "plain"])
+    g.add_argument("--seed", type=int)
+    g.add_argument("--threads", type=int, help="0 = all cores")
+    g.add_argument("--vertex", action="store_true", help="also bake per-vertex transfer")
+    g.add_argument("--mips", action="store_true", help="also write coverage-weighted mip levels")
+    g.add_argument("--no-analytic", action="store_true", help="trace provably unoccluded texels too")
+    g.add_argument("--no-normal-maps", action="store_true")
+    g.add_argument("--overlap", choices=["warn", "error"], help="overlapping UVs: warn (default) or fail")
+    g.add_argument("--force", action="store_true", help="bake even if the outputs are up to date")
+
+
+def _cmd_bake_job(args) -> int:
+    import threading
+
+    from .worker import install_cancel_handlers, run_job
+    cancel = threading.Event()
+    install_cancel_handlers(cancel)
+    return run_job(args.job, args.out, ConsoleProgress(), cancel,
+                   overrides=_settings_overrides(args), resolution=args.resolution, force=args.force)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m prtt_addon",
                                 description="PRTT: precomputed radiance transfer textures")
@@ -28,6 +122,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--bands", type=int, default=5)
     e.add_argument("--method", choices=["area", "samples"], default="area")
     e.set_defaults(func=_cmd_env)
+
+    b = sub.add_parser("bake-job", help="bake a job/scene file (.npz) without Blender")
+    b.add_argument("job", help="job/scene file (.npz, docs/format.md)")
+    b.add_argument("--out", required=True, help="output folder")
+    add_bake_options(b)
+    b.set_defaults(func=_cmd_bake_job)
 
     d = sub.add_parser("demo", help="the main job (see README)")
     d.add_argument("--bands", type=int, default=5)

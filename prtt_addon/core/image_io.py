@@ -54,8 +54,9 @@ def _read_exr(path: str) -> np.ndarray:
     import OpenEXR
 
     try:
+        # Copy inside the block: the binding empties its dicts when the file closes.
         with OpenEXR.File(path) as f:
-            channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+            channels = {name: np.array(ch.pixels, copy=True) for name, ch in f.channels().items()}
     except Exception as exc:  # the binding raises plain Exceptions
         raise ImageReadError(f"{path}: unreadable EXR ({exc})") from exc
     for packed in ("RGB", "RGBA"):

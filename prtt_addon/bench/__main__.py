@@ -1,0 +1,21 @@
+"""``python -m prtt_addon.bench <benchmark> [options]``."""
+import sys
+
+BENCHMARKS = {
+    "bake": ("prtt_addon.bench.bake_bench", "transfer bake vs raw Embree on the room-class scene"),
+}
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] not in BENCHMARKS:
+        print("usage: python -m prtt_addon.bench <benchmark> [--help]\n\nbenchmarks:")
+        for k, (_, doc) in BENCHMARKS.items():
+            print(f"  {k:8s} {doc}")
+        return 2 if argv and argv[0] not in ("-h", "--help") else 0
+    import importlib
+    return importlib.import_module(BENCHMARKS[argv[0]][0]).main(argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,152 @@
+"""``python -m prtt_addon.bench bake``: the transfer bake against raw Embree.
+
+Bakes the room-class scene (1024^2 atlas, 5 bands, 256 rays per texel by
+default) through the real pipeline (``core.bake.bake_scene``: G-buffer,
+analytic test, rays, projection, dilation, EXR writing) and prints seconds per
+stage and rays/s end to end. Then, in the same run, it regenerates the *same
+rays* for a sample of the bake's chunks and traces them with bare embreex
+``run(..., query='OCCLUDED')`` calls on the same number of threads: the raw
+Embree throughput the pipeline is compared with (target >= 0.8).
+
+Also reported: texel-samples per second per core (texels x rays per texel, the
+unit of the C++ SH-lightmap baker reference, 1.5 M/s/core on this class of
+machine), and with ``--scaling`` a table over triangle counts and resolutions.
+"""
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import os
+import tempfile
+import time
+
+import numpy as np
+
+from ..core.bake import BakeSettings, bake_points_input, bake_scene, scene_face_data
+from ..core.gbuffer import build_gbuffer
+from ..core.raytrace import RayScene
+from ..core.sampling import pattern_bank
+from ..core.transfer import chunk_frames, chunk_plan
+from . import scenes
+
+#: Reference: an open C++ SH-lightmap baker on Embree 4, per core (issue 3).
+CPP_REFERENCE_TEXEL_SAMPLES_PER_CORE = 1.5e6
+
+
+def raw_embree_rays_per_s(sc, settings: BakeSettings, *, fraction: float = 0.125,
+                          threads: int | None = None) -> dict:
+    """Trace the bake's own rays (a sample of its chunks) with bare embreex calls."""
+    threads = threads or settings.n_threads
+    rs = RayScene(sc.positions)
+    fn, normal_group, clear, _ = scene_face_data(sc, analytic=settings.analytic)
+    batches = []
+    for s in range(sc.n_sets):
+        gb = build_gbuffer(sc, s)
+        pts = bake_points_input(sc, s, gb, fn, clear, normal_group)
+        chunks, G = chunk_plan(pts, settings)
+        dirs_bank, _, _ = pattern_bank(G, settings.rays, settings.bands, settings.sampler,
+                                       settings.distribution, settings.seed)
+        step = max(1, int(round(1.0 / fraction)))
+        for ch in chunks[::step]:
+            idx = ch.idx
+            fr = chunk_frames(rs, pts, idx, settings.seed, shared=ch.shared)
+            if ch.shared:
+                # The bake traces a shared chunk direction by direction: same order here.
+                Dw = dirs_bank[ch.g] @ np.asarray(fr.R[0]).T
+                batches.append((np.ascontiguousarray(np.tile(fr.origins, (settings.rays, 1))),
+                                np.ascontiguousarray(np.repeat(Dw, idx.size, axis=0))))
+                continue
+            D = np.matmul(dirs_bank[ch.g][None], fr.R.transpose(0, 2, 1))
+            O = np.repeat(fr.origins, settings.rays, axis=0)
+            D = D.reshape(-1, 3)
+            if fr.horizon.any():
+                below = (np.einsum("nsc,nc->ns", D.reshape(idx.size, -1, 3), fr.geo_normal) <= 0)
+                keep = ~(below & fr.horizon[:, None]).ravel()
+                O, D = O[keep], D[keep]
+            batches.append((np.ascontiguousarray(O), np.ascontiguousarray(D)))
+    n_rays = sum(b[0].shape[0] for b in batches)
+
+    def trace(part):
+        for o, d in part:
+            rs.occluded_raw(o, d)
+
+    out = {"rays": n_rays}
+    for nt in sorted({1, threads}):
+        parts = [batches[i::nt] for i in range(nt)]
+        t = time.perf_counter()
+        with cf.ThreadPoolExecutor(nt) as ex:
+            list(ex.map(trace, parts))
+        out[f"rays_per_s_{nt}_threads"] = n_rays / (time.perf_counter() - t)
+    out["rays_per_s"] = out[f"rays_per_s_{threads}_threads"]
+    out["threads"] = threads
+    return out
+
+
+def run_bake(sc, settings: BakeSettings) -> dict:
+    with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
+        t = time.perf_counter()
+        m = bake_scene(sc, d, settings, skip_if_unchanged=False)
+        m["wall"] = time.perf_counter() - t
+        m["output_bytes"] = sum(os.path.getsize(os.path.join(d, f)) for f in m["files"])
+    return m
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m prtt_addon.bench bake", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--resolution", type=int, default=1024)
+    p.add_argument("--rays", type=int, default=256)
+    p.add_argument("--bands", type=int, default=5)
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--per-object", action="store_true", help="one texture set per object instead of an atlas")
+    p.add_argument("--raw-fraction", type=float, default=0.125,
+                   help="share of the bake's chunks re-traced for the raw Embree baseline")
+    p.add_argument("--scaling", action="store_true",
+                   help="also print the 21K -> 1.3M triangles and 256^2 -> 2048^2 tables")
+    args = p.parse_args(argv)
+    st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads)
+    cores = st.n_threads
+
+    t = time.perf_counter()
+    sc = scenes.room_scene(args.resolution, atlas=not args.per_object)
+    t_scene = time.perf_counter() - t
+    print(f"room-class scene: {sc.n_triangles} triangles, {sc.n_sets} texture set(s) at "
+          f"{args.resolution}^2, {args.bands} bands, {args.rays} rays/texel, {cores} threads "
+          f"(scene build/unwrap or cache load: {t_scene:.2f} s, not part of the bake)")
+    m = run_bake(sc, st)
+    sec, tot = m["seconds"], m["totals"]
+    print("\nseconds per stage:")
+    for k in ("bvh", "analytic_test", "gbuffer", "trace", "dilate", "write", "total"):
+        print(f"  {k:14s} {sec[k]:8.3f}")
+    texel_samples = tot["texels"] * args.rays
+    print(f"\ntexels {tot['texels']}, analytic (zero-ray) {tot['analytic_texels']}, "
+          f"rays traced {tot['rays_traced']:,} of naive {tot['rays_naive']:,} "
+          f"({100 * (1 - tot['rays_traced'] / max(tot['rays_naive'], 1)):.1f}% skipped)")
+    e2e = m["rays_per_second_end_to_end"]
+    print(f"end-to-end: {sec['total']:.2f} s, {e2e / 1e6:.2f} Mrays/s traced; "
+          f"{texel_samples / sec['total'] / cores / 1e6:.2f} M texel-samples/s/core "
+          f"(C++ reference {CPP_REFERENCE_TEXEL_SAMPLES_PER_CORE / 1e6:.1f} M: "
+          f"x{texel_samples / sec['total'] / cores / CPP_REFERENCE_TEXEL_SAMPLES_PER_CORE:.1f})")
+    raw = raw_embree_rays_per_s(sc, st, fraction=args.raw_fraction)
+    print(f"raw embreex OCCLUDED on {raw['rays']:,} of the same rays: "
+          f"{raw['rays_per_s_1_threads'] / 1e6:.2f} Mrays/s on 1 thread, "
+          f"{raw['rays_per_s'] / 1e6:.2f} Mrays/s on {raw['threads']}")
+    print(f"ratio end-to-end / raw Embree: {e2e / raw['rays_per_s']:.3f}   "
+          f"(trace stage alone: {m['rays_per_second_trace'] / raw['rays_per_s']:.3f}; target >= 0.8)")
+    print(f"texture bytes: {m['output_bytes']:,} on disk (half, ZIP); "
+          f"{args.bands ** 2 * 2} B/texel in memory as half, {args.bands ** 2 * 4} B as float")
+
+    if args.scaling:
+        print("\nscaling with triangles (room atlas 1024^2 + occluder-only subdivided bunnies):")
+        print(f"  {'triangles':>10} {'bvh s':>7} {'trace s':>8} {'total s':>8} {'Mrays/s':>8}")
+        for target in (21_000, 300_000, 1_300_000):
+            sct = scenes.triangle_scaling_scene(target, 1024)
+            mm = run_bake(sct, st)
+            print(f"  {sct.n_triangles:10d} {mm['seconds']['bvh']:7.2f} {mm['seconds']['trace']:8.2f} "
+                  f"{mm['seconds']['total']:8.2f} {mm['rays_per_second_end_to_end'] / 1e6:8.2f}")
+        print("scaling with resolution (room, same settings):")
+        print(f"  {'texels':>10} {'total s':>8} {'Mrays/s':>8}")
+        for res in (256, 512, 1024, 2048):
+            mm = run_bake(scenes.room_scene(res, atlas=True), st)
+            print(f"  {res:>5}^2     {mm['seconds']['total']:8.2f} {mm['rays_per_second_end_to_end'] / 1e6:8.2f}")
+    return 0

@@ -1,0 +1,131 @@
+"""Benchmark scenes modelled on the paper's table, built without Blender.
+
+* room   (~21K tris): floor and three walls of two triangles each (minimal
+  tessellation), a table, rug, two chairs, a shelf, spot the cow, a sphere, a
+  torus, a vase and a lamp. Open front and top so the environment gets in.
+* bunny-subdivided etc. for the triangle-count scaling table.
+
+Scenes are unwrapped with xatlas and cached as job files in ``.cache/bench``
+(the unwrap is not part of the bake's timing).
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+
+import numpy as np
+
+from ..core import meshgen as mg
+from ..core.scene import Scene, load_scene, save_scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+CACHE = os.path.join(ROOT, ".cache", "bench")
+
+
+def room_objects() -> list[tuple[str, mg.Mesh]]:
+    objs = [
+        ("floor", mg.plane(6.0)),
+        ("wall_back", _wall((0, 3.0, 1.5), (6.0, 3.0), facing=(0, -1, 0))),
+        ("wall_left", _wall((-3.0, 0, 1.5), (6.0, 3.0), facing=(1, 0, 0))),
+        ("wall_right", _wall((3.0, 0, 1.5), (6.0, 3.0), facing=(-1, 0, 0))),
+        ("rug", mg.box((2.4, 1.6, 0.01), (0.0, -0.2, 0.005))),
+    ]
+    table = [mg.box((1.6, 0.9, 0.05), (0, 0, 0.745))]
+    for sx in (-0.72, 0.72):
+        for sy in (-0.38, 0.38):
+            table.append(mg.box((0.05, 0.05, 0.72), (sx, sy, 0.36)))
+    objs.append(("table", mg.merge(table)))
+    for i, (x, rot) in enumerate(((-1.2, 0.0), (1.2, math.pi))):
+        parts = [mg.box((0.45, 0.45, 0.04), (0, 0, 0.45)), mg.box((0.04, 0.45, 0.5), (-0.2, 0, 0.72))]
+        for sx in (-0.2, 0.2):
+            for sy in (-0.2, 0.2):
+                parts.append(mg.box((0.04, 0.04, 0.43), (sx, sy, 0.215)))
+        objs.append((f"chair{i}", mg.merge(parts).transformed(rotate_z=rot, translate=(x, 0, 0))))
+    shelf = [mg.box((1.2, 0.3, 0.03), (0, 0, z)) for z in (0.02, 0.5, 1.0, 1.5)]
+    shelf += [mg.box((0.03, 0.3, 1.52), (x, 0, 0.76)) for x in (-0.6, 0.6)]
+    shelf += [mg.box((0.2, 0.22, 0.3), (-0.3 + 0.25 * k, 0, 0.68)) for k in range(2)]
+    objs.append(("shelf", mg.merge(shelf).transformed(translate=(-1.8, 2.8, 0))))
+    spot = mg.load_obj(mg.asset_path("spot.obj"))
+    spot.uvs = None
+    # spot's model space is Y up; turn it Z up and stand it on the table.
+    spot.vertices = spot.vertices[:, [0, 2, 1]] * np.array([1, -1, 1])
+    spot.normals = spot.normals[:, [0, 2, 1]] * np.array([1, -1, 1])
+    spot.faces = spot.faces[:, [0, 2, 1]]
+    zmin = spot.vertices[:, 2].min()
+    objs.append(("spot", spot.transformed(scale=0.45, translate=(0.2, 0.1, 0.77 - 0.45 * zmin))))
+    objs.append(("sphere", mg.uv_sphere(0.3, 64, 48).transformed(translate=(1.6, -1.0, 0.3))))
+    objs.append(("torus", mg.torus(0.35, 0.1, 64, 32).transformed(translate=(-1.5, -1.2, 0.1))))
+    prof = np.array([[0.001, 0.0], *[[0.12 + 0.08 * math.sin(math.pi * t), 0.5 * t] for t in np.linspace(0.0, 1.0, 22)],
+                     [0.001, 0.5]])
+    objs.append(("vase", mg.lathe(prof, 64).transformed(translate=(-0.5, 0.2, 0.77))))
+    lp = np.array([[0.001, 0.0], [0.15, 0.0], [0.15, 0.03], [0.02, 0.05], [0.02, 1.4], [0.25, 1.45],
+                   [0.12, 1.7], [0.001, 1.72]])
+    objs.append(("lamp", mg.lathe(lp, 128).transformed(translate=(2.3, 2.3, 0.0))))
+    return objs
+
+
+def _wall(center, size, facing) -> mg.Mesh:
+    """A 2-triangle wall of (width, height) centred at ``center`` facing ``facing``."""
+    p = mg.plane(size[0], size[1])
+    f = np.asarray(facing, float)
+    # plane faces +Z; map its local (x, y, z) to (tangent, up, facing)
+    up = np.array([0.0, 0.0, 1.0])
+    t = np.cross(up, f)
+    M = np.stack([t, up, f], axis=1)
+    v = p.vertices @ M.T + np.asarray(center, float)
+    return mg.Mesh(v, p.faces)
+
+
+def bunny_subdivided(levels: int) -> tuple[str, mg.Mesh]:
+    b = mg.load_obj(mg.asset_path("stanford-bunny.obj"), smooth=False)
+    for _ in range(levels):
+        b = mg.subdivide(b)
+    return ("bunny", b)
+
+
+def triangle_scaling_scene(target: int, resolution: int = 1024) -> Scene:
+    """The room (same atlas, same texels) plus copies of the 69K-triangle bunny
+    to reach about ``target`` triangles: bake time vs. triangles with
+    everything else fixed. The bunnies cast shadows but get no texels
+    (set_id -1), so no unwrap of a million triangles is needed."""
+    room = room_scene(resolution, atlas=True)
+    extra = target - room.n_triangles
+    if extra <= 0:
+        return room
+    b = mg.load_obj(mg.asset_path("stanford-bunny.obj"), smooth=False)
+    copies = max(1, int(round(extra / b.n_faces)))
+    s = 1.2 / (b.vertices.max(0) - b.vertices.min(0)).max()
+    tris = []
+    for k in range(copies):
+        m = b.transformed(scale=s)
+        off = np.array([-2.4 + 0.8 * (k % 7), 2.2 - 0.8 * (k // 7), 0.0]) - [
+            m.vertices[:, 0].mean(), m.vertices[:, 1].mean(), m.vertices[:, 2].min()]
+        tris.append(m.corner_positions() + off)
+    P = np.concatenate(tris)
+    T = P.shape[0]
+    fn = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    return Scene(positions=np.concatenate([room.positions, P]),
+                 normals=np.concatenate([room.normals, np.repeat(fn[:, None], 3, 1).astype(np.float32)]),
+                 uvs=np.concatenate([room.uvs, np.zeros((T, 3, 2))]),
+                 set_id=np.concatenate([room.set_id, np.full(T, -1, np.int32)]),
+                 set_names=room.set_names, set_resolution=room.set_resolution,
+                 object_id=np.concatenate([room.object_id, np.full(T, len(room.object_names), np.int32)]),
+                 object_names=room.object_names + ["bunnies"])
+
+
+def cached_scene(name: str, builder, *, resolution: int, atlas: bool) -> Scene:
+    """Build (or load from .cache/bench) a scene job unwrapped at ``resolution``."""
+    key = hashlib.sha256(f"{name}-{resolution}-{atlas}-v1".encode()).hexdigest()[:12]
+    path = os.path.join(CACHE, f"{name}-{resolution}-{'atlas' if atlas else 'sets'}-{key}.npz")
+    if os.path.isfile(path):
+        return load_scene(path)[0]
+    sc = mg.assemble(builder(), resolution=resolution, atlas=atlas)
+    os.makedirs(CACHE, exist_ok=True)
+    save_scene(sc, path)
+    return sc
+
+
+def room_scene(resolution: int = 1024, atlas: bool = True) -> Scene:
+    return cached_scene("room", room_objects, resolution=resolution, atlas=atlas)

@@ -1,0 +1,96 @@
+"""Dilation and coverage-aware mip chains for baked textures.
+
+Textures are channel-first (C, H, W) float arrays (row 0 = bottom) with a
+(H, W) bool mask of texels that hold a value.
+
+* dilate: ``iterations`` rings: every empty texel with a filled 8-neighbour
+  takes the mean of its filled neighbours, then counts as filled. Bilinear
+  filtering near island borders then never reads empty (zero) texels.
+* mip_chain: each level averages the *covered* children of a 2x2 block
+  (weighted by coverage), so empty or dilated texels never bleed into islands.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+_OFFSETS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
+
+
+def dilation_rings(mask: np.ndarray, iterations: int):
+    """The rings a dilation fills: per iteration the empty texels (ys, xs) and,
+    for each of the 8 neighbours, which of them were filled before (indices
+    into the ring, and the neighbour's coordinates). Independent of the data,
+    so several channel groups (threads) can share one plan."""
+    if iterations < 0:
+        raise ValueError(f"dilation must be >= 0 texels, got {iterations}")
+    mask = mask.copy()
+    H, W = mask.shape
+    rings = []
+    for _ in range(iterations):
+        pad = np.pad(mask, 1)
+        near = np.zeros_like(mask)
+        for dy, dx in _OFFSETS:
+            near |= pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+        ys, xs = np.nonzero(near & ~mask)
+        if ys.size == 0:
+            break
+        taps, cnt = [], np.zeros(ys.size)
+        for dy, dx in _OFFSETS:
+            y, x = ys + dy, xs + dx
+            ok = (y >= 0) & (y < H) & (x >= 0) & (x < W)
+            ok[ok] = mask[y[ok], x[ok]]
+            sel = np.flatnonzero(ok)
+            taps.append((sel, y[sel], x[sel]))
+            cnt[sel] += 1.0
+        rings.append((ys, xs, taps, cnt))
+        mask[ys, xs] = True
+    return rings, mask
+
+
+def apply_dilation(tex: np.ndarray, rings) -> None:
+    """Fill ``tex`` (C, H, W) in place along a plan from :func:`dilation_rings`."""
+    for ys, xs, taps, cnt in rings:
+        acc = np.zeros((tex.shape[0], ys.size), np.float64)
+        for sel, y, x in taps:
+            acc[:, sel] += tex[:, y, x]
+        tex[:, ys, xs] = (acc / cnt).astype(tex.dtype)
+
+
+def dilate(tex: np.ndarray, mask: np.ndarray, iterations: int = 3, executor=None) -> np.ndarray:
+    """Grow filled regions of ``tex`` (C, H, W) by ``iterations`` texels, in place.
+
+    With an ``executor`` (thread pool), channel groups are filled in parallel.
+    Returns the grown mask (``mask`` itself is not modified).
+    """
+    rings, grown = dilation_rings(mask, iterations)
+    if executor is None or tex.shape[0] < 2:
+        apply_dilation(tex, rings)
+    else:
+        half = tex.shape[0] // 2
+        list(executor.map(lambda sl: apply_dilation(tex[sl], rings), [slice(0, half), slice(half, None)]))
+    return grown
+
+
+def mip_chain(tex: np.ndarray, weight: np.ndarray, levels: int | None = None):
+    """Coverage-weighted mip levels 1.. of (tex (C, H, W), weight (H, W) float, 0 = empty).
+
+    Returns a list of (tex_k, weight_k); sizes halve (rounding up) down to 1x1
+    or ``levels`` levels.
+    """
+    out = []
+    t = tex.astype(np.float64)
+    w = np.asarray(weight, dtype=np.float64)
+    C = t.shape[0]
+    while (levels is None or len(out) < levels) and max(w.shape) > 1:
+        H, W = w.shape
+        H2, W2 = (H + 1) // 2, (W + 1) // 2
+        tp = np.zeros((C, 2 * H2, 2 * W2))
+        wp = np.zeros((2 * H2, 2 * W2))
+        tp[:, :H, :W] = t
+        wp[:H, :W] = w
+        num = (tp * wp).reshape(C, H2, 2, W2, 2).sum(axis=(2, 4))
+        den = wp.reshape(H2, 2, W2, 2).sum(axis=(1, 3))
+        t = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+        w = den / 4.0
+        out.append((t.astype(tex.dtype), w))
+    return out

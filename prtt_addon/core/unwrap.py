@@ -1,0 +1,63 @@
+"""UV unwrapping with xatlas (in-process, no Blender needed).
+
+``unwrap(meshes, resolution, padding)`` lays out one or several indexed meshes
+in a single non-overlapping atlas (one texture set) and returns per-triangle
+corner UVs in [0, 1]. xatlas treats its resolution as a hint, so the atlas is
+re-packed with a lower texel density until it fits ``resolution`` exactly
+(a bounded number of tries), keeping ``padding`` texels between charts.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class UnwrapError(RuntimeError):
+    """xatlas could not lay the meshes out in one atlas."""
+
+
+def unwrap(meshes: list[tuple[np.ndarray, np.ndarray]], resolution: int, *,
+           padding: int = 4, max_tries: int = 6) -> list[np.ndarray]:
+    """Atlas several meshes together.
+
+    meshes : list of (vertices (V, 3) float, faces (F, 3) int).
+    Returns for each mesh its corner UVs (F, 3, 2) float64 in [0, 1], in the
+    order of its faces.
+    """
+    import xatlas
+
+    if resolution < 8:
+        raise ValueError(f"atlas resolution must be >= 8, got {resolution}")
+    tpu = 0.0
+    for _ in range(max_tries):
+        atlas = xatlas.Atlas()
+        for v, f in meshes:
+            v = np.ascontiguousarray(v, dtype=np.float32)
+            f = np.ascontiguousarray(f, dtype=np.uint32)
+            if f.size == 0:
+                raise UnwrapError("a mesh without faces cannot be unwrapped")
+            atlas.add_mesh(v, f)
+        po = xatlas.PackOptions()
+        po.resolution = int(resolution)
+        po.padding = int(padding)
+        po.bilinear = True
+        po.texels_per_unit = float(tpu)
+        atlas.generate(pack_options=po)
+        w, h = atlas.width, atlas.height
+        if atlas.atlas_count == 1 and w <= resolution and h <= resolution:
+            break
+        # Too big: shrink the density by the overshoot and pack again.
+        cur = atlas.texels_per_unit
+        tpu = cur * min(resolution / max(w, h, 1), 0.97) if atlas.atlas_count == 1 else cur * 0.7
+    else:
+        raise UnwrapError(f"xatlas could not fit the charts into one {resolution}x{resolution} atlas")
+    out = []
+    for mi, (v, f) in enumerate(meshes):
+        vmap, idx, uv = atlas[mi]
+        # xatlas returns UVs normalised by its own width/height; rescale to ours.
+        uv = uv.astype(np.float64) * np.array([w / resolution, h / resolution])
+        corner_uv = uv[idx.astype(np.int64)]             # (F', 3, 2)
+        # xatlas keeps face order; map back to the input faces.
+        if corner_uv.shape[0] != np.asarray(f).shape[0]:
+            raise UnwrapError("xatlas changed the face count")
+        out.append(np.clip(corner_uv, 0.0, 1.0))
+    return out

@@ -1,0 +1,244 @@
+"""bake_scene end to end: outputs, manifest, atomicity, cancel, overlaps, vertex mode, mips."""
+import json
+import os
+import threading
+
+import numpy as np
+import pytest
+
+from prtt_addon.core import exr_io, meshgen as mg
+from prtt_addon.core.bake import BakeError, BakeSettings, bake_scene
+from prtt_addon.core.memory import MemoryLimitError
+from prtt_addon.core.transfer import Cancelled, unoccluded_transfer
+from tests.scenes_util import floor_and_box, planar_uvs, scene_from
+
+
+def test_outputs_manifest_and_header(tmp_path):
+    sc = floor_and_box(res=32)
+    m = bake_scene(sc, tmp_path, BakeSettings(rays=64))
+    assert sorted(os.listdir(tmp_path)) == ["box.transfer.exr", "floor.transfer.exr", "manifest.json"]
+    man = json.load(open(tmp_path / "manifest.json"))
+    assert man == m and man["skipped"] is False
+    assert man["settings"]["rays"] == 64 and man["input_hash"] and man["settings_hash"]
+    for s in man["sets"]:
+        assert s["rays_traced"] <= s["rays_naive"] and s["texels"] > 0
+    for k in ("bvh", "gbuffer", "trace", "dilate", "write", "total"):
+        assert man["seconds"][k] >= 0
+    data, attrs = exr_io.read_sh_exr(tmp_path / "floor.transfer.exr")
+    assert data.shape == (32, 32, 25)
+    assert attrs["kind"] == "transfer" and attrs["bands"] == 5 and attrs["rays"] == 64
+    assert attrs["storage"] == "half" and attrs["input_hash"] == man["input_hash"]
+    assert attrs["format_version"] == exr_io.TEXTURE_FORMAT_VERSION
+    import OpenEXR
+    with OpenEXR.File(str(tmp_path / "floor.transfer.exr")) as f:
+        h = dict(f.header())
+        chans = list(f.channels())
+    assert h["compression"] == OpenEXR.ZIP_COMPRESSION
+    assert sorted(chans) == [f"sh{k:03d}" for k in range(25)]
+
+
+def test_texels_hold_transfer_and_dilation_fills_borders(tmp_path):
+    f = mg.plane(2.0)
+    uvs = planar_uvs(f) * 0.5 + 0.25                # island in the middle, empty border
+    sc = scene_from([("floor", f, uvs)], 32)
+    bake_scene(sc, tmp_path, BakeSettings(rays=64, half=False, dilate=3))
+    data, _ = exr_io.read_sh_exr(tmp_path / "floor.transfer.exr")
+    want = unoccluded_transfer(np.array([[0, 0, 1.0]]), 5)[0]
+    island = data[8:24, 8:24]
+    assert np.abs(island - want).max() < 1e-5
+    ring = data[5:27, 5:27].copy()
+    assert np.abs(ring - want).max() < 1e-5        # 3 texels of dilation around the island
+    assert np.all(data[:4] == 0) and np.all(data[:, :4] == 0)
+
+
+def test_float_storage_and_strided_round_trip(tmp_path):
+    rng = np.random.default_rng(2)
+    base = rng.standard_normal((20, 30, 25 * 2)).astype(np.float32)
+    strided = base[:, :, ::2]                      # a non-contiguous view
+    assert not strided.flags.c_contiguous
+    exr_io.write_sh_exr(tmp_path / "t.exr", strided, kind="transfer", half=False)
+    back, attrs = exr_io.read_sh_exr(tmp_path / "t.exr")
+    np.testing.assert_array_equal(back, strided)
+    exr_io.write_sh_exr(tmp_path / "h.exr", strided, kind="transfer", half=True)
+    back, attrs = exr_io.read_sh_exr(tmp_path / "h.exr")
+    np.testing.assert_allclose(back, strided, rtol=1e-3, atol=1e-4)
+    rgb = rng.standard_normal((6, 5, 3, 9)).astype(np.float32)[:, :, :, :]
+    exr_io.write_sh_exr(tmp_path / "rgb.exr", rgb[::1, ::1], kind="bounce", half=False, rgb=True)
+    back, _ = exr_io.read_sh_exr(tmp_path / "rgb.exr")
+    np.testing.assert_array_equal(back, rgb)
+
+
+def test_exr_write_is_atomic(tmp_path, monkeypatch):
+    good = np.zeros((4, 4, 9), np.float32)
+    exr_io.write_sh_exr(tmp_path / "t.exr", good, kind="transfer")
+    before = open(tmp_path / "t.exr", "rb").read()
+    import OpenEXR
+    real_file = OpenEXR.File
+
+    class Exploding:
+        def __init__(self, *a):
+            self.f = real_file(*a)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *e):
+            return False
+
+        def write(self, path):
+            with open(path, "wb") as fh:
+                fh.write(b"half a texture")
+            raise OSError("disk full")
+
+    monkeypatch.setattr(OpenEXR, "File", Exploding)
+    with pytest.raises(OSError, match="disk full"):
+        exr_io.write_sh_exr(tmp_path / "t.exr", good + 1, kind="transfer")
+    assert open(tmp_path / "t.exr", "rb").read() == before
+    assert os.listdir(tmp_path) == ["t.exr"]
+
+
+def test_non_finite_and_half_overflow(tmp_path):
+    with pytest.raises(ValueError, match="non-finite"):
+        exr_io.write_sh_exr(tmp_path / "n.exr", np.full((2, 2, 4), np.nan, np.float32), kind="transfer")
+    big = np.full((2, 2, 4), 1e5, np.float32)
+    assert exr_io.half_overflow(big) == 16
+    with pytest.raises(ValueError, match="half-float range"):
+        exr_io.write_sh_exr(tmp_path / "o.exr", big, kind="transfer", half=True)
+    assert not os.path.exists(tmp_path / "n.exr") and not os.path.exists(tmp_path / "o.exr")
+
+
+def test_unchanged_inputs_skip_and_force(tmp_path):
+    sc = floor_and_box(res=16)
+    st = BakeSettings(rays=32)
+    first = bake_scene(sc, tmp_path, st)
+    again = bake_scene(sc, tmp_path, st)
+    assert again["skipped"] is True and again["input_hash"] == first["input_hash"]
+    changed = bake_scene(sc, tmp_path, BakeSettings(rays=32, threads=1))   # threads do not change results
+    assert changed["skipped"] is True
+    rebaked = bake_scene(sc, tmp_path, BakeSettings(rays=48))
+    assert rebaked["skipped"] is False
+    forced = bake_scene(sc, tmp_path, BakeSettings(rays=48), skip_if_unchanged=False)
+    assert forced["skipped"] is False
+
+
+def test_bit_identical_rebake(tmp_path):
+    sc = floor_and_box(res=24)
+    bake_scene(sc, tmp_path / "a", BakeSettings(rays=64, half=False))
+    bake_scene(sc, tmp_path / "b", BakeSettings(rays=64, half=False, threads=1))
+    for name in ("floor", "box"):
+        a, _ = exr_io.read_sh_exr(tmp_path / "a" / f"{name}.transfer.exr")
+        b, _ = exr_io.read_sh_exr(tmp_path / "b" / f"{name}.transfer.exr")
+        np.testing.assert_array_equal(a, b)
+
+
+def test_cancel_keeps_previous_outputs(tmp_path):
+    sc = floor_and_box(res=16)
+    bake_scene(sc, tmp_path, BakeSettings(rays=32))
+    before = {n: open(tmp_path / n, "rb").read() for n in os.listdir(tmp_path)}
+    cancel = threading.Event()
+    events = []
+
+    def progress(e):
+        events.append(e)
+        if e.get("stage") == "trace":
+            cancel.set()
+
+    with pytest.raises(Cancelled):
+        bake_scene(floor_and_box(res=32), tmp_path, BakeSettings(rays=64), progress=progress, cancel=cancel)
+    after = {n: open(tmp_path / n, "rb").read() for n in os.listdir(tmp_path)}
+    assert after == before                          # no temporaries, nothing replaced
+
+
+def test_overlapping_uvs_warn_or_fail(tmp_path):
+    f1 = mg.plane(1.0)
+    f2 = mg.plane(1.0).transformed(translate=(3, 0, 0))
+    m = mg.merge([f1, f2])
+    uvs = np.concatenate([planar_uvs(f1), planar_uvs(f2)])     # both islands fill [0, 1]^2
+    sc = scene_from([("floors", m, uvs)], 16)
+    man = bake_scene(sc, tmp_path / "warn", BakeSettings(rays=16))
+    assert man["sets"][0]["overlap_texels"] == 256
+    assert any("overlapping UV islands" in w for w in man["warnings"])
+    with pytest.raises(BakeError, match="256 texels are covered by overlapping UV islands"):
+        bake_scene(sc, tmp_path / "err", BakeSettings(rays=16, overlap="error"))
+    assert not os.listdir(tmp_path / "err")
+
+
+def test_vertex_mode_matches_texels(tmp_path):
+    sc = floor_and_box(res=32, subdiv=4)
+    bake_scene(sc, tmp_path, BakeSettings(rays=512, vertex_mode=True))
+    v = np.load(tmp_path / "floor.vertex.npz")
+    assert v["coeffs"].shape == (v["positions"].shape[0], 25)
+    assert v["corner_vertex"].shape == (int((sc.set_id == 0).sum()), 3)
+    # a floor vertex far from the box sees nearly the whole sky
+    far = np.flatnonzero(np.abs(v["positions"][:, 0]) > 1.9)
+    want = unoccluded_transfer(np.array([[0, 0, 1.0]]), 5)[0]
+    assert np.abs(v["coeffs"][far][:, 0] - want[0]).max() < 0.05
+    # corner_vertex maps every corner to its own vertex
+    P = sc.positions[sc.set_id == 0]
+    np.testing.assert_allclose(v["positions"][v["corner_vertex"]], P, atol=1e-6)
+
+
+def test_mips_average_only_covered_texels(tmp_path):
+    f = mg.plane(2.0)
+    uvs = planar_uvs(f) * 0.5                       # island in the lower-left quarter
+    sc = scene_from([("floor", f, uvs)], 32)
+    m = bake_scene(sc, tmp_path, BakeSettings(rays=32, mips=True, half=False))
+    assert "floor.transfer.mip1.exr" in m["files"] and "floor.transfer.mip5.exr" in m["files"]
+    want = unoccluded_transfer(np.array([[0, 0, 1.0]]), 5)[0]
+    mip, _ = exr_io.read_sh_exr(tmp_path / "floor.transfer.mip1.exr")
+    assert mip.shape == (16, 16, 25)
+    assert np.abs(mip[:8, :8] - want).max() < 1e-5  # no dilated or empty texel bled in
+    top, _ = exr_io.read_sh_exr(tmp_path / "floor.transfer.mip5.exr")
+    assert np.abs(top[0, 0] - want).max() < 1e-5
+
+
+def test_atlas_and_per_object_sets(tmp_path):
+    objs = [("a", mg.box((1, 1, 1))), ("b", mg.box((1, 1, 1), (3, 0, 0)))]
+    per = mg.assemble(objs, resolution=128)
+    atlas = mg.assemble(objs, resolution=128, atlas=True)
+    assert per.set_names == ["a", "b"] and atlas.set_names == ["atlas"]
+    m1 = bake_scene(per, tmp_path / "per", BakeSettings(rays=16))
+    m2 = bake_scene(atlas, tmp_path / "atlas", BakeSettings(rays=16))
+    assert m1["files"] == ["a.transfer.exr", "b.transfer.exr"]
+    assert m2["files"] == ["atlas.transfer.exr"] and m2["sets"][0]["overlap_texels"] == 0
+
+
+def test_absurd_resolution_is_refused_before_allocating(tmp_path):
+    sc = floor_and_box(res=16)
+    sc.set_resolution[0] = [16384, 16384]
+    with pytest.raises(MemoryLimitError, match="needs about .* GiB"):
+        bake_scene(sc, tmp_path, BakeSettings(rays=16, bands=16))
+    assert not os.listdir(tmp_path)
+
+
+def test_output_path_is_a_file(tmp_path):
+    (tmp_path / "taken").write_text("not a folder")
+    with pytest.raises(BakeError, match="cannot create output folder"):
+        bake_scene(floor_and_box(res=8), tmp_path / "taken" / "sub", BakeSettings(rays=8))
+
+
+def test_unwritable_output_folder(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        if os.access(ro, os.W_OK):
+            pytest.skip("running as a user that ignores permissions")
+        with pytest.raises(BakeError, match="not writable"):
+            bake_scene(floor_and_box(res=8), ro, BakeSettings(rays=8))
+    finally:
+        ro.chmod(0o700)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(rays=0), "rays must be a positive integer"),
+    (dict(bands=0), "bands must be >= 1"),
+    (dict(bands=17), "bands must be <= 16"),
+    (dict(dilate=-1), "dilate must be an integer"),
+    (dict(sampler="halton"), "sampler must be one of"),
+    (dict(overlap="ignore"), "overlap must be"),
+    (dict(adaptive_tol=-1.0), "adaptive_tol"),
+])
+def test_bad_settings(bad, match, tmp_path):
+    with pytest.raises(ValueError, match=match):
+        bake_scene(floor_and_box(res=8), tmp_path, BakeSettings(**bad))

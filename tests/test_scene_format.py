@@ -1,0 +1,87 @@
+"""The bpy-free scene/job format: round trip and validation with clear errors."""
+import numpy as np
+import pytest
+
+from prtt_addon.core.scene import NormalMap, Scene, SceneError, load_scene, save_scene, scene_hash, validate
+from tests.scenes_util import floor_and_box
+
+
+def test_round_trip_with_normal_maps_and_extra(tmp_path):
+    sc = floor_and_box(res=16)
+    T = sc.n_triangles
+    sc.normal_maps = [NormalMap(np.full((4, 4, 3), 0.5, np.float32), 0.7)]
+    sc.nm_index = np.full(T, -1, np.int32)
+    sc.nm_index[:2] = 0
+    sc.nm_uvs = sc.uvs.copy()
+    sc.tangents = np.zeros((T, 3, 4), np.float32)
+    sc.tangents[..., 0] = 1
+    sc.material_id = np.zeros(T, np.int32)
+    sc.materials = [{"name": "m", "albedo": [0.5, 0.5, 0.5]}]
+    validate(sc)
+    save_scene(sc, tmp_path / "job.npz", extra={"settings": {"rays": 64}})
+    back, extra = load_scene(tmp_path / "job.npz")
+    assert extra == {"settings": {"rays": 64}}
+    assert scene_hash(back) == scene_hash(sc)
+    assert back.normal_maps[0].strength == pytest.approx(0.7, rel=1e-7)
+    assert back.materials == sc.materials
+
+
+def base_arrays():
+    sc = floor_and_box(res=8)
+    return dict(positions=sc.positions, normals=sc.normals, uvs=sc.uvs, set_id=sc.set_id,
+                set_names=sc.set_names, set_resolution=sc.set_resolution)
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda a: a.update(positions=a["positions"][:0]), "no triangles"),
+    (lambda a: a.update(positions=a["positions"][..., :2]), r"positions: expected shape \(T, 3, 3\)"),
+    (lambda a: a["positions"].__setitem__((3, 1, 2), np.nan), "positions: triangle 3 has NaN/Inf"),
+    (lambda a: a["normals"].__setitem__((5, 0, 0), np.inf), "normals: triangle 5 has NaN/Inf"),
+    (lambda a: a["uvs"].__setitem__((2, 0, 0), 1.5), r"uvs: 1 triangles of set\(s\) box have UVs outside \[0, 1\]"),
+    (lambda a: a.update(uvs=a["uvs"][:-1]), "uvs: has 13 triangles, positions has 14"),
+    (lambda a: a["set_id"].__setitem__(0, 7), "set_id: triangle 0 refers to set 7"),
+    (lambda a: a.update(set_names=["floor", "floor"]), "duplicate names"),
+    (lambda a: a.update(set_names=["floor", "a/b"]), "not usable as a file name"),
+    (lambda a: a.update(set_resolution=np.array([[8, 8], [0, 8]])), "asks for 0x8 texels"),
+    (lambda a: a.update(set_resolution=np.array([[8, 8], [99999, 8]])), "each side must be 1..16384"),
+    (lambda a: a.update(uvs=a["uvs"].astype(str)), "uvs: expected numbers"),
+])
+def test_validation_names_the_problem(change, match):
+    a = base_arrays()
+    a = {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in a.items()}
+    change(a)
+    with pytest.raises(SceneError, match=match):
+        Scene(**a)
+
+
+def test_missing_and_foreign_files(tmp_path):
+    with pytest.raises(SceneError, match="no such job/scene file"):
+        load_scene(tmp_path / "nope.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(SceneError, match="not a readable .npz scene"):
+        load_scene(tmp_path / "junk.npz")
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    with pytest.raises(SceneError, match="not a PRTT scene"):
+        load_scene(tmp_path / "other.npz")
+    a = base_arrays()
+    np.savez(tmp_path / "nouv.npz", format=np.array("prtt-scene"), version=np.array(1),
+             positions=a["positions"], normals=a["normals"], set_id=a["set_id"],
+             set_names=np.array(a["set_names"]), set_resolution=a["set_resolution"])
+    with pytest.raises(SceneError, match=r"missing arrays \['uvs'\]"):
+        load_scene(tmp_path / "nouv.npz")
+    np.savez(tmp_path / "future.npz", format=np.array("prtt-scene"), version=np.array(99))
+    with pytest.raises(SceneError, match="newer than this PRTT"):
+        load_scene(tmp_path / "future.npz")
+
+
+def test_degenerate_3d_triangles_are_handled(tmp_path):
+    """Zero-area triangles in 3D (but with UV area) still bake: their texels use
+    the shading normal; a triangle whose normals also vanish loses its texels."""
+    from prtt_addon.core.bake import BakeSettings, bake_scene
+    sc = floor_and_box(res=16)
+    sc.positions[0] = sc.positions[0, 0]          # collapse triangle 0 of the floor to a point
+    m = bake_scene(sc, tmp_path / "a", BakeSettings(rays=16))
+    assert m["sets"][0]["dropped_texels"] == 0
+    sc.normals[0] = 0.0
+    m = bake_scene(sc, tmp_path / "b", BakeSettings(rays=16))
+    assert m["sets"][0]["dropped_texels"] > 0
