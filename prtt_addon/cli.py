@@ -37,6 +37,7 @@ class ConsoleProgress:
             if key != self._stage or now - self._last >= self.interval or e.get("fraction") == 1.0:
                 self._stage, self._last = key, now
                 where = f" [{e['set']}]" if e.get("set") else ""
+                where += f" level {e['level']}" if e.get("level") else ""
                 rate = f"  {e['rays_per_s'] / 1e6:.1f} Mrays/s" if e.get("rays_per_s") else ""
                 print(f"  {e.get('stage')}{where}: {100 * e.get('fraction', 0):5.1f}%{rate}",
                       file=self.out, flush=True)
@@ -58,7 +59,7 @@ class ConsoleProgress:
 def _settings_overrides(args) -> dict:
     o = {}
     for name in ("rays", "bands", "dilate", "seed", "threads", "sampler", "estimator",
-                 "distribution", "min_rays"):
+                 "distribution", "min_rays", "bounces", "bounce_rays"):
         v = getattr(args, name, None)
         if v is not None:
             o[name] = v
@@ -100,6 +101,30 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-normal-maps", action="store_true")
     g.add_argument("--overlap", choices=["warn", "error"], help="overlapping UVs: warn (default) or fail")
     g.add_argument("--force", action="store_true", help="bake even if the outputs are up to date")
+    g.add_argument("--bounces", type=int, help="inter-reflection levels, default 1 (0 = off; needs a light)")
+    g.add_argument("--bounce-rays", dest="bounce_rays", type=int, help="rays per texel per bounce, default 64")
+    g.add_argument("--env", help="light for bounces: .exr/.hdr or built-in name (overrides the job's light)")
+    g.add_argument("--env-strength", type=float, default=1.0, help="multiplies the environment")
+    g.add_argument("--env-rotation", type=float, default=0.0, metavar="DEG",
+                   help="Z rotation of the World's Mapping node: lookups turn by it before "
+                        "reading the image (the environment appears turned the other way)")
+
+
+def env_light(source: str, bands: int, strength: float = 1.0, rotation_z_deg: float = 0.0):
+    """(K, 3) SH light from an environment image, strength and a Mapping-node Z rotation."""
+    import math
+
+    import numpy as np
+
+    from .core import envmap, sh
+    L = envmap.project_equirect(source, bands) * strength
+    if rotation_z_deg:
+        # Mapping (Point) turns the lookup direction: L(w) = img(R w) = img((R^T)^-1 w),
+        # i.e. the image's SH rotated by R^T.
+        a = math.radians(rotation_z_deg)
+        R = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        L = sh.rotate(L, R.T)
+    return L
 
 
 def _cmd_bake_job(args) -> int:
@@ -108,8 +133,15 @@ def _cmd_bake_job(args) -> int:
     from .worker import install_cancel_handlers, run_job
     cancel = threading.Event()
     install_cancel_handlers(cancel)
-    return run_job(args.job, args.out, ConsoleProgress(), cancel,
-                   overrides=_settings_overrides(args), resolution=args.resolution, force=args.force)
+    light = None
+    if args.env:
+        try:
+            light = env_light(args.env, max(args.bands or 5, 5), args.env_strength, args.env_rotation)
+        except (ValueError, OSError) as exc:
+            print(f"prtt: error: {exc}", file=sys.stderr)
+            return 1
+    return run_job(args.job, args.out, ConsoleProgress(), cancel, overrides=_settings_overrides(args),
+                   resolution=args.resolution, force=args.force, light_override=light)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -5,7 +5,7 @@ cannot take Blender down. Protocol (docs/worker-protocol.md): one JSON object
 per line on stdout, flushed:
 
   {"type": "start", "pid": ..., "sets": [...], "settings": {...}}
-  {"type": "progress", "stage": "bvh|analytic-test|gbuffer|trace|vertex",
+  {"type": "progress", "stage": "bvh|analytic-test|gbuffer|trace|vertex|bounce",
    "fraction": 0..1, "set": ..., "rays_per_s": ...}
   {"type": "warning", "message": ...}
   {"type": "error", "message": ..., "error": "SceneError|BakeError|..."}
@@ -80,8 +80,23 @@ def _jsonable(o):
     return str(o)
 
 
+def job_light(extra: dict, override=None):
+    """The (K, 3) light of a job: ``override`` if given, else extra["light"]["coeffs"]."""
+    import numpy as np
+    if override is not None:
+        return override
+    spec = extra.get("light")
+    if not spec:
+        return None
+    coeffs = np.asarray(spec.get("coeffs"), dtype=np.float64)
+    if coeffs.ndim != 2 or coeffs.shape[1] != 3:
+        raise ValueError(f"job light: coeffs must be (K, 3) RGB SH, got shape {coeffs.shape}")
+    return coeffs
+
+
 def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
-            overrides: dict | None = None, resolution=None, force: bool = False) -> int:
+            overrides: dict | None = None, resolution=None, force: bool = False,
+            light_override=None) -> int:
     """Load a job and bake it, reporting through ``emit``. Returns an exit status."""
     from .core.bake import BakeError, BakeSettings, bake_scene
     from .core.memory import MemoryLimitError
@@ -89,7 +104,6 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
     from .core.transfer import Cancelled
     from .core.unwrap import UnwrapError
 
-    t0 = time.perf_counter()
     try:
         sc, extra = load_scene(job_path)
         settings = dict(extra.get("settings", {}))
@@ -99,9 +113,11 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
             sc.set_resolution[:] = resolution
             from .core.scene import validate
             validate(sc)
+        light = job_light(extra, light_override)
         emit({"type": "start", "pid": os.getpid(), "sets": sc.set_names,
-              "triangles": sc.n_triangles, "settings": st.as_dict()})
-        bake_scene(sc, out_dir, st, progress=emit, cancel=cancel, skip_if_unchanged=not force)
+              "triangles": sc.n_triangles, "settings": st.as_dict(),
+              "light": None if light is None else extra.get("light", {}).get("description", "given")})
+        bake_scene(sc, out_dir, st, light=light, progress=emit, cancel=cancel, skip_if_unchanged=not force)
     except Cancelled:
         emit({"type": "cancelled"})
         return EXIT_CANCELLED

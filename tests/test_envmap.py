@@ -1,6 +1,5 @@
 """Equirect environment projection: exactness, orientation, built-ins, bad input."""
 import math
-import os
 
 import numpy as np
 import pytest

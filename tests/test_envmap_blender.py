@@ -1,6 +1,4 @@
 """The environment orientation and HDR reading checked against Blender itself."""
-import math
-import os
 
 import numpy as np
 import pytest

@@ -7,7 +7,6 @@ from sympy import N as sym_n
 from sympy.physics.wigner import gaunt
 
 from prtt_addon.core import sh
-from tests.conftest import random_dirs
 
 
 def complex_to_real(bands):

@@ -1,13 +1,11 @@
 """UV rasterisation and the G-buffer: coverage, fill rule, overlaps, normals, normal maps."""
-import math
 
 import numpy as np
-import pytest
 
 from prtt_addon.core import meshgen as mg
 from prtt_addon.core.gbuffer import build_gbuffer
 from prtt_addon.core.raster import rasterize
-from prtt_addon.core.scene import NormalMap, Scene
+from prtt_addon.core.scene import NormalMap
 from tests.scenes_util import planar_uvs, scene_from
 
 

@@ -56,7 +56,7 @@ def test_budget_never_claims_clear():
 
 def test_occluder_only_triangles_cast_shadows_without_texels(tmp_path):
     sc = floor_and_box(res=16)
-    with_box = bake_scene(sc, tmp_path / "a", BakeSettings(rays=64))
+    bake_scene(sc, tmp_path / "a", BakeSettings(rays=64))
     sc.set_id[sc.set_id == 1] = -1                     # the box: occluder only
     from prtt_addon.core.scene import validate
     sc.set_names, sc.set_resolution = ["floor"], sc.set_resolution[:1]

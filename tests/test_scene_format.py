@@ -16,7 +16,7 @@ def test_round_trip_with_normal_maps_and_extra(tmp_path):
     sc.tangents = np.zeros((T, 3, 4), np.float32)
     sc.tangents[..., 0] = 1
     sc.material_id = np.zeros(T, np.int32)
-    sc.materials = [{"name": "m", "albedo": [0.5, 0.5, 0.5]}]
+    sc.materials = [{"name": "m", "base_color": [0.5, 0.5, 0.5], "roughness": 0.3}]
     validate(sc)
     save_scene(sc, tmp_path / "job.npz", extra={"settings": {"rays": 64}})
     back, extra = load_scene(tmp_path / "job.npz")

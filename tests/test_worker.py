@@ -4,7 +4,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -114,3 +113,20 @@ def test_bake_job_cli_overrides(tmp_path):
                           "--out", str(tmp_path / "o2"), "--resolution", "0"],
                          capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=60)
     assert bad.returncode == 1 and "each side must be 1..16384" in bad.stderr
+
+
+def test_worker_bakes_bounces_with_the_jobs_light(tmp_path):
+    from tests.test_bounce import corner_scene, sky
+    sc = corner_scene({"name": "w", "base_color": [0.5, 0.5, 0.5]})
+    save_scene(sc, tmp_path / "job.npz", extra={"settings": {"rays": 32, "bounces": 1, "bounce_rays": 16},
+                                                "light": {"coeffs": sky().tolist(), "description": "sky"}})
+    r = run_worker(tmp_path / "job.npz", tmp_path / "out")
+    assert r.returncode == 0, r.stderr
+    ev = events(r.stdout)
+    assert ev[0]["light"] == "sky"
+    assert any(e.get("stage") == "bounce" for e in ev)
+    man = json.load(open(tmp_path / "out" / "manifest.json"))
+    assert "floor.bounce1.exr" in man["files"]
+    save_scene(sc, tmp_path / "bad.npz", extra={"light": {"coeffs": [[1.0, 2.0]]}})
+    r = run_worker(tmp_path / "bad.npz", tmp_path / "out2")
+    assert r.returncode == 1 and "coeffs must be (K, 3)" in events(r.stdout)[-1]["message"]

@@ -3,6 +3,7 @@ import sys
 
 BENCHMARKS = {
     "bake": ("prtt_addon.bench.bake_bench", "transfer bake vs raw Embree on the room-class scene"),
+    "bounce": ("prtt_addon.bench.bounce_bench", "inter-reflection bake on the room-class scene"),
 }
 
 

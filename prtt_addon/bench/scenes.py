@@ -127,5 +127,34 @@ def cached_scene(name: str, builder, *, resolution: int, atlas: bool) -> Scene:
     return sc
 
 
-def room_scene(resolution: int = 1024, atlas: bool = True) -> Scene:
-    return cached_scene("room", room_objects, resolution=resolution, atlas=atlas)
+def room_scene(resolution: int = 1024, atlas: bool = True, *, materials: bool = False) -> Scene:
+    sc = cached_scene("room", room_objects, resolution=resolution, atlas=atlas)
+    return with_room_materials(sc) if materials else sc
+
+
+#: Principled-style materials of the room, by object (glossy floor and table,
+#: diffuse walls and rug, a metal sphere, ...).
+ROOM_MATERIALS = {
+    "floor": {"base_color": [0.45, 0.30, 0.18], "roughness": 0.35},
+    "wall_back": {"base_color": [0.80, 0.78, 0.72], "roughness": 0.9, "specular": 0.2},
+    "wall_left": {"base_color": [0.80, 0.78, 0.72], "roughness": 0.9, "specular": 0.2},
+    "wall_right": {"base_color": [0.80, 0.78, 0.72], "roughness": 0.9, "specular": 0.2},
+    "rug": {"base_color": [0.60, 0.10, 0.08], "roughness": 1.0, "specular": 0.0},
+    "table": {"base_color": [0.30, 0.18, 0.10], "roughness": 0.25},
+    "sphere": {"base_color": [0.90, 0.85, 0.70], "metallic": 1.0, "roughness": 0.2},
+    "torus": {"base_color": [0.10, 0.30, 0.70], "roughness": 0.4},
+    "spot": {"base_color": [0.85, 0.85, 0.85], "roughness": 0.5},
+    "vase": {"base_color": [0.20, 0.55, 0.35], "roughness": 0.15},
+    "lamp": {"base_color": [0.10, 0.10, 0.10], "metallic": 1.0, "roughness": 0.3},
+}
+
+
+def with_room_materials(sc: Scene) -> Scene:
+    """The room scene with one Principled-style material per object."""
+    from ..core.scene import validate
+    names = sc.object_names
+    sc.materials = [dict(name=n, **ROOM_MATERIALS.get(n, {"base_color": [0.6, 0.6, 0.6], "roughness": 0.5}))
+                    for n in names]
+    sc.material_id = sc.object_id.copy()
+    validate(sc)
+    return sc

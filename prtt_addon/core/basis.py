@@ -161,6 +161,14 @@ def eval_basis(dirs, bands: int, *, dtype=np.float64, normalize: bool = False) -
         raise TypeError(f"dtype must be float32 or float64, got {dtype}")
     single = np.ndim(dirs) == 1
     d = as_directions(dirs, normalize=normalize, dtype=dtype)
+    out = basis_unchecked(d, n, dtype)
+    return out[0] if single else out
+
+
+def basis_unchecked(d: np.ndarray, n: int, dtype=np.float64) -> np.ndarray:
+    """The recurrence of :func:`eval_basis` without input checks, for hot loops
+    whose directions are unit by construction. d (N, 3) of ``dtype``."""
+    dtype = np.dtype(dtype)
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
     out = np.empty((d.shape[0], n * n), dtype=dtype)
     sect = _sectoral_constants(n).astype(dtype)
@@ -189,4 +197,4 @@ def eval_basis(dirs, bands: int, *, dtype=np.float64, normalize: bool = False) -
             else:
                 out[:, l * l + l + m] = sqrt2 * p * cm
                 out[:, l * l + l - m] = sqrt2 * p * sm
-    return out[0] if single else out
+    return out

@@ -21,9 +21,11 @@ nm_uvs             (T, 3, 2) f64    UVs the normal map is sampled with
 tangents           (T, 3, 4) f32    per-corner MikkTSpace tangent xyz + bitangent sign
 nm_strength        (M,) f32         Normal Map node strength per map
 nm_<i>             (H, W, 3) f32    normal map i, file order (row 0 = top), 0..1 encoded
--- optional: materials (bounce bakes, reference shading) --
+-- optional: materials (bounce bakes, reference shading; see materials.py) --
 material_id        (T,) i32         material of each triangle, -1 = default
-materials          JSON string      list of material dicts (see shading.py)
+materials          JSON string      list of material dicts
+mat_uvs            (T, 3, 2) f64    UVs material textures are sampled with
+tex_<i>            (H, W, C) f32    material texture i, linear, file order
 =================  ===============  ===============================================
 
 Loading validates shapes, dtypes and finiteness and raises :class:`SceneError`
@@ -75,6 +77,8 @@ class Scene:
     normal_maps: list = dataclasses.field(default_factory=list)
     material_id: np.ndarray | None = None  # (T,) int32
     materials: list = dataclasses.field(default_factory=list)
+    mat_uvs: np.ndarray | None = None      # (T, 3, 2) float64
+    textures: list = dataclasses.field(default_factory=list)  # (H, W, C) float32, file order
 
     def __post_init__(self):
         validate(self)
@@ -209,6 +213,18 @@ def _validate_normal_maps(sc: Scene, T: int) -> None:
 
 
 def _validate_materials(sc: Scene, T: int) -> None:
+    texs = []
+    for i, t in enumerate(sc.textures):
+        t = np.asarray(t)
+        if t.ndim == 2:
+            t = t[..., None]
+        if t.ndim != 3 or t.shape[0] < 1 or t.shape[1] < 1 or t.dtype.kind not in "fiu":
+            raise SceneError(f"texture {i}: expected (H, W, C) numbers, got {t.shape} {t.dtype}")
+        t = np.ascontiguousarray(t, dtype=np.float32)
+        if not np.isfinite(t).all():
+            raise SceneError(f"texture {i}: has NaN/Inf pixels")
+        texs.append(t)
+    sc.textures = texs
     if sc.material_id is None:
         return
     sc.material_id = _as("material_id", sc.material_id, (), np.int32, 1)
@@ -216,6 +232,23 @@ def _validate_materials(sc: Scene, T: int) -> None:
         raise SceneError(f"material_id: has {sc.material_id.shape[0]} triangles, positions has {T}")
     if sc.material_id.min() < -1 or sc.material_id.max() >= len(sc.materials):
         raise SceneError(f"material_id: values must be -1 or index one of {len(sc.materials)} materials")
+    from .materials import Material
+    for i, m in enumerate(sc.materials):
+        try:
+            mat = Material.from_dict(m)
+        except (TypeError, ValueError) as exc:
+            raise SceneError(f"materials[{i}]: {exc}") from exc
+        for tex in (mat.base_color_texture, mat.roughness_texture):
+            if tex >= len(texs):
+                raise SceneError(f"materials[{i}] ({mat.name!r}): texture {tex} does not exist "
+                                 f"({len(texs)} textures)")
+    if any(Material.from_dict(m).textured for m in sc.materials):
+        if sc.mat_uvs is None:
+            raise SceneError("textured materials need mat_uvs")
+        sc.mat_uvs = _as("mat_uvs", sc.mat_uvs, (3, 2), np.float64, 3)
+        if sc.mat_uvs.shape[0] != T:
+            raise SceneError(f"mat_uvs: has {sc.mat_uvs.shape[0]} triangles, positions has {T}")
+        _first_bad("mat_uvs", sc.mat_uvs)
 
 
 # --- .npz I/O -------------------------------------------------------------------
@@ -241,6 +274,11 @@ def save_scene(sc: Scene, path, *, extra: dict | None = None) -> None:
     if sc.material_id is not None:
         arrays["material_id"] = sc.material_id
         arrays["materials"] = np.array(json.dumps(sc.materials))
+    if sc.mat_uvs is not None:
+        arrays["mat_uvs"] = sc.mat_uvs
+    arrays["tex_count"] = np.array(len(sc.textures))
+    for i, t in enumerate(sc.textures):
+        arrays[f"tex_{i}"] = t
     from .atomic import atomic_write
     with atomic_write(path) as tmp:
         with open(tmp, "wb") as f:
@@ -276,13 +314,19 @@ def load_scene(path) -> tuple[Scene, dict]:
                 maps.append(NormalMap(z[f"nm_{i}"], float(s)))
         extra = json.loads(str(z["extra"])) if "extra" in keys else {}
         materials = json.loads(str(z["materials"])) if "materials" in keys else []
+        n_tex = int(z["tex_count"]) if "tex_count" in keys else 0
+        missing_tex = [f"tex_{i}" for i in range(n_tex) if f"tex_{i}" not in keys]
+        if missing_tex:
+            raise SceneError(f"{path}: textures {missing_tex} are missing")
+        textures = [z[f"tex_{i}"] for i in range(n_tex)]
         sc = Scene(
             positions=z["positions"], normals=z["normals"], uvs=z["uvs"], set_id=z["set_id"],
             set_names=list(z["set_names"]), set_resolution=z["set_resolution"],
             object_id=get("object_id"),
             object_names=list(z["object_names"]) if "object_names" in keys else None,
             nm_index=get("nm_index"), nm_uvs=get("nm_uvs"), tangents=get("tangents"),
-            normal_maps=maps, material_id=get("material_id"), materials=materials)
+            normal_maps=maps, material_id=get("material_id"), materials=materials,
+            mat_uvs=get("mat_uvs"), textures=textures)
     return sc, extra
 
 
@@ -291,12 +335,33 @@ def scene_hash(sc: Scene) -> str:
     import hashlib
     h = hashlib.sha256()
     for a in (sc.positions, sc.normals, sc.uvs, sc.set_id, sc.set_resolution, sc.object_id,
-              sc.nm_index, sc.nm_uvs, sc.tangents, sc.material_id):
+              sc.nm_index, sc.nm_uvs, sc.tangents, sc.material_id, sc.mat_uvs):
         if a is not None:
             h.update(str(a.shape).encode())
             h.update(np.ascontiguousarray(a).tobytes())
         h.update(b"|")
     h.update(json.dumps([sc.set_names, sc.object_names, sc.materials], sort_keys=True).encode())
+    for m in sc.normal_maps:
+        h.update(m.pixels.tobytes())
+        h.update(str(m.strength).encode())
+    for t in sc.textures:
+        h.update(str(t.shape).encode())
+        h.update(t.tobytes())
+    return h.hexdigest()
+
+
+def geometry_hash(sc: Scene) -> str:
+    """sha256 of what the *transfer* depends on (geometry, UVs, sets, normals,
+    normal maps) - not materials, which only bounce textures bake in."""
+    import hashlib
+    h = hashlib.sha256()
+    for a in (sc.positions, sc.normals, sc.uvs, sc.set_id, sc.set_resolution, sc.object_id,
+              sc.nm_index, sc.nm_uvs, sc.tangents):
+        if a is not None:
+            h.update(str(a.shape).encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+        h.update(b"|")
+    h.update(json.dumps([sc.set_names, sc.object_names], sort_keys=True).encode())
     for m in sc.normal_maps:
         h.update(m.pixels.tobytes())
         h.update(str(m.strength).encode())

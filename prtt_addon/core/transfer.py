@@ -45,7 +45,6 @@ V = 1 where a ray from the point escapes the scene. How it is computed:
 """
 from __future__ import annotations
 
-import concurrent.futures as cf
 import dataclasses
 import math
 import os
@@ -55,6 +54,7 @@ import time
 import numpy as np
 
 from .basis import check_bands
+from .parallel import run_chunks
 from .raytrace import RAY_EPSILON, RayScene
 from .rotation import rotate_zyz, rotation_zyz
 from .sampling import DISTRIBUTIONS, SAMPLERS, hash_u32, hash_unit, pattern_bank
@@ -474,21 +474,14 @@ def _bake_points(rs, pts, settings, progress, cancel, sink):
             stats.add(t_r, b_r, n * st.rays, n, early)
             return n
 
+        def on_result(n):
+            nonlocal done
+            done += n
+            if progress:
+                progress(done, N, stats.rays_traced)
+
         # Biggest chunks first, so the threads finish together.
-        chunks = sorted(chunks, key=lambda c: -c.idx.size)
-        with cf.ThreadPoolExecutor(max_workers=st.n_threads) as ex:
-            futures = [ex.submit(run_chunk, c) for c in chunks]
-            try:
-                for f in cf.as_completed(futures):
-                    done += f.result()
-                    if progress:
-                        progress(done, N, stats.rays_traced)
-            except BaseException:
-                if cancel is not None:
-                    cancel.set()
-                for f in futures:
-                    f.cancel()
-                raise
+        run_chunks(run_chunk, sorted(chunks, key=lambda c: -c.idx.size), st.n_threads, on_result, cancel)
     seconds = time.perf_counter() - t0
     info = {
         "points": N,

@@ -1,0 +1,57 @@
+"""``python -m prtt_addon.bench bounce``: inter-reflection bake on the room scene.
+
+Bakes the room-class scene (1024^2 atlas, glossy floor and table, diffuse
+walls, a metal sphere, ...) lit by Blender's "forest" HDRI: the transfer
+textures first (timed apart), then the bounce levels, and prints per level the
+seconds, texels skipped without rays, rays traced, hits shaded (shading
+evaluations) and rays/s.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+
+from ..cli import env_light
+from ..core.bake import BakeSettings, bake_scene
+from . import scenes
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m prtt_addon.bench bounce", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--resolution", type=int, default=1024)
+    p.add_argument("--rays", type=int, default=256, help="transfer rays per texel")
+    p.add_argument("--bounces", type=int, default=1)
+    p.add_argument("--bounce-rays", type=int, default=64)
+    p.add_argument("--env", default="forest")
+    args = p.parse_args(argv)
+    sc = scenes.room_scene(args.resolution, atlas=True, materials=True)
+    light = env_light(args.env, 5)
+    st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_rays=args.bounce_rays)
+    print(f"room-class scene: {sc.n_triangles} triangles, {args.resolution}^2 atlas, "
+          f"{len(sc.materials)} materials, light '{args.env}'; transfer {args.rays} rays, "
+          f"{args.bounces} bounce(s) x {args.bounce_rays} rays")
+    with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
+        t = time.perf_counter()
+        bake_scene(sc, d, BakeSettings(rays=args.rays, bounces=0), light=light)
+        t_transfer = time.perf_counter() - t
+        t = time.perf_counter()
+        m = bake_scene(sc, d, st, light=light)                 # reuses the transfer: bounces only
+        t_bounce = time.perf_counter() - t
+        assert m["transfer_reused"]
+        b = m["bounce"]
+        print(f"\ntransfer bake: {t_transfer:.2f} s")
+        print(f"bounce bake:   {t_bounce:.2f} s (loading the transfer textures included)")
+        print(f"  {'set':8s} {'level':>5} {'texels':>8} {'skipped':>8} {'rays':>12} {'hits shaded':>12} "
+              f"{'seconds':>8} {'Mrays/s':>8}")
+        for r in b["sets"]:
+            sec = r.get("seconds", 0.0)
+            print(f"  {r['name']:8s} {r['level']:5d} {r['texels']:8d} {r.get('skipped_texels', r['texels']):8d} "
+                  f"{r['rays_traced']:12,d} {r['hits_shaded']:12,d} {sec:8.2f} "
+                  f"{(r['rays_traced'] / sec / 1e6 if sec else 0):8.2f}")
+        print(f"total: {b['rays_traced']:,} rays, {b['hits_shaded']:,} shading evaluations; "
+              f"trace+shade {m['seconds']['bounce_trace']:.2f} s, dilate+write {m['seconds']['bounce_write']:.2f} s")
+        print(f"bounce texture bytes on disk: {sum(os.path.getsize(os.path.join(d, f)) for f in b['files']):,}")
+    return 0
