@@ -28,3 +28,14 @@ def _read_version() -> str:
 
 
 __version__ = _read_version()
+
+
+def register():
+    """Blender extension entry point (imports bpy only now)."""
+    from .blender import registration
+    registration.register()
+
+
+def unregister():
+    from .blender import registration
+    registration.unregister()

@@ -144,6 +144,20 @@ def _cmd_bake_job(args) -> int:
                    resolution=args.resolution, force=args.force, light_override=light)
 
 
+def _cmd_bake_blend(args) -> int:
+    """``python -m prtt_addon bake scene.blend ...``: the add-on's own code path in bpy."""
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        print("prtt: error: this command needs Blender as a Python module (pip install bpy==5.0.1), "
+              "or run: blender -c prtt bake scene.blend", file=sys.stderr)
+        return 1
+    from . import register
+    from .blender.cli import bake_file
+    register()
+    return bake_file(args.rest, prog="python -m prtt_addon bake")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m prtt_addon",
                                 description="PRTT: precomputed radiance transfer textures")
@@ -160,6 +174,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", required=True, help="output folder")
     add_bake_options(b)
     b.set_defaults(func=_cmd_bake_job)
+
+    bk = sub.add_parser("bake", help="bake a .blend file through Blender as a Python module (bpy)",
+                        add_help=False)
+    bk.add_argument("rest", nargs=argparse.REMAINDER)
+    bk.set_defaults(func=_cmd_bake_blend)
 
     d = sub.add_parser("demo", help="the main job (see README)")
     d.add_argument("--bands", type=int, default=5)

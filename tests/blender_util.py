@@ -21,3 +21,41 @@ def new_float_image(bpy, name, pixels_file_order):
     img.colorspace_settings.name = "Non-Color"
     img.pixels.foreach_set(rgba[::-1].ravel())        # Blender stores bottom row first
     return img
+
+
+_REGISTERED = False
+
+
+def addon_bpy():
+    """bpy with PRTT registered (once per process) and an empty factory scene."""
+    global _REGISTERED
+    bpy = fresh_bpy()
+    if not _REGISTERED:
+        import prtt_addon
+        prtt_addon.register()
+        _REGISTERED = True
+    return bpy
+
+
+def select_only(bpy, objects):
+    for o in bpy.context.view_layer.objects:
+        o.select_set(o in objects)
+    bpy.context.view_layer.objects.active = objects[0] if objects else None
+
+
+def uv_snapshot(bpy):
+    """Every UV map's data, names and active/render flags, and selection flags."""
+    snap = {}
+    for o in bpy.data.objects:
+        if o.type != "MESH":
+            continue
+        me = o.data
+        maps = {}
+        for u in me.uv_layers:
+            a = np.empty(len(me.loops) * 2, np.float32)
+            u.uv.foreach_get("vector", a)
+            maps[u.name] = (a, u.active_render, me.uv_layers.active.name == u.name)
+        sel = np.empty(len(me.polygons), bool)
+        me.polygons.foreach_get("select", sel)
+        snap[o.name] = (maps, sel)
+    return snap

@@ -4,7 +4,9 @@
 in a single non-overlapping atlas (one texture set) and returns per-triangle
 corner UVs in [0, 1]. xatlas treats its resolution as a hint, so the atlas is
 re-packed with a lower texel density until it fits ``resolution`` exactly
-(a bounded number of tries), keeping ``padding`` texels between charts.
+(a bounded number of tries), keeping ``padding`` texels between charts; a
+small texture that cannot hold the charts with that padding is retried with
+half the padding, down to 0, before giving up.
 """
 from __future__ import annotations
 
@@ -17,6 +19,20 @@ class UnwrapError(RuntimeError):
 
 def unwrap(meshes: list[tuple[np.ndarray, np.ndarray]], resolution: int, *,
            padding: int = 4, max_tries: int = 6) -> list[np.ndarray]:
+    """See the module doc; raises UnwrapError if even padding 0 does not fit."""
+    if resolution < 8:
+        raise ValueError(f"atlas resolution must be >= 8, got {resolution}")
+    pad = int(padding)
+    while True:
+        try:
+            return _unwrap(meshes, resolution, pad, max_tries)
+        except UnwrapError as exc:
+            if pad == 0 or "could not fit" not in str(exc):
+                raise
+            pad //= 2
+
+
+def _unwrap(meshes, resolution, padding, max_tries):
     """Atlas several meshes together.
 
     meshes : list of (vertices (V, 3) float, faces (F, 3) int).
@@ -25,8 +41,6 @@ def unwrap(meshes: list[tuple[np.ndarray, np.ndarray]], resolution: int, *,
     """
     import xatlas
 
-    if resolution < 8:
-        raise ValueError(f"atlas resolution must be >= 8, got {resolution}")
     tpu = 0.0
     for _ in range(max_tries):
         atlas = xatlas.Atlas()
@@ -49,7 +63,8 @@ def unwrap(meshes: list[tuple[np.ndarray, np.ndarray]], resolution: int, *,
         cur = atlas.texels_per_unit
         tpu = cur * min(resolution / max(w, h, 1), 0.97) if atlas.atlas_count == 1 else cur * 0.7
     else:
-        raise UnwrapError(f"xatlas could not fit the charts into one {resolution}x{resolution} atlas")
+        raise UnwrapError(f"xatlas could not fit the charts into one {resolution}x{resolution} atlas "
+                          f"(padding {padding}); raise the resolution")
     out = []
     for mi, (v, f) in enumerate(meshes):
         vmap, idx, uv = atlas[mi]

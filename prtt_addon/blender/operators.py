@@ -1,0 +1,160 @@
+"""PRTT's operators: Unwrap, Bake Transfer (modal in the UI, blocking headless), Cancel."""
+import bpy
+
+from . import bake_run
+from .export import ExportError
+from .unwrap import UnwrapError, unwrap_objects
+from .worker_job import WorkerJob
+
+
+class PRTT_OT_unwrap(bpy.types.Operator):
+    """Lay out the selected meshes in the dedicated "PRTT" UV map (other UV maps stay as they are)"""
+
+    bl_idname = "prtt.unwrap"
+    bl_label = "Unwrap"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return any(o.type == "MESH" for o in context.selected_objects)
+
+    def execute(self, context):
+        st = context.scene.prtt
+        objects = [o for o in context.selected_objects if o.type == "MESH"]
+        try:
+            overlaps = unwrap_objects(context, objects, method=st.unwrap_method, resolution=st.resolution,
+                                      padding=st.padding, atlas=st.texture_sets == "ATLAS",
+                                      source_map=st.existing_uv_map)
+        except (UnwrapError, RuntimeError) as exc:
+            self.report({"ERROR"}, f"PRTT: {exc}")
+            return {"CANCELLED"}
+        bad = {k: v for k, v in overlaps.items() if v}
+        if bad:
+            self.report({"WARNING"}, "PRTT: overlapping UV islands in " + ", ".join(
+                f"{k} ({v} texels)" for k, v in bad.items()) + "; they would bake wrongly there")
+        else:
+            self.report({"INFO"}, f"PRTT: unwrapped {len(objects)} object(s) into the '{'PRTT'}' UV map")
+        return {"FINISHED"}
+
+
+class PRTT_OT_bake_transfer(bpy.types.Operator):
+    """Bake transfer (and bounce) textures in a separate process; Esc cancels"""
+
+    bl_idname = "prtt.bake_transfer"
+    bl_label = "Bake Transfer"
+
+    force: bpy.props.BoolProperty(name="Force", default=False,
+                                  description="Bake even if the inputs did not change", options={"SKIP_SAVE"})
+
+    _timer = None
+    _job = None
+    _prepared = None
+
+    @classmethod
+    def poll(cls, context):
+        return not context.scene.prtt.baking
+
+    def execute(self, context):
+        # Background mode, scripts and the command lines: run to the end.
+        def progress(e):
+            if e.get("type") == "progress":
+                print(f"PRTT: {e.get('stage')} {e.get('set', '')} {100 * e.get('fraction', 0):.0f}%", flush=True)
+            elif e.get("type") == "warning":
+                print(f"PRTT warning: {e['message']}", flush=True)
+
+        outcome = bake_run.bake_blocking(context, force=self.force, on_event=progress)
+        return self._report(outcome)
+
+    def invoke(self, context, event):
+        if bpy.app.background:
+            return self.execute(context)
+        st = context.scene.prtt
+        try:
+            self._prepared = bake_run.prepare(context)
+        except (ExportError, ValueError, OSError) as exc:
+            st.status = str(exc)
+            self.report({"ERROR"}, f"PRTT: {exc}")
+            return {"CANCELLED"}
+        for w in self._prepared.export.warnings:
+            self.report({"WARNING"}, f"PRTT: {w}")
+        self._job = WorkerJob(self._prepared.job, self._prepared.out_dir, force=self.force).start()
+        st.baking, st.progress, st.status = True, 0.0, "starting"
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.modal_handler_add(self)
+        wm.progress_begin(0, 100)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        st = context.scene.prtt
+        if event.type == "ESC" or (st.status == "cancelling" and not self._job.cancelled):
+            self._job.cancel()
+            st.status = "cancelling"
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        ended = False
+        for e in self._job.events():
+            if e is None:
+                ended = True
+                continue
+            if e.get("type") == "progress":
+                st.progress = float(e.get("fraction", 0.0))
+                st.status = f"{e.get('stage')} {e.get('set', '')}".strip()
+                context.window_manager.progress_update(int(100 * st.progress))
+                if context.workspace is not None:
+                    context.workspace.status_text_set(f"PRTT: {st.status} {100 * st.progress:.0f}%  (Esc cancels)")
+            elif e.get("type") == "warning":
+                self.report({"WARNING"}, f"PRTT: {e['message']}")
+        if not ended and self._job.returncode is None:
+            for area in context.screen.areas if context.screen else []:
+                if area.type == "VIEW_3D":
+                    area.tag_redraw()
+            return {"RUNNING_MODAL"}
+        code = self._job.wait()
+        self._cleanup(context)
+        outcome = bake_run.interpret(self._job, code)
+        bake_run.finish(context, self._prepared, outcome)
+        self._report(outcome)
+        return {"FINISHED"} if outcome.status in ("done", "skipped") else {"CANCELLED"}
+
+    def _cleanup(self, context):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+        wm.progress_end()
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+
+    def _report(self, outcome):
+        level = {"done": "INFO", "skipped": "INFO", "cancelled": "WARNING"}.get(outcome.status, "ERROR")
+        self.report({level}, outcome.message)
+        return {"FINISHED"} if outcome.status in ("done", "skipped") else {"CANCELLED"}
+
+
+class PRTT_OT_cancel_bake(bpy.types.Operator):
+    """Cancel the running bake (the previous textures stay as they were)"""
+
+    bl_idname = "prtt.cancel_bake"
+    bl_label = "Cancel Bake"
+
+    @classmethod
+    def poll(cls, context):
+        return context.scene.prtt.baking
+
+    def execute(self, context):
+        context.scene.prtt.status = "cancelling"
+        return {"FINISHED"}
+
+
+_CLASSES = (PRTT_OT_unwrap, PRTT_OT_bake_transfer, PRTT_OT_cancel_bake)
+
+
+def register():
+    for c in _CLASSES:
+        bpy.utils.register_class(c)
+
+
+def unregister():
+    for c in reversed(_CLASSES):
+        bpy.utils.unregister_class(c)

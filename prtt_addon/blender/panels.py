@@ -1,0 +1,125 @@
+"""The N-panel: View3D > Sidebar > PRTT."""
+import json
+
+import bpy
+from bpy.app.handlers import persistent
+
+
+class _PRTTPanel:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "PRTT"
+
+
+class PRTT_PT_main(_PRTTPanel, bpy.types.Panel):
+    bl_label = "PRTT"
+
+    def draw(self, context):
+        st = context.scene.prtt
+        col = self.layout.column(align=True)
+        if st.baking:
+            col.progress(factor=st.progress, text=f"{st.status} {100 * st.progress:.0f}%")
+            col.operator("prtt.cancel_bake", icon="CANCEL")
+        else:
+            col.operator("prtt.bake_transfer", icon="RENDER_STILL")
+            if st.status:
+                col.label(text=st.status)
+        ob = context.object
+        if ob is not None and ob.type == "MESH":
+            box = self.layout.box()
+            box.label(text=ob.name, icon="OBJECT_DATA")
+            box.prop(ob.prtt, "bake")
+            box.prop(ob.prtt, "resolution")
+            has_uv = "PRTT" in ob.data.uv_layers
+            box.label(text="PRTT UV map: " + ("yes" if has_uv else "missing (Unwrap)"),
+                      icon="CHECKMARK" if has_uv else "ERROR")
+
+
+class PRTT_PT_unwrap(_PRTTPanel, bpy.types.Panel):
+    bl_label = "Unwrap"
+    bl_parent_id = "PRTT_PT_main"
+
+    def draw(self, context):
+        st = context.scene.prtt
+        col = self.layout.column()
+        col.prop(st, "unwrap_method")
+        if st.unwrap_method == "EXISTING":
+            col.prop(st, "existing_uv_map")
+        col.prop(st, "padding")
+        col.prop(st, "texel_density")
+        col.operator("prtt.unwrap", icon="UV")
+
+
+class PRTT_PT_bake(_PRTTPanel, bpy.types.Panel):
+    bl_label = "Bake Settings"
+    bl_parent_id = "PRTT_PT_main"
+
+    def draw(self, context):
+        st = context.scene.prtt
+        col = self.layout.column()
+        col.prop(st, "resolution")
+        col.prop(st, "texture_sets")
+        col.prop(st, "bands")
+        col.prop(st, "rays")
+        row = col.row(align=True)
+        row.prop(st, "adaptive")
+        sub = row.row()
+        sub.active = st.adaptive
+        sub.prop(st, "adaptive_tolerance")
+        col.prop(st, "bounces")
+        if st.bounces:
+            col.prop(st, "bounce_rays")
+        col.prop(st, "light_source")
+        if st.light_source == "BUILTIN":
+            col.prop(st, "builtin_environment")
+        col.prop(st, "normal_maps")
+        col.prop(st, "dilate")
+        col.prop(st, "storage")
+        col.prop(st, "selection_only")
+        col.prop(st, "output_dir")
+
+
+class PRTT_PT_last_bake(_PRTTPanel, bpy.types.Panel):
+    bl_label = "Last Bake"
+    bl_parent_id = "PRTT_PT_main"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context):
+        return bool(context.scene.prtt.last_bake)
+
+    def draw(self, context):
+        try:
+            info = json.loads(context.scene.prtt.last_bake)
+        except ValueError:
+            return
+        col = self.layout.column(align=True)
+        col.label(text=f"{info.get('time', '')}, {info.get('seconds') or 0:.1f} s")
+        col.label(text=f"{len(info.get('set_objects', {}))} texture set(s), light: {info.get('light') or 'none'}")
+        for w in info.get("warnings", [])[:5]:
+            col.label(text=w, icon="ERROR")
+
+
+_CLASSES = (PRTT_PT_main, PRTT_PT_unwrap, PRTT_PT_bake, PRTT_PT_last_bake)
+
+
+@persistent
+def _reset_runtime_state(_):
+    """A .blend saved mid-bake must not open with a bake 'running'."""
+    for scene in bpy.data.scenes:
+        if getattr(scene, "prtt", None) is not None and scene.prtt.baking:
+            scene.prtt.baking = False
+            scene.prtt.status = ""
+
+
+def register():
+    for c in _CLASSES:
+        bpy.utils.register_class(c)
+    bpy.app.handlers.load_post.append(_reset_runtime_state)
+
+
+def unregister():
+    if _reset_runtime_state in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_reset_runtime_state)
+    for c in reversed(_CLASSES):
+        bpy.utils.unregister_class(c)

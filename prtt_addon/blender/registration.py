@@ -1,0 +1,21 @@
+"""register()/unregister() of every Blender class and property PRTT adds."""
+
+
+from . import cli, operators, panels, properties
+
+_MODULES = (properties, operators, panels)
+
+
+def register():
+    for m in _MODULES:
+        m.register()
+    cli.register()
+
+
+def unregister():
+    cli.unregister()
+    for m in reversed(_MODULES):
+        m.unregister()
+
+
+

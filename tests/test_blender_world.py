@@ -1,0 +1,106 @@
+"""The World as SH light, checked against what Cycles renders from the same World."""
+import math
+
+import numpy as np
+import pytest
+
+from prtt_addon.core import envmap, sh
+from tests.blender_util import addon_bpy, new_float_image
+
+pytestmark = pytest.mark.blender
+
+C0 = np.zeros((9, 3))
+C0[0] = [3.0, 3.2, 3.5]
+C0[1] = [0.4, -0.2, 0.1]
+C0[2] = [0.9, 0.7, 0.5]
+C0[3] = [-0.6, 0.3, 0.2]
+C0[5] = [0.3, 0.1, -0.2]
+C0[8] = [-0.2, 0.25, 0.3]
+
+
+def cycles_radiance(bpy, dirs, tmp_path):
+    """Radiance Cycles sees along each direction (a 0.01-rad camera, 1 sample)."""
+    import OpenEXR
+    from mathutils import Vector
+    sc = bpy.context.scene
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    cam.data.angle = 0.01
+    cam.rotation_mode = "QUATERNION"
+    sc.render.engine = "CYCLES"
+    sc.cycles.samples = 1
+    sc.cycles.use_denoising = False
+    sc.render.resolution_x = sc.render.resolution_y = 4
+    sc.render.image_settings.file_format = "OPEN_EXR"
+    sc.render.filepath = str(tmp_path / "r.exr")
+    out = []
+    for d in dirs:
+        cam.rotation_quaternion = Vector(d).to_track_quat("-Z", "Y")
+        bpy.ops.render.render(write_still=True)
+        with OpenEXR.File(str(tmp_path / "r.exr")) as f:
+            out.append(np.array(list(f.channels().values())[0].pixels[1:3, 1:3, :3]).mean(axis=(0, 1)))
+    return np.array(out)
+
+
+def world_with_image(bpy, rotation=None, strength=1.0, vector_type="POINT"):
+    H, W = 64, 128
+    px = envmap.reconstruct_equirect(C0, H, W).astype(np.float32)
+    img = new_float_image(bpy, "env", px)
+    world = bpy.data.worlds.new("W")
+    bpy.context.scene.world = world
+    nt = world.node_tree
+    env = nt.nodes.new("ShaderNodeTexEnvironment")
+    env.image = img
+    bg = nt.nodes["Background"]
+    bg.inputs["Strength"].default_value = strength
+    nt.links.new(env.outputs["Color"], bg.inputs["Color"])
+    if rotation is not None:
+        tc = nt.nodes.new("ShaderNodeTexCoord")
+        mp = nt.nodes.new("ShaderNodeMapping")
+        mp.vector_type = vector_type
+        mp.inputs["Rotation"].default_value = rotation
+        nt.links.new(tc.outputs["Generated"], mp.inputs["Vector"])
+        nt.links.new(mp.outputs["Vector"], env.inputs["Vector"])
+    return world
+
+
+@pytest.mark.parametrize("rotation,vtype", [(None, "POINT"), ((0.0, 0.0, math.radians(90)), "POINT"),
+                                            ((math.radians(35), math.radians(-20), math.radians(60)), "POINT"),
+                                            ((math.radians(35), math.radians(-20), math.radians(60)), "TEXTURE")])
+def test_world_light_matches_cycles(tmp_path, rotation, vtype):
+    bpy = addon_bpy()
+    world_with_image(bpy, rotation, strength=1.5, vector_type=vtype)
+    from prtt_addon.blender.world import world_light
+    L, desc = world_light(bpy.context.scene, 3)
+    assert "x1.5" in desc and ("rotated" in desc) == (rotation is not None)
+    # Not at a pole: Cycles' equirect lookup wraps vertically, blending in the
+    # opposite pole's row within half a pixel of it.
+    dirs = np.array([[1, 0, 0], [0, 1, 0], [0.2, 0.05, 0.98], [-0.6, 0.5, 0.62], [0.3, -0.8, -0.52], [-1, 0, 0.001]])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    ref = cycles_radiance(bpy, dirs, tmp_path)
+    ours = sh.eval_basis(dirs, 3) @ L
+    # pixel-sampled (bilinear) image vs its exact band-limited source: ~1 %
+    np.testing.assert_allclose(ours, ref, rtol=0.03, atol=0.02)
+
+
+def test_constant_world_and_errors(tmp_path):
+    bpy = addon_bpy()
+    from prtt_addon.blender.world import WorldLightError, world_light
+    world = bpy.data.worlds.new("W")
+    bpy.context.scene.world = world
+    bg = world.node_tree.nodes["Background"]
+    bg.inputs["Color"].default_value = (0.2, 0.4, 0.6, 1)
+    bg.inputs["Strength"].default_value = 2.0
+    L, _ = world_light(bpy.context.scene, 2)
+    np.testing.assert_allclose(L[0], np.array([0.4, 0.8, 1.2]) * math.sqrt(4 * math.pi))
+    assert np.all(L[1:] == 0)
+    sky = world.node_tree.nodes.new("ShaderNodeTexSky")
+    world.node_tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    with pytest.raises(WorldLightError, match="Sky Texture.*Environment Texture"):
+        world_light(bpy.context.scene, 2)
+    L2, desc = world_light(bpy.context.scene, 2, source="BUILTIN", builtin="forest")
+    assert "forest" in desc and L2.shape == (4, 3)
+    bpy.context.scene.world = None
+    with pytest.raises(WorldLightError, match="no World"):
+        world_light(bpy.context.scene, 2)
