@@ -144,18 +144,32 @@ def _cmd_bake_job(args) -> int:
                    resolution=args.resolution, force=args.force, light_override=light)
 
 
-def _cmd_bake_blend(args) -> int:
-    """``python -m prtt_addon bake scene.blend ...``: the add-on's own code path in bpy."""
+def _in_bpy(entry: str, argv, prog: str, hint: str) -> int:
+    """Run ``prtt_addon.blender.<entry>`` (a function taking argv and prog) inside
+    Blender as a Python module, with the add-on registered."""
     try:
         import bpy  # noqa: F401
     except ImportError:
-        print("prtt: error: this command needs Blender as a Python module (pip install bpy==5.0.1), "
-              "or run: blender -c prtt bake scene.blend", file=sys.stderr)
+        print(f"prtt: error: this command needs Blender as a Python module (pip install bpy==5.0.1), "
+              f"or run: {hint}", file=sys.stderr)
         return 1
+    import importlib
+
     from . import register
-    from .blender.cli import bake_file
+    module, func = entry.rsplit(".", 1)
     register()
-    return bake_file(args.rest, prog="python -m prtt_addon bake")
+    return getattr(importlib.import_module(f"prtt_addon.blender.{module}"), func)(argv, prog=prog)
+
+
+def _cmd_bake_blend(args) -> int:
+    """``python -m prtt_addon bake scene.blend ...``: the add-on's own code path in bpy."""
+    return _in_bpy("cli.bake_file", args.rest, "python -m prtt_addon bake", "blender -c prtt bake scene.blend")
+
+
+def _cmd_render_blend(args) -> int:
+    """``python -m prtt_addon render scene.blend --out img ...``: the viewport's draw code, offscreen."""
+    return _in_bpy("preview_render.render_file", args.rest, "python -m prtt_addon render",
+                   "blender -c prtt render scene.blend --out image.png")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -179,6 +193,11 @@ def build_parser() -> argparse.ArgumentParser:
                         add_help=False)
     bk.add_argument("rest", nargs=argparse.REMAINDER)
     bk.set_defaults(func=_cmd_bake_blend)
+
+    rn = sub.add_parser("render", help="render the viewport preview of a baked .blend offscreen (bpy)",
+                        add_help=False)
+    rn.add_argument("rest", nargs=argparse.REMAINDER)
+    rn.set_defaults(func=_cmd_render_blend)
 
     d = sub.add_parser("demo", help="the main job (see README)")
     d.add_argument("--bands", type=int, default=5)

@@ -242,3 +242,15 @@ def test_unwritable_output_folder(tmp_path):
 def test_bad_settings(bad, match, tmp_path):
     with pytest.raises(ValueError, match=match):
         bake_scene(floor_and_box(res=8), tmp_path, BakeSettings(**bad))
+
+
+def test_atomic_writes_get_normal_permissions(tmp_path):
+    """mkstemp makes 0600 files; outputs must be as readable as open() would make
+    them (others on a render farm read the textures), and keep an old file's mode."""
+    from prtt_addon.core import atomic
+    good = np.zeros((4, 4, 9), np.float32)
+    exr_io.write_sh_exr(tmp_path / "new.exr", good, kind="transfer")
+    assert os.stat(tmp_path / "new.exr").st_mode & 0o777 == 0o666 & ~atomic._UMASK
+    os.chmod(tmp_path / "new.exr", 0o640)
+    exr_io.write_sh_exr(tmp_path / "new.exr", good + 1, kind="transfer")
+    assert os.stat(tmp_path / "new.exr").st_mode & 0o777 == 0o640

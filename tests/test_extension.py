@@ -28,7 +28,8 @@ def test_zip_layout(extension_zip):
     with zipfile.ZipFile(extension_zip) as z:
         names = set(z.namelist())
         man = tomllib.loads(z.read("blender_manifest.toml").decode())
-    assert {"blender_manifest.toml", "__init__.py", "worker.py", "core/sh.py", "blender/operators.py"} <= names
+    assert {"blender_manifest.toml", "__init__.py", "worker.py", "core/sh.py", "blender/operators.py",
+            "shader_source.py", "shaders/prtt_common.glsl", "shaders/prtt_surface_frag.glsl"} <= names
     assert not any(n.startswith("bench/") or "__pycache__" in n for n in names)
     assert man["id"] == "prtt_addon" and man["platforms"] == ["linux-x64"]
     wheels = man["wheels"]
@@ -61,9 +62,19 @@ def test_install_enable_and_bake(extension_zip, tmp_path):
             o.select_set(True)
         st = bpy.context.scene.prtt
         st.resolution, st.rays, st.bounces, st.output_dir = 32, 32, 0, {str(tmp_path / "out")!r}
+        st.light_source = "BUILTIN"              # no World in an empty scene
         assert bpy.ops.prtt.unwrap() == {{"FINISHED"}}
         assert bpy.ops.prtt.bake_transfer() == {{"FINISHED"}}
         print("FILES", sorted(os.listdir({str(tmp_path / "out")!r})))
+        # The installed copy finds its shaders inside the extension folder.
+        from bl_ext.user_default.prtt_addon.shader_source import shader_dir
+        assert shader_dir().startswith(os.path.dirname(pkg.__file__)), shader_dir()
+        bpy.ops.object.camera_add(location=(4, -4, 3), rotation=(1.0, 0.0, 0.8))
+        bpy.context.scene.camera = bpy.context.active_object
+        bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = 32, 24
+        assert bpy.ops.prtt.render_preview() == {{"FINISHED"}}
+        img = bpy.data.images["PRTT Preview"]
+        print("PREVIEW", tuple(img.size), max(list(img.pixels)[3::4]))
     """)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["BLENDER_USER_RESOURCES"] = str(tmp_path / "blender-user")
@@ -71,3 +82,4 @@ def test_install_enable_and_bake(extension_zip, tmp_path):
                        cwd=str(tmp_path), timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "FILES ['Plane.transfer.exr', 'Suzanne.transfer.exr', 'manifest.json']" in r.stdout
+    assert "PREVIEW (32, 24) 1.0" in r.stdout

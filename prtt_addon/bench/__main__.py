@@ -4,6 +4,8 @@ import sys
 BENCHMARKS = {
     "bake": ("prtt_addon.bench.bake_bench", "transfer bake vs raw Embree on the room-class scene"),
     "bounce": ("prtt_addon.bench.bounce_bench", "inter-reflection bake on the room-class scene"),
+    "render": ("prtt_addon.bench.render_bench", "preview frame time per mode vs triangles and resolution"),
+    "contact": ("prtt_addon.bench.contact", "the paper's contact-shadow figure, measured against ray tracing"),
 }
 
 

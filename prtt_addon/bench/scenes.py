@@ -158,3 +158,52 @@ def with_room_materials(sc: Scene) -> Scene:
     sc.material_id = sc.object_id.copy()
     validate(sc)
     return sc
+
+
+def _bunny_unwrapped(resolution: int = 256):
+    """The 69K-triangle bunny (smooth, Z up, 0.5 m tall) and an xatlas unwrap,
+    cached (the unwrap takes ~15 s)."""
+    path = os.path.join(CACHE, f"bunny-uv-{resolution}-v1.npz")
+    b = mg.load_obj(mg.asset_path("stanford-bunny.obj"), smooth=True)
+    # The scan is Y up: turn it Z up, scale to 0.5 m, stand it at the origin.
+    v = b.vertices[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])
+    n = b.normals[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0]) if b.normals is not None else None
+    b = mg.Mesh(v, b.faces, n)               # (x, y, z) -> (x, -z, y) is a rotation: winding kept
+    s = 0.5 / (b.vertices[:, 2].max() - b.vertices[:, 2].min())
+    c = b.vertices.mean(axis=0)
+    b = b.transformed(scale=s, translate=(-c[0] * s, -c[1] * s, -b.vertices[:, 2].min() * s))
+    if os.path.isfile(path):
+        with np.load(path) as z:
+            return b, np.array(z["uv"])
+    from ..core.unwrap import unwrap
+    uv = unwrap([(b.vertices, b.faces)], resolution, padding=2)[0]
+    os.makedirs(CACHE, exist_ok=True)
+    np.savez(path, uv=uv)
+    return b, uv
+
+
+def render_scaling_scene(bunnies: int, *, resolution: int = 1024, bunny_resolution: int = 256) -> Scene:
+    """The room (one atlas) plus ``bunnies`` copies of the 69K-triangle bunny,
+    each with its own 256^2 texture set (the copies share one unwrap, each gets
+    its own texels): 21K, ~300K (4 copies), ~1.27M (18 copies) triangles, all drawn."""
+    room = room_scene(resolution, atlas=True)
+    if bunnies == 0:
+        return room
+    b, uv = _bunny_unwrapped(bunny_resolution)
+    P0, N0 = b.corner_positions(), b.corner_normals()
+    pos, nrm, uvs = [room.positions], [room.normals], [room.uvs]
+    set_id, obj_id = [room.set_id], [room.object_id]
+    names, res, objs = list(room.set_names), [list(r) for r in room.set_resolution], list(room.object_names)
+    for k in range(bunnies):
+        x, y = -2.5 + (k % 6) * 1.0, -2.6 + (k // 6) * 0.9
+        pos.append(P0 + [x, y, 0.0])
+        nrm.append(N0)
+        uvs.append(uv)
+        set_id.append(np.full(b.n_faces, len(names), np.int32))
+        obj_id.append(np.full(b.n_faces, len(objs), np.int32))
+        names.append(f"bunny{k}")
+        objs.append(f"bunny{k}")
+        res.append([bunny_resolution, bunny_resolution])
+    return Scene(positions=np.concatenate(pos), normals=np.concatenate(nrm).astype(np.float32),
+                 uvs=np.concatenate(uvs), set_id=np.concatenate(set_id), set_names=names,
+                 set_resolution=np.array(res), object_id=np.concatenate(obj_id), object_names=objs)

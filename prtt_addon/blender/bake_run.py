@@ -19,6 +19,8 @@ import numpy as np
 from ..core.bake import BakeSettings
 from ..core.scene import save_scene
 from .export import ExportError, export_scene
+from .preview_scene import materials_signature
+from .properties import redraw_viewports
 from .worker_job import WorkerJob
 
 JOB_FILE = ".prtt-job.npz"
@@ -56,7 +58,7 @@ def bake_settings(scene) -> dict:
     st = scene.prtt
     s = BakeSettings(bands=st.bands, rays=st.rays, adaptive_tol=st.adaptive_tolerance if st.adaptive else 0.0,
                      dilate=st.dilate, half=st.storage == "HALF", normal_maps=st.normal_maps,
-                     bounces=st.bounces, bounce_rays=st.bounce_rays)
+                     bounces=st.bounces, bounce_rays=st.bounce_rays, vertex_mode=st.vertex_transfer)
     return s.validate().as_dict()
 
 
@@ -120,9 +122,12 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
                                                           ("levels", "light_hash", "materials_hash", "files")},
                "light": prepared.export.light_description, "seconds": m["seconds"].get("total"),
                "warnings": m.get("warnings", []) + prepared.export.warnings,
+               "objects": prepared.export.objects,
+               "materials_signature": materials_signature(context.scene),
                "time": time.strftime("%Y-%m-%d %H:%M:%S")}
     st.last_bake = json.dumps(summary)
     load_preview_images(prepared.out_dir, m)
+    redraw_viewports(context)
 
 
 def load_preview_images(out_dir: str, manifest: dict) -> list:

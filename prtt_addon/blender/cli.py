@@ -1,5 +1,8 @@
 """``blender -c prtt <command> ...`` and the shared headless entry points.
 
+``render`` (preview_render.render_file) draws the viewport preview of a baked
+.blend offscreen into a PNG/EXR.
+
 ``blender -c prtt bake scene.blend [--out DIR] [options]`` and
 ``python -m prtt_addon bake scene.blend [...]`` (Blender as a Python module)
 both call :func:`bake_file`, which opens the .blend and runs the same
@@ -34,17 +37,25 @@ def bake_parser(prog: str) -> argparse.ArgumentParser:
     return p
 
 
+def open_scene(blend: str, scene_name: str | None):
+    """Open a .blend and return its scene (the named one, else the active one),
+    or None after printing why not."""
+    try:
+        bpy.ops.wm.open_mainfile(filepath=blend, load_ui=False)
+    except RuntimeError as exc:
+        print(f"prtt: error: cannot open {blend}: {exc}", file=sys.stderr)
+        return None
+    scene = bpy.data.scenes.get(scene_name) if scene_name else bpy.context.scene
+    if scene is None:
+        print(f"prtt: error: no scene {scene_name!r} in {blend}", file=sys.stderr)
+    return scene
+
+
 def bake_file(argv, prog="prtt bake") -> int:
     """Open a .blend and bake it. Returns an exit status (0 ok, 1 failed, 3 cancelled)."""
     args = bake_parser(prog).parse_args(argv)
-    try:
-        bpy.ops.wm.open_mainfile(filepath=args.blend, load_ui=False)
-    except RuntimeError as exc:
-        print(f"prtt: error: cannot open {args.blend}: {exc}", file=sys.stderr)
-        return 1
-    scene = bpy.data.scenes.get(args.scene) if args.scene else bpy.context.scene
+    scene = open_scene(args.blend, args.scene)
     if scene is None:
-        print(f"prtt: error: no scene {args.scene!r} in {args.blend}", file=sys.stderr)
         return 1
     if bpy.context.window is not None:
         bpy.context.window.scene = scene
@@ -83,12 +94,17 @@ def bake_file(argv, prog="prtt bake") -> int:
 def _cli(argv) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print("usage: blender -c prtt bake FILE.blend [--out DIR] [options]\n"
-              "       blender -c prtt bake --help")
+              "       blender -c prtt render FILE.blend --out IMAGE.png|exr [--mode tpfl|tp|vertex-tpfl|"
+              "vertex-tp|diffuse] [--camera NAME] [--size WxH]\n"
+              "       blender -c prtt bake|render --help")
         return 0 if argv else 2
     cmd, rest = argv[0], argv[1:]
     if cmd == "bake":
         return bake_file(rest, prog="blender -c prtt bake")
-    print(f"prtt: unknown command {cmd!r}; use bake", file=sys.stderr)
+    if cmd == "render":
+        from .preview_render import render_file
+        return render_file(rest, prog="blender -c prtt render")
+    print(f"prtt: unknown command {cmd!r}; use bake or render", file=sys.stderr)
     return 2
 
 

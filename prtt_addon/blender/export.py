@@ -42,6 +42,7 @@ class ExportResult:
     occluders: int               # triangles that only cast shadows
     light: np.ndarray | None = None
     light_description: str = ""
+    objects: dict = dataclasses.field(default_factory=dict)   # baked object -> set, triangles, offset, matrix
 
 
 def safe_name(name: str, taken: set) -> str:
@@ -104,6 +105,7 @@ def export_scene(context, *, with_light: bool = True) -> ExportResult:
             continue
         part["name"] = orig.name
         part["baked"] = baked
+        part["matrix"] = np.array(inst.matrix_world, dtype=np.float64)
         part["obj"] = orig
         parts.append(part)
     if missing_uv:
@@ -260,6 +262,16 @@ def _assemble(context, parts, mats, warnings, st, with_light) -> ExportResult:
     except SceneError as exc:
         raise ExportError(_explain(exc, parts, set_of_part)) from exc
     res = ExportResult(sc, set_objects, warnings, occluders)
+    # Where each baked object's triangles sit in its set (vertex transfer rows
+    # follow this order) and where the object was, for the preview's checks.
+    in_set: dict = {}
+    for p, s in zip(parts, set_of_part):
+        if s < 0:
+            continue
+        n = int(p["positions"].shape[0])
+        res.objects[p["name"]] = {"set": set_names[s], "triangles": n, "offset": in_set.get(s, 0),
+                                  "matrix": p["matrix"].tolist()}
+        in_set[s] = in_set.get(s, 0) + n
     if with_light:
         from .world import world_light
         res.light, res.light_description = world_light(context.scene, max(st.bands, 1),

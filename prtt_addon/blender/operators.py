@@ -147,7 +147,48 @@ class PRTT_OT_cancel_bake(bpy.types.Operator):
         return {"FINISHED"}
 
 
-_CLASSES = (PRTT_OT_unwrap, PRTT_OT_bake_transfer, PRTT_OT_cancel_bake)
+class PRTT_OT_render_preview(bpy.types.Operator):
+    """Render the PRTT preview from the scene camera at the render size into the image PRTT Preview"""
+
+    bl_idname = "prtt.render_preview"
+    bl_label = "Render Preview Image"
+
+    @classmethod
+    def poll(cls, context):
+        return bool(context.scene.prtt.last_bake) and context.scene.camera is not None
+
+    def execute(self, context):
+        import numpy as np
+
+        from .preview_render import RenderError, exposure_of, render_scene
+        from .properties import PREVIEW_MODES
+        st = context.scene.prtt
+        mode = PREVIEW_MODES[st.preview_mode]
+        try:
+            pixels, stats, status, seconds = render_scene(context, mode=mode, bounces=st.preview_bounces)
+        except (RenderError, ValueError, OSError) as exc:
+            self.report({"ERROR"}, f"PRTT: {exc}")
+            return {"CANCELLED"}
+        h, w = pixels.shape[:2]
+        img = bpy.data.images.get("PRTT Preview")
+        if img is not None and tuple(img.size) != (w, h):
+            bpy.data.images.remove(img)
+            img = None
+        if img is None:
+            img = bpy.data.images.new("PRTT Preview", w, h, float_buffer=True, alpha=True)
+        px = pixels.copy()
+        px[..., :3] *= exposure_of(context.scene)
+        img.pixels.foreach_set(np.ascontiguousarray(px, np.float32).ravel())   # bottom row first, like ours
+        img.update()
+        for level, text in status.messages:
+            if level != "INFO":
+                self.report({"WARNING"}, f"PRTT: {text}")
+        self.report({"INFO"}, f"PRTT: {mode} preview {w}x{h} in {1000 * seconds:.0f} ms "
+                              f"({len(stats.drawn)} object(s)) -> image 'PRTT Preview'")
+        return {"FINISHED"}
+
+
+_CLASSES = (PRTT_OT_unwrap, PRTT_OT_bake_transfer, PRTT_OT_cancel_bake, PRTT_OT_render_preview)
 
 
 def register():

@@ -73,10 +73,47 @@ class PRTT_PT_bake(_PRTTPanel, bpy.types.Panel):
         if st.light_source == "BUILTIN":
             col.prop(st, "builtin_environment")
         col.prop(st, "normal_maps")
+        col.prop(st, "vertex_transfer")
         col.prop(st, "dilate")
         col.prop(st, "storage")
         col.prop(st, "selection_only")
         col.prop(st, "output_dir")
+
+
+class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
+    bl_label = "Preview"
+    bl_parent_id = "PRTT_PT_main"
+
+    def draw(self, context):
+        from . import preview_draw, preview_scene
+        st = context.scene.prtt
+        col = self.layout.column()
+        row = col.row(align=True)
+        row.prop(st, "preview", toggle=True, icon="SHADING_RENDERED")
+        row.prop(st, "preview_mode", text="")
+        col.prop(st, "preview_bounces")
+        col.operator("prtt.render_preview", icon="RENDER_RESULT")
+        if not st.last_bake:
+            col.label(text="Bake Transfer first", icon="INFO")
+            return
+        try:
+            _, status = preview_scene.collect(context, use_bounces=st.preview_bounces, with_meshes=False)
+        except Exception as exc:          # a panel must draw whatever happens
+            col.label(text=f"{type(exc).__name__}: {exc}", icon="ERROR")
+            return
+        if status.light_description:
+            col.label(text=f"Light: {status.light_description}", icon="WORLD")
+        for level, text in status.messages:
+            col.label(text=text, icon={"ERROR": "ERROR", "WARNING": "ERROR"}.get(level, "INFO"))
+        if st.preview:
+            stats = preview_draw.last_status.get("stats")
+            if preview_draw.last_status.get("error"):
+                col.label(text=preview_draw.last_status["error"], icon="ERROR")
+            elif stats is not None:
+                col.label(text=f"{len(stats.drawn)} object(s), {stats.triangles} triangles, "
+                               f"{stats.texture_bytes / 2**20:.0f} MiB of textures")
+                for name, why in list(stats.skipped.items())[:4]:
+                    col.label(text=f"{name}: {why}", icon="ERROR")
 
 
 class PRTT_PT_last_bake(_PRTTPanel, bpy.types.Panel):
@@ -100,7 +137,7 @@ class PRTT_PT_last_bake(_PRTTPanel, bpy.types.Panel):
             col.label(text=w, icon="ERROR")
 
 
-_CLASSES = (PRTT_PT_main, PRTT_PT_unwrap, PRTT_PT_bake, PRTT_PT_last_bake)
+_CLASSES = (PRTT_PT_main, PRTT_PT_unwrap, PRTT_PT_bake, PRTT_PT_preview, PRTT_PT_last_bake)
 
 
 @persistent

@@ -13,6 +13,24 @@ def _builtin_env_items(self, context):
     return [(n, n.capitalize(), f"Blender's studio light '{n}'") for n in names]
 
 
+def redraw_viewports(context) -> None:
+    """Ask every 3D viewport to redraw (no-op in background mode: no windows)."""
+    wm = context.window_manager
+    for window in (wm.windows if wm is not None else []):
+        for area in window.screen.areas:
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+
+
+def _redraw(self, context):
+    redraw_viewports(context)
+
+
+#: Property value of each preview mode -> shader mode name.
+PREVIEW_MODES = {"TPFL": "tpfl", "TP": "tp", "VERTEX_TPFL": "vertex-tpfl", "VERTEX_TP": "vertex-tp",
+                 "DIFFUSE": "diffuse"}
+
+
 class PRTTSceneSettings(bpy.types.PropertyGroup):
     # --- unwrap -------------------------------------------------------------------
     unwrap_method: EnumProperty(
@@ -48,6 +66,9 @@ class PRTTSceneSettings(bpy.types.PropertyGroup):
         name="Texture Sets", default="OBJECT",
         items=[("OBJECT", "Per Object", "One texture per object"),
                ("ATLAS", "One Atlas", "Every object in one shared texture")])
+    vertex_transfer: BoolProperty(
+        name="Vertex Transfer", default=False,
+        description="Also bake per-vertex transfer, for the traditional vertex-shader baselines of the preview")
     normal_maps: BoolProperty(name="Normal Maps", default=True,
                               description="Bake with the materials' tangent-space normal maps")
     dilate: IntProperty(name="Dilation", default=3, min=0, max=64,
@@ -63,6 +84,18 @@ class PRTTSceneSettings(bpy.types.PropertyGroup):
         items=[("WORLD", "World", "The scene World's environment texture or colour"),
                ("BUILTIN", "Studio HDRI", "One of Blender's bundled studio HDRIs")])
     builtin_environment: EnumProperty(name="HDRI", items=_builtin_env_items)
+    # --- viewport preview -----------------------------------------------------------
+    preview: BoolProperty(name="Preview", default=False, update=_redraw,
+                          description="Draw baked objects with PRT shading in the 3D viewport")
+    preview_mode: EnumProperty(
+        name="Mode", default="TPFL", update=_redraw,
+        items=[("TPFL", "TPFL (fragment)", "Triple product with fixed light per pixel, transfer textures"),
+               ("TP", "TP (fragment)", "Full triple product per pixel (slower; same image as TPFL)"),
+               ("VERTEX_TPFL", "TPFL (vertex)", "Traditional baseline: per-vertex transfer, colour interpolated"),
+               ("VERTEX_TP", "TP (vertex)", "Traditional baseline with the full triple product per vertex"),
+               ("DIFFUSE", "Diffuse", "Double product only: diffuse shading, no glossy lobe")])
+    preview_bounces: BoolProperty(name="Inter-reflections", default=True, update=_redraw,
+                                  description="Add the bounce textures (when the bake made them)")
     # --- state ----------------------------------------------------------------------
     status: StringProperty(name="Status", default="")
     progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR")

@@ -1,9 +1,9 @@
 """register()/unregister() of every Blender class and property PRTT adds."""
 
 
-from . import cli, operators, panels, properties
+from . import cli, operators, panels, preview_draw, properties
 
-_MODULES = (properties, operators, panels)
+_MODULES = (properties, operators, panels, preview_draw)
 
 
 def register():

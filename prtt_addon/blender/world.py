@@ -20,6 +20,7 @@ node, or to the panel's studio HDRI):
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 
@@ -84,16 +85,33 @@ def mapping_rotation(node) -> np.ndarray:
     return R if node.vector_type == "POINT" else R.T
 
 
-def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "forest") -> tuple[np.ndarray, str]:
-    """(K, 3) SH light and a one-line description, from the scene's World or a studio HDRI."""
+@dataclasses.dataclass(frozen=True)
+class WorldSetup:
+    """The World's light as parsed from its nodes, before any pixels are read.
+
+    key identifies the unrotated, unscaled projection (it changes when the image
+    or the constant colour does, not when strength or rotation do), so the
+    viewport can cache the projection and turn the light in real time."""
+
+    key: tuple
+    source: object            # image pixels loader (callable), or an rgb constant (np.ndarray)
+    strength: float
+    rotation: np.ndarray | None   # R of the Mapping node (lookup directions are R w), or None
+    description: str
+
+
+def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> WorldSetup:
+    """Parse the World's nodes (or the studio HDRI choice). Cheap: reads no pixels."""
     if source == "BUILTIN":
-        return envmap.project_equirect(builtin, bands), f"studio HDRI '{builtin}'"
+        return WorldSetup(("builtin", builtin), lambda: envmap.builtin_environment_path(builtin), 1.0, None,
+                          f"studio HDRI '{builtin}'")
     world = scene.world
     if world is None:
         raise WorldLightError("the scene has no World: add one, or choose a studio HDRI as the light")
     if not world.node_tree:
         c = np.array(world.color[:3], dtype=np.float64)
-        return _constant(c, bands), f"World colour {tuple(round(float(x), 3) for x in c)}"
+        return WorldSetup(("color", tuple(c)), c, 1.0, None,
+                          f"World colour {tuple(round(float(x), 3) for x in c)}")
     out = next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output),
                None) or next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeOutputWorld"), None)
     if out is None or not out.inputs["Surface"].is_linked:
@@ -107,29 +125,51 @@ def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "for
     strength = float(bg.inputs["Strength"].default_value)
     col = bg.inputs["Color"]
     if not col.is_linked:
-        c = np.array(col.default_value[:3], dtype=np.float64) * strength
-        return _constant(c, bands), f"World colour x{strength:g}"
+        c = np.array(col.default_value[:3], dtype=np.float64)
+        return WorldSetup(("color", tuple(c)), c, strength, None, f"World colour x{strength:g}")
     env = _linked(col)
     if env.bl_idname != "ShaderNodeTexEnvironment":
         raise WorldLightError(f"World {world.name!r}: {env.name!r} ({env.bl_label}) feeds the Background; "
                               f"PRTT understands an Environment Texture (or choose a studio HDRI)")
-    if env.image is None:
+    img = env.image
+    if img is None:
         raise WorldLightError(f"World {world.name!r}: the Environment Texture has no image")
     if env.projection != "EQUIRECTANGULAR":
         raise WorldLightError(f"World {world.name!r}: only equirectangular environments are supported")
-    L = envmap.project_equirect(_image_pixels(env.image), bands) * strength
+    desc = f"World image {img.name!r} x{strength:g}"
+    R = None
     vec = env.inputs["Vector"]
-    desc = f"World image {env.image.name!r} x{strength:g}"
     if vec.is_linked:
         m = _linked(vec)
         if m.bl_idname != "ShaderNodeMapping":
             raise WorldLightError(f"World {world.name!r}: {m.name!r} ({m.bl_label}) feeds the Environment "
                                   f"Texture's vector; PRTT understands a Mapping node")
         R = mapping_rotation(m)
-        # L(w) = img(R w)  ->  the image's coefficients rotated by R^T.
-        L = sh.rotate(L, R.T)
         desc += ", rotated"
-    return L, desc
+    key = ("image", img.name, img.filepath, img.source, tuple(img.size), bool(img.packed_file), img.is_dirty)
+    return WorldSetup(key, lambda: _image_pixels(img), strength, R, desc)
+
+
+def project_setup(setup: WorldSetup, bands: int) -> np.ndarray:
+    """(K, 3) SH of the unrotated environment at strength 1 (the expensive part)."""
+    if isinstance(setup.source, np.ndarray):
+        return _constant(setup.source, bands)
+    return envmap.project_equirect(setup.source(), bands)
+
+
+def compose_light(setup: WorldSetup, projection: np.ndarray) -> np.ndarray:
+    """The world-frame light: projection x strength, turned by the Mapping rotation."""
+    L = projection * setup.strength
+    if setup.rotation is not None:
+        # L(w) = img(R w)  ->  the image's coefficients rotated by R^T.
+        L = sh.rotate(L, setup.rotation.T)
+    return L
+
+
+def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "forest") -> tuple[np.ndarray, str]:
+    """(K, 3) SH light and a one-line description, from the scene's World or a studio HDRI."""
+    setup = world_setup(scene, source=source, builtin=builtin)
+    return compose_light(setup, project_setup(setup, bands)), setup.description
 
 
 def _constant(c, bands) -> np.ndarray:

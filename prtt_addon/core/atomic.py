@@ -15,6 +15,25 @@ import tempfile
 TMP_PREFIX = ".prtt-tmp-"
 
 
+def _process_umask() -> int:
+    # os.umask can only be read by setting it; done once, at import, before threads.
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+_UMASK = _process_umask()
+
+
+def _final_mode(path: str) -> int:
+    """The permissions a plain open() would give: the old file's, else 0666 & ~umask
+    (mkstemp makes its file 0600, which would hide textures from other users)."""
+    try:
+        return os.stat(path).st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_UMASK
+
+
 @contextlib.contextmanager
 def atomic_write(path):
     """Yield a temporary path; on clean exit fsync it and rename it to ``path``.
@@ -32,6 +51,7 @@ def atomic_write(path):
         yield tmp
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        os.chmod(tmp, _final_mode(path))
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -81,6 +81,25 @@ def sample_bilinear(img_top_first: np.ndarray, uv: np.ndarray) -> np.ndarray:
             + (img[y1w, x0w] * (1 - fx) + img[y1w, x1w] * fx) * fy)
 
 
+def perturb_normals(N, tangent, sign, encoded_rgb, strength: float) -> tuple[np.ndarray, np.ndarray]:
+    """Tangent-space normal mapping (the viewport shader's normal_mapped()).
+
+    N (n, 3) unit interpolated normals; tangent (n, 3) interpolated tangents;
+    sign (n,) bitangent signs (< 0 means -1); encoded_rgb (n, 3) map values
+    in 0..1; strength as the Normal Map node's. Returns (normals, ok): where the
+    tangent or the mapped vector vanishes the input normal is kept (ok False).
+    """
+    ts = 2.0 * np.asarray(encoded_rgb, np.float64) - 1.0
+    # Gram-Schmidt keeps T orthogonal to the interpolated normal.
+    tan = tangent - N * np.einsum("nc,nc->n", tangent, N)[:, None]
+    tan, tl = _normalize(tan)
+    B = np.where(np.asarray(sign) < 0, -1.0, 1.0)[:, None] * np.cross(N, tan)
+    mapped_n, ml = _normalize(ts[:, :1] * tan + ts[:, 1:2] * B + ts[:, 2:3] * N)
+    good = (tl > 1e-12) & (ml > 1e-12)
+    blended, _ = _normalize(N + (mapped_n - N) * max(strength, 0.0))
+    return np.where(good[:, None], blended, N), good
+
+
 def apply_normal_maps(sc: Scene, tri, bary, n_interp) -> tuple[np.ndarray, np.ndarray]:
     """Shading normals from tangent-space normal maps where triangles have one."""
     out = n_interp.copy()
@@ -94,21 +113,10 @@ def apply_normal_maps(sc: Scene, tri, bary, n_interp) -> tuple[np.ndarray, np.nd
             continue
         t, b = tri[sel], bary[sel]
         uv = np.einsum("nk,nkc->nc", b, sc.nm_uvs[t])
-        rgb = sample_bilinear(nm.pixels, uv)
-        ts = 2.0 * rgb - 1.0
-        N = n_interp[sel]
         tan = np.einsum("nk,nkc->nc", b, sc.tangents[t, :, :3].astype(np.float64))
-        # Gram-Schmidt keeps T orthogonal to the interpolated normal.
-        tan = tan - N * np.einsum("nc,nc->n", tan, N)[:, None]
-        tan, tl = _normalize(tan)
-        sign = np.where(sc.tangents[t, 0, 3] < 0, -1.0, 1.0)[:, None]
-        B = sign * np.cross(N, tan)
-        mapped_n = ts[:, :1] * tan + ts[:, 1:2] * B + ts[:, 2:3] * N
-        mapped_n, ml = _normalize(mapped_n)
-        good = (tl > 1e-12) & (ml > 1e-12)
-        s = max(nm.strength, 0.0)
-        blended, _ = _normalize(N + (mapped_n - N) * s)
-        out[sel[good]] = blended[good]
+        new, good = perturb_normals(n_interp[sel], tan, sc.tangents[t, 0, 3],
+                                    sample_bilinear(nm.pixels, uv), nm.strength)
+        out[sel[good]] = new[good]
         mapped[sel[good]] = True
     return out, mapped
 

@@ -113,9 +113,14 @@ class ShadingParams:
 
 def derive(base, metallic, roughness, specular, ior) -> ShadingParams:
     """Principled values per point -> ShadingParams (formulas in the module doc)."""
+    return derive_from_f0(base, metallic, roughness, dielectric_f0(ior, specular))
+
+
+def derive_from_f0(base, metallic, roughness, f0) -> ShadingParams:
+    """As :func:`derive`, with the dielectric F0 (N,) already folded from ior and specular."""
     base = np.asarray(base, dtype=np.float64)
     m = np.asarray(metallic, dtype=np.float64)[:, None]
-    f0 = dielectric_f0(ior, specular)[:, None]
+    f0 = np.asarray(f0, dtype=np.float64)[:, None]
     return ShadingParams(base * (1.0 - m), (1.0 - m) * f0 + m * base, phong_exponent(roughness))
 
 

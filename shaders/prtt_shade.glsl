@@ -1,0 +1,77 @@
+/* The per-point shading shared by the fragment modes (per pixel) and the vertex
+ * baselines (per vertex): material, incident radiance by the selected product,
+ * bounce textures, outgoing radiance. Needs `material` (struct PRTTMaterial),
+ * `light`, and the samplers named below when their features are compiled in. */
+
+/* Material at a point with material-texture coordinates muv. */
+void surface_material(vec2 muv, out vec3 albedo, out vec3 spec, out float exponent)
+{
+  int flags = int(material.params.w + 0.5);
+  vec3 base = material.base.rgb;
+  float roughness = material.params.x;
+  if ((flags & 1) != 0) {
+    base = bilinear_repeat(baseTex, muv).rgb;
+  }
+  if ((flags & 2) != 0) {
+    roughness = bilinear_repeat(roughTex, muv).r;
+  }
+  derive_material(base, material.base.a, roughness, material.params.y, albedo, spec, exponent);
+}
+
+#ifdef PRTT_BOUNCE
+/* Bounce texture layout: layer c * SH_K4 + q holds channel c of coefficients 4q..4q+3.
+ * Adds the bounce radiance B to Lp before the lobes (linear, so B is contracted alone). */
+void add_bounce(vec2 uv, float w[SH_K], inout vec3 dc, inout vec3 glossy)
+{
+  for (int q = 0; q < SH_K4; q++) {
+    vec4 r = textureLod(bounceTex, vec3(uv, float(q)), 0.0);
+    vec4 g = textureLod(bounceTex, vec3(uv, float(SH_K4 + q)), 0.0);
+    vec4 b = textureLod(bounceTex, vec3(uv, float(2 * SH_K4 + q)), 0.0);
+    if (q == 0) {
+      dc += vec3(r.x, g.x, b.x);
+    }
+    for (int c = 0; c < 4; c++) {
+      int k = 4 * q + c;
+      if (k < SH_K) {
+        glossy += w[k] * vec3(r[c], g[c], b[c]);
+      }
+    }
+  }
+}
+#endif
+
+/* Outgoing radiance at a point with transfer T4, PRTT UV uv (for the bounce
+ * textures), unit normal n and unit view vector v. */
+vec3 shade_point(vec4 T4[SH_K4], vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
+{
+#ifdef PRTT_DIFFUSE
+  vec3 e = diffuse_dot(T4);
+#  ifdef PRTT_BOUNCE
+  vec3 dc = vec3(textureLod(bounceTex, vec3(uv, 0.0), 0.0).x,
+                 textureLod(bounceTex, vec3(uv, float(SH_K4)), 0.0).x,
+                 textureLod(bounceTex, vec3(uv, float(2 * SH_K4)), 0.0).x);
+  e += PRTT_SQRT_4PI * dc;
+#  endif
+  return max(albedo / PRTT_PI * e, vec3(0.0));
+#else
+  float w[SH_K];
+  if (any(greaterThan(spec, vec3(0.0)))) {
+    glossy_weights(n, v, exponent, w);
+  }
+  else {
+    for (int k = 0; k < SH_K; k++) {
+      w[k] = 0.0;
+    }
+  }
+  vec3 dc, glossy;
+#  ifdef PRTT_TRIPLE_PRODUCT
+  tp_contract(T4, w, dc, glossy);
+#  else
+  tpfl_contract(T4, w, dc, glossy);
+#  endif
+#  ifdef PRTT_BOUNCE
+  add_bounce(uv, w, dc, glossy);
+#  endif
+  return outgoing(dc, glossy, albedo, spec);
+#endif
+}

@@ -1,0 +1,210 @@
+"""The viewport preview's shaders against the numpy reference, pixel by pixel.
+
+Real Blender, real GLSL on Mesa llvmpipe (one tiny Workbench render
+initialises the gpu module), offscreen float32 targets. The reference
+(core/preview_reference.py) finds each pixel's surface by Embree ray casting
+and shades it with core.shading in float64.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from tests.preview_util import baked_blend, open_blend
+
+pytestmark = pytest.mark.blender
+
+W, H = 128, 96
+EXPOSURE = 1.3
+EDGE_MARGIN_PX = 0.02
+
+
+@pytest.fixture(scope="module")
+def blend(tmp_path_factory):
+    return baked_blend(str(tmp_path_factory.mktemp("preview")))
+
+
+def frame(bpy, bounces=True):
+    from prtt_addon.blender.preview_render import camera_view, ensure_gpu
+    from prtt_addon.blender.preview_scene import collect
+    ensure_gpu()
+    ps, status = collect(bpy.context, use_bounces=bounces)
+    assert ps is not None, status.messages
+    dg = bpy.context.evaluated_depsgraph_get()
+    vp, cam = camera_view(bpy.context.scene.camera, dg, W, H, bpy.context.scene)
+    return ps, status, vp, cam
+
+
+def test_scene_exercises_every_feature(blend):
+    bpy = open_blend(blend)
+    ps, status, _, _ = frame(bpy)
+    assert [lvl for lvl, _ in status.messages if lvl != "INFO"] == []
+    assert sorted(m.name for m in ps.meshes) == ["Ball", "Block", "Floor"]
+    floor = next(m for m in ps.meshes if m.name == "Floor")
+    assert floor.triangles == 2
+    flags = {ps.materials[r[0]].flags for m in ps.meshes for r in m.ranges}
+    assert 7 in flags                                   # base texture + roughness texture + normal map
+    block = next(m for m in ps.meshes if m.name == "Block")
+    assert np.linalg.det(block.matrix[:3, :3]) < 0      # mirrored
+    assert all(m.has_vertex_transfer() for m in ps.meshes)
+    assert all(s.bounces and s.vertex for s in ps.sets.values())
+
+
+@pytest.mark.parametrize("bounces", [True, False], ids=["bounce", "direct"])
+@pytest.mark.parametrize("mode", ["tpfl", "tp", "diffuse", "vertex-tpfl", "vertex-tp"])
+def test_gpu_matches_reference(blend, mode, bounces):
+    from prtt_addon.blender.gpu_preview import Renderer, render_offscreen
+    from prtt_addon.core.preview_reference import reference_image, relative_error
+    bpy = open_blend(blend)
+    ps, _, vp, cam = frame(bpy, bounces)
+    px, stats = render_offscreen(Renderer(), ps, mode, vp, cam, W, H, exposure=EXPOSURE)
+    assert sorted(stats.drawn) == ["Ball", "Block", "Floor"] and not stats.skipped
+    assert np.all(np.isfinite(px))
+    ref, hits = reference_image(ps, mode, vp, cam, W, H, exposure=EXPOSURE)
+    interior = hits.hit & (hits.edge_px > EDGE_MARGIN_PX)
+    covered = px[..., 3] > 0.5
+    # Visibility: rasterisation agrees with ray casting wherever the pixel centre
+    # is not on a triangle edge; background pixels stay background.
+    assert np.array_equal(covered[interior], hits.hit[interior])
+    assert hits.hit.sum() > 0.3 * W * H
+    assert (hits.hit & ~interior).sum() < 0.03 * hits.hit.sum()
+    assert (covered & ~hits.hit).sum() <= 0.002 * W * H
+    floor = 1e-2 * ref[..., :3][hits.hit].mean()
+    err = relative_error(px[..., :3][interior], ref[..., :3][interior], floor)
+    assert err.max() <= 1e-3, f"{mode}: max relative error {err.max():.2e} (p99 {np.quantile(err, 0.99):.2e})"
+
+
+def test_tp_equals_tpfl_and_prepass_changes_nothing(blend):
+    from prtt_addon.blender.gpu_preview import Renderer, render_offscreen
+    bpy = open_blend(blend)
+    ps, _, vp, cam = frame(bpy)
+    r = Renderer()
+    tpfl, _ = render_offscreen(r, ps, "tpfl", vp, cam, W, H)
+    tp, _ = render_offscreen(r, ps, "tp", vp, cam, W, H)
+    no_pre, _ = render_offscreen(r, ps, "tpfl", vp, cam, W, H, prepass=False)
+    scale = tpfl[..., :3].max()
+    assert np.abs(tp - tpfl).max() <= 1e-5 * scale
+    np.testing.assert_array_equal(no_pre, tpfl)
+
+
+def test_bounces_add_light_and_vertex_modes_miss_the_contact_shadow(blend):
+    from prtt_addon.blender.gpu_preview import Renderer, render_offscreen
+    from prtt_addon.core.preview_reference import trace_pixels
+    bpy = open_blend(blend)
+    ps, _, vp, cam = frame(bpy)
+    r = Renderer()
+    ps_direct, _, _, _ = frame(bpy, bounces=False)
+    # Diffuse: the bounce's DC terms are >= 0, so bounce light only adds light.
+    # (Glossy lobes of band-limited bounce light may ring slightly below zero.)
+    d_with, _ = render_offscreen(r, ps, "diffuse", vp, cam, W, H)
+    d_direct, _ = render_offscreen(r, ps_direct, "diffuse", vp, cam, W, H)
+    hit = d_with[..., 3] > 0.5
+    assert (d_with - d_direct)[..., :3][hit].min() >= -1e-6 * d_with.max()
+    with_b, _ = render_offscreen(r, ps, "tpfl", vp, cam, W, H)
+    direct, _ = render_offscreen(r, ps_direct, "tpfl", vp, cam, W, H)
+    extra = (with_b - direct)[..., :3][hit]
+    assert extra.mean() > 0.01 * direct[..., :3][hit].mean()
+    # Floor pixels: the fragment method sees the shadows under the ball and the
+    # block, the 4 vertices of the floor cannot.
+    hits = trace_pixels(ps, vp, W, H)
+    k = [m.name for m in ps.meshes].index("Floor")
+    on_floor = (hits.mesh == k) & (hits.edge_px > EDGE_MARGIN_PX)
+    vert, _ = render_offscreen(r, ps_direct, "vertex-tpfl", vp, cam, W, H)
+    lum = lambda a: a[..., :3].mean(axis=-1)        # noqa: E731
+    dark = on_floor & (lum(direct) < 0.6 * np.median(lum(direct)[on_floor]))
+    assert dark.sum() > 20                                    # the shadow is there per fragment...
+    assert np.median(lum(vert)[dark]) > 1.4 * np.median(lum(direct)[dark])   # ...and not per vertex
+
+
+def test_world_rotation_is_an_sh_rotation_of_a_cached_projection(blend):
+    """Turning the environment must not re-project it, and must equal an
+    independent projection of the turned image (90 deg = a quarter roll)."""
+    from prtt_addon.blender import preview_scene
+    from prtt_addon.core import envmap
+    from prtt_addon.core.image_io import read_hdr_image
+    bpy = open_blend(blend)
+    scene = bpy.context.scene
+    mapping = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
+    strength = scene.world.node_tree.nodes["Background"].inputs["Strength"].default_value
+    mapping.inputs["Rotation"].default_value[2] = 0.0
+    L0, _ = preview_scene.current_light(scene, 5)
+    cached = len(preview_scene._PROJECTIONS)
+    mapping.inputs["Rotation"].default_value[2] = math.pi / 2
+    L90, _ = preview_scene.current_light(scene, 5)
+    assert len(preview_scene._PROJECTIONS) == cached
+    img = read_hdr_image(envmap.builtin_environment_path("forest"))
+    assert img.shape[1] % 4 == 0
+    # Lookups turn by +90 deg: u(phi + 90 deg) = u(phi) - 1/4, so the seen image is rolled right.
+    want = envmap.project_equirect(np.roll(img, img.shape[1] // 4, axis=1), 5) * strength
+    # Blender stores the angle in float32 (pi/2 + 4.4e-8): that, times |L| and l, is the tolerance.
+    np.testing.assert_allclose(L90, want, rtol=0, atol=1e-6 * np.abs(want).max())
+    assert np.abs(L90 - L0).max() > 0.05 * np.abs(L0).max()
+
+
+def test_stale_and_moved_warnings(blend):
+    from prtt_addon.blender.preview_scene import collect
+    bpy = open_blend(blend)
+    scene = bpy.context.scene
+
+    def warnings():
+        _, status = collect(bpy.context, with_meshes=False)
+        return " | ".join(t for lvl, t in status.messages if lvl == "WARNING")
+
+    assert warnings() == ""
+    bg = scene.world.node_tree.nodes["Background"]
+    bg.inputs["Strength"].default_value = 2.0
+    assert "the World light changed" in warnings()
+    bg.inputs["Strength"].default_value = 1.5
+    assert warnings() == ""
+    mat = bpy.data.materials["BallMat"]
+    mat.node_tree.nodes["Principled BSDF"].inputs["Roughness"].default_value = 0.9
+    bpy.context.view_layer.update()
+    assert "materials changed" in warnings()
+    mat.node_tree.nodes["Principled BSDF"].inputs["Roughness"].default_value = 0.35
+    bpy.context.view_layer.update()
+    assert warnings() == ""
+    bpy.data.objects["Ball"].location.x += 0.5
+    bpy.context.view_layer.update()
+    w = warnings()
+    assert "moved since the bake" in w and "Ball" in w
+
+
+def test_viewport_draw_path_and_resources(blend):
+    """draw_view (what the POST_VIEW handler runs) draws the same picture as
+    the offscreen render; GPU resources go when their objects go."""
+    import gpu
+
+    from prtt_addon.blender import preview_draw
+    from prtt_addon.blender.gpu_preview import Renderer, read_pixels, render_offscreen
+    bpy = open_blend(blend)
+    assert preview_draw._HANDLE is None                       # background mode: no draw handler
+    assert preview_draw._on_depsgraph in bpy.app.handlers.depsgraph_update_post   # survived the load
+    ps, _, vp, cam = frame(bpy)
+    want, _ = render_offscreen(Renderer(), ps, "tpfl", vp, cam, W, H)
+
+    class RegionData:       # what a 3D viewport's region_data provides
+        perspective_matrix = vp
+        view_matrix = np.linalg.inv(np.array(bpy.context.scene.camera.matrix_world))
+        is_perspective = True
+
+    scene = bpy.context.scene
+    scene.prtt.preview, scene.prtt.preview_mode = True, "TPFL"
+    off = gpu.types.GPUOffScreen(W, H, format="RGBA32F")
+    with off.bind():
+        fb = gpu.state.active_framebuffer_get()
+        fb.clear(color=(0, 0, 0, 0), depth=1.0)
+        stats = preview_draw.draw_view(bpy.context, RegionData())
+        got = read_pixels(fb, W, H)
+    off.free()
+    assert sorted(stats.drawn) == ["Ball", "Block", "Floor"]
+    assert np.abs(got - want).max() <= 1e-5 * want.max()
+    r = Renderer()
+    render_offscreen(r, ps, "tpfl", vp, cam, W, H)
+    keys = r.resource_keys()
+    assert any(k[0] == "mesh" and "Ball" in k[1] for k in keys)
+    ps.meshes = [m for m in ps.meshes if m.name != "Ball"]
+    ps.sets = {k: v for k, v in ps.sets.items() if k != "Ball"}
+    render_offscreen(r, ps, "tpfl", vp, cam, W, H)
+    keys = r.resource_keys()
+    assert not any(k[0] == "mesh" and "Ball" in k[1] for k in keys)
+    assert not any(k[0] == "transfer" and "Ball.transfer" in k[1] for k in keys)
