@@ -12,10 +12,8 @@ def _cmd_env(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from .env_report import report
-    print("PRTT demo: projecting Blender's built-in 'forest' environment to SH")
-    report("forest", args.bands)
-    return 0
+    from .demo import run_args
+    return run_args(args)
 
 
 class ConsoleProgress:
@@ -199,8 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("rest", nargs=argparse.REMAINDER)
     rn.set_defaults(func=_cmd_render_blend)
 
-    d = sub.add_parser("demo", help="the main job (see README)")
-    d.add_argument("--bands", type=int, default=5)
+    try:
+        from .demo import add_arguments as demo_arguments
+    except ImportError:             # the extension zip leaves the development-only demo out
+        return p
+    d = sub.add_parser("demo", help="the main job: demo scene, unwrap, bake, TPFL vs vertex-TPFL (see README)")
+    demo_arguments(d)
     d.set_defaults(func=_cmd_demo)
     return p
 

@@ -25,3 +25,15 @@ def test_bake_bench():
 def test_bounce_bench():
     out = bench("bounce", "--resolution", "256", "--rays", "64", "--bounce-rays", "16")
     assert "shading evaluations" in out
+
+
+def test_sweep_quick(tmp_path):
+    out = bench("sweep", "--quick", "--out", str(tmp_path))
+    for name in ("rays", "resolution", "bands", "storage", "scenes"):
+        assert (tmp_path / f"{name}.csv").is_file(), out
+    assert (tmp_path / "error_vs_seconds.png").is_file()
+
+
+def test_stress_bench():
+    out = bench("stress")
+    assert "7/7 cases hold" in out, out

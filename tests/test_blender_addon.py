@@ -61,6 +61,38 @@ def test_unwrap_writes_only_the_prtt_map(tmp_path, method):
         assert overlap_texels(monkey, 64) > 1000
 
 
+@pytest.mark.parametrize("method", ["SMART", "LIGHTMAP", "XATLAS"])
+def test_unwrap_without_active_object_and_pydata_mesh(tmp_path, method):
+    """Regression: selected objects but no active one, and a mesh made by
+    from_pydata without edges (Blender 5.0.1 types its .select_edge INT32_2D,
+    where edges.foreach_set("select") crashes). Unwrap must work and restore
+    the selection it can."""
+    bpy = addon_bpy()
+    me = bpy.data.meshes.new("pydata")
+    me.from_pydata([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (2, 0, 0.5)], [], [(0, 1, 2), (0, 2, 3), (1, 4, 2)])
+    ob = bpy.data.objects.new("pydata", me)
+    bpy.context.scene.collection.objects.link(ob)
+    bpy.ops.mesh.primitive_plane_add(location=(0, 0, -1))
+    plane = bpy.context.object
+    plane.data.polygons[0].select = False
+    bpy.context.view_layer.update()
+    for o in bpy.context.view_layer.objects:
+        o.select_set(True)
+    bpy.context.view_layer.objects.active = None
+    before = uv_snapshot(bpy)
+    st = bpy.context.scene.prtt
+    st.unwrap_method, st.resolution = method, 64
+    assert bpy.ops.prtt.unwrap() == {"FINISHED"}
+    assert bpy.context.view_layer.objects.active is None
+    assert all(o.select_get() for o in bpy.context.view_layer.objects)
+    after = uv_snapshot(bpy)
+    for name in ("pydata", "Plane"):
+        assert "PRTT" in after[name][0]
+        np.testing.assert_array_equal(after[name][1], before[name][1])
+    uv = after["pydata"][0]["PRTT"][0]
+    assert np.isfinite(uv).all() and uv.min() >= 0 and uv.max() <= 1
+
+
 def test_bake_through_the_worker_matches_core_bake(tmp_path):
     """The operator's textures equal a core bake of the exported arrays."""
     bpy = addon_bpy()

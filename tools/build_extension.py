@@ -31,6 +31,8 @@ PLATFORMS = {
     "macos-x64": ["macosx_10_9_x86_64", "macosx_10_15_x86_64", "macosx_11_0_x86_64", "macosx_13_0_x86_64"],
 }
 EXCLUDE_DIRS = {"__pycache__", "bench"}
+#: Development-only modules (they import bench/).
+EXCLUDE_FILES = {"demo.py"}
 
 
 def runtime_pins() -> list[str]:
@@ -97,7 +99,7 @@ def build(out_dir, platforms) -> str:
         for base, dirs, files in os.walk(pkg):
             dirs[:] = sorted(d for d in dirs if d not in EXCLUDE_DIRS)
             for f in sorted(files):
-                if f.endswith((".py", ".glsl", ".json")):
+                if f.endswith((".py", ".glsl", ".json")) and f not in EXCLUDE_FILES:
                     full = os.path.join(base, f)
                     z.write(full, os.path.relpath(full, pkg))
         shader_dir = os.path.join(ROOT, "shaders")

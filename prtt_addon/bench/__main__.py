@@ -5,7 +5,10 @@ BENCHMARKS = {
     "bake": ("prtt_addon.bench.bake_bench", "transfer bake vs raw Embree on the room-class scene"),
     "bounce": ("prtt_addon.bench.bounce_bench", "inter-reflection bake on the room-class scene"),
     "render": ("prtt_addon.bench.render_bench", "preview frame time per mode vs triangles and resolution"),
+    "sweep": ("prtt_addon.bench.sweep", "run time against error: rays, strategies, resolution, bands, storage, scenes"),
+    "cycles": ("prtt_addon.bench.cycles_compare", "diffuse PRTT against Cycles under a band-limited environment"),
     "contact": ("prtt_addon.bench.contact", "the paper's contact-shadow figure, measured against ray tracing"),
+    "stress": ("prtt_addon.bench.stress", "numerical stress cases (scale, normals, thin shells, degenerate, bands, overflow)"),
 }
 
 

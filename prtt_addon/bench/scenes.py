@@ -48,10 +48,10 @@ def room_objects() -> list[tuple[str, mg.Mesh]]:
     objs.append(("shelf", mg.merge(shelf).transformed(translate=(-1.8, 2.8, 0))))
     spot = mg.load_obj(mg.asset_path("spot.obj"))
     spot.uvs = None
-    # spot's model space is Y up; turn it Z up and stand it on the table.
+    # spot's model space is Y up; turn it Z up ((x, y, z) -> (x, -z, y), a proper
+    # rotation, so the winding stays) and stand it on the table.
     spot.vertices = spot.vertices[:, [0, 2, 1]] * np.array([1, -1, 1])
     spot.normals = spot.normals[:, [0, 2, 1]] * np.array([1, -1, 1])
-    spot.faces = spot.faces[:, [0, 2, 1]]
     zmin = spot.vertices[:, 2].min()
     objs.append(("spot", spot.transformed(scale=0.45, translate=(0.2, 0.1, 0.77 - 0.45 * zmin))))
     objs.append(("sphere", mg.uv_sphere(0.3, 64, 48).transformed(translate=(1.6, -1.0, 0.3))))
@@ -117,7 +117,7 @@ def triangle_scaling_scene(target: int, resolution: int = 1024) -> Scene:
 
 def cached_scene(name: str, builder, *, resolution: int, atlas: bool) -> Scene:
     """Build (or load from .cache/bench) a scene job unwrapped at ``resolution``."""
-    key = hashlib.sha256(f"{name}-{resolution}-{atlas}-v1".encode()).hexdigest()[:12]
+    key = hashlib.sha256(f"{name}-{resolution}-{atlas}-v2".encode()).hexdigest()[:12]
     path = os.path.join(CACHE, f"{name}-{resolution}-{'atlas' if atlas else 'sets'}-{key}.npz")
     if os.path.isfile(path):
         return load_scene(path)[0]
@@ -207,3 +207,132 @@ def render_scaling_scene(bunnies: int, *, resolution: int = 1024, bunny_resoluti
     return Scene(positions=np.concatenate(pos), normals=np.concatenate(nrm).astype(np.float32),
                  uvs=np.concatenate(uvs), set_id=np.concatenate(set_id), set_names=names,
                  set_resolution=np.array(res), object_id=np.concatenate(obj_id), object_names=objs)
+
+
+# --- the paper's four scene classes ------------------------------------------------------
+
+def _y_up_to_z_up(m: mg.Mesh) -> mg.Mesh:
+    """(x, y, z) -> (x, -z, y): a proper rotation, winding kept."""
+    R = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    return mg.Mesh(m.vertices @ R.T, m.faces, None if m.normals is None else m.normals @ R.T, m.uvs)
+
+
+def _standing(m: mg.Mesh, height: float, at=(0.0, 0.0)) -> mg.Mesh:
+    """Scaled to ``height`` (metres, Z up) and stood on z = 0 at ``at``."""
+    lo, hi = m.vertices.min(axis=0), m.vertices.max(axis=0)
+    s = height / (hi[2] - lo[2])
+    c = 0.5 * (lo + hi)
+    return m.transformed(scale=s, translate=(at[0] - c[0] * s, at[1] - c[1] * s, -lo[2] * s))
+
+
+def unwrapped_asset(name: str, resolution: int, *, y_up: bool) -> mg.Mesh:
+    """A test model, Z up, with an xatlas unwrap (cached in .cache/bench: a
+    100K-triangle model takes ~20 s)."""
+    m = mg.load_obj(mg.asset_path(name), smooth=True)
+    m.uvs = None
+    if y_up:
+        m = _y_up_to_z_up(m)
+    path = os.path.join(CACHE, f"uv-{os.path.splitext(name)[0]}-{resolution}-v1.npz")
+    if os.path.isfile(path):
+        with np.load(path) as z:
+            m.uvs = np.array(z["uv"])
+        return m
+    from ..core.unwrap import unwrap
+    m.uvs = unwrap([(m.vertices, m.faces)], resolution, padding=2)[0]
+    os.makedirs(CACHE, exist_ok=True)
+    np.savez(path, uv=m.uvs)
+    return m
+
+
+def _leaf(base, azimuth, elevation, length, width, droop, segments=12) -> mg.Mesh:
+    """A thin curved leaf: a strip of 2 * segments triangles, one sheet."""
+    t = np.linspace(0.0, 1.0, segments + 1)
+    d = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
+                  math.sin(elevation)])
+    side = np.array([-math.sin(azimuth), math.cos(azimuth), 0.0])
+    centre = base + np.outer(t * length, d) - np.outer(droop * length * t ** 2, [0, 0, 1.0])
+    half = 0.5 * width * np.sin(np.pi * np.clip(t, 0.02, 0.98))[:, None]
+    fold = 0.15 * half * np.array([0, 0, 1.0])
+    v = np.concatenate([centre - half * side + fold, centre + half * side + fold])
+    n1 = segments + 1
+    i = np.arange(segments)
+    f = np.concatenate([np.stack([i, i + 1, n1 + i + 1], 1), np.stack([i, n1 + i + 1, n1 + i], 1)])
+    m = mg.Mesh(v, f)
+    m.normals = mg.vertex_normals(m)
+    return m
+
+
+def plants_objects(seed: int = 11) -> list[tuple[str, mg.Mesh]]:
+    """Plants-class (~18K triangles): four potted plants of thin curved leaves
+    on a 2-triangle floor in front of a 2-triangle wall."""
+    rng = np.random.default_rng(seed)
+    objs = [("floor", mg.plane(5.0)), ("wall", _wall((0, 1.6, 1.25), (5.0, 2.5), facing=(0, -1, 0)))]
+    pot_profile = np.array([[0.001, 0.0], [0.16, 0.0], [0.2, 0.32], [0.22, 0.34], [0.19, 0.34],
+                            [0.16, 0.05], [0.001, 0.05]])
+    for k, (x, y) in enumerate(((-1.4, 0.4), (-0.45, -0.2), (0.5, 0.35), (1.45, -0.25))):
+        objs.append((f"pot{k}", mg.lathe(pot_profile, 48).transformed(translate=(x, y, 0.0))))
+        leaves = []
+        for j in range(152):
+            h = 0.3 + 0.9 * rng.random()
+            base = np.array([x, y, h]) + 0.02 * rng.normal(size=3)
+            leaves.append(_leaf(base, rng.uniform(0, 2 * np.pi), rng.uniform(0.1, 0.9), rng.uniform(0.2, 0.4),
+                                rng.uniform(0.05, 0.09), rng.uniform(0.2, 0.7)))
+        stem = mg.lathe(np.array([[0.001, 0.0], [0.015, 0.0], [0.012, 1.25], [0.001, 1.27]]), 16)
+        objs.append((f"plant{k}", mg.merge(leaves + [stem.transformed(translate=(x, y, 0.3))])))
+    return objs
+
+
+def trm_objects() -> list[tuple[str, mg.Mesh]]:
+    """Two-statues-and-a-monkey class (~458K triangles): two copies of the
+    Nefertiti scan, the ogre head (our 'monkey'), the beast and the bunny on a
+    2-triangle floor. Every model keeps its own unwrap (copies share theirs)."""
+    nef = unwrapped_asset("nefertiti.obj", 1024, y_up=False)
+    ogre = unwrapped_asset("ogre.obj", 1024, y_up=True)
+    beast = unwrapped_asset("beast.obj", 512, y_up=True)
+    bunny, uv = _bunny_unwrapped(256)
+    bunny.uvs = uv
+    return [("floor", mg.plane(8.0)),
+            ("statue_a", _standing(nef, 1.6, (-1.3, 0.3))), ("statue_b", _standing(nef, 1.6, (1.3, 0.3))),
+            ("monkey", _standing(ogre, 0.7, (0.0, -0.6))), ("beast", _standing(beast, 0.6, (0.0, 0.9))),
+            ("bunny", _standing(bunny, 0.45, (-0.9, -1.1)))]
+
+
+def dragon_objects() -> list[tuple[str, mg.Mesh]]:
+    """Dragon-class (~1.33M triangles): the bunny subdivided twice (1.11M
+    triangles, its unwrap carried through the subdivision), the Nefertiti scan
+    and the ogre head on a 2-triangle floor."""
+    bunny, uv = _bunny_unwrapped(1024)
+    bunny.uvs = uv
+    dense = mg.subdivide(mg.subdivide(bunny))
+    nef = unwrapped_asset("nefertiti.obj", 1024, y_up=False)
+    ogre = unwrapped_asset("ogre.obj", 1024, y_up=True)
+    return [("floor", mg.plane(6.0)), ("dragon", _standing(dense, 1.2, (0.0, 0.0))),
+            ("statue", _standing(nef, 1.2, (1.6, 0.6))), ("monkey", _standing(ogre, 0.6, (-1.5, 0.4)))]
+
+
+#: name -> (builder, per-object sets?, default resolution)
+PAPER_SCENES = {
+    "room": (room_objects, True),
+    "plants": (plants_objects, True),
+    "trm": (trm_objects, False),
+    "dragon": (dragon_objects, False),
+}
+
+
+def paper_scene(name: str, resolution: int = 1024) -> Scene:
+    """One of the paper's scene classes, unwrapped (cached): room and plants in
+    one atlas, trm and dragon with a set per object (floor at ``resolution``,
+    models at half of it)."""
+    builder, atlas = PAPER_SCENES[name]
+    if atlas:
+        return cached_scene(name, builder, resolution=resolution, atlas=True)
+    key = hashlib.sha256(f"{name}-{resolution}-v1".encode()).hexdigest()[:12]
+    path = os.path.join(CACHE, f"{name}-{resolution}-sets-{key}.npz")
+    if os.path.isfile(path):
+        return load_scene(path)[0]
+    objs = builder()
+    res = {n: (resolution if n == "floor" else max(64, resolution // 2)) for n, _ in objs}
+    sc = mg.assemble(objs, resolution=resolution, keep_uvs=True, resolutions=res)
+    os.makedirs(CACHE, exist_ok=True)
+    save_scene(sc, path)
+    return sc

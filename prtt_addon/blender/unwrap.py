@@ -21,6 +21,21 @@ class UnwrapError(ValueError):
     pass
 
 
+#: The attribute behind each element collection's ``select`` flag.
+_SELECT_ATTRIBUTE = {"vertices": ".select_vert", "edges": ".select_edge", "polygons": ".select_poly"}
+
+
+def _select_flag_usable(me, coll: str) -> bool:
+    """Whether ``coll``'s ``select`` flags can go through foreach_get/set safely.
+
+    Blender 5.0.1's ``Mesh.from_pydata`` without explicit edges leaves
+    ``.select_edge`` typed INT32_2D; ``edges.foreach_set("select", ...)`` then
+    writes booleans into it and crashes Blender. Such a domain is left alone.
+    """
+    attr = me.attributes.get(_SELECT_ATTRIBUTE[coll])
+    return attr is None or (attr.data_type == "BOOLEAN" and len(attr.data) == len(getattr(me, coll)))
+
+
 @contextlib.contextmanager
 def _preserved(context, objects):
     """Restore mode, selection, active object, active/render UV maps and mesh
@@ -35,6 +50,8 @@ def _preserved(context, objects):
         uv = me.uv_layers
         flags = {}
         for coll in ("vertices", "edges", "polygons"):
+            if not _select_flag_usable(me, coll):
+                continue
             c = getattr(me, coll)
             a = np.empty(len(c), bool)
             c.foreach_get("select", a)
@@ -54,7 +71,8 @@ def _preserved(context, objects):
             if render is not None and render in me.uv_layers:
                 me.uv_layers[render].active_render = True
             for coll, a in flags.items():
-                getattr(me, coll).foreach_set("select", a)
+                if _select_flag_usable(me, coll) and len(getattr(me, coll)) == len(a):
+                    getattr(me, coll).foreach_set("select", a)
             me.update()
         for o in context.view_layer.objects:
             o.select_set(o in selected)
@@ -80,7 +98,8 @@ def prtt_layer(me):
 def _run_edit_mode_op(context, objects, op):
     """Run a UV operator with every object in edit mode, all faces selected and
     its PRTT map active."""
-    bpy.ops.object.mode_set(mode="OBJECT")
+    if context.view_layer.objects.active is not None and context.view_layer.objects.active.mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
     for o in context.view_layer.objects:
         o.select_set(False)
     for ob in objects:

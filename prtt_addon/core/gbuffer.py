@@ -176,7 +176,9 @@ def _build_gbuffer(sc: Scene, set_index: int, normal_maps: bool, rows) -> GBuffe
     if normal_maps:
         n_s, mapped = apply_normal_maps(sc, tri, bary, n_s)
         cos = np.einsum("nc,nc->n", n_s, n_g)
-        low = cos < MIN_HORIZON_COS
+        # Only normal-mapped texels are bent: a smooth-shading normal that grazes
+        # the face is legitimate and is baked as it is (the horizon test clips it).
+        low = (cos < MIN_HORIZON_COS) & mapped
         if low.any():
             tang, _ = _normalize(n_s[low] - cos[low, None] * n_g[low])
             n_s[low] = (MIN_HORIZON_COS * n_g[low]

@@ -74,19 +74,27 @@ def clear_triangles(positions: np.ndarray, shaded_normals: np.ndarray, *,
         better = v > best
         best[better], ext[better] = v[better], k[better] + a
     E = (V[np.unique(ext)] - centre) / half
-    ok = (n[live] @ E.T).max(axis=1) - offset <= PLANE_EPSILON
+    ok = np.empty(live.size, bool)
+    for a in range(0, live.size, col):          # (rows x 64) at a time, not (T x 64)
+        ok[a:a + col] = (n[live[a:a + col]] @ E.T).max(axis=1) - offset[a:a + col] <= PLANE_EPSILON
     surv = np.flatnonzero(ok)
     clear_surv = np.zeros(surv.size, bool)
     unverified = 0
     if surv.size:
         B = 1024
         nb = -(-V.shape[0] // B)
-        pad = np.concatenate([V, np.repeat(V[-1:], nb * B - V.shape[0], axis=0)])
-        blocks = ((pad - centre) / half).reshape(nb, B, 3)
-        blo, bhi = blocks.min(axis=1), blocks.max(axis=1)
+        starts = np.arange(nb) * B
+        blo = (np.minimum.reduceat(V, starts, axis=0) - centre) / half
+        bhi = (np.maximum.reduceat(V, starts, axis=0) - centre) / half
         nn = n[live[surv]]
-        support = np.maximum(nn, 0) @ bhi.T + np.minimum(nn, 0) @ blo.T      # (S, nb)
-        need = support - offset[surv, None] > PLANE_EPSILON
+        # Blocks whose bounding box reaches above the plane, (S, nb) bool, built in
+        # row chunks so that the float (S, nb) support never exists at once.
+        need = np.empty((surv.size, nb), bool)
+        rows_per = max(1, col // nb)
+        for a in range(0, surv.size, rows_per):
+            m = nn[a:a + rows_per]
+            support = np.maximum(m, 0) @ bhi.T + np.minimum(m, 0) @ blo.T
+            need[a:a + rows_per] = support - offset[surv[a:a + rows_per], None] > PLANE_EPSILON
         violated = np.zeros(surv.size, bool)
         work, complete = 0.0, True
         for b in np.flatnonzero(need.any(axis=0)):
@@ -97,7 +105,8 @@ def clear_triangles(positions: np.ndarray, shaded_normals: np.ndarray, *,
             if work > budget:
                 complete = False
                 break
-            top = (nn[rows] @ blocks[b].T).max(axis=1)
+            block = (V[b * B:(b + 1) * B] - centre) / half
+            top = (nn[rows] @ block.T).max(axis=1)
             violated[rows] |= top - offset[surv[rows]] > PLANE_EPSILON
         if complete:
             clear_surv = ~violated

@@ -170,7 +170,11 @@ def torus(major: float = 1.0, minor: float = 0.3, n_major: int = 48, n_minor: in
 
 
 def subdivide(m: Mesh) -> Mesh:
-    """Midpoint subdivision: every triangle -> 4 (shape unchanged, flat)."""
+    """Midpoint subdivision: every triangle -> 4 (shape unchanged, flat).
+
+    Per-corner UVs are carried (children take the parent's UVs at the
+    corners and edge midpoints, so a UV layout stays valid); smooth vertex
+    normals are averaged onto the new vertices."""
     f = m.faces
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     uniq, inv = np.unique(e, axis=0, return_inverse=True)
@@ -182,7 +186,18 @@ def subdivide(m: Mesh) -> Mesh:
     a, b, c = f[:, 0], f[:, 1], f[:, 2]
     nf = np.concatenate([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1),
                          np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)])
-    return Mesh(np.concatenate([m.vertices, mid]), nf)
+    normals = None
+    if m.normals is not None:
+        nm = m.normals[uniq[:, 0]] + m.normals[uniq[:, 1]]
+        ln = np.linalg.norm(nm, axis=1, keepdims=True)
+        normals = np.concatenate([m.normals, nm / np.where(ln > 0, ln, 1.0)])
+    uvs = None
+    if m.uvs is not None:
+        ua, ub, uc = m.uvs[:, 0], m.uvs[:, 1], m.uvs[:, 2]
+        uab, ubc, uca = 0.5 * (ua + ub), 0.5 * (ub + uc), 0.5 * (uc + ua)
+        uvs = np.concatenate([np.stack([ua, uab, uca], 1), np.stack([uab, ub, ubc], 1),
+                              np.stack([uca, ubc, uc], 1), np.stack([uab, ubc, uca], 1)])
+    return Mesh(np.concatenate([m.vertices, mid]), nf, normals, uvs)
 
 
 def vertex_normals(m: Mesh) -> np.ndarray:

@@ -216,6 +216,11 @@ def exact_tables(n_patterns: int, n_rays: int, bands: int, sampler: str,
     out = np.empty((n_patterns, prefix, bands * bands), np.float32)
     for g in range(n_patterns):
         Wg = W[g, :prefix].astype(np.float64)
+        if prefix < bands * bands:
+            # Fewer rays than coefficients: K constraints on N < K weights have no
+            # exact solution in general, and the Newton search costs ~10 ms a pattern.
+            out[g] = (Wg / prefix).astype(np.float32)
+            continue
         w, res = balance_weights(Wg, A)
         if not (res <= BALANCE_TOLERANCE and w.max() <= BALANCE_MAX_SPREAD * w.min()):
             w = np.full(prefix, 1.0 / prefix)

@@ -1,0 +1,222 @@
+"""The main job (``./prtt.sh demo``, ``python -m prtt_addon demo``).
+
+In real Blender (bpy), through the add-on's own operators:
+
+1. build the room-class demo scene: floor and walls of two triangles each, a
+   table, rug, chairs, shelf, spot the cow, a metal sphere, a torus, a vase, a
+   lamp; a glossy wooden floor with textured roughness and colour; Blender's
+   "forest" HDRI as the World;
+2. unwrap every object into one 1024^2 atlas (PRTT > Unwrap, Smart UV Project);
+3. bake transfer, per-vertex transfer and one bounce (PRTT > Bake Transfer,
+   in the worker process);
+4. render the preview offscreen from the scene camera: fragment TPFL (PRTT)
+   and vertex TPFL (the traditional baseline), side by side, into one image.
+
+It prints each stage's time and where everything went (``out/demo`` by
+default: the .blend, the textures, the pictures). Needs no network.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def floor_textures(n: int = 512, planks: int = 8, seed: int = 3):
+    """Wood-plank base colour (linear) and roughness (0.15..0.6), file order."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:n, 0:n] / n
+    plank = np.floor(x * planks).astype(int)
+    per_plank_rough = rng.uniform(0.15, 0.45, planks)[plank]
+    grain = 0.5 + 0.5 * np.sin(2 * np.pi * (y * 6 + 0.3 * np.sin(2 * np.pi * x * 3) + plank * 0.37))
+    gap = (np.abs(x * planks - np.round(x * planks)) < 0.02)
+    rough = np.clip(per_plank_rough + 0.15 * grain + 0.35 * gap, 0.0, 1.0)
+    tone = rng.uniform(0.7, 1.1, planks)[plank] * (0.85 + 0.15 * grain)
+    base = np.stack([0.42 * tone, 0.26 * tone, 0.14 * tone], axis=-1) * np.where(gap, 0.4, 1.0)[..., None]
+    return base.astype(np.float32), np.repeat(rough[..., None], 3, axis=2).astype(np.float32)
+
+
+def build_scene(bpy) -> dict:
+    """The demo scene in the current (empty) Blender file; returns its objects."""
+    from .bench.scenes import ROOM_MATERIALS, room_objects
+    from .blender import scene_build as sb
+    from .core.envmap import builtin_environment_path
+    base, rough = floor_textures()
+    mats = {}
+    for name, spec in ROOM_MATERIALS.items():
+        kw = dict(base_color=tuple(spec["base_color"]), roughness=spec.get("roughness", 0.5),
+                  metallic=spec.get("metallic", 0.0), specular=spec.get("specular", 0.5))
+        if name == "floor":
+            kw.update(base_image=sb.float_image("floor_color", base, non_color=False),
+                      roughness_image=sb.float_image("floor_roughness", rough, non_color=True))
+        mats[name] = sb.principled(name, **kw)
+    objects = {}
+    for name, mesh in room_objects():
+        objects[name] = sb.mesh_object(name, mesh, material=mats.get(name),
+                                       uv_scale=0.5 if name == "floor" else None)
+    scene = bpy.context.scene
+    scene.world = sb.environment_world("Forest", builtin_environment_path("forest"), strength=1.0)
+    scene.camera = sb.camera_object("Camera", (0.0, -5.6, 2.3), (0.0, 0.6, 0.7), fov_y_deg=62.0)
+    scene.view_settings.view_transform = "Standard"     # what the preview shows (linear -> sRGB)
+    scene.view_settings.exposure = -0.7                  # the forest HDRI lights white walls to ~2
+    bpy.context.view_layer.update()         # new objects get their view-layer bases (selection)
+    return objects
+
+
+def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, exposure: float = 1.0) -> str:
+    """Two (H, W, 4) linear renders, row 0 at the bottom, as one labelled PNG."""
+    from .core.image_write import srgb_encode, write_image
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:                       # inside Blender's own Python: no labels
+        return write_image(path, np.concatenate([left, right], axis=1), exposure=exposure)
+    h, w = left.shape[:2]
+    fig, axes = plt.subplots(1, 2, figsize=(2 * w / 100, h / 100 + 0.45), dpi=100)
+    for ax, img, label in zip(axes, (left, right), labels):
+        rgb = srgb_encode(exposure * img[::-1, :, :3]) * img[::-1, :, 3:] + (1.0 - img[::-1, :, 3:])
+        ax.imshow(np.clip(rgb, 0, 1))
+        ax.set_title(label, fontsize=11)
+        ax.set_axis_off()
+    fig.tight_layout(pad=0.3)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: int = 64,
+        size=(960, 540), log=print) -> dict:
+    import bpy
+
+    from . import register
+    from .blender.preview_render import exposure_of, render_scene
+    from .blender.properties import UV_MAP
+    t_all = time.perf_counter()
+    times = {}
+    os.makedirs(out_dir, exist_ok=True)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    if not hasattr(bpy.types.Scene, "prtt"):
+        register()
+
+    t = time.perf_counter()
+    objects = build_scene(bpy)
+    tris = 0
+    for ob in objects.values():
+        ob.data.calc_loop_triangles()
+        tris += len(ob.data.loop_triangles)
+    times["build scene"] = time.perf_counter() - t
+    log(f"[1/4] built the room-class scene: {len(objects)} objects, {tris} triangles "
+        f"({times['build scene']:.1f} s)")
+
+    st = bpy.context.scene.prtt
+    st.output_dir = os.path.join(out_dir, "textures")
+    st.resolution, st.rays, st.texture_sets, st.unwrap_method = resolution, rays, "ATLAS", "SMART"
+    st.bounces, st.bounce_rays, st.vertex_transfer = 1, bounce_rays, True
+    for ob in bpy.context.view_layer.objects:
+        ob.select_set(ob.type == "MESH")
+    bpy.context.view_layer.objects.active = objects["floor"]
+    t = time.perf_counter()
+    if bpy.ops.prtt.unwrap() != {"FINISHED"}:
+        raise RuntimeError("unwrap failed")
+    times["unwrap"] = time.perf_counter() - t
+    assert all(UV_MAP in ob.data.uv_layers for ob in objects.values())
+    log(f"[2/4] unwrapped into one {resolution}x{resolution} atlas (Smart UV Project, "
+        f"'{UV_MAP}' UV map) ({times['unwrap']:.1f} s)")
+
+    t = time.perf_counter()
+
+    def progress(e):
+        if e.get("type") == "progress" and e.get("fraction") == 1.0:
+            log(f"      {e.get('stage')} {e.get('set', '')} done")
+
+    from .blender.bake_run import bake_blocking
+    outcome = bake_blocking(bpy.context, force=True, on_event=progress)
+    if outcome.status != "done":
+        raise RuntimeError(outcome.message)
+    times["bake"] = time.perf_counter() - t
+    m = outcome.manifest
+    sec = m["seconds"]
+    b = m.get("bounce") or {}
+    log(f"[3/4] baked transfer ({rays} rays/texel, {m['totals']['texels']:,} texels, "
+        f"{m['totals']['rays_traced'] / 1e6:.0f}M rays), per-vertex transfer and "
+        f"{b.get('levels', 0)} bounce ({bounce_rays} rays) in {times['bake']:.1f} s "
+        f"[transfer {sec.get('trace', 0) + sec.get('gbuffer', 0) + sec.get('dilate', 0):.1f} s, "
+        f"vertex {sec.get('vertex', 0):.1f} s, bounce {sec.get('bounce_trace', 0) + sec.get('bounce_write', 0):.1f} s]")
+    blend = os.path.join(out_dir, "prtt_demo.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=blend)
+
+    w, h = size
+    shots = {}
+    for mode in ("tpfl", "vertex-tpfl"):
+        t = time.perf_counter()
+        pixels, stats, status, _ = render_scene(bpy.context, mode=mode, size=(w, h))
+        times[f"render {mode}"] = time.perf_counter() - t
+        shots[mode] = pixels
+        for level, text in status.messages:
+            if level != "INFO":
+                log(f"      {level.lower()}: {text}")
+    from .core.image_write import write_image
+    exposure = exposure_of(bpy.context.scene)
+    files = [write_image(os.path.join(out_dir, f"demo_{mode}.png"), px, exposure=exposure)
+             for mode, px in shots.items()]
+    image = side_by_side(shots["vertex-tpfl"], shots["tpfl"],
+                         ("vertex TPFL (per-vertex transfer, the traditional baseline)",
+                          "PRTT: fragment TPFL with transfer textures + 1 bounce"),
+                         os.path.join(out_dir, "demo_side_by_side.png"), exposure=exposure)
+    log(f"[4/4] rendered {w}x{h} previews on {_gpu_name()}: fragment TPFL {times['render tpfl']:.1f} s, "
+        f"vertex TPFL {times['render vertex-tpfl']:.1f} s (first frames: shader compile and uploads included)")
+    times["total"] = time.perf_counter() - t_all
+    log("")
+    log(f"side by side:  {os.path.relpath(image)}")
+    log(f"single images: {', '.join(os.path.relpath(f) for f in files)}")
+    log(f"the .blend:    {os.path.relpath(blend)}   (open it in Blender with PRTT installed: "
+        f"Sidebar > PRTT > Preview)")
+    log(f"textures:      {os.path.relpath(st.output_dir)}/ ({', '.join(m['files'])})")
+    log("stage times: " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
+    return {"image": image, "files": files, "blend": blend, "times": times, "manifest": m, "shots": shots}
+
+
+def _gpu_name() -> str:
+    import gpu
+    try:
+        return gpu.platform.renderer_get()
+    except SystemError:
+        return "the GPU"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", default=os.path.join(ROOT, "out", "demo"), help="output folder (default out/demo)")
+    p.add_argument("--resolution", type=int, default=1024, help="atlas texels per side")
+    p.add_argument("--rays", type=int, default=256, help="transfer rays per texel")
+    p.add_argument("--bounce-rays", type=int, default=64)
+    p.add_argument("--size", default="960x540", help="each preview image, WxH")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m prtt_addon demo", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(p)
+    return run_args(p.parse_args(argv))
+
+
+def run_args(args) -> int:
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        print("prtt: error: the demo needs Blender as a Python module (pip install bpy==5.0.1; "
+              "./prtt.sh demo installs it)", file=sys.stderr)
+        return 1
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    print("PRTT demo: room-class scene, unwrap, bake (transfer + 1 bounce), TPFL vs vertex-TPFL preview")
+    try:
+        run(args.out, resolution=args.resolution, rays=args.rays, bounce_rays=args.bounce_rays, size=(w, h))
+    except (RuntimeError, ValueError, OSError) as exc:
+        print(f"prtt: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
