@@ -68,20 +68,9 @@ def floor_material(bpy):
 
 
 def world_forest(bpy, strength=1.5, rot_z=0.6):
+    from prtt_addon.blender.scene_build import environment_world
     from prtt_addon.core.envmap import builtin_environment_path
-    w = bpy.data.worlds.new("Forest")
-    w.use_nodes = True
-    nt = w.node_tree
-    bg = nt.nodes["Background"]
-    bg.inputs["Strength"].default_value = strength
-    env = nt.nodes.new("ShaderNodeTexEnvironment")
-    env.image = bpy.data.images.load(builtin_environment_path("forest"))
-    mapping = nt.nodes.new("ShaderNodeMapping")
-    mapping.inputs["Rotation"].default_value[2] = rot_z
-    coord = nt.nodes.new("ShaderNodeTexCoord")
-    nt.links.new(coord.outputs["Generated"], mapping.inputs["Vector"])
-    nt.links.new(mapping.outputs["Vector"], env.inputs["Vector"])
-    nt.links.new(env.outputs["Color"], bg.inputs["Color"])
+    w = environment_world("Forest", builtin_environment_path("forest"), strength=strength, rotation_z=rot_z)
     bpy.context.scene.world = w
     return w
 

@@ -55,25 +55,10 @@ def _scene(objects, res=32) -> Scene:
                  object_id=np.concatenate(sid), object_names=names)
 
 
-def _box_faces_uvs(b: mg.Mesh) -> np.ndarray:
-    """Each of the 12 box triangles' face in its own cell (3 x 2 grid)."""
-    uvs = np.zeros((b.n_faces, 3, 2))
-    for f in range(6):
-        tri = b.vertices[b.faces[2 * f:2 * f + 2]]
-        n = np.cross(tri[0, 1] - tri[0, 0], tri[0, 2] - tri[0, 0])
-        ax = [a for a in range(3) if abs(n[a]) < 1e-12 * max(1.0, np.abs(n).max())][:2]
-        p = tri[..., ax]
-        lo, hi = p.reshape(-1, 2).min(0), p.reshape(-1, 2).max(0)
-        local = (p - lo) / np.where(hi > lo, hi - lo, 1.0)
-        cell = np.array([f % 3, f // 3], float)
-        uvs[2 * f:2 * f + 2] = (cell + 0.05 + 0.9 * local) / np.array([3.0, 2.0])
-    return uvs
-
-
 def floor_and_box(scale=1.0, subdiv=4):
     f = mg.plane(4.0, subdiv=subdiv).transformed(scale=scale)
     b = mg.box((1.0, 1.0, 1.0), (0, 0, 0.5)).transformed(scale=scale)
-    return _scene([("floor", f, _planar(f), None), ("box", b, _box_faces_uvs(b), None)])
+    return _scene([("floor", f, _planar(f), None), ("box", b, mg.box_face_uvs(b), None)])
 
 
 def _bake(sc, d, **kw):
@@ -215,7 +200,7 @@ def case_thin_and_coincident(d):
     """
     res = {"failures": []}
     slab = mg.box((2.0, 2.0, 1e-5), (0.0, 0.0, 0.0))
-    _, tex = _bake(_scene([("slab", slab, _box_faces_uvs(slab), None)], res=48),
+    _, tex = _bake(_scene([("slab", slab, mg.box_face_uvs(slab), None)], res=48),
                    os.path.join(d, "slab"), half=False)
     _check_common(tex, res, "thin slab")
     res["slab_vs_analytic"] = float(_axis_error(tex["slab"]).max())
