@@ -59,3 +59,31 @@ def uv_snapshot(bpy):
         me.polygons.foreach_get("select", sel)
         snap[o.name] = (maps, sel)
     return snap
+
+
+def cycles_looker(bpy, tmp_path):
+    """A 0.01-rad, 4 x 4 px Cycles camera (1 sample, no denoising) on the current
+    scene. Returns look(direction) -> (4, 4, C) float pixels of what it sees
+    along that world direction (file order: row 0 at the top)."""
+    import OpenEXR
+    from mathutils import Vector
+    sc = bpy.context.scene
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    sc.collection.objects.link(cam)
+    sc.camera = cam
+    cam.data.angle = 0.01
+    cam.rotation_mode = "QUATERNION"
+    sc.render.engine = "CYCLES"
+    sc.cycles.samples = 1
+    sc.cycles.use_denoising = False
+    sc.render.resolution_x = sc.render.resolution_y = 4
+    sc.render.image_settings.file_format = "OPEN_EXR"
+    path = str(tmp_path / "r.exr")
+    sc.render.filepath = path
+
+    def look(direction):
+        cam.rotation_quaternion = Vector(direction).to_track_quat("-Z", "Y")
+        bpy.ops.render.render(write_still=True)
+        with OpenEXR.File(path) as f:
+            return np.array(list(f.channels().values())[0].pixels)
+    return look

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from prtt_addon.core import envmap, sh
-from tests.blender_util import addon_bpy, new_float_image
+from tests.blender_util import addon_bpy, cycles_looker, new_float_image
 
 pytestmark = pytest.mark.blender
 
@@ -20,27 +20,8 @@ C0[8] = [-0.2, 0.25, 0.3]
 
 def cycles_radiance(bpy, dirs, tmp_path):
     """Radiance Cycles sees along each direction (a 0.01-rad camera, 1 sample)."""
-    import OpenEXR
-    from mathutils import Vector
-    sc = bpy.context.scene
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    sc.collection.objects.link(cam)
-    sc.camera = cam
-    cam.data.angle = 0.01
-    cam.rotation_mode = "QUATERNION"
-    sc.render.engine = "CYCLES"
-    sc.cycles.samples = 1
-    sc.cycles.use_denoising = False
-    sc.render.resolution_x = sc.render.resolution_y = 4
-    sc.render.image_settings.file_format = "OPEN_EXR"
-    sc.render.filepath = str(tmp_path / "r.exr")
-    out = []
-    for d in dirs:
-        cam.rotation_quaternion = Vector(d).to_track_quat("-Z", "Y")
-        bpy.ops.render.render(write_still=True)
-        with OpenEXR.File(str(tmp_path / "r.exr")) as f:
-            out.append(np.array(list(f.channels().values())[0].pixels[1:3, 1:3, :3]).mean(axis=(0, 1)))
-    return np.array(out)
+    look = cycles_looker(bpy, tmp_path)
+    return np.array([look(d)[1:3, 1:3, :3].mean(axis=(0, 1)) for d in dirs])
 
 
 def world_with_image(bpy, rotation=None, strength=1.0, vector_type="POINT"):
@@ -103,4 +84,20 @@ def test_constant_world_and_errors(tmp_path):
     assert "forest" in desc and L2.shape == (4, 3)
     bpy.context.scene.world = None
     with pytest.raises(WorldLightError, match="no World"):
+        world_light(bpy.context.scene, 2)
+
+
+def test_world_image_without_pixels_is_a_clear_error(tmp_path):
+    """An Environment Texture whose file is gone: WorldLightError naming it, no crash."""
+    bpy = addon_bpy()
+    from prtt_addon.blender.world import WorldLightError, world_light
+    world = bpy.data.worlds.new("W")
+    bpy.context.scene.world = world
+    nt = world.node_tree
+    env = nt.nodes.new("ShaderNodeTexEnvironment")
+    env.image = bpy.data.images.new("gone", 4, 2)
+    env.image.source = "FILE"
+    env.image.filepath = str(tmp_path / "gone.png")
+    nt.links.new(env.outputs["Color"], nt.nodes["Background"].inputs["Color"])
+    with pytest.raises(WorldLightError, match="'gone' has no pixels"):
         world_light(bpy.context.scene, 2)

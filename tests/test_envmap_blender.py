@@ -5,7 +5,7 @@ import pytest
 
 from prtt_addon.core import envmap
 from prtt_addon.core.image_io import read_hdr_image
-from tests.blender_util import fresh_bpy, new_float_image
+from tests.blender_util import cycles_looker, fresh_bpy, new_float_image
 
 pytestmark = pytest.mark.blender
 
@@ -15,9 +15,6 @@ def test_equirect_orientation_matches_cycles(tmp_path):
     directions; the map encodes (u, v) of each pixel centre in R, G. What Cycles
     sees must be the pixel that envmap.direction_to_uv predicts."""
     bpy = fresh_bpy()
-    from mathutils import Vector
-    import OpenEXR
-
     W, H = 64, 32
     u = (np.arange(W) + 0.5) / W
     v_top_first = 1.0 - (np.arange(H) + 0.5) / H
@@ -33,26 +30,13 @@ def test_equirect_orientation_matches_cycles(tmp_path):
     env.image = img
     env.interpolation = "Closest"
     nt.links.new(env.outputs["Color"], nt.nodes["Background"].inputs["Color"])
-    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
-    sc.collection.objects.link(cam)
-    sc.camera = cam
-    cam.data.angle = 0.01
-    cam.rotation_mode = "QUATERNION"
-    sc.render.engine = "CYCLES"
-    sc.cycles.samples = 1
-    sc.cycles.use_denoising = False
-    sc.render.resolution_x = sc.render.resolution_y = 4
-    sc.render.image_settings.file_format = "OPEN_EXR"
-    sc.render.filepath = str(tmp_path / "r.exr")
+    look = cycles_looker(bpy, tmp_path)
     dirs = np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0.001], [0, -1, 0], [0.3, 0.2, 0.93],
                      [-0.5, 0.6, -0.62], [0.7, -0.7, 0.1]], float)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     want = envmap.direction_to_uv(dirs)
     for d, (wu, wv) in zip(dirs, want):
-        cam.rotation_quaternion = Vector(d).to_track_quat("-Z", "Y")
-        bpy.ops.render.render(write_still=True)
-        with OpenEXR.File(str(tmp_path / "r.exr")) as f:
-            got = list(f.channels().values())[0].pixels[2, 2, :2]
+        got = look(d)[2, 2, :2]
         du = abs((got[0] - wu + 0.5) % 1.0 - 0.5)
         assert du <= 1.0 / W and abs(got[1] - wv) <= 1.0 / H, (d, got, (wu, wv))
 

@@ -27,6 +27,7 @@ import os
 import numpy as np
 
 from ..core import envmap, sh
+from .materials import image_array
 
 
 class WorldLightError(ValueError):
@@ -46,20 +47,10 @@ def _image_pixels(image) -> np.ndarray:
     if path and os.path.isfile(path) and path.lower().endswith((".exr", ".hdr")):
         from ..core.image_io import read_hdr_image
         return read_hdr_image(path)
-    if not image.has_data:
-        try:
-            image.reload()
-        except RuntimeError:
-            pass
-    w, h = image.size
-    if w == 0 or h == 0:
+    px = image_array(image, linearise=True)          # reloads an image without data
+    if px.size == 0:
         raise WorldLightError(f"World image {image.name!r} has no pixels (missing file {image.filepath!r}?)")
-    px = np.empty(w * h * image.channels, np.float32)
-    image.pixels.foreach_get(px)
-    px = px.reshape(h, w, image.channels)[::-1]
     rgb = px[..., :3] if image.channels >= 3 else np.repeat(px[..., :1], 3, axis=-1)
-    if not image.is_float and image.colorspace_settings.name.lower().startswith("srgb"):
-        rgb = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
     return np.ascontiguousarray(rgb, dtype=np.float32)
 
 
