@@ -16,7 +16,7 @@ import time
 import bpy
 import numpy as np
 
-from ..core.bake import BakeSettings
+from ..core.bake import BakeError, BakeSettings, check_out_dir
 from ..core.scene import save_scene
 from .export import ExportError, export_scene
 from .preview_scene import materials_signature
@@ -71,11 +71,9 @@ def prepare(context, overrides: dict | None = None) -> Prepared:
     BakeSettings.from_dict(settings).validate()
     exp = export_scene(context, with_light=settings.get("bounces", 0) > 0)
     try:
-        os.makedirs(out_dir, exist_ok=True)
-    except OSError as exc:
-        raise ExportError(f"cannot create the output folder {out_dir}: {exc.strerror}") from exc
-    if not os.access(out_dir, os.W_OK | os.X_OK):
-        raise ExportError(f"the output folder {out_dir} is not writable")
+        check_out_dir(out_dir)
+    except BakeError as exc:
+        raise ExportError(str(exc)) from exc
     extra = {"settings": settings, "blend": bpy.data.filepath, "set_objects": exp.set_objects}
     if exp.light is not None:
         extra["light"] = {"coeffs": exp.light.tolist(), "description": exp.light_description}

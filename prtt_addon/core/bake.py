@@ -162,7 +162,8 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
     return h.hexdigest()
 
 
-def _check_out_dir(out_dir) -> str:
+def check_out_dir(out_dir) -> str:
+    """The absolute output folder, created if needed; BakeError if it cannot be written."""
     out_dir = os.path.abspath(os.fspath(out_dir))
     try:
         os.makedirs(out_dir, exist_ok=True)
@@ -458,7 +459,7 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
     from .materials import materials_hash
     from .shading import light_hash
     st = (settings or BakeSettings()).validate()
-    out_dir = _check_out_dir(out_dir)
+    out_dir = check_out_dir(out_dir)
     t_all = time.perf_counter()
     bk = _Bake(sc, out_dir, st, light, progress, cancel, sets)
     try:
