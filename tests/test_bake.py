@@ -1,6 +1,8 @@
 """bake_scene end to end: outputs, manifest, atomicity, cancel, overlaps, vertex mode, mips."""
 import json
 import os
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -12,12 +14,14 @@ from prtt_addon.core.memory import MemoryLimitError
 from prtt_addon.core.transfer import Cancelled, unoccluded_transfer
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
 
 def test_outputs_manifest_and_header(tmp_path):
     sc = floor_and_box(res=32)
     m = bake_scene(sc, tmp_path, BakeSettings(rays=64))
     assert sorted(os.listdir(tmp_path)) == ["box.transfer.exr", "floor.transfer.exr", "manifest.json"]
-    man = json.load(open(tmp_path / "manifest.json"))
+    man = json.loads((tmp_path / "manifest.json").read_text())
     assert man == m and man["skipped"] is False
     assert man["settings"]["rays"] == 64 and man["input_hash"] and man["settings_hash"]
     for s in man["sets"]:
@@ -71,7 +75,7 @@ def test_float_storage_and_strided_round_trip(tmp_path):
 def test_exr_write_is_atomic(tmp_path, monkeypatch):
     good = np.zeros((4, 4, 9), np.float32)
     exr_io.write_sh_exr(tmp_path / "t.exr", good, kind="transfer")
-    before = open(tmp_path / "t.exr", "rb").read()
+    before = (tmp_path / "t.exr").read_bytes()
     import OpenEXR
     real_file = OpenEXR.File
 
@@ -93,7 +97,7 @@ def test_exr_write_is_atomic(tmp_path, monkeypatch):
     monkeypatch.setattr(OpenEXR, "File", Exploding)
     with pytest.raises(OSError, match="disk full"):
         exr_io.write_sh_exr(tmp_path / "t.exr", good + 1, kind="transfer")
-    assert open(tmp_path / "t.exr", "rb").read() == before
+    assert (tmp_path / "t.exr").read_bytes() == before
     assert os.listdir(tmp_path) == ["t.exr"]
 
 
@@ -105,6 +109,23 @@ def test_non_finite_and_half_overflow(tmp_path):
     with pytest.raises(ValueError, match="half-float range"):
         exr_io.write_sh_exr(tmp_path / "o.exr", big, kind="transfer", half=True)
     assert not os.path.exists(tmp_path / "n.exr") and not os.path.exists(tmp_path / "o.exr")
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("channel", [0, 3])
+def test_value_range_in_parallel_still_sees_nan_and_inf(bad, channel):
+    """One (min, max) pass over the channels feeds both write checks; a NaN in
+    any channel must survive the per-channel split (Python's min() would drop it)."""
+    import concurrent.futures as cf
+    planes = np.random.default_rng(0).normal(size=(4, 8, 8)).astype(np.float32)
+    with cf.ThreadPoolExecutor(2) as ex:
+        assert exr_io.value_range(planes, ex) == (float(planes.min()), float(planes.max()))
+        planes[channel, 3, 5] = bad
+        lo, hi = exr_io.value_range(planes, ex)
+    assert not (np.isfinite(lo) and np.isfinite(hi))
+    with pytest.raises(ValueError, match="non-finite"):
+        exr_io.check_finite(planes, "t", (lo, hi))
+    assert exr_io.value_range(planes[:0]) == (0.0, 0.0)
 
 
 def test_unchanged_inputs_skip_and_force(tmp_path):
@@ -134,7 +155,7 @@ def test_bit_identical_rebake(tmp_path):
 def test_cancel_keeps_previous_outputs(tmp_path):
     sc = floor_and_box(res=16)
     bake_scene(sc, tmp_path, BakeSettings(rays=32))
-    before = {n: open(tmp_path / n, "rb").read() for n in os.listdir(tmp_path)}
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     cancel = threading.Event()
     events = []
 
@@ -145,7 +166,7 @@ def test_cancel_keeps_previous_outputs(tmp_path):
 
     with pytest.raises(Cancelled):
         bake_scene(floor_and_box(res=32), tmp_path, BakeSettings(rays=64), progress=progress, cancel=cancel)
-    after = {n: open(tmp_path / n, "rb").read() for n in os.listdir(tmp_path)}
+    after = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     assert after == before                          # no temporaries, nothing replaced
 
 
@@ -254,3 +275,66 @@ def test_atomic_writes_get_normal_permissions(tmp_path):
     os.chmod(tmp_path / "new.exr", 0o640)
     exr_io.write_sh_exr(tmp_path / "new.exr", good + 1, kind="transfer")
     assert os.stat(tmp_path / "new.exr").st_mode & 0o777 == 0o640
+
+
+def _hugepage_advice_now() -> bool:
+    from prtt_addon.core.memory import _numpy_hugepage_switch
+    switch = _numpy_hugepage_switch()
+    now = switch(True)
+    switch(now)
+    return now
+
+
+def test_hugepage_advice_off_for_streamed_stages_only(tmp_path):
+    """Transfer stages (G-buffer .. EXR) run without numpy's huge-page advice,
+    the bounce stage with the caller's setting, and the bake restores it
+    (memory.numpy_hugepage_advice: both measured to be faster that way)."""
+    from prtt_addon.core.memory import numpy_hugepage_advice
+    with numpy_hugepage_advice(False):
+        with numpy_hugepage_advice(True):
+            assert _hugepage_advice_now() is True
+        assert _hugepage_advice_now() is False
+    before = _hugepage_advice_now()
+    seen = {}
+
+    def progress(e):
+        if e.get("type") == "progress":
+            seen.setdefault(e["stage"], _hugepage_advice_now())
+
+    light = np.zeros((25, 3))
+    light[0] = 1.0
+    bake_scene(floor_and_box(res=16), tmp_path, BakeSettings(rays=32, bounce_rays=8), light=light,
+               progress=progress)
+    assert seen["gbuffer"] is False and seen["trace"] is False
+    assert seen["bounce"] is before
+    assert _hugepage_advice_now() is before
+
+
+_TRIM_PROBE = """
+import sys, threading
+import numpy as np
+from prtt_addon.core.memory import release_free_memory
+def rss():
+    return next(int(l.split()[1]) for l in open('/proc/self/status') if l.startswith('VmRSS')) / 1024
+keep = []
+def work():
+    big = []
+    for i in range(2000):
+        big.append(np.ones(12_000))          # 96 KB: below the mmap threshold, in this thread's arena
+        keep.append(np.ones(16))             # small survivors pin the arena's freed holes
+    del big
+t = threading.Thread(target=work); t.start(); t.join()
+before = rss(); ran = release_free_memory(); after = rss()
+print(ran, before, after)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc; malloc_trim is glibc's")
+def test_release_free_memory_returns_a_helper_threads_freed_arena():
+    """What the G-buffer's helper threads free stays in their glibc arenas
+    (RSS) until core.memory.release_free_memory hands it back."""
+    r = subprocess.run([sys.executable, "-c", _TRIM_PROBE], capture_output=True, text=True, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=ROOT))
+    ran, before, after = r.stdout.split()
+    assert ran == "True", r.stderr
+    assert float(before) - float(after) > 100, (before, after)      # ~190 MB freed but held

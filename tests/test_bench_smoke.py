@@ -18,8 +18,9 @@ def bench(*args):
 
 
 def test_bake_bench():
-    out = bench("bake", "--resolution", "256", "--rays", "64")
+    out = bench("bake", "--resolution", "256", "--rays", "64", "--repeat", "2")
     assert "ratio end-to-end / raw Embree" in out and "texel-samples/s/core" in out
+    assert "pair 1:" in out and "pair 2:" in out and "fastest of 2" in out
 
 
 def test_bounce_bench():

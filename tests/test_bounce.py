@@ -131,16 +131,16 @@ def test_light_or_material_change_rebakes_only_bounces(tmp_path):
     sc = corner_scene({"name": "w", "base_color": [0.5, 0.5, 0.5]})
     st = BakeSettings(rays=64, bounces=1, bounce_rays=32)
     first = bake_scene(sc, tmp_path, st, light=sky())
-    t_before = open(tmp_path / "floor.transfer.exr", "rb").read()
-    b_before = open(tmp_path / "floor.bounce1.exr", "rb").read()
+    t_before = (tmp_path / "floor.transfer.exr").read_bytes()
+    b_before = (tmp_path / "floor.bounce1.exr").read_bytes()
     assert bake_scene(sc, tmp_path, st, light=sky())["skipped"]
     brighter = sky() * 2.0
     second = bake_scene(sc, tmp_path, st, light=brighter)
     assert second["skipped"] is False and second["transfer_reused"] is True
     assert second["bounce"]["light_hash"] != first["bounce"]["light_hash"]
-    assert open(tmp_path / "floor.transfer.exr", "rb").read() == t_before
+    assert (tmp_path / "floor.transfer.exr").read_bytes() == t_before
     b_after, _ = exr_io.read_sh_exr(tmp_path / "floor.bounce1.exr")
-    assert open(tmp_path / "floor.bounce1.exr", "rb").read() != b_before
+    assert (tmp_path / "floor.bounce1.exr").read_bytes() != b_before
     sc.materials[1]["base_color"] = [0.9, 0.1, 0.1]
     third = bake_scene(sc, tmp_path, st, light=brighter)
     assert third["transfer_reused"] and third["bounce"]["materials_hash"] != second["bounce"]["materials_hash"]

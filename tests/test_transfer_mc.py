@@ -137,3 +137,14 @@ def test_threads_use_both_cores():
     pts = bake_points_input(sc, 0, build_gbuffer(sc, 0), fn, clear, grp)
     _, info = bake_points(rs, pts, BakeSettings(rays=64, threads=2, chunk_rays=2048))
     assert info["threads"] == 2
+
+
+@pytest.mark.parametrize("hi", [7, 70_000])
+def test_chunk_plan_ordering_equals_stable_argsort(hi):
+    """The radix path (keys < 2^16) and the fallback both give numpy's stable order."""
+    from prtt_addon.core.transfer import _stable_order
+    rng = np.random.default_rng(hi)
+    major, minor = rng.integers(0, hi, 50_000), rng.integers(0, 64, 50_000)
+    assert np.array_equal(_stable_order(major, minor), np.argsort(major * 64 + minor, kind="stable"))
+    assert np.array_equal(_stable_order(major), np.argsort(major, kind="stable"))
+    assert _stable_order(major[:0], minor[:0]).size == 0

@@ -56,12 +56,18 @@ def test_worker_reports_bad_input(tmp_path):
     assert r.returncode == 2
 
 
+def outputs(folder, staged: bool = True):
+    """{name: bytes} of a bake folder's files; staged=False leaves out the
+    temporaries a killed worker could not clean up."""
+    return {p.name: p.read_bytes() for p in folder.iterdir() if staged or not p.name.startswith(".prtt-tmp-")}
+
+
 def previous_bake_and_long_job(tmp_path):
     """A finished small bake in tmp/out (returned as {file: bytes}) and a running
     worker on a long job writing to the same folder."""
     save_scene(floor_and_box(res=16), tmp_path / "small.npz", extra={"settings": {"rays": 16}})
     assert run_worker(tmp_path / "small.npz", tmp_path / "out").returncode == 0
-    before = {n: open(tmp_path / "out" / n, "rb").read() for n in os.listdir(tmp_path / "out")}
+    before = outputs(tmp_path / "out")
     save_scene(floor_and_box(res=256), tmp_path / "big.npz", extra={"settings": {"rays": 4096}})
     p = subprocess.Popen([sys.executable, "-m", "prtt_addon.worker", str(tmp_path / "big.npz"),
                           str(tmp_path / "out")], stdout=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
@@ -79,10 +85,10 @@ def test_worker_cancels_cleanly_on_signal(tmp_path, sig):
             break
     rest = p.stdout.read()
     code = p.wait(timeout=60)
+    p.stdout.close()
     assert code == 3
     assert events(rest)[-1]["type"] == "cancelled"
-    after = {n: open(tmp_path / "out" / n, "rb").read() for n in os.listdir(tmp_path / "out")}
-    assert after == before
+    assert outputs(tmp_path / "out") == before
 
 
 def test_worker_killed_leaves_previous_outputs(tmp_path):
@@ -92,9 +98,8 @@ def test_worker_killed_leaves_previous_outputs(tmp_path):
             p.kill()
             break
     p.wait(timeout=30)
-    after = {n: open(tmp_path / "out" / n, "rb").read() for n in os.listdir(tmp_path / "out")
-             if not n.startswith(".prtt-tmp-")}
-    assert after == before
+    p.stdout.close()
+    assert outputs(tmp_path / "out", staged=False) == before
 
 
 def test_bake_job_cli_overrides(tmp_path):
@@ -105,7 +110,7 @@ def test_bake_job_cli_overrides(tmp_path):
                        capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "done:" in r.stdout
-    man = json.load(open(tmp_path / "o" / "manifest.json"))
+    man = json.loads((tmp_path / "o" / "manifest.json").read_text())
     assert man["settings"]["rays"] == 48 and man["settings"]["bands"] == 3
     assert man["settings"]["half"] is False and man["sets"][0]["resolution"] == [24, 24]
     assert "floor.vertex.npz" in man["files"]
@@ -125,8 +130,9 @@ def test_worker_bakes_bounces_with_the_jobs_light(tmp_path):
     ev = events(r.stdout)
     assert ev[0]["light"] == "sky"
     assert any(e.get("stage") == "bounce" for e in ev)
-    man = json.load(open(tmp_path / "out" / "manifest.json"))
+    man = json.loads((tmp_path / "out" / "manifest.json").read_text())
     assert "floor.bounce1.exr" in man["files"]
     save_scene(sc, tmp_path / "bad.npz", extra={"light": {"coeffs": [[1.0, 2.0]]}})
     r = run_worker(tmp_path / "bad.npz", tmp_path / "out2")
     assert r.returncode == 1 and "coeffs must be (K, 3)" in events(r.stdout)[-1]["message"]
+

@@ -36,10 +36,11 @@ from .atomic import TMP_PREFIX, atomic_write
 from .dilate import dilate, mip_chain
 from .gbuffer import build_gbuffer, face_normals
 from .hemisphere_clear import FLAT_COS, clear_triangles
-from .memory import bounce_resident_bytes, check_fits, set_bytes
+from .memory import bounce_resident_bytes, check_fits, numpy_hugepage_advice, release_free_memory, set_bytes
 from .raytrace import RayScene
 from .scene import Scene, geometry_hash
-from .transfer import SAME_NORMAL, Points, TransferSettings, bake_points
+from .texsample import pixel_major, planes_from_rows
+from .transfer import SAME_NORMAL, Points, TransferSettings, bake_points, warm_tables
 
 MANIFEST = "manifest.json"
 BAKE_FORMAT_VERSION = 1
@@ -260,7 +261,9 @@ class _Bake:
         if light is not None:
             from .shading import prepare_light
             self.light = prepare_light(light, st.bands)
-        self.helpers = cf.ThreadPoolExecutor(max_workers=max(2, st.n_threads))
+        # One more worker than cores: the first set's G-buffer is built from a
+        # helper that then waits for its row bands on this same pool.
+        self.helpers = cf.ThreadPoolExecutor(max_workers=max(2, st.n_threads) + 1)
 
     def emit(self, **event):
         _emit(self.progress, **event)
@@ -277,6 +280,8 @@ class _Bake:
     def prepare(self, first_set):
         st = self.st
         first_gb = self.helpers.submit(self.gbuffer_of, first_set) if first_set is not None else None
+        if first_set is not None:
+            self.helpers.submit(warm_tables, st)     # ray patterns, while the cores are not tracing
         self.emit(type="progress", stage="bvh", fraction=0.0)
         t = time.perf_counter()
         self.rs = RayScene(self.sc.positions)
@@ -315,18 +320,21 @@ class _Bake:
                       rays_per_s=rays / max(time.perf_counter() - t, 1e-9), set_index=si,
                       sets=len(self.set_ids))
 
-        # Channel-first texture (K, H*W); chunks write their texels straight in.
-        tex = np.zeros((K, gb.height * gb.width), np.float32)
-        texel = gb.texel
-
-        def sink(idx, values):
-            tex[:, texel[idx]] = values.T
-
-        _, info = bake_points(self.rs, pts, st, progress=on_progress, cancel=self.cancel, sink=sink)
+        # Chunks write whole rows (N, K) (a chunk's texels are scattered over the
+        # atlas; K separate plane writes per texel cost more than the trace glue).
+        T_texels, info = bake_points(self.rs, pts, st, progress=on_progress, cancel=self.cancel)
         self.seconds["trace"] += time.perf_counter() - t
         t = time.perf_counter()
-        T_texels = tex[:, texel].T.copy() if keep_for_bounce else None
-        tex = tex.reshape(K, gb.height, gb.width)
+        if not keep_for_bounce:
+            # The surface is traced: free it before the planes join the texel rows
+            # (this keeps the peak below G-buffer + planes).
+            del pts
+            gb.release_surface()
+        texel = gb.texel
+        tex = planes_from_rows(texel, T_texels, gb.height * gb.width,
+                               executor=self.helpers).reshape(K, gb.height, gb.width)
+        if not keep_for_bounce:
+            T_texels = None
         mask = np.zeros(gb.height * gb.width, bool)
         mask[texel] = True
         mask = mask.reshape(gb.height, gb.width)
@@ -357,32 +365,33 @@ class _Bake:
         res = _SetResult(s, name, rep, files, T_texels=T_texels)
         if keep_for_bounce:
             from .bounce import IncidentSet
-            from .texsample import pixel_major
-            res.incident = IncidentSet(pixel_major(tex), gb.width, gb.height)
+            with numpy_hugepage_advice(True):   # looked up at random by bounce rays
+                res.incident = IncidentSet(pixel_major(tex), gb.width, gb.height)
             res.gb, res.pts = gb, pts
         return res
 
     def write_planes(self, fname, planes, kind, attrs, *, rgb, half=None):
         """Write staged; half precision unless values overflow it. Returns half."""
         half = self.st.half if half is None else half
-        over = exr_io.half_overflow(planes) if half else 0
+        rng = exr_io.value_range(planes, self.helpers)
+        over = exr_io.half_overflow(planes, rng) if half else 0
         if over:
             self.warn(f"{fname}: {over} values exceed the half-float range; stored as float32")
             half = False
         exr_io.write_sh_planes(self.stage.path(fname), planes, kind=kind, half=half, rgb=rgb,
-                               attrs=attrs, atomic=False, executor=self.helpers)
+                               attrs=attrs, atomic=False, executor=self.helpers, rng=rng)
         return half
 
     def load_transfer_set(self, s, gb, old_report):
         """Bounce-only re-bake: the set's transfer as written (what renders)."""
         from .bounce import IncidentSet
-        from .texsample import pixel_major
         name = self.sc.set_names[s]
         data, attrs = exr_io.read_sh_exr(os.path.join(self.out_dir, f"{name}.transfer.exr"))
         planes = np.ascontiguousarray(np.moveaxis(data, 2, 0))
-        pm = pixel_major(planes)
-        res = _SetResult(s, name, old_report, [], T_texels=pm[gb.texel],
-                         incident=IncidentSet(pm, gb.width, gb.height))
+        with numpy_hugepage_advice(True):       # looked up at random by bounce rays
+            pm = pixel_major(planes)
+            incident = IncidentSet(pm, gb.width, gb.height)
+        res = _SetResult(s, name, old_report, [], T_texels=pm[gb.texel], incident=incident)
         res.gb = gb
         res.pts = bake_points_input(self.sc, s, gb, self.fn, self.clear, self.normal_group)
         res.storage = attrs.get("storage", "half")
@@ -392,7 +401,6 @@ class _Bake:
     def bounce_levels(self, results):
         from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, HitShader, IncidentSet, bake_bounce_set,
                              bounce_settings, open_texels)
-        from .texsample import pixel_major
         st, sc, K = self.st, self.sc, self.K
         bst = bounce_settings(st, st.bounce_rays)
         live = [r for r in results if r.incident is not None]
@@ -425,12 +433,13 @@ class _Bake:
                 self.seconds["bounce_trace"] += time.perf_counter() - t
                 t = time.perf_counter()
                 tex = tex.reshape(3 * K, r.gb.height, r.gb.width)
-                dilate(tex, mask, st.dilate, executor=self.helpers)
                 fname = f"{name}.bounce{level}.exr"
                 attrs = dict(self.attrs_common, level=level, rays=st.bounce_rays,
                              light_hash=self.light_hash, materials_hash=self.materials_hash,
                              texels=int(r.gb.n))
-                half = self.write_planes(fname, tex, "bounce", attrs, rgb=True)
+                with numpy_hugepage_advice(False):      # fresh arrays, streamed once
+                    dilate(tex, mask, st.dilate, executor=self.helpers)
+                    half = self.write_planes(fname, tex, "bounce", attrs, rgb=True)
                 files.append(fname)
                 nxt[r.index] = IncidentSet(pixel_major(tex), r.gb.width, r.gb.height)
                 stats.update(name=name, level=level, file=fname, storage="half" if half else "float")
@@ -504,20 +513,23 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
     bk.seconds.update(gbuffer=0.0, trace=0.0, dilate=0.0, write=0.0, vertex=0.0,
                       bounce_trace=0.0, bounce_write=0.0)
     todo = bk.set_ids if st.textures else []
-    first_gb = bk.prepare(todo[0] if todo else None)
-
     results = []
     old_reports = {r["name"]: r for r in (old or {}).get("sets", [])}
-    for si, s in enumerate(todo):
-        t = time.perf_counter()
-        bk.emit(type="progress", stage="gbuffer", set=sc.set_names[s], fraction=0.0)
-        gb = first_gb.result() if si == 0 else bk.gbuffer_of(s)
-        bk.seconds["gbuffer"] += time.perf_counter() - t
-        if transfer_ok:
-            if gb.n:
-                results.append(bk.load_transfer_set(s, gb, old_reports.get(sc.set_names[s], {})))
-        else:
-            results.append(bk.transfer_set(si, s, gb, keep_for_bounce=bouncing))
+    # G-buffers, texel rows, planes, EXR channels: fresh arrays streamed once,
+    # which fault in faster as normal pages (memory.numpy_hugepage_advice).
+    with numpy_hugepage_advice(False):
+        first_gb = bk.prepare(todo[0] if todo else None)
+        for si, s in enumerate(todo):
+            t = time.perf_counter()
+            bk.emit(type="progress", stage="gbuffer", set=sc.set_names[s], fraction=0.0)
+            gb = first_gb.result() if si == 0 else bk.gbuffer_of(s)
+            release_free_memory()       # the rasteriser's temporaries, freed on helper threads
+            bk.seconds["gbuffer"] += time.perf_counter() - t
+            if transfer_ok:
+                if gb.n:
+                    results.append(bk.load_transfer_set(s, gb, old_reports.get(sc.set_names[s], {})))
+            else:
+                results.append(bk.transfer_set(si, s, gb, keep_for_bounce=bouncing))
 
     vertex_reports, vertex_files = [], []
     if st.vertex_mode and not transfer_ok:

@@ -44,29 +44,48 @@ def channel_names(n_coeffs: int, rgb: bool = False) -> list[str]:
     return names
 
 
-def half_overflow(values: np.ndarray) -> int:
-    """How many finite values would overflow float16 (|v| > 65504)."""
-    lo, hi = float(np.min(values)), float(np.max(values))
+def value_range(values: np.ndarray, executor=None) -> tuple[float, float]:
+    """(min, max) of ``values`` (NaN if any value is NaN; (0, 0) when empty).
+
+    With an ``executor`` the leading axis (channels) is reduced in parallel.
+    One range serves both :func:`check_finite` and :func:`half_overflow`.
+    """
+    a = np.asarray(values)
+    if a.size == 0:
+        return 0.0, 0.0
+    if executor is None or a.ndim < 2 or a.shape[0] < 2:
+        return float(np.min(a)), float(np.max(a))
+    per = list(executor.map(lambda c: (np.min(c), np.max(c)), a))
+    # np.min/np.max propagate NaN; Python's min() would depend on the order.
+    return float(np.min([p[0] for p in per])), float(np.max([p[1] for p in per]))
+
+
+def half_overflow(values: np.ndarray, rng: tuple[float, float] | None = None) -> int:
+    """How many finite values would overflow float16 (|v| > 65504).
+    ``rng``: the values' :func:`value_range`, if already known."""
+    lo, hi = rng if rng is not None else value_range(values)
     if -HALF_MAX <= lo and hi <= HALF_MAX:
         return 0                         # two reductions, no temporaries
     return int(np.count_nonzero(np.abs(values) > HALF_MAX))
 
 
-def check_finite(values: np.ndarray, what: str) -> None:
+def check_finite(values: np.ndarray, what: str, rng: tuple[float, float] | None = None) -> None:
     """Raise if any value is NaN or Inf (min/max propagate both)."""
-    if values.size and not (np.isfinite(np.min(values)) and np.isfinite(np.max(values))):
+    lo, hi = rng if rng is not None else value_range(values)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
         raise ValueError(f"refusing to write non-finite values to {what}")
 
 
 def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
                     rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
-                    executor=None) -> str:
+                    executor=None, rng: tuple[float, float] | None = None) -> str:
     """Write an SH texture from channel-first ``planes`` (C, H, W), row 0 at the bottom.
 
     C = K for kind "transfer", 3K when ``rgb`` (bounce; R.sh000.., G.., B..).
     half : store float16 (the caller checks :func:`half_overflow` first).
     attrs : extra header attributes (str/int/float/list of str); keys get a
             ``prtt_`` prefix if they lack one.
+    rng : the planes' :func:`value_range`, if the caller has it.
     Returns the path written.
     """
     import OpenEXR
@@ -80,9 +99,10 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     if rgb and a.shape[0] != 3 * K:
         raise ValueError(f"RGB SH planes need 3K channels, got {a.shape[0]}")
     bands = bands_of(K)
-    check_finite(a, os.fspath(path))
-    if half and half_overflow(a):
-        raise ValueError(f"{half_overflow(a)} values exceed the half-float range; write float32")
+    rng = rng if rng is not None else value_range(a, executor)
+    check_finite(a, os.fspath(path), rng)
+    if half and half_overflow(a, rng):
+        raise ValueError(f"{half_overflow(a, rng)} values exceed the half-float range; write float32")
     dtype = np.float16 if half else np.float32
     H, W = a.shape[1:]
     # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).

@@ -47,6 +47,13 @@ class GBuffer:
     def n(self) -> int:
         return int(self.texel.shape[0])
 
+    def release_surface(self) -> None:
+        """Drop the per-texel surface arrays (~110 B a texel), keeping the layout
+        (texel, coverage, size, stats): what a set needs once its rays are traced.
+        Afterwards the dropped fields are None."""
+        self.tri = self.bary = self.position = self.normal = self.geo_normal = None
+        self.normal_mapped = None
+
 
 def face_normals(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(T, 3) unit face normals by winding (zero where degenerate) and (T,) areas."""

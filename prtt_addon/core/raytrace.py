@@ -66,9 +66,11 @@ class RayScene:
         r = self._scene.run(origins, dirs, dists=tfar, query="OCCLUDED")
         return r == 0
 
-    def occluded_raw(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """The bare embreex call (benchmark baseline): int32, 0 = occluded."""
-        return self._scene.run(origins, dirs, query="OCCLUDED")
+    def occluded_raw(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None) -> np.ndarray:
+        """The bare embreex call: (N,) int32, 0 = occluded (the benchmark baseline;
+        also the bake's inner loop, which passes a reusable ``tfar`` so that
+        embreex allocates and fills no interval array per call)."""
+        return self._scene.run(origins, dirs, dists=tfar, query="OCCLUDED")
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray):
         """Closest hits: (prim (N,) int32, -1 = miss; u, v barycentrics; t distance)."""

@@ -5,6 +5,10 @@ uv = ((i + 0.5) / W, (j + 0.5) / H); lookups between centres blend the four
 nearest texels; outside the centres' range the edge texels extend (clamp to
 edge). This is what the viewport shader's sampler does, so the bounce bake and
 the shader tests read baked textures exactly as the renderer will.
+
+Also the two layouts a texture has in the bake: pixel-major rows (one texel's
+channels contiguous, what the kernels produce and gather) and channel planes
+(C, H, W) (what dilation and the EXR writer take).
 """
 from __future__ import annotations
 
@@ -15,6 +19,40 @@ def pixel_major(tex_chw: np.ndarray) -> np.ndarray:
     """(C, H, W) -> (H * W, C) float32, rows contiguous: one gather per texel."""
     C, H, W = tex_chw.shape
     return np.ascontiguousarray(tex_chw.reshape(C, H * W).T, dtype=np.float32)
+
+
+def planes_from_rows(texel: np.ndarray, rows: np.ndarray, n_texels: int, *,
+                     executor=None, block: int = 4096) -> np.ndarray:
+    """Channel planes (C, n_texels) float32 holding ``rows`` (N, C) at ``texel``
+    (N,) (strictly ascending), zero elsewhere.
+
+    Each run of ``block`` listed texels is assembled in a small cache-resident
+    buffer over the span it covers and copied out whole (a direct
+    ``planes[:, texel] = rows.T`` strides across C rows megabytes apart and is
+    ~4x slower). Texels between spans are never written, so the empty parts of
+    a sparse atlas stay untouched zero pages. With an ``executor`` two threads
+    share the spans.
+    """
+    n, C = rows.shape
+    if texel.shape != (n,):
+        raise ValueError(f"texel must have shape ({n},), got {texel.shape}")
+    planes = np.zeros((C, n_texels), np.float32)
+    starts = list(range(0, n, block))
+
+    def fill(ks):
+        for a in ks:
+            b = min(a + block, n)
+            lo, hi = int(texel[a]), int(texel[b - 1]) + 1
+            span = np.zeros((C, hi - lo), np.float32)
+            span[:, texel[a:b] - lo] = rows[a:b].T
+            planes[:, lo:hi] = span
+
+    if executor is not None and len(starts) > 1:
+        mid = len(starts) // 2
+        list(executor.map(fill, [starts[:mid], starts[mid:]]))
+    else:
+        fill(starts)
+    return planes
 
 
 def bilinear(tex_pm: np.ndarray, width: int, height: int, uv: np.ndarray) -> np.ndarray:
