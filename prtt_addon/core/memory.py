@@ -8,6 +8,7 @@ instead of the kernel's OOM killer taking the worker (and its partial work).
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 
 GiB = 1024 ** 3
@@ -133,15 +134,24 @@ def release_free_memory() -> bool:
     peak RSS at 1024^2 (plants 314 MB trimmed against 375 MB, room 428 against
     463) until this is called after the G-buffer is built.
     """
+    trim = _malloc_trim()
+    if trim is None:
+        return False
+    trim(0)
+    return True
+
+
+@functools.lru_cache(maxsize=1)
+def _malloc_trim():
+    """glibc's malloc_trim, or None (looked up once: find_library may run ldconfig)."""
     import ctypes
     import ctypes.util
     name = ctypes.util.find_library("c")
     if not name:
-        return False
+        return None
     try:
         trim = ctypes.CDLL(name).malloc_trim
     except (OSError, AttributeError):
-        return False
+        return None
     trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    trim(0)
-    return True
+    return trim
