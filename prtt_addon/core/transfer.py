@@ -471,15 +471,14 @@ SWITCH_INTERVAL = 0.0005
 
 
 def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
-                progress=None, cancel: threading.Event | None = None, sink=None):
+                progress=None, cancel: threading.Event | None = None):
     """Transfer vectors of ``pts``: returns ((N, K) float32, stats dict).
 
-    Chunks run on ``settings.n_threads`` threads with single-threaded BLAS.
-    progress(done_points, total_points, rays_traced) is called from the
-    calling thread as chunks finish. ``cancel`` set -> :class:`Cancelled`.
-    ``sink(idx, values (n, K) float32)``, if given, receives every chunk's
-    results instead of the returned array (which is then None); it is called
-    from worker threads for disjoint ``idx``.
+    Chunks run on ``settings.n_threads`` threads with single-threaded BLAS and
+    write their rows of the result (disjoint, whole rows: see bake.py for why
+    rows, not texture planes). progress(done_points, total_points,
+    rays_traced) is called from the calling thread as chunks finish.
+    ``cancel`` set -> :class:`Cancelled`.
     """
     import sys
 
@@ -488,28 +487,23 @@ def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
     sys.setswitchinterval(SWITCH_INTERVAL)
     try:
         with single_threaded_blas():
-            return _bake_points(rs, pts, settings, progress, cancel, sink)
+            return _bake_points(rs, pts, settings, progress, cancel)
     finally:
         sys.setswitchinterval(old_interval)
 
 
-def _bake_points(rs, pts, settings, progress, cancel, sink):
+def _bake_points(rs, pts, settings, progress, cancel):
     st = settings.validate()
     K = st.bands ** 2
     N = pts.n
-    out = None
-    if sink is None:
-        out = np.zeros((N, K), np.float32)
-
-        def sink(idx, values):
-            out[idx] = values
+    out = np.zeros((N, K), np.float32)
     stats = _Stats()
     t0 = time.perf_counter()
 
     analytic = pts.analytic if st.analytic else np.zeros(N, bool)
     ia = np.flatnonzero(analytic)
     if ia.size:
-        sink(ia, unoccluded_transfer(pts.normal[ia], st.bands).astype(np.float32))
+        out[ia] = unoccluded_transfer(pts.normal[ia], st.bands)
     traced = np.flatnonzero(~analytic)
     chunks, G = chunk_plan(pts, st)
     done = int(ia.size)
@@ -522,7 +516,7 @@ def _bake_points(rs, pts, settings, progress, cancel, sink):
             if cancel is not None and cancel.is_set():
                 raise Cancelled()
             res, (t_r, b_r, early) = kernel.run(chunk, cancel)
-            sink(chunk.idx, res)
+            out[chunk.idx] = res
             n = chunk.idx.size
             stats.add(t_r, b_r, n * st.rays, n, early)
             return n
