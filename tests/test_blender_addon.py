@@ -154,10 +154,13 @@ def test_export_modifiers_transforms_instances(tmp_path):
     ev.calc_loop_triangles()
     n_cube = len(ev.loop_triangles)
     cube.evaluated_get(dg).to_mesh_clear()
-    assert (sc.set_id == 0).sum() == n_cube and sc.set_names == ["Cube"]
-    occ = sc.set_id < 0
-    assert occ.sum() == 80                                   # the instanced icosphere, shadows only
-    np.testing.assert_allclose(sc.positions[occ].reshape(-1, 3).mean(0), [5, 0, 0], atol=1e-6)
+    assert (sc.set_id == 0).sum() == n_cube and sc.set_names == ["Cube", "Icosphere_instances"]
+    # the instanced icosphere gets texels of its own (UVs generated: its mesh has no PRTT map)
+    ins = sc.set_id == 1
+    assert ins.sum() == 80 and not (sc.set_id < 0).any()
+    np.testing.assert_allclose(sc.positions[ins].reshape(-1, 3).mean(0), [5, 0, 0], atol=1e-6)
+    assert exp.objects["inst/Icosphere"]["uv"] == "generated"
+    assert "PRTT" not in ico.data.uv_layers                  # the user's mesh is untouched
     # world-space bounds of the cube part: Blender's own matrix_world @ vertex (mathutils)
     ev_ob = cube.evaluated_get(dg)
     ev = ev_ob.to_mesh()

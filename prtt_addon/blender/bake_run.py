@@ -12,19 +12,28 @@ import dataclasses
 import json
 import os
 import time
+import uuid
 
 import bpy
 import numpy as np
 
 from ..core.bake import BakeError, BakeSettings, check_out_dir
 from ..core.scene import save_scene
-from .export import ExportError, export_scene
+from .export import GENERATED_UVS, ExportError, export_scene
 from .preview_scene import materials_signature
 from .properties import redraw_viewports
 from .worker_job import WorkerJob
 
-JOB_FILE = ".prtt-job.npz"
+#: Job files are named per bake (process and a random token), so two bakes
+#: into one folder never read each other's scene; the worker's folder lock
+#: then lets one of them run. The prefix marks them as temporaries.
+JOB_PREFIX = ".prtt-tmp-job-"
 EXIT_CANCELLED = 3
+
+
+def job_path(out_dir: str) -> str:
+    """A fresh job file name in ``out_dir`` for this bake."""
+    return os.path.join(out_dir, f"{JOB_PREFIX}{os.getpid()}-{uuid.uuid4().hex[:12]}.npz")
 
 
 @dataclasses.dataclass
@@ -40,6 +49,7 @@ class Outcome:
     status: str                # "done", "skipped", "cancelled", "failed"
     message: str
     manifest: dict | None = None
+    warnings: list = dataclasses.field(default_factory=list)   # the export's (the worker reports its own)
 
 
 def output_folder(scene) -> str:
@@ -77,7 +87,7 @@ def prepare(context, overrides: dict | None = None) -> Prepared:
     extra = {"settings": settings, "blend": bpy.data.filepath, "set_objects": exp.set_objects}
     if exp.light is not None:
         extra["light"] = {"coeffs": exp.light.tolist(), "description": exp.light_description}
-    job = os.path.join(out_dir, JOB_FILE)
+    job = job_path(out_dir)
     save_scene(exp.scene, job, extra=extra)
     return Prepared(job, out_dir, exp, settings)
 
@@ -114,6 +124,7 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
     if outcome.status not in ("done", "skipped") or outcome.manifest is None:
         return
     m = outcome.manifest
+    write_generated_uvs(prepared.out_dir, prepared.export.generated_uvs)
     summary = {"out_dir": prepared.out_dir, "files": m["files"], "input_hash": m["input_hash"],
                "settings": m["settings"], "set_objects": prepared.export.set_objects,
                "bounce": None if not m.get("bounce") else {k: m["bounce"][k] for k in
@@ -126,6 +137,23 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
     st.last_bake = json.dumps(summary)
     load_preview_images(prepared.out_dir, m)
     redraw_viewports(context)
+
+
+def write_generated_uvs(out_dir: str, generated: dict) -> None:
+    """The UVs the export generated (export.GENERATED_UVS), written atomically
+    after a successful bake so that they always match the textures beside them.
+    Removed when the bake generated none."""
+    from ..core.atomic import atomic_write
+    path = os.path.join(out_dir, GENERATED_UVS)
+    if not generated:
+        if os.path.exists(path):
+            os.remove(path)
+        return
+    keys = sorted(generated)
+    with atomic_write(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, keys=np.array(keys, dtype=str),
+                     **{f"uv_{i}": np.asarray(generated[k], np.float32) for i, k in enumerate(keys)})
 
 
 def load_preview_images(out_dir: str, manifest: dict) -> list:
@@ -183,5 +211,6 @@ def bake_blocking(context, *, overrides=None, force=False, on_event=None) -> Out
         job.cancel()
         code = job.wait()
     outcome = interpret(job, code)
+    outcome.warnings = list(prepared.export.warnings)
     finish(context, prepared, outcome)
     return outcome

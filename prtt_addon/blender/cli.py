@@ -34,7 +34,62 @@ def bake_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--unwrap", choices=["EXISTING", "SMART", "LIGHTMAP", "XATLAS"],
                    help="unwrap baked objects without a PRTT UV map first")
     p.add_argument("--force", action="store_true", help="bake even if nothing changed")
+    save = p.add_mutually_exclusive_group()
+    save.add_argument("--no-save", dest="save", action="store_false", default=True,
+                      help="do not save the .blend after the bake (its PRTT UV maps and bake "
+                           "record are then lost, and `render` finds nothing baked)")
+    save.add_argument("--save-as", metavar="PATH",
+                      help="save the baked scene to PATH instead of over FILE.blend")
     return p
+
+
+#: Options stored in scene.prtt, checked against the property's own range
+#: (Blender would clamp an out-of-range value without a word).
+_SCENE_OPTIONS = ("resolution", "rays", "bands", "bounces", "bounce_rays", "dilate")
+
+
+def _check_ranges(args, st) -> str | None:
+    """An error message for the first option outside its property's range, or None."""
+    for name in _SCENE_OPTIONS:
+        v = getattr(args, name)
+        if v is None:
+            continue
+        prop = st.bl_rna.properties[name]
+        if not prop.hard_min <= v <= prop.hard_max:
+            return (f"--{name.replace('_', '-')} {v} is out of range: "
+                    f"it must be {prop.hard_min}..{prop.hard_max}")
+    return None
+
+
+def unwrap_todo(scene, view_layer):
+    """Baked mesh objects without a PRTT map that an unwrap can write: local
+    (not linked) meshes with faces, in the view layer. Everything else (instance
+    sources in excluded collections, linked data, geometry-nodes output, curves)
+    gets UVs generated at export. Returns (by edit-mode operators, by xatlas):
+    objects the viewport hides cannot enter edit mode, so xatlas unwraps them."""
+    from .properties import UV_MAP
+    editable, hidden = [], []
+    for o in view_layer.objects:
+        if (o.type != "MESH" or not o.prtt.bake or o.library is not None or o.data.library is not None
+                or UV_MAP in o.data.uv_layers or len(o.data.polygons) == 0
+                or any(m.type == "NODES" for m in o.modifiers)):
+            continue
+        (editable if o.visible_get() and not o.hide_select else hidden).append(o)
+    return editable, hidden
+
+
+def save_blend(path: str | None) -> str:
+    """Save the open .blend (over itself, or as ``path``); returns where. Raises OSError."""
+    import os
+    target = os.path.abspath(path) if path else bpy.data.filepath
+    try:
+        if path:
+            bpy.ops.wm.save_as_mainfile(filepath=target, copy=False)
+        else:
+            bpy.ops.wm.save_mainfile()
+    except RuntimeError as exc:
+        raise OSError(f"cannot save {target}: {str(exc).strip()}") from exc
+    return target
 
 
 def open_scene(blend: str, scene_name: str | None):
@@ -52,7 +107,8 @@ def open_scene(blend: str, scene_name: str | None):
 
 
 def bake_file(argv, prog="prtt bake") -> int:
-    """Open a .blend and bake it. Returns an exit status (0 ok, 1 failed, 3 cancelled)."""
+    """Open a .blend, bake it and save it (unless --no-save). Returns an exit
+    status (0 ok, 1 failed, 2 usage, 3 cancelled)."""
     args = bake_parser(prog).parse_args(argv)
     scene = open_scene(args.blend, args.scene)
     if scene is None:
@@ -60,9 +116,14 @@ def bake_file(argv, prog="prtt bake") -> int:
     if bpy.context.window is not None:
         bpy.context.window.scene = scene
     st = scene.prtt
+    bad = _check_ranges(args, st)
+    if bad:
+        print(f"prtt: error: {bad}", file=sys.stderr)
+        return 2
     if args.out:
-        st.output_dir = args.out
-    for name in ("resolution", "rays", "bands", "bounces", "bounce_rays", "dilate"):
+        import os
+        st.output_dir = os.path.abspath(args.out)
+    for name in _SCENE_OPTIONS:
         v = getattr(args, name)
         if v is not None:
             setattr(st, name, v)
@@ -73,11 +134,19 @@ def bake_file(argv, prog="prtt bake") -> int:
     with bpy.context.temp_override(scene=scene):
         ctx = bpy.context
         if args.unwrap:
-            from .unwrap import unwrap_objects
-            todo = [o for o in scene.objects if o.type == "MESH" and o.prtt.bake and "PRTT" not in o.data.uv_layers]
-            if todo:
-                unwrap_objects(ctx, todo, method=args.unwrap, resolution=st.resolution, padding=st.padding,
-                               atlas=st.texture_sets == "ATLAS")
+            from .unwrap import UnwrapError, unwrap_objects
+            editable, hidden = unwrap_todo(scene, ctx.view_layer)
+            try:
+                for objects, method in ((editable, args.unwrap), (hidden, "XATLAS")):
+                    if objects:
+                        unwrap_objects(ctx, objects, method=method, resolution=st.resolution,
+                                       padding=st.padding, atlas=st.texture_sets == "ATLAS")
+            except (UnwrapError, RuntimeError) as exc:
+                print(f"prtt: error: unwrap failed: {exc}", file=sys.stderr)
+                return 1
+            if hidden:
+                print(f"prtt: note: {len(hidden)} object(s) hidden in the viewport unwrapped with xatlas: "
+                      f"{', '.join(o.name for o in hidden[:8])}", flush=True)
         from .bake_run import bake_blocking
 
         def progress(e):
@@ -87,8 +156,18 @@ def bake_file(argv, prog="prtt bake") -> int:
                 print(f"prtt: warning: {e['message']}", flush=True)
 
         outcome = bake_blocking(ctx, force=args.force, on_event=progress)
+    for w in (outcome.warnings or []):
+        print(f"prtt: warning: {w}", flush=True)
     print(outcome.message, file=sys.stdout if outcome.status in ("done", "skipped") else sys.stderr)
-    return {"done": 0, "skipped": 0, "cancelled": 3}.get(outcome.status, 1)
+    code = {"done": 0, "skipped": 0, "cancelled": 3}.get(outcome.status, 1)
+    if code == 0 and args.save:
+        try:
+            where = save_blend(args.save_as)
+        except OSError as exc:
+            print(f"prtt: error: the bake finished but {exc}", file=sys.stderr)
+            return 1
+        print(f"prtt: saved {where}", flush=True)
+    return code
 
 
 def _cli(argv) -> int:

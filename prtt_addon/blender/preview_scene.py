@@ -29,7 +29,9 @@ import numpy as np
 from ..core import preview_pack as pp
 from ..core.shading import light_hash
 from .materials import image_array, parse_material
+from .export import GENERATED_UVS, apply_tile
 from .properties import UV_MAP
+from .scene_objects import scene_geometry
 from .world import WorldLightError, compose_light, project_setup, world_setup
 
 _MESHES: dict = {}          # object name -> (signature, DrawMesh)
@@ -39,10 +41,11 @@ _VERTEX_TABLES: dict = {}   # (path, mtime) -> corner_vertex
 _GEOMETRY_GEN: dict = {}    # object name -> counter bumped on geometry updates
 _MATERIALS_GEN = [0]        # bumped on material/image/object updates
 _SIGNATURES: dict = {}      # scene name -> (generation, signature)
+_GENERATED: dict = {}       # generated_uvs.npz path -> ((path, mtime), {uv group: UVs})
 
 
 def clear_caches() -> None:
-    for c in (_MESHES, _IMAGES, _VERTEX_TABLES, _SIGNATURES):
+    for c in (_MESHES, _IMAGES, _VERTEX_TABLES, _SIGNATURES, _GENERATED):
         c.clear()
     _MATERIALS_GEN[0] += 1
 
@@ -206,15 +209,16 @@ def _vertex_table(path: str) -> np.ndarray | None:
     return t
 
 
-def mesh_corners(ob_eval, table: _MaterialTable) -> tuple[dict, np.ndarray]:
-    """Per-corner object-space arrays (T, 3, C) of an evaluated object, and the
-    material slot of each triangle (slots past the last one count as the last)."""
+def mesh_corners(ob_eval, table: _MaterialTable) -> tuple[dict, np.ndarray, list]:
+    """Per-corner object-space arrays (T, 3, C) of an evaluated object, the
+    material slot of each triangle (slots past the last one count as the last)
+    and the slots' materials."""
     mesh = ob_eval.to_mesh()
     try:
         mesh.calc_loop_triangles()
         T = len(mesh.loop_triangles)
         if T == 0:
-            return {}, np.zeros(0, np.int64)
+            return {}, np.zeros(0, np.int64), []
         nl = len(mesh.loops)
         loops = _foreach(mesh.loop_triangles, "loops", T, 3, np.int32)
         verts = _foreach(mesh.loop_triangles, "vertices", T, 3, np.int32)
@@ -263,42 +267,82 @@ def mesh_corners(ob_eval, table: _MaterialTable) -> tuple[dict, np.ndarray]:
                     nm_uv[sel] = uv[loops[sel]]
                     tangents[sel] = tan[loops[sel]]
         corners.update(mat_uv=mat_uv, nm_uv=nm_uv, tangents=tangents)
-        return corners, slot_of
+        return corners, slot_of, slots
     finally:
         ob_eval.to_mesh_clear()
 
 
-def _slot_material(ob, k: int):
-    slots = ob.material_slots
-    return slots[k].material if 0 <= k < len(slots) else None
+def _generated_uvs(out_dir: str) -> dict:
+    """{uv group: (T, 3, 2) float32} from the bake's generated_uvs.npz (cached by mtime)."""
+    path = os.path.join(out_dir, GENERATED_UVS)
+    try:
+        key = (path, os.stat(path).st_mtime_ns)
+    except OSError:
+        return {}
+    got = _GENERATED.get(path)
+    if got is None or got[0] != key:
+        with np.load(path) as z:
+            keys = [str(k) for k in z["keys"]]
+            got = _GENERATED[path] = (key, {k: np.asarray(z[f"uv_{i}"], np.float32) for i, k in enumerate(keys)})
+    return got[1]
 
 
-def _draw_mesh(ob, ob_eval, pset: pp.PreviewSet, info_obj, table, status) -> pp.DrawMesh | None:
-    """The object's DrawMesh (cached per object), its ranges mapped to this frame's materials."""
-    set_name, vertex_path = pset.name, pset.vertex
-    sig = (ob.data.name if ob.data else "", _GEOMETRY_GEN.get(ob.name, 0), set_name, pset.key,
-           table.normal_maps, tuple(s.material.name if s.material else "" for s in ob.material_slots))
-    got = _MESHES.get(ob.name)
+def _draw_mesh(found, rec: dict, pset: pp.PreviewSet, table, status, generated: dict) -> pp.DrawMesh | None:
+    """The DrawMesh of a baked object or instance (cached per part), its UVs
+    the bake's (the PRTT map or generated ones, in its tile), its ranges mapped
+    to this frame's materials."""
+    ob_eval = found.evaluated
+    name = rec["_name"]
+    data = getattr(ob_eval, "data", None)
+    slot_names = tuple(s.material.name_full if s.material else "" for s in ob_eval.material_slots)
+    sig = (data.name_full if data is not None else "", _GEOMETRY_GEN.get(found.owner.name, 0),
+           _GEOMETRY_GEN.get(found.source_name, 0), pset.name, pset.key, table.normal_maps, slot_names,
+           rec.get("uv", "map"), tuple(rec.get("tile") or ()), id(generated.get(rec.get("uv_group"))))
+    got = _MESHES.get(found.key)
     if got is not None and got[0] == sig:
         mesh = got[1]
     else:
-        corners, slot_of = mesh_corners(ob_eval, table)
+        corners, slot_of, _slots = mesh_corners(ob_eval, table)
         if not corners:
             return None
-        if "uv" not in corners:
-            status.add("WARNING", f"{ob.name}: no '{UV_MAP}' UV map any more; not drawn")
-            return None
         T = corners["positions"].shape[0]
-        if info_obj is not None and vertex_path:
-            table_cv = _vertex_table(vertex_path)
-            if table_cv is not None and info_obj.get("triangles") == T:
-                o = int(info_obj.get("offset", 0))
+        if rec.get("uv") == "generated":
+            uv = generated.get(rec.get("uv_group"))
+            if uv is None or uv.shape[0] != T:
+                status.add("WARNING", f"{name}: its generated UVs are missing or no longer match; bake again")
+                return None
+            corners["uv"] = uv
+        elif "uv" not in corners:
+            status.add("WARNING", f"{name}: no '{UV_MAP}' UV map any more; not drawn")
+            return None
+        if rec.get("tile"):
+            corners["uv"] = apply_tile(np.asarray(corners["uv"], np.float64), rec["tile"]).astype(np.float32)
+        if pset.vertex:
+            table_cv = _vertex_table(pset.vertex)
+            if table_cv is not None and rec.get("triangles") == T:
+                o = int(rec.get("offset", 0))
                 corners["vidx"] = table_cv[o:o + T].astype(np.float32)
         # Ranges hold material *slots*; each frame maps them to its own table.
-        mesh = pp.build_mesh(ob.name, set_name, corners, slot_of, key=f"{ob.name}|{hash(sig)}")
-        _MESHES[ob.name] = (sig, mesh)
-    ranges = [(table.index(_slot_material(ob, k)), f, c) for k, f, c in mesh.ranges]
+        mesh = pp.build_mesh(name, pset.name, corners, slot_of, key=f"{found.key}|{hash(sig)}")
+        _MESHES[found.key] = (sig, mesh)
+    slots = [s.material for s in ob_eval.material_slots] or [None]
+    ranges = [(table.index(slots[min(k, len(slots) - 1)]), f, c) for k, f, c in mesh.ranges]
     return dataclasses.replace(mesh, ranges=ranges)
+
+
+def _parts_by_key(info: dict) -> dict:
+    """{identity key: record} of the bake's parts (records of bakes before
+    instances had no key: they were objects, keyed by name)."""
+    out = {}
+    for name, rec in info.get("objects", {}).items():
+        rec = dict(rec, _name=name)
+        out[rec.get("key") or f"object:{name}"] = rec
+    for set_name, names in info.get("set_objects", {}).items():     # objects without a record
+        for name in names:
+            key = f"object:{name}"
+            if not any(r["_name"] == name for r in out.values()):
+                out[key] = {"_name": name, "set": set_name}
+    return out
 
 
 # --- the frame --------------------------------------------------------------------------
@@ -344,28 +388,25 @@ def collect(context, *, visible=None, use_bounces: bool = True,
     table = _MaterialTable(normal_maps)
     depsgraph = context.evaluated_depsgraph_get()
     visible = visible or (lambda ob: ob.visible_get())
-    objects_info = info.get("objects", {})
+    parts = _parts_by_key(info)
+    generated = _generated_uvs(out_dir) if any(r.get("uv") == "generated" for r in parts.values()) else {}
     meshes, moved, edited = [], [], []
-    for set_name, names in info.get("set_objects", {}).items():
-        if set_name not in sets:
+    for found in scene_geometry(depsgraph, scene, context.view_layer, visible=visible):
+        rec = parts.get(found.key)
+        if rec is None or rec["set"] not in sets:
             continue
-        for name in names:
-            ob = scene.objects.get(name)
-            if ob is None or ob.type != "MESH" or not visible(ob):
-                continue
-            ob_eval = ob.evaluated_get(depsgraph)
-            oi = objects_info.get(name)
-            M = np.array(ob_eval.matrix_world, dtype=np.float64)
-            if oi is not None and not np.allclose(M, np.asarray(oi["matrix"]), rtol=0, atol=1e-6):
-                moved.append(name)
-            if not with_meshes:
-                continue
-            mesh = _draw_mesh(ob, ob_eval, sets[set_name], oi, table, status)
-            if mesh is None:
-                continue
-            meshes.append(dataclasses.replace(mesh, matrix=M))
-            if oi is not None and oi.get("triangles") not in (None, mesh.triangles):
-                edited.append(name)
+        name = rec["_name"]
+        M = found.matrix
+        if "matrix" in rec and not np.allclose(M, np.asarray(rec["matrix"]), rtol=0, atol=1e-6):
+            moved.append(name)
+        if not with_meshes:
+            continue
+        mesh = _draw_mesh(found, rec, sets[rec["set"]], table, status, generated)
+        if mesh is None:
+            continue
+        meshes.append(dataclasses.replace(mesh, matrix=M))
+        if rec.get("triangles") not in (None, mesh.triangles):
+            edited.append(name)
     if moved:
         status.add("WARNING", f"moved since the bake (its shadows are where it was): {', '.join(moved[:4])}")
     if edited:

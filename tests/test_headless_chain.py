@@ -1,0 +1,96 @@
+"""The chain a headless user runs (issue 13): bake -> render -> bake again ->
+render, each a separate `python -m prtt_addon` process on a .blend with
+instances, geometry-nodes faces and meshes that need unwrapping."""
+import hashlib
+import os
+import subprocess
+import sys
+
+import pytest
+
+from tests import real_scenes as rs
+from tests.blender_util import addon_bpy
+
+pytestmark = pytest.mark.blender
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def run(*args, cwd=None, timeout=300):
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    return subprocess.run([sys.executable, "-m", "prtt_addon", *args], capture_output=True, text=True,
+                          env=env, cwd=cwd, timeout=timeout)
+
+
+def digest(path):
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def blend(tmp_path_factory):
+    """A saved .blend: floor and cube without PRTT maps, cube instances from an
+    excluded collection, a geometry-nodes grid, a camera."""
+    tmp = tmp_path_factory.mktemp("chain")
+    bpy = addon_bpy()
+    rs.floor(bpy, 8.0)
+    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    src = rs.source_collection(bpy)
+    rs.collection_instance(bpy, "A", src, (2, 0, 0))
+    rs.collection_instance(bpy, "B", src, (-2, 0, 0))
+    rs.gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    bpy.context.scene.collection.objects.link(cam)
+    cam.location, cam.rotation_euler = (0, -9, 5), (1.05, 0, 0)
+    bpy.context.scene.camera = cam
+    bpy.context.scene.prtt.light_source = "BUILTIN"           # the factory-empty file has no World
+    path = tmp / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    return path
+
+
+BAKE = ["--resolution", "32", "--rays", "16", "--bounces", "0"]
+
+
+def test_bake_render_bake_render(blend, tmp_path):
+    work = tmp_path / "work"
+    work.mkdir()
+    scene = work / "scene.blend"
+    scene.write_bytes(blend.read_bytes())
+    # relative paths resolve against the caller's folder
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=work)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert "saved" in r.stdout and (work / "textures" / "manifest.json").is_file()
+    assert not [n for n in os.listdir(work / "textures") if n.startswith(".prtt-tmp-")]
+    r = run("render", "scene.blend", "--out", "first.png", "--size", "64x48", cwd=work)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert (work / "first.png").is_file()
+    textures = {n: digest(work / "textures" / n) for n in os.listdir(work / "textures")}
+    # the second bake finds the saved UV maps and bake record: nothing to do
+    r = run("bake", "scene.blend", "--out", "textures", *BAKE, cwd=work)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert "unchanged" in r.stdout or "up to date" in r.stdout, r.stdout
+    assert {n: digest(work / "textures" / n) for n in os.listdir(work / "textures")} == textures
+    r = run("render", "scene.blend", "--out", "second.png", "--size", "64x48", cwd=work)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert digest(work / "first.png") == digest(work / "second.png")
+
+
+def test_no_save_save_as_and_range_errors(blend, tmp_path):
+    scene = tmp_path / "scene.blend"
+    scene.write_bytes(blend.read_bytes())
+    before = digest(scene)
+    r = run("bake", str(scene), "--bands", "100", *BAKE)
+    assert r.returncode == 2 and "--bands 100 is out of range: it must be 1..8" in r.stderr, r.stderr
+    r = run("bake", str(scene), "--out", str(tmp_path / "t1"), "--unwrap", "XATLAS", "--no-save", *BAKE)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert digest(scene) == before                      # --no-save: the user's file untouched
+    other = tmp_path / "baked.blend"
+    r = run("bake", str(scene), "--out", str(tmp_path / "t2"), "--unwrap", "XATLAS", "--save-as", str(other), *BAKE)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert digest(scene) == before and other.is_file()
+    r = run("render", str(other), "--out", str(tmp_path / "o.png"), "--size", "32x24")
+    assert r.returncode == 0, r.stderr + r.stdout
+    # the original was never baked (its record was not saved)
+    r = run("render", str(scene), "--out", str(tmp_path / "n.png"), "--size", "32x24")
+    assert r.returncode != 0 and "nothing baked" in (r.stderr + r.stdout)
+    assert not (tmp_path / "n.png").exists()
