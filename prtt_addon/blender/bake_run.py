@@ -24,16 +24,19 @@ from .preview_scene import materials_signature
 from .properties import redraw_viewports
 from .worker_job import WorkerJob
 
-#: Job files are named per bake (process and a random token), so two bakes
-#: into one folder never read each other's scene; the worker's folder lock
-#: then lets one of them run. The prefix marks them as temporaries.
-JOB_PREFIX = ".prtt-tmp-job-"
 EXIT_CANCELLED = 3
 
 
 def job_path(out_dir: str) -> str:
-    """A fresh job file name in ``out_dir`` for this bake."""
-    return os.path.join(out_dir, f"{JOB_PREFIX}{os.getpid()}-{uuid.uuid4().hex[:12]}.npz")
+    """A fresh job file name in ``out_dir`` for this bake.
+
+    Named per bake (this process and a random token), so two bakes into one
+    folder never read each other's scene (the worker's folder lock then lets
+    one of them run). It is a temporary of this (Blender's) process: a later
+    bake removes it only once this process is gone (atomic.remove_stale_temporaries).
+    """
+    from ..core.atomic import temp_prefix
+    return os.path.join(out_dir, f"{temp_prefix('job')}{uuid.uuid4().hex[:12]}.npz")
 
 
 @dataclasses.dataclass

@@ -21,6 +21,7 @@ class PRTT_OT_unwrap(bpy.types.Operator):
     def execute(self, context):
         st = context.scene.prtt
         objects = [o for o in context.selected_objects if o.type == "MESH"]
+        faceless = [o.name for o in objects if len(o.data.polygons) == 0]
         try:
             overlaps = unwrap_objects(context, objects, method=st.unwrap_method, resolution=st.resolution,
                                       padding=st.padding, atlas=st.texture_sets == "ATLAS",
@@ -33,7 +34,10 @@ class PRTT_OT_unwrap(bpy.types.Operator):
             self.report({"WARNING"}, "PRTT: overlapping UV islands in " + ", ".join(
                 f"{k} ({v} texels)" for k, v in bad.items()) + "; they would bake wrongly there")
         else:
-            self.report({"INFO"}, f"PRTT: unwrapped {len(objects)} object(s) into the '{'PRTT'}' UV map")
+            self.report({"INFO"}, f"PRTT: unwrapped {len(overlaps)} object(s) into the 'PRTT' UV map")
+        if faceless:
+            self.report({"WARNING"}, f"PRTT: skipped {len(faceless)} object(s) without faces: "
+                        f"{', '.join(faceless[:8])}")
         return {"FINISHED"}
 
 

@@ -181,13 +181,18 @@ def _loop_uvs(me, loop_pos, tris, tri_uv) -> np.ndarray:
 
 def unwrap_objects(context, objects, *, method: str, resolution: int, padding: int = 4,
                    atlas: bool = False, source_map: str = "") -> dict:
-    """Write the PRTT UV map of ``objects``. Returns {object name: overlapping texels}."""
+    """Write the PRTT UV map of ``objects``. Returns {object name: overlapping
+    texels}. Meshes without faces (points, edges, or faces made only by
+    geometry nodes, which get generated UVs at bake time) are left out of
+    the result; only if every object is such a mesh is it an error."""
     objects = [o for o in objects if o.type == "MESH"]
     if not objects:
         raise UnwrapError("select one or more mesh objects to unwrap")
-    for ob in objects:
-        if len(ob.data.polygons) == 0:
-            raise UnwrapError(f"object {ob.name!r} has no faces to unwrap")
+    faceless = [ob.name for ob in objects if len(ob.data.polygons) == 0]
+    objects = [ob for ob in objects if len(ob.data.polygons) > 0]
+    if not objects:
+        raise UnwrapError(f"{', '.join(faceless[:8])}: no faces to unwrap (faces made by geometry "
+                          f"nodes get UVs generated when baking)")
     margin = padding / max(resolution, 1)
     with _preserved(context, objects):
         if method == "EXISTING":
