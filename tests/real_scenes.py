@@ -135,3 +135,45 @@ def link_collection(bpy, path, name):
     with bpy.data.libraries.load(str(path), link=True) as (src, dst):
         dst.collections = [name]
     return dst.collections[0]
+
+
+def particle_instances(bpy, name="Emitter", count=4, location=(0, -5, 0)):
+    """A plane emitting ``count`` object particles (small icospheres) at frame 1."""
+    me = bpy.data.meshes.new(name)
+    me.from_pydata([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)], [], [(0, 1, 2, 3)])
+    em = add_object(bpy, name, me, location=location)
+    bpy.ops.mesh.primitive_ico_sphere_add(radius=0.15, location=(0, -30, 0))
+    dot = bpy.context.active_object
+    dot.name = f"{name}Dot"
+    ps = em.modifiers.new("particles", "PARTICLE_SYSTEM").particle_system
+    ps.settings.count, ps.settings.frame_end = count, 1
+    ps.settings.render_type, ps.settings.instance_object = "OBJECT", dot
+    return em, dot
+
+
+def skinned_cube(bpy, name="Skinned", location=(-5, 0, 1)):
+    """A cube deformed by an armature (the bone rotated)."""
+    ob = add_object(bpy, name, cube_mesh(bpy, name), location=location)
+    arm = bpy.data.objects.new(f"{name}Rig", bpy.data.armatures.new(f"{name}Rig"))
+    bpy.context.scene.collection.objects.link(arm)
+    arm.location = location
+    bpy.context.view_layer.objects.active = arm
+    bpy.ops.object.mode_set(mode="EDIT")
+    b = arm.data.edit_bones.new("bone")
+    b.head, b.tail = (0, 0, -1), (0, 0, 1)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    arm.pose.bones["bone"].rotation_mode = "XYZ"
+    arm.pose.bones["bone"].rotation_euler = (0.4, 0, 0)
+    vg = ob.vertex_groups.new(name="bone")
+    vg.add(list(range(len(ob.data.vertices))), 1.0, "REPLACE")
+    ob.modifiers.new("rig", "ARMATURE").object = arm
+    return ob, arm
+
+
+def link_object(bpy, path, name):
+    """Link an object (not a collection) from a library into the scene."""
+    with bpy.data.libraries.load(str(path), link=True) as (src, dst):
+        dst.objects = [name]
+    ob = dst.objects[0]
+    bpy.context.scene.collection.objects.link(ob)
+    return ob

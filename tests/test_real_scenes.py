@@ -156,3 +156,45 @@ def test_each_instance_has_its_own_texels_in_bake_and_preview(tmp_path):
     face_a = lum[12:16, 12:20].mean()                      # cube fronts span x +-0.5 around -2 / +2
     face_b = lum[12:16, 44:52].mean()
     assert face_b > 0 and face_a < 0.85 * face_b, (face_a, face_b)
+
+
+def test_more_kinds_metaball_surface_skinned_particles_linked_object(tmp_path):
+    bpy = addon_bpy()
+    _settings(bpy, tmp_path)
+    bpy.ops.object.metaball_add(location=(0, 0, 3))
+    bpy.ops.surface.primitive_nurbs_surface_sphere_add(location=(3, 0, 3))
+    skinned, _rig = rs.skinned_cube(bpy)
+    skinned.data.uv_layers.new(name="PRTT")
+    emitter, dot = rs.particle_instances(bpy)
+    emitter.data.uv_layers.new(name="PRTT")
+    dot.data.uv_layers.new(name="PRTT")
+    lib = tmp_path / "lib.blend"
+    rs.write_library(bpy, lib)
+    linked = rs.link_object(bpy, lib, "LibStuffCube")
+    # a collection disabled in renders, and one excluded from the view layer: not in the bake
+    for cname, how in (("NoRender", "hide_render"), ("Excluded", "exclude")):
+        col = bpy.data.collections.new(cname)
+        bpy.context.scene.collection.children.link(col)
+        rs.add_object(bpy, f"{cname}Cube", rs.cube_mesh(bpy, cname), col, (9, 9, 0))
+        if how == "hide_render":
+            col.hide_render = True
+        else:
+            bpy.context.view_layer.layer_collection.children[cname].exclude = True
+    from prtt_addon.blender.export import export_scene
+    exp = export_scene(bpy.context, with_light=False)
+    recs = exp.objects
+    kinds = {"Mball": "generated", "SurfSphere": "generated", "Skinned": "map", "Emitter": "map",
+             "LibStuffCube": "generated"}
+    for name, uv in kinds.items():
+        assert recs[name]["uv"] == uv and recs[name]["triangles"] > 0, (name, recs.get(name))
+    parts = [n for n in recs if n.startswith("Emitter/EmitterDot")]
+    assert len(parts) == 4 and len({tuple(recs[n]["tile"][2:4]) for n in parts}) == 4
+    assert linked.library is not None and "PRTT" not in linked.data.uv_layers
+    assert not any(n.startswith(("NoRender", "Excluded")) for n in exp.scene.object_names)
+    # the armature deforms the bake's copy: its top face is tilted like the render's
+    i = exp.scene.object_names.index("Skinned")
+    P = exp.scene.positions[exp.scene.object_id == i].reshape(-1, 3)
+    assert np.ptp(P[:, 1]) > 1.2                          # a 1 m cube turned by 0.4 rad reaches further in y
+    from prtt_addon.blender.bake_run import bake_blocking
+    out = bake_blocking(bpy.context)
+    assert out.status == "done", out.message
