@@ -45,6 +45,7 @@ class Prepared:
     out_dir: str
     export: object
     settings: dict
+    materials_signature: str = ""     # of the scene as exported (it may change while the worker runs)
 
 
 @dataclasses.dataclass
@@ -92,7 +93,7 @@ def prepare(context, overrides: dict | None = None) -> Prepared:
         extra["light"] = {"coeffs": exp.light.tolist(), "description": exp.light_description}
     job = job_path(out_dir)
     save_scene(exp.scene, job, extra=extra)
-    return Prepared(job, out_dir, exp, settings)
+    return Prepared(job, out_dir, exp, settings, materials_signature(scene))
 
 
 def interpret(job: WorkerJob, code: int) -> Outcome:
@@ -135,7 +136,7 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
                "light": prepared.export.light_description, "seconds": m["seconds"].get("total"),
                "warnings": m.get("warnings", []) + prepared.export.warnings,
                "objects": prepared.export.objects,
-               "materials_signature": materials_signature(context.scene),
+               "materials_signature": prepared.materials_signature,
                "time": time.strftime("%Y-%m-%d %H:%M:%S")}
     st.last_bake = json.dumps(summary)
     load_preview_images(prepared.out_dir, m)

@@ -161,26 +161,33 @@ class _MaterialTable:
 
 
 def materials_signature(scene) -> str:
-    """A hash of what the bounce bake took from materials: every visible mesh
-    object's slots (Principled values, image names and sizes, normal maps) and
-    which triangles use them. Cached until a material, image or geometry changes."""
+    """A hash of what the bounce bake took from materials: every render-visible
+    object's and instance source's slots (Principled values, image names and
+    sizes, normal maps) and which faces use them. Cached until a material,
+    image or geometry changes."""
     gen = _MATERIALS_GEN[0]
     got = _SIGNATURES.get(scene.name)
     if got is not None and got[0] == gen:
         return got[1]
     h = hashlib.sha256()
-    for ob in sorted(scene.objects, key=lambda o: o.name):
-        if ob.type != "MESH" or not ob.visible_get():
+    done = set()
+    view_layer = bpy.context.view_layer if bpy.context.scene == scene else scene.view_layers[0]
+    depsgraph = bpy.context.evaluated_depsgraph_get() if bpy.context.scene == scene else None
+    owners = ([f.source or f.owner for f in scene_geometry(depsgraph, scene, view_layer)]
+              if depsgraph is not None else [o for o in scene.objects if o.visible_get()])
+    for ob in sorted(owners, key=lambda o: o.name_full):
+        if ob.name_full in done:
             continue
-        h.update(ob.name.encode())
+        done.add(ob.name_full)
+        h.update(ob.name_full.encode())
         for slot in ob.material_slots:
             ex = parse_material(slot.material, lambda _msg: None)
             imgs = [(i.name, tuple(i.size)) if i is not None else None
                     for i in (ex.base_image, ex.rough_image, ex.normal_image)]
             h.update(json.dumps([ex.spec, imgs, ex.normal_strength, ex.texture_uv, ex.normal_uv],
                                 sort_keys=True, default=str).encode())
-        me = ob.data
-        if len(me.polygons):
+        me = ob.data if ob.type == "MESH" else None
+        if me is not None and len(me.polygons):
             mi = np.empty(len(me.polygons), np.int32)
             me.polygons.foreach_get("material_index", mi)
             h.update(mi.tobytes())
