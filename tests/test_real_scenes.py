@@ -198,3 +198,18 @@ def test_more_kinds_metaball_surface_skinned_particles_linked_object(tmp_path):
     from prtt_addon.blender.bake_run import bake_blocking
     out = bake_blocking(bpy.context)
     assert out.status == "done", out.message
+
+
+def test_preview_of_generated_uvs_fails_clearly_when_they_are_gone(tmp_path):
+    """A render must not draw an object without its UVs: a clear error, no partial image."""
+    bpy = addon_bpy()
+    _instances_under_roof(bpy, tmp_path)
+    from prtt_addon.blender.bake_run import bake_blocking
+    assert bake_blocking(bpy.context).status == "done"
+    from prtt_addon.blender import preview_scene
+    from prtt_addon.blender.preview_render import RenderError, render_scene
+    for damage in (b"", b"not a zip"):
+        (tmp_path / "out" / "generated_uvs.npz").write_bytes(damage)
+        preview_scene.clear_caches()
+        with pytest.raises(RenderError, match="generated_uvs.npz"):
+            render_scene(bpy.context, mode="diffuse", size=(16, 8))

@@ -15,16 +15,24 @@ A frame (``Renderer.draw``):
 
 The caller sets up the framebuffer (the viewport's, or an offscreen one in
 :func:`render_offscreen`).
+
+An object that cannot be drawn (no per-vertex transfer in a vertex mode, a
+texture that cannot be read or uploaded) is left out of the frame and listed
+in ``FrameStats.skipped`` with the reason and the remedy: the viewport keeps
+drawing the rest, while offscreen renders (preview_render) ask
+:meth:`Renderer.prepare` first and refuse to make a partial image.
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import zipfile
 
 import gpu
 import numpy as np
 
 from ..core import preview_pack as pp
+from ..core.exr_io import TextureError
 from ..shader_source import FRAGMENT_MODES, GAUNT_WIDTH, MODES, VERTEX_MODES
 from . import gpu_shaders
 
@@ -44,6 +52,18 @@ def _digest(*arrays) -> str:
 def _matrix(M: np.ndarray):
     import mathutils
     return mathutils.Matrix(np.asarray(M, np.float64).tolist())
+
+
+#: Why an object is left out of a vertex-mode frame, with what to do about it.
+NO_VERTEX_TRANSFER = ("the bake has no per-vertex transfer: bake again with Vertex Transfer on "
+                      "(PRTT > Bake Settings > Vertex Transfer)")
+STALE_VERTEX_TRANSFER = ("its per-vertex transfer does not match its mesh (edited since the bake?): "
+                         "bake again")
+
+
+class TextureUploadError(ValueError):
+    """A baked texture cannot be used: unreadable, the wrong shape, or beyond the
+    GPU's limits. The message names the file."""
 
 
 @dataclasses.dataclass
@@ -71,27 +91,53 @@ class Renderer:
             r = self._res[key] = make()
         return r
 
-    def _array_texture(self, packed: np.ndarray):
-        """(L, H, W, 4) -> RGBA 2D array texture, half when that changes no value."""
+    def _array_texture(self, packed: np.ndarray, path: str = "texture"):
+        """(L, H, W, 4) -> RGBA 2D array texture, half when that changes no value.
+
+        Raises TextureUploadError naming ``path`` when the GPU cannot hold it:
+        checked against the GL limits first, since drivers answer an oversized
+        texture with an anonymous allocation failure."""
         L, H, W, _ = packed.shape
+        size, layers = gpu.capabilities.max_texture_size_get(), gpu.capabilities.max_texture_layers_get()
+        if W > size or H > size or L > layers:
+            raise TextureUploadError(f"{path}: {W}x{H} texels in {L} layers exceeds this GPU's limits "
+                                     f"({size} texels per side, {layers} layers); bake at a lower resolution")
         fmt = "RGBA16F" if pp.half_exact(packed) else "RGBA32F"
-        tex = gpu.types.GPUTexture((W, H), layers=L, format=fmt, data=_buffer(packed))
+        try:
+            tex = gpu.types.GPUTexture((W, H), layers=L, format=fmt, data=_buffer(packed))
+        except RuntimeError as exc:     # out of (GPU) memory
+            raise TextureUploadError(f"{path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
+                                     f"texture ({exc}); bake at a lower resolution") from exc
         return tex, packed.size * (2 if fmt == "RGBA16F" else 4)
 
     def _texture_2d(self, rgba_bottom_first: np.ndarray):
         H, W, _ = rgba_bottom_first.shape
         return gpu.types.GPUTexture((W, H), format="RGBA32F", data=_buffer(rgba_bottom_first))
 
-    def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool):
-        key = s.key
-        transfer = self._get(("transfer", key), lambda: self._array_texture(pp.pack_layers(s.load_transfer())))
-        bounce = None
-        if want_bounce and s.bounces:
-            bounce = self._get(("bounce", key), lambda: self._array_texture(pp.pack_bounce(s.load_bounce())))
-        vertex = None
-        if want_vertex and s.vertex:
-            vertex = self._get(("vertex", key), lambda: self._array_texture(pp.pack_vertex_transfer(s.load_vertex())))
-        return transfer, bounce, vertex
+    def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int):
+        """The set's (transfer, bounce, vertex) textures, each (GPUTexture, bytes) or
+        None; loaded, checked against the bake's band count and uploaded once."""
+        key, K = s.key, bands * bands
+
+        def transfer():
+            data = _load(s.load_transfer, s.transfer)
+            _check_coeffs(data, 3, K, s.transfer)
+            return self._array_texture(pp.pack_layers(data), s.transfer)
+
+        def bounce():
+            where = ", ".join(s.bounces)
+            data = _load(s.load_bounce, where)
+            _check_coeffs(data, 4, K, where)
+            return self._array_texture(pp.pack_bounce(data), where)
+
+        def vertex():
+            data = _load(s.load_vertex, s.vertex)
+            _check_coeffs(data, 2, K, s.vertex)
+            return self._array_texture(pp.pack_vertex_transfer(data), s.vertex)
+
+        return (self._get(("transfer", key), transfer),
+                self._get(("bounce", key), bounce) if want_bounce and s.bounces else None,
+                self._get(("vertex", key), vertex) if want_vertex and s.vertex else None)
 
     def _dummy(self, layered: bool):
         if layered:
@@ -148,31 +194,48 @@ class Renderer:
         return sum(v[1] for k, v in self._res.items() if k[0] in ("transfer", "bounce", "vertex"))
 
     # --- drawing --------------------------------------------------------------------
+    def _plan(self, ps: pp.PreviewScene, mode: str, skipped: dict) -> list:
+        """[(mesh, textures)] of the meshes ``ps`` can draw in ``mode``, their
+        textures loaded and uploaded; the others go to ``skipped`` with why."""
+        if mode not in MODES:
+            raise ValueError(f"unknown preview mode {mode!r}; use one of {', '.join(MODES)}")
+        vertex_mode = mode in VERTEX_MODES
+        todo = []
+        for m in ps.meshes:
+            s = ps.sets.get(m.set_name)
+            if s is None:
+                skipped[m.name] = "no baked texture set: bake again"
+                continue
+            if vertex_mode and not s.vertex:
+                skipped[m.name] = NO_VERTEX_TRANSFER
+                continue
+            if vertex_mode and not m.has_vertex_transfer():
+                skipped[m.name] = STALE_VERTEX_TRANSFER
+                continue
+            try:
+                tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands)
+            except TextureUploadError as exc:
+                skipped[m.name] = f"cannot use its texture {exc}"
+                continue
+            todo.append((m, tex))
+        return todo
+
+    def prepare(self, ps: pp.PreviewScene, mode: str) -> dict:
+        """Load and upload what a frame of ``ps`` in ``mode`` needs, before any
+        framebuffer exists; returns {mesh name: why it cannot be drawn} (empty
+        when every mesh can). The next :meth:`draw` finds the textures cached."""
+        skipped: dict = {}
+        self._plan(ps, mode, skipped)
+        return skipped
+
     def draw(self, ps: pp.PreviewScene, mode: str, view_projection, camera, *, exposure: float = 1.0,
              depth_bias: float = 0.0, prepass: bool = True) -> FrameStats:
         """Draw every mesh of ``ps`` into the bound framebuffer.
 
         view_projection (4, 4) world -> clip; camera (4,): eye position and 1, or
         unit direction towards the eye and 0 (orthographic)."""
-        if mode not in MODES:
-            raise ValueError(f"unknown preview mode {mode!r}; use one of {', '.join(MODES)}")
         stats = FrameStats()
-        vertex_mode = mode in VERTEX_MODES
-        todo = []
-        for m in ps.meshes:
-            s = ps.sets.get(m.set_name)
-            if s is None:
-                stats.skipped[m.name] = "no baked texture set"
-                continue
-            if vertex_mode and not (s.vertex and m.has_vertex_transfer()):
-                stats.skipped[m.name] = "no per-vertex transfer (bake with Vertex Transfer on)"
-                continue
-            try:
-                tex = self._set_textures(s, ps.use_bounces, vertex_mode)
-            except (OSError, ValueError) as exc:
-                stats.skipped[m.name] = f"cannot read its textures: {exc}"
-                continue
-            todo.append((m, tex))
+        todo = self._plan(ps, mode, stats.skipped)
         view_data = _buffer(pp.view_block(view_projection, camera, exposure, ps.bands, depth_bias))
         if self._view_ubo is None:
             self._view_ubo = gpu.types.GPUUniformBuf(view_data)
@@ -240,6 +303,49 @@ class Renderer:
             batch.draw_range(sh, elem_start=3 * first, elem_count=3 * count)
 
 
+def _load(loader, path: str) -> np.ndarray:
+    """``loader()``, its failures (missing, truncated or foreign files) as a
+    TextureUploadError naming the file."""
+    try:
+        data = loader()
+    except TextureError as exc:             # core.exr_io's messages start with the file
+        raise TextureUploadError(f"{exc}; bake again") from exc
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:   # a damaged .npz
+        raise TextureUploadError(f"{path}: unreadable ({exc}); bake again") from exc
+    if data is None:
+        raise TextureUploadError(f"{path}: holds no data; bake again")
+    return data
+
+
+def _check_coeffs(data: np.ndarray, ndim: int, K: int, path: str) -> None:
+    """A texture must hold at least the bake's K coefficients in its last axis
+    (fewer would leave layers the shaders read empty: a silently dark image)."""
+    if data.ndim != ndim or data.shape[-1] < K:
+        raise TextureUploadError(f"{path}: holds {data.shape[-1] if data.ndim else 0} SH coefficients "
+                                 f"in shape {data.shape}, the bake has {K}; bake again")
+
+
+class OffscreenError(RuntimeError):
+    """The GPU cannot make the offscreen image asked for (too large)."""
+
+
+def new_offscreen(width: int, height: int):
+    """A float32 RGBA offscreen buffer, or OffscreenError saying what was refused.
+
+    Checked against the GL texture size limit first; drivers also refuse sizes
+    within it (Mesa's llvmpipe: no single texture much over 1.5 GiB), which
+    only the allocation can tell."""
+    limit = gpu.capabilities.max_texture_size_get()
+    if width > limit or height > limit:
+        raise OffscreenError(f"{width}x{height} exceeds this GPU's largest image, {limit} pixels per side")
+    try:
+        return gpu.types.GPUOffScreen(width, height, format="RGBA32F")
+    except RuntimeError as exc:
+        gib = width * height * 16 / 1024 ** 3
+        raise OffscreenError(f"the GPU could not allocate a {width}x{height} float image "
+                             f"({gib:.1f} GiB): {exc}") from exc
+
+
 def read_pixels(fb, width: int, height: int) -> np.ndarray:
     """(H, W, 4) float32 of the bound framebuffer, row 0 at the bottom."""
     buf = gpu.types.Buffer("FLOAT", width * height * 4)
@@ -250,8 +356,10 @@ def read_pixels(fb, width: int, height: int) -> np.ndarray:
 def render_offscreen(renderer: Renderer, ps: pp.PreviewScene, mode: str, view_projection, camera,
                      width: int, height: int, *, exposure: float = 1.0, prepass: bool = True,
                      background=(0.0, 0.0, 0.0, 0.0)) -> tuple[np.ndarray, FrameStats]:
-    """Render to a float32 offscreen buffer: (H, W, 4) linear RGBA, row 0 at the bottom."""
-    off = gpu.types.GPUOffScreen(width, height, format="RGBA32F")
+    """Render to a float32 offscreen buffer: (H, W, 4) linear RGBA, row 0 at the bottom.
+
+    Raises OffscreenError when the GPU cannot make a buffer that large."""
+    off = new_offscreen(width, height)
     try:
         with off.bind():
             fb = gpu.state.active_framebuffer_get()

@@ -22,6 +22,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import zipfile
 
 import bpy
 import numpy as np
@@ -211,7 +212,7 @@ def _vertex_table(path: str) -> np.ndarray | None:
         return None
     t = _VERTEX_TABLES.get(key)
     if t is None:
-        with np.load(path) as z:
+        with np.load(path, allow_pickle=False) as z:
             t = _VERTEX_TABLES[key] = np.asarray(z["corner_vertex"], np.int64)
     return t
 
@@ -288,7 +289,7 @@ def _generated_uvs(out_dir: str) -> dict:
         return {}
     got = _GENERATED.get(path)
     if got is None or got[0] != key:
-        with np.load(path) as z:
+        with np.load(path, allow_pickle=False) as z:
             keys = [str(k) for k in z["keys"]]
             got = _GENERATED[path] = (key, {k: np.asarray(z[f"uv_{i}"], np.float32) for i, k in enumerate(keys)})
     return got[1]
@@ -316,16 +317,21 @@ def _draw_mesh(found, rec: dict, pset: pp.PreviewSet, table, status, generated: 
         if rec.get("uv") == "generated":
             uv = generated.get(rec.get("uv_group"))
             if uv is None or uv.shape[0] != T:
-                status.add("WARNING", f"{name}: its generated UVs are missing or no longer match; bake again")
+                status.add("ERROR", f"{name}: its generated UVs ({GENERATED_UVS} in the bake folder) are "
+                                    f"missing or no longer match its mesh; not drawn: bake again")
                 return None
             corners["uv"] = uv
         elif "uv" not in corners:
-            status.add("WARNING", f"{name}: no '{UV_MAP}' UV map any more; not drawn")
+            status.add("ERROR", f"{name}: no '{UV_MAP}' UV map any more; not drawn: unwrap and bake again")
             return None
         if rec.get("tile"):
             corners["uv"] = apply_tile(np.asarray(corners["uv"], np.float64), rec["tile"]).astype(np.float32)
         if pset.vertex:
-            table_cv = _vertex_table(pset.vertex)
+            try:
+                table_cv = _vertex_table(pset.vertex)
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+                status.add("ERROR", f"{name}: cannot read {pset.vertex} ({exc}); bake again")
+                table_cv = None
             if table_cv is not None and rec.get("triangles") == T:
                 o = int(rec.get("offset", 0))
                 corners["vidx"] = table_cv[o:o + T].astype(np.float32)
@@ -396,7 +402,12 @@ def collect(context, *, visible=None, use_bounces: bool = True,
     depsgraph = context.evaluated_depsgraph_get()
     visible = visible or (lambda ob: ob.visible_get())
     parts = _parts_by_key(info)
-    generated = _generated_uvs(out_dir) if any(r.get("uv") == "generated" for r in parts.values()) else {}
+    generated = {}
+    if any(r.get("uv") == "generated" for r in parts.values()):
+        try:
+            generated = _generated_uvs(out_dir)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            status.add("ERROR", f"cannot read {os.path.join(out_dir, GENERATED_UVS)} ({exc}); bake again")
     meshes, moved, edited = [], [], []
     for found in scene_geometry(depsgraph, scene, context.view_layer, visible=visible):
         rec = parts.get(found.key)
