@@ -78,6 +78,21 @@ def unwrap_todo(scene, view_layer):
     return editable, hidden
 
 
+def _cancel_on_sigterm() -> None:
+    """SIGTERM to a headless bake cancels it like Ctrl+C does (bake_blocking
+    turns KeyboardInterrupt into a cancel of its worker, which runs in its own
+    session and so does not get the signal itself)."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+
+
 def save_blend(path: str | None) -> str:
     """Save the open .blend (over itself, or as ``path``); returns where. Raises OSError."""
     import os
@@ -108,8 +123,18 @@ def open_scene(blend: str, scene_name: str | None):
 
 def bake_file(argv, prog="prtt bake") -> int:
     """Open a .blend, bake it and save it (unless --no-save). Returns an exit
-    status (0 ok, 1 failed, 2 usage, 3 cancelled)."""
+    status (0 ok, 1 failed, 2 usage, 3 cancelled: SIGINT/SIGTERM at any stage,
+    the .blend and the previous textures untouched)."""
     args = bake_parser(prog).parse_args(argv)
+    _cancel_on_sigterm()
+    try:
+        return _bake_file(args)
+    except KeyboardInterrupt:
+        print("prtt: cancelled; the .blend and the previous textures are unchanged", file=sys.stderr)
+        return 3
+
+
+def _bake_file(args) -> int:
     scene = open_scene(args.blend, args.scene)
     if scene is None:
         return 1
