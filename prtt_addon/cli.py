@@ -77,33 +77,74 @@ def _settings_overrides(args) -> dict:
     return o
 
 
+def int_in(lo: int, hi: int):
+    """argparse type: an integer lo..hi (argparse then names the option: exit 2)."""
+    def integer(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer {lo}..{hi}, got {text!r}") from None
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"must be an integer {lo}..{hi}, got {v}")
+        return v
+    return integer
+
+
+def number_in(lo: float, hi: float, *, above: bool = False):
+    """argparse type: a finite number lo..hi (``above``: strictly greater than lo)."""
+    import math
+    where = f"> {lo:g} and <= {hi:g}" if above else f"{lo:g}..{hi:g}"
+
+    def number(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number {where}, got {text!r}") from None
+        if not (math.isfinite(v) and (v > lo if above else v >= lo) and v <= hi):
+            raise argparse.ArgumentTypeError(f"must be a finite number {where}, got {text}")
+        return v
+    return number
+
+
+#: --env-strength: 0 or less would bake no light (or negative light), silently.
+ENV_STRENGTH_MAX = 1e6
+
+
 def add_bake_options(p: argparse.ArgumentParser) -> None:
+    from .core.bake import BAKE_INT_LIMITS
+    from .core.scene import MAX_RESOLUTION
+    from .core.transfer import ADAPTIVE_TOL_LIMITS, INT_LIMITS
+    lim = {**INT_LIMITS, **BAKE_INT_LIMITS}
+    rng = lambda name: int_in(*lim[name][:2])  # noqa: E731
     g = p.add_argument_group("bake settings (default: the job's, else PRTT's defaults)")
-    g.add_argument("--resolution", type=int, help="texels per side for every set")
-    g.add_argument("--rays", type=int, help="rays per texel (maximum when adaptive), default 256")
-    g.add_argument("--bands", type=int, help="SH bands, default 5 (25 coefficients)")
-    g.add_argument("--dilate", type=int, help="dilation in texels, default 3")
+    g.add_argument("--resolution", type=int_in(1, MAX_RESOLUTION), help="texels per side for every set")
+    g.add_argument("--rays", type=rng("rays"), help="rays per texel (maximum when adaptive), default 256")
+    g.add_argument("--bands", type=rng("bands"), help="SH bands, default 5 (25 coefficients)")
+    g.add_argument("--dilate", type=rng("dilate"), help="dilation in texels, default 3")
     g.add_argument("--half", dest="half", action="store_true", default=None, help="float16 EXR (default)")
     g.add_argument("--float", dest="half", action="store_false", help="float32 EXR")
-    g.add_argument("--adaptive", type=float, metavar="TOL",
+    g.add_argument("--adaptive", type=number_in(*ADAPTIVE_TOL_LIMITS), metavar="TOL",
                    help="stop per texel when the RMS standard error is below TOL")
-    g.add_argument("--min-rays", dest="min_rays", type=int, help="first adaptive round, default 64")
+    g.add_argument("--min-rays", dest="min_rays", type=rng("min_rays"), help="first adaptive round, default 64")
     g.add_argument("--sampler", choices=["sobol", "stratified", "random"])
     g.add_argument("--distribution", choices=["cosine", "uniform"])
     g.add_argument("--estimator", choices=["balanced", "control-variate", "plain"])
-    g.add_argument("--seed", type=int)
-    g.add_argument("--threads", type=int, help="0 = all cores")
+    g.add_argument("--seed", type=rng("seed"))
+    g.add_argument("--threads", type=rng("threads"), help="0 = all cores")
     g.add_argument("--vertex", action="store_true", help="also bake per-vertex transfer")
     g.add_argument("--mips", action="store_true", help="also write coverage-weighted mip levels")
     g.add_argument("--no-analytic", action="store_true", help="trace provably unoccluded texels too")
     g.add_argument("--no-normal-maps", action="store_true")
     g.add_argument("--overlap", choices=["warn", "error"], help="overlapping UVs: warn (default) or fail")
     g.add_argument("--force", action="store_true", help="bake even if the outputs are up to date")
-    g.add_argument("--bounces", type=int, help="inter-reflection levels, default 1 (0 = off; needs a light)")
-    g.add_argument("--bounce-rays", dest="bounce_rays", type=int, help="rays per texel per bounce, default 64")
+    g.add_argument("--bounces", type=rng("bounces"),
+                   help="inter-reflection levels, default 1 (0 = off; needs a light)")
+    g.add_argument("--bounce-rays", dest="bounce_rays", type=rng("bounce_rays"),
+                   help="rays per texel per bounce, default 64")
     g.add_argument("--env", help="light for bounces: .exr/.hdr or built-in name (overrides the job's light)")
-    g.add_argument("--env-strength", type=float, default=1.0, help="multiplies the environment")
-    g.add_argument("--env-rotation", type=float, default=0.0, metavar="DEG",
+    g.add_argument("--env-strength", type=number_in(0.0, ENV_STRENGTH_MAX, above=True), default=1.0,
+                   help="multiplies the environment (> 0; for no light use --bounces 0)")
+    g.add_argument("--env-rotation", type=number_in(-360.0, 360.0), default=0.0, metavar="DEG",
                    help="Z rotation of the World's Mapping node: lookups turn by it before "
                         "reading the image (the environment appears turned the other way)")
 
@@ -128,18 +169,23 @@ def env_light(source: str, bands: int, strength: float = 1.0, rotation_z_deg: fl
 def _cmd_bake_job(args) -> int:
     import threading
 
-    from .worker import install_cancel_handlers, run_job
+    from .core.memory import MemoryLimitError
+    from .worker import EXIT_CANCELLED, finish, install_cancel_handlers, run_job
     cancel = threading.Event()
-    install_cancel_handlers(cancel)
+    progress = ConsoleProgress()
+    watchdog = install_cancel_handlers(cancel, progress)
     light = None
     if args.env:
         try:
             light = env_light(args.env, max(args.bands or 5, 5), args.env_strength, args.env_rotation)
-        except (ValueError, OSError) as exc:
+        except (ValueError, OSError, MemoryLimitError) as exc:
             print(f"prtt: error: {exc}", file=sys.stderr)
-            return 1
-    return run_job(args.job, args.out, ConsoleProgress(), cancel, overrides=_settings_overrides(args),
-                   resolution=args.resolution, force=args.force, light_override=light)
+            return finish(1, watchdog)
+        if cancel.is_set():
+            progress({"type": "cancelled"})
+            return finish(EXIT_CANCELLED, watchdog)
+    return finish(run_job(args.job, args.out, progress, cancel, overrides=_settings_overrides(args),
+                          resolution=args.resolution, force=args.force, light_override=light), watchdog)
 
 
 def _in_bpy(entry: str, argv, prog: str, hint: str) -> int:
@@ -177,7 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("env", help="project an equirect environment to SH and report errors")
     e.add_argument("source", help="an .exr/.hdr path or a built-in name (forest, sunset, city, ...)")
-    e.add_argument("--bands", type=int, default=5)
+    e.add_argument("--bands", type=int_in(1, 64), default=5)
     e.add_argument("--method", choices=["area", "samples"], default="area")
     e.set_defaults(func=_cmd_env)
 
@@ -207,7 +253,16 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Commands whose options the add-on's own parser (inside bpy) reads: every
+#: argument after the command goes to it unparsed, "-h" included.
+_BPY_COMMANDS = {"bake": _cmd_bake_blend, "render": _cmd_render_blend}
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in _BPY_COMMANDS:
+        import argparse as _ap
+        return _BPY_COMMANDS[argv[0]](_ap.Namespace(rest=argv[1:]))
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

@@ -4,8 +4,9 @@ Runs in its own process so Blender's UI never freezes and a crash in native code
 cannot take Blender down. Protocol (docs/worker-protocol.md): one JSON object
 per line on stdout, flushed:
 
+  {"type": "progress", "stage": "load", "fraction": 0.0}
   {"type": "start", "pid": ..., "sets": [...], "settings": {...}}
-  {"type": "progress", "stage": "bvh|analytic-test|gbuffer|trace|vertex|bounce",
+  {"type": "progress", "stage": "bvh|analytic-test|gbuffer|tables|trace|vertex|bounce|write",
    "fraction": 0..1, "set": ..., "rays_per_s": ...}
   {"type": "warning", "message": ...}
   {"type": "error", "message": ..., "error": "SceneError|BakeError|..."}
@@ -13,7 +14,8 @@ per line on stdout, flushed:
   {"type": "done", "manifest": path, "skipped": bool, "seconds": ...}
 
 Exit status: 0 done (or skipped: up to date), 1 bad input or failure,
-2 usage, 3 cancelled by SIGINT/SIGTERM (previous outputs intact).
+2 usage, 3 cancelled by SIGINT/SIGTERM (previous outputs intact), within 2 s
+of the signal at any stage (:class:`Watchdog`).
 """
 import os
 
@@ -88,36 +90,74 @@ def job_light(extra: dict, override=None):
     spec = extra.get("light")
     if not spec:
         return None
-    coeffs = np.asarray(spec.get("coeffs"), dtype=np.float64)
+    if not isinstance(spec, dict):
+        raise ValueError(f"job light: expected a JSON object with coeffs, got {type(spec).__name__}")
+    try:
+        coeffs = np.asarray(spec.get("coeffs"), dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"job light: coeffs must be (K, 3) RGB SH numbers ({exc})") from None
     if coeffs.ndim != 2 or coeffs.shape[1] != 3:
         raise ValueError(f"job light: coeffs must be (K, 3) RGB SH, got shape {coeffs.shape}")
+    if not np.isfinite(coeffs).all():
+        raise ValueError("job light: coeffs has NaN/Inf values")
     return coeffs
+
+
+def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
+    """Refuse (MemoryLimitError) a job whose arrays plus the bake's estimate do
+    not fit in the available memory, from its headers alone (before loading)."""
+    import numpy as np
+
+    from .core.bake import bake_memory_bytes
+    from .core.memory import GiB, check_fits
+    from .core.scene import MAX_RESOLUTION
+    res = job.set_resolution() if resolution is None else np.full((len(job.set_resolution()), 2), resolution)
+    # An out-of-range resolution fails validation with its own message; here it
+    # must not fail first as an absurd memory need: such sets count as 1 texel.
+    res = np.asarray(res).reshape(-1, 2)
+    res = np.where((res >= 1) & (res <= MAX_RESOLUTION), res, 1).astype(np.int64)
+    arrays = job.peak_bytes()
+    bake = bake_memory_bytes(res, st, n_triangles=job.members["positions"].shape[0], bouncing=bouncing)
+    check_fits(arrays + bake, f"job {job.path} (its arrays {arrays / GiB:.2f} GiB, the bake "
+                              f"{bake / GiB:.2f} GiB)")
 
 
 def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
             overrides: dict | None = None, resolution=None, force: bool = False,
             light_override=None) -> int:
-    """Load a job and bake it, reporting through ``emit``. Returns an exit status."""
+    """Load a job and bake it, reporting through ``emit``. Returns an exit status.
+
+    The job's headers, settings and memory need are checked before any array
+    is read (core.scene.JobFile); ``cancel`` is honoured while loading too.
+    """
     from .core.bake import BakeError, BakeSettings, bake_scene
     from .core.memory import MemoryLimitError
-    from .core.scene import SceneError, load_scene
+    from .core.scene import JobFile, SceneError, validate
     from .core.transfer import Cancelled
     from .core.unwrap import UnwrapError
 
     try:
-        sc, extra = load_scene(job_path)
-        settings = dict(extra.get("settings", {}))
-        settings.update(overrides or {})
-        st = BakeSettings.from_dict(settings).validate()
+        with JobFile(job_path) as job:
+            settings = dict(job.settings())
+            settings.update(overrides or {})
+            st = BakeSettings.from_dict(settings).validate()
+            light = job_light(job.extra, light_override)
+            check_job_memory(job, st, resolution=resolution,
+                             bouncing=light is not None and st.bounces > 0 and st.textures)
+            emit({"type": "progress", "stage": "load", "fraction": 0.0})
+            sc = job.load(cancel)
+            extra = job.extra
         if resolution is not None:
             sc.set_resolution[:] = resolution
-            from .core.scene import validate
             validate(sc)
-        light = job_light(extra, light_override)
+        if cancel.is_set():
+            raise Cancelled()
         emit({"type": "start", "pid": os.getpid(), "sets": sc.set_names,
               "triangles": sc.n_triangles, "settings": st.as_dict(),
-              "light": None if light is None else extra.get("light", {}).get("description", "given")})
-        bake_scene(sc, out_dir, st, light=light, progress=emit, cancel=cancel, skip_if_unchanged=not force)
+              "light": None if light is None else (extra.get("light") or {}).get("description", "given")})
+        source = extra.get("blend") if isinstance(extra.get("blend"), str) and extra.get("blend") else None
+        bake_scene(sc, out_dir, st, light=light, progress=emit, cancel=cancel, skip_if_unchanged=not force,
+                   job=os.path.abspath(job_path), source=source)
     except Cancelled:
         emit({"type": "cancelled"})
         return EXIT_CANCELLED
@@ -131,11 +171,121 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
     return EXIT_OK
 
 
-def install_cancel_handlers(cancel: threading.Event) -> None:
-    def handler(signum, frame):
-        cancel.set()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, handler)
+class Watchdog:
+    """SIGINT/SIGTERM stop the process within ~1.2 s, whatever it is doing.
+
+    The signal sets ``cancel``; the bake stops at its next check (between
+    chunks, patterns, rasteriser chunks, files) and exits 3 the normal way.
+    If it has not finished within :attr:`grace` seconds (a long native call:
+    a BVH build, an EXR being compressed), this watchdog deletes the
+    process's staged temporaries and exits 3 itself (os._exit), except while
+    a bake commits its outputs (atomic.COMMIT_LOCK, renames and manifest:
+    fast), which it waits for; a bake that did commit exits 0.
+
+    Python runs signal handlers only in the main thread, between bytecodes,
+    so a handler alone could wait for a native call to return. The watchdog
+    thread therefore waits on the signal wakeup fd (written by the C-level
+    handler at once) and needs only the GIL, which embreex, numpy, OpenEXR
+    and file I/O release (and which raytrace.py builds in short pieces).
+    """
+
+    grace = 1.2
+
+    def __init__(self, cancel: threading.Event, announce=None):
+        self.cancel = cancel
+        self.announce = announce          # announce(event) for the final "cancelled" line
+        self.finished = threading.Event()  # the normal path returned
+        self._rfd = None
+
+    def install(self) -> "Watchdog":
+        """Install the handlers and start the thread (call from the main thread)."""
+        import socket
+
+        def handler(signum, frame):
+            self.cancel.set()
+
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, handler)
+        except ValueError:                # not the main thread: the caller cancels
+            return self
+        try:
+            r, w = socket.socketpair()
+            w.setblocking(False)
+            signal.set_wakeup_fd(w.fileno(), warn_on_full_buffer=False)
+        except (OSError, ValueError, AttributeError):
+            return self                   # no wakeup fd (not the main thread): handlers only
+        self._rfd, self._wfd = r, w       # keep both ends alive
+        threading.Thread(target=self._watch, name="prtt-watchdog", daemon=True).start()
+        return self
+
+    def _watch(self) -> None:
+        wanted = {int(signal.SIGINT), int(signal.SIGTERM)}
+        while True:
+            try:
+                data = self._rfd.recv(64)
+            except OSError:
+                return
+            if not data:
+                return
+            if wanted & set(data):
+                break
+        self.cancel.set()
+        if self.finished.wait(self.grace):
+            return
+        self.hard_exit()
+
+    def hard_exit(self) -> None:
+        from .core import atomic
+        # Never between a commit's renames and its manifest; the lock is held for
+        # milliseconds (files were hashed and synced before it was taken).
+        atomic.COMMIT_LOCK.acquire(timeout=30)
+        if atomic.commits():
+            # The outputs are the new ones: the normal path only has to report
+            # "done" (with the manifest's path); give it that time.
+            atomic.COMMIT_LOCK.release()
+            if not self.finished.wait(5.0):
+                os._exit(EXIT_OK)
+            return
+        atomic.remove_own_temporaries()
+        self._say({"type": "cancelled"})
+        os._exit(EXIT_CANCELLED)
+
+    def _say(self, event: dict) -> None:
+        """Announce on a helper thread, waiting at most 0.3 s (stdout may be a
+        full pipe, or its lock held by the main thread mid-write)."""
+        if self.announce is None:
+            return
+        t = threading.Thread(target=self._say_now, args=(event,), daemon=True)
+        t.start()
+        t.join(0.3)
+
+    def _say_now(self, event: dict) -> None:
+        try:
+            self.announce(event)
+            sys.stdout.flush()
+        except Exception:
+            pass
+
+
+def install_cancel_handlers(cancel: threading.Event, announce=None) -> Watchdog:
+    """SIGINT/SIGTERM set ``cancel``, with a :class:`Watchdog` as the backstop."""
+    return Watchdog(cancel, announce).install()
+
+
+def finish(code: int, watchdog: Watchdog) -> int:
+    """End of a bake command: mark it finished for the watchdog. A cancelled run
+    exits at once (os._exit after flushing): helper threads still inside a native
+    call must not hold the process past the promised time."""
+    watchdog.finished.set()
+    if code == EXIT_CANCELLED:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:
+                pass
+        os._exit(code)
+    return code
 
 
 def main(argv=None) -> int:
@@ -145,13 +295,14 @@ def main(argv=None) -> int:
     p.add_argument("job", help="job file (.npz, see docs/format.md)")
     p.add_argument("out_dir", help="folder for the textures and manifest.json")
     p.add_argument("--force", action="store_true", help="bake even if the outputs are up to date")
+    cancel = threading.Event()
+    emit = JsonLines(cancel=cancel)
+    watchdog = install_cancel_handlers(cancel, emit)       # first: a signal may come at once
     try:
         args = p.parse_args(argv)
     except SystemExit as exc:
         return EXIT_USAGE if exc.code else EXIT_OK
-    cancel = threading.Event()
-    install_cancel_handlers(cancel)
-    return run_job(args.job, args.out_dir, JsonLines(cancel=cancel), cancel, force=args.force)
+    return finish(run_job(args.job, args.out_dir, emit, cancel, force=args.force), watchdog)
 
 
 if __name__ == "__main__":

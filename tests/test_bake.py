@@ -252,17 +252,35 @@ def test_unwritable_output_folder(tmp_path):
 
 
 @pytest.mark.parametrize("bad, match", [
-    (dict(rays=0), "rays must be a positive integer"),
-    (dict(bands=0), "bands must be >= 1"),
-    (dict(bands=17), "bands must be <= 16"),
-    (dict(dilate=-1), "dilate must be an integer"),
-    (dict(sampler="halton"), "sampler must be one of"),
-    (dict(overlap="ignore"), "overlap must be"),
-    (dict(adaptive_tol=-1.0), "adaptive_tol"),
+    (dict(rays=0), r"rays must be an integer 1\.\.65536, got 0"),
+    (dict(rays=10 ** 9), r"rays must be an integer 1\.\.65536, got 1000000000"),
+    (dict(rays=64.0), r"rays must be an integer 1\.\.65536, got 64\.0"),
+    (dict(rays=True), r"rays must be an integer 1\.\.65536, got True"),
+    (dict(bands=0), r"bands must be an integer 1\.\.16, got 0"),
+    (dict(bands=17), r"bands must be an integer 1\.\.16, got 17"),
+    (dict(threads=1000), r"threads must be an integer 0\.\.256, got 1000"),
+    (dict(n_patterns=10 ** 6), r"n_patterns must be an integer 1\.\.1024, got 1000000"),
+    (dict(chunk_rays=1), r"chunk_rays must be an integer 1024\.\.4194304, got 1"),
+    (dict(seed=2 ** 32), r"seed must be an integer 0\.\.4294967295, got 4294967296"),
+    (dict(seed=-1), r"seed must be an integer 0\.\.4294967295, got -1"),
+    (dict(min_rays=0), r"min_rays must be an integer 1\.\.65536, got 0"),
+    (dict(dilate=-1), r"dilate must be an integer 0\.\.64, got -1"),
+    (dict(bounces=9), r"bounces must be an integer 0\.\.8, got 9"),
+    (dict(bounce_rays=0), r"bounce_rays must be an integer 1\.\.16384, got 0"),
+    (dict(sampler="halton"), "sampler must be one of sobol, stratified, random, got 'halton'"),
+    (dict(estimator=["plain"]), r"estimator must be one of .*, got \['plain'\]"),
+    (dict(overlap="ignore"), "overlap must be one of warn, error, got 'ignore'"),
+    (dict(adaptive_tol=-1.0), r"adaptive_tol must be a number 0\.\.100, got -1\.0"),
+    (dict(adaptive_tol=float("nan")), r"adaptive_tol must be a number 0\.\.100, got nan"),
+    (dict(half="no"), "half must be true or false, got 'no'"),
+    (dict(analytic=0), "analytic must be true or false, got 0"),
 ])
 def test_bad_settings(bad, match, tmp_path):
+    """Every setting is bounded and typed: out-of-range values, bools or floats for
+    integers and strings for flags are refused, naming the setting, range and value."""
     with pytest.raises(ValueError, match=match):
         bake_scene(floor_and_box(res=8), tmp_path, BakeSettings(**bad))
+    assert not os.listdir(tmp_path)
 
 
 def test_atomic_writes_get_normal_permissions(tmp_path):

@@ -23,7 +23,7 @@ def ready_scene(bpy, tmp_path, res=32, rays=32):
 
 def snapshot_files(folder):
     return {n: open(os.path.join(folder, n), "rb").read() for n in sorted(os.listdir(folder))
-            if not n.startswith(".prtt-tmp-")}
+            if not n.startswith((".prtt-tmp-", ".prtt-lock"))}
 
 
 @pytest.mark.parametrize("how", ["cancel", "kill"])

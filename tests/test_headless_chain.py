@@ -94,3 +94,33 @@ def test_no_save_save_as_and_range_errors(blend, tmp_path):
     r = run("render", str(scene), "--out", str(tmp_path / "n.png"), "--size", "32x24")
     assert r.returncode != 0 and "nothing baked" in (r.stderr + r.stdout)
     assert not (tmp_path / "n.png").exists()
+
+
+def test_two_bakes_into_one_folder_never_mix(tmp_path):
+    """A long bake of scene A holds the folder; a bake of scene B into the same
+    --out meanwhile is refused with a message naming A's bake; the folder
+    ends with A's textures only."""
+    bpy = addon_bpy()
+    for name, obj in (("a", "BoxA"), ("b", "BoxB")):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        rs.floor(bpy, 4.0).data.uv_layers.new(name="PRTT")
+        rs.add_object(bpy, obj, rs.cube_mesh(bpy, obj), location=(0, 0, 0.5)).data.uv_layers.new(name="PRTT")
+        bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / f"{name}.blend"))
+    out = tmp_path / "shared"
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    slow = subprocess.Popen([sys.executable, "-m", "prtt_addon", "bake", str(tmp_path / "a.blend"), "--out",
+                             str(out), "--resolution", "256", "--rays", "4096", "--bounces", "0", "--no-save"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        for line in slow.stdout:                 # wait until A's worker is tracing (it holds the lock)
+            if line.startswith("prtt: trace"):
+                break
+        r = run("bake", str(tmp_path / "b.blend"), "--out", str(out), *BAKE, "--no-save")
+        assert r.returncode == 1, r.stdout + r.stderr
+        assert "in use by another bake" in r.stderr and "a.blend" in r.stderr, r.stderr
+    finally:
+        slow.terminate()                         # SIGTERM: the command cancels its worker
+        code = slow.wait(timeout=30)
+    assert code == 3
+    names = os.listdir(out)
+    assert not any("BoxB" in n or n.startswith(".prtt-tmp-") for n in names), names

@@ -248,9 +248,10 @@ def test_help(baked, tmp_path, capsys):
     assert r.returncode == 0 and "Exit status" in r.stdout, r.stderr
 
 
-@pytest.mark.xfail(strict=True, reason="prtt_addon/cli.py: the render subparser's argparse.REMAINDER "
-                   "does not take a leading -h, so the top-level parser rejects it (exit 2)")
 def test_python_m_render_dash_h(tmp_path):
     r = subprocess.run([sys.executable, "-m", "prtt_addon", "render", "-h"], capture_output=True, text=True,
                        env=ENV, cwd=tmp_path, timeout=300)
     assert r.returncode == 0 and "--mode" in r.stdout, r.stderr
+    r = subprocess.run([sys.executable, "-m", "prtt_addon", "bake", "-h"], capture_output=True, text=True,
+                       env=ENV, cwd=tmp_path, timeout=300)
+    assert r.returncode == 0 and "--no-save" in r.stdout, r.stderr

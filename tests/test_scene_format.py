@@ -45,6 +45,17 @@ def base_arrays():
     (lambda a: a.update(set_resolution=np.array([[8, 8], [0, 8]])), "asks for 0x8 texels"),
     (lambda a: a.update(set_resolution=np.array([[8, 8], [99999, 8]])), "each side must be 1..16384"),
     (lambda a: a.update(uvs=a["uvs"].astype(str)), "uvs: expected numbers"),
+    (lambda a: a.update(set_id=a["set_id"].astype(np.float64)), "set_id: expected integers, got float64"),
+    (lambda a: a.update(set_id=a["set_id"].astype(bool)), "set_id: expected integers, got bool"),
+    (lambda a: a.update(set_id=a["set_id"].astype(np.int64) + (1 << 32)),
+     "set_id: triangle 0 refers to set 4294967296"),                  # no silent wrap to 0
+    (lambda a: a.update(set_resolution=np.array([[8, 8], [(1 << 32) + 8, 8]])), "asks for 4294967304x8 texels"),
+    (lambda a: a.update(set_names=["floor", "b" * 300]),
+     "is 300 characters .*set names become file names and may have at most 200 bytes"),
+    (lambda a: a.update(set_names=["floor", "é" * 101]), r"\(202 bytes as UTF-8\)"),
+    (lambda a: a.update(set_names=["floor", "tab\there"]), "not usable as a file name"),
+    (lambda a: a.update(positions=a["positions"] * 1e16), "positions: a coordinate of .* at most 1e\\+15 m"),
+    (lambda a: a.update(normals=a["normals"].astype(np.complex64)), "normals: expected numbers, got complex64"),
 ])
 def test_validation_names_the_problem(change, match):
     a = base_arrays()
@@ -72,6 +83,40 @@ def test_missing_and_foreign_files(tmp_path):
     np.savez(tmp_path / "future.npz", format=np.array("prtt-scene"), version=np.array(99))
     with pytest.raises(SceneError, match="newer than this PRTT"):
         load_scene(tmp_path / "future.npz")
+
+
+def test_load_refuses_before_allocating(tmp_path):
+    """Headers are checked before any data is read: a texture declared as
+    10^6 x 10^6 pixels (12 TB) is refused by its header alone, and a 0-byte or
+    truncated job names its path."""
+    import io
+    import zipfile
+    from prtt_addon.core.scene import JobFile
+    save_scene(floor_and_box(res=8), tmp_path / "job.npz")
+    with np.load(tmp_path / "job.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["tex_count"] = np.array(1)
+    with zipfile.ZipFile(tmp_path / "lie.npz", "w") as zf:
+        for k, v in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, v, allow_pickle=False)
+            zf.writestr(k + ".npy", buf.getvalue())
+        buf = io.BytesIO()
+        np.lib.format.write_array_header_1_0(buf, {"descr": "<f4", "fortran_order": False,
+                                                   "shape": (10 ** 6, 10 ** 6, 3)})
+        zf.writestr("tex_0.npy", buf.getvalue())
+    with pytest.raises(SceneError, match=r"lie.npz: tex_0: 1000000x1000000 pixels; at most 16384 a side"):
+        load_scene(tmp_path / "lie.npz")
+    (tmp_path / "empty.npz").write_bytes(b"")
+    with pytest.raises(SceneError, match=r"empty.npz: the file is empty \(0 bytes\)"):
+        load_scene(tmp_path / "empty.npz")
+    data = (tmp_path / "job.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[:len(data) // 2])
+    with pytest.raises(SceneError, match=r"cut.npz: not a readable .npz scene"):
+        load_scene(tmp_path / "cut.npz")
+    with JobFile(tmp_path / "job.npz") as job:           # sizes known without loading
+        assert job.peak_bytes() > floor_and_box(res=8).nbytes()
+        assert job.settings() == {}
 
 
 def test_degenerate_3d_triangles_are_handled(tmp_path):

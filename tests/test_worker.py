@@ -28,8 +28,9 @@ def test_worker_streams_json_and_finishes(tmp_path):
     r = run_worker(tmp_path / "job.npz", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     ev = events(r.stdout)
-    assert ev[0]["type"] == "start" and ev[0]["sets"] == ["floor", "box"]
-    assert ev[0]["settings"]["rays"] == 32
+    assert ev[0] == {"type": "progress", "stage": "load", "fraction": 0.0}    # headers checked, loading
+    assert ev[1]["type"] == "start" and ev[1]["sets"] == ["floor", "box"]
+    assert ev[1]["settings"]["rays"] == 32
     stages = {e["stage"] for e in ev if e["type"] == "progress"}
     assert {"bvh", "gbuffer", "trace"} <= stages
     assert all(0.0 <= e["fraction"] <= 1.0 for e in ev if e["type"] == "progress")
@@ -47,7 +48,7 @@ def test_worker_reports_bad_input(tmp_path):
     assert "no such job/scene file" in ev[-1]["message"]
     save_scene(floor_and_box(res=8), tmp_path / "job.npz", extra={"settings": {"rays": -3}})
     r = run_worker(tmp_path / "job.npz", tmp_path / "out")
-    assert r.returncode == 1 and "rays must be a positive integer" in events(r.stdout)[-1]["message"]
+    assert r.returncode == 1 and "rays must be an integer 1..65536, got -3" in events(r.stdout)[-1]["message"]
     save_scene(floor_and_box(res=8), tmp_path / "job2.npz", extra={"settings": {"colour": 1}})
     r = run_worker(tmp_path / "job2.npz", tmp_path / "out")
     assert r.returncode == 1 and "unknown bake settings" in events(r.stdout)[-1]["message"]
@@ -58,8 +59,9 @@ def test_worker_reports_bad_input(tmp_path):
 
 def outputs(folder, staged: bool = True):
     """{name: bytes} of a bake folder's files; staged=False leaves out the
-    temporaries a killed worker could not clean up."""
-    return {p.name: p.read_bytes() for p in folder.iterdir() if staged or not p.name.startswith(".prtt-tmp-")}
+    temporaries and the (unlocked) lock file a killed worker could not clean up."""
+    return {p.name: p.read_bytes() for p in folder.iterdir()
+            if staged or not (p.name.startswith(".prtt-tmp-") or p.name == ".prtt-lock")}
 
 
 def previous_bake_and_long_job(tmp_path):
@@ -100,6 +102,12 @@ def test_worker_killed_leaves_previous_outputs(tmp_path):
     p.wait(timeout=30)
     p.stdout.close()
     assert outputs(tmp_path / "out", staged=False) == before
+    # The next bake takes the dead bake's lock over and removes its temporaries.
+    r = run_worker(tmp_path / "small.npz", tmp_path / "out", "--force")
+    assert r.returncode == 0, r.stdout
+    warnings = [e["message"] for e in events(r.stdout) if e["type"] == "warning"]
+    assert any(f"took over the lock of a bake that is gone (pid {p.pid})" in w for w in warnings), warnings
+    assert sorted(outputs(tmp_path / "out")) == sorted(before)
 
 
 def test_bake_job_cli_overrides(tmp_path):
@@ -117,7 +125,17 @@ def test_bake_job_cli_overrides(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "prtt_addon", "bake-job", str(tmp_path / "job.npz"),
                           "--out", str(tmp_path / "o2"), "--resolution", "0"],
                          capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=60)
-    assert bad.returncode == 1 and "each side must be 1..16384" in bad.stderr
+    assert bad.returncode == 2 and "argument --resolution: must be an integer 1..16384, got 0" in bad.stderr
+    for option, value, message in (("--env-strength", "-1", "must be a finite number > 0"),
+                                   ("--env-strength", "inf", "must be a finite number > 0"),
+                                   ("--threads", "1000", "must be an integer 0..256, got 1000"),
+                                   ("--rays", "1e9", "expected an integer 1..65536, got '1e9'"),
+                                   ("--bands", "17", "must be an integer 1..16, got 17")):
+        bad = subprocess.run([sys.executable, "-m", "prtt_addon", "bake-job", str(tmp_path / "job.npz"),
+                              "--out", str(tmp_path / "o3"), option, value],
+                             capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=60)
+        assert bad.returncode == 2 and f"argument {option}: {message}" in bad.stderr, (option, bad.stderr)
+    assert not os.path.exists(tmp_path / "o3")
 
 
 def test_worker_bakes_bounces_with_the_jobs_light(tmp_path):
@@ -128,7 +146,7 @@ def test_worker_bakes_bounces_with_the_jobs_light(tmp_path):
     r = run_worker(tmp_path / "job.npz", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     ev = events(r.stdout)
-    assert ev[0]["light"] == "sky"
+    assert ev[1]["type"] == "start" and ev[1]["light"] == "sky"
     assert any(e.get("stage") == "bounce" for e in ev)
     man = json.loads((tmp_path / "out" / "manifest.json").read_text())
     assert "floor.bounce1.exr" in man["files"]

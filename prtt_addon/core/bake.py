@@ -14,7 +14,13 @@ leaves the previous outputs untouched:
 
 Work the inputs do not need is skipped: an identical bake is not repeated,
 and when only the light or the materials changed, only the bounce textures
-are re-baked (from the transfer textures on disk).
+are re-baked (from the transfer textures on disk). "Identical" is checked on
+the files themselves: the manifest records each output's size and sha256
+(``file_info``), and a missing, truncated or replaced output is re-baked.
+
+One bake runs per output folder at a time (outdir.FolderLock, taken for the
+whole bake); temporaries that dead bakes left there are removed when a bake
+starts (atomic.remove_stale_temporaries).
 
 Progress goes to ``progress(event: dict)`` (the worker prints these as JSON).
 """
@@ -31,19 +37,28 @@ import time
 
 import numpy as np
 
-from . import exr_io
-from .atomic import TMP_PREFIX, atomic_write
+from . import atomic, exr_io
+from .atomic import atomic_write
 from .dilate import dilate, mip_chain
 from .gbuffer import build_gbuffer, face_normals
 from .hemisphere_clear import FLAT_COS, clear_triangles
-from .memory import bounce_resident_bytes, check_fits, numpy_hugepage_advice, release_free_memory, set_bytes
+from .memory import (bounce_resident_bytes, bvh_bytes, check_fits, numpy_hugepage_advice, release_free_memory,
+                     set_bytes)
+from .outdir import FolderBusyError, FolderLock, file_info, verify_files
 from .raytrace import RayScene
 from .scene import Scene, geometry_hash
 from .texsample import pixel_major, planes_from_rows
-from .transfer import SAME_NORMAL, Points, TransferSettings, bake_points, warm_tables
+from .transfer import (SAME_NORMAL, Cancelled, Points, TransferSettings, bake_points, check_choice, check_flag,
+                       check_int, warm_tables)
 
 MANIFEST = "manifest.json"
 BAKE_FORMAT_VERSION = 1
+#: Integer settings of the bake beyond TransferSettings': (lowest, highest, why).
+BAKE_INT_LIMITS = {
+    "dilate": (0, 64, "texels of dilation"),
+    "bounces": (0, 8, "inter-reflection levels; each adds a texture per set"),
+    "bounce_rays": (1, 1 << 14, "rays per texel per bounce level"),
+}
 
 
 @dataclasses.dataclass
@@ -59,19 +74,15 @@ class BakeSettings(TransferSettings):
     bounce_rays: int = 64           # rays per texel per bounce level
 
     def validate(self) -> "BakeSettings":
+        """Check every field's type and range (ValueError "name must be ..., got ...")."""
         super().validate()
-        if isinstance(self.dilate, bool) or not isinstance(self.dilate, (int, np.integer)) \
-                or not 0 <= self.dilate <= 64:
-            raise ValueError(f"dilate must be an integer 0..64 texels, got {self.dilate!r}")
-        if self.overlap not in ("warn", "error"):
-            raise ValueError(f"overlap must be 'warn' or 'error', got {self.overlap!r}")
+        for name, (lo, hi, _) in BAKE_INT_LIMITS.items():
+            check_int(name, getattr(self, name), lo, hi)
+        for name in ("half", "mips", "normal_maps", "vertex_mode", "textures"):
+            check_flag(name, getattr(self, name))
+        check_choice("overlap", self.overlap, ("warn", "error"))
         if not (self.textures or self.vertex_mode):
             raise ValueError("nothing to bake: enable textures or vertex mode")
-        for name, hi in (("bounces", 8), ("bounce_rays", 1 << 14)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not \
-                    (0 if name == "bounces" else 1) <= v <= hi:
-                raise ValueError(f"{name} must be an integer {0 if name == 'bounces' else 1}..{hi}, got {v!r}")
         return self
 
     def as_dict(self) -> dict:
@@ -79,6 +90,8 @@ class BakeSettings(TransferSettings):
 
     @classmethod
     def from_dict(cls, d: dict) -> "BakeSettings":
+        if not isinstance(d, dict):
+            raise ValueError(f"bake settings must be a JSON object, got {type(d).__name__}")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - names
         if unknown:
@@ -98,7 +111,8 @@ class BakeError(RuntimeError):
 
 
 class _Stage:
-    """Output files written as temporaries, renamed together on commit."""
+    """Output files written as temporaries (``.prtt-tmp-<pid>-<stem>-<n><ext>``,
+    registered with atomic.py for a hard exit), renamed together on commit."""
 
     def __init__(self, folder):
         self.folder = folder
@@ -106,16 +120,26 @@ class _Stage:
 
     def path(self, name: str) -> str:
         base, ext = os.path.splitext(name)
-        tmp = os.path.join(self.folder, f"{TMP_PREFIX}{base}-{os.getpid()}-{len(self.files)}{ext}")
+        tmp = os.path.join(self.folder, f"{atomic.temp_prefix(base)}{len(self.files)}{ext}")
         self.files.append((tmp, os.path.join(self.folder, name)))
+        atomic.register(tmp)
         return tmp
 
-    def commit(self):
+    def seal(self) -> dict:
+        """fsync every staged file and return {final name: file_info} (size, sha256).
+        Done before the commit lock is taken: it reads every byte once."""
+        info = {}
         for tmp, final in self.files:
             with open(tmp, "rb+") as f:
                 os.fsync(f.fileno())
+            info[os.path.basename(final)] = file_info(tmp)
+        return info
+
+    def commit(self):
+        """Rename every staged file into place (call with atomic.COMMIT_LOCK held)."""
         for tmp, final in self.files:
             os.replace(tmp, final)
+            atomic.unregister(tmp)
         self.files = []
 
     def abort(self):
@@ -124,6 +148,7 @@ class _Stage:
                 os.remove(tmp)
             except OSError:
                 pass
+            atomic.unregister(tmp)
         self.files = []
 
 
@@ -137,21 +162,53 @@ def settings_hash(settings: BakeSettings) -> str:
 
 
 def read_manifest(out_dir) -> dict | None:
+    """The folder's manifest as a dict, or None (missing, unreadable, not an object)."""
     try:
         with open(os.path.join(out_dir, MANIFEST), encoding="utf-8") as f:
-            return json.load(f)
-    except (OSError, ValueError):
+            m = json.load(f)
+    except (OSError, ValueError, RecursionError):
         return None
+    return m if isinstance(m, dict) else None
 
 
-def _files_present(out_dir, files) -> bool:
-    return all(os.path.isfile(os.path.join(out_dir, f)) for f in files)
+def _dicts(x) -> list:
+    """The dict entries of a manifest list (anything else in it is ignored)."""
+    return [d for d in x if isinstance(d, dict)] if isinstance(x, list) else []
+
+
+def _plain_names(names) -> bool:
+    """A list of bare file names (a manifest is read from disk: no paths out of the folder)."""
+    return isinstance(names, list) and all(
+        isinstance(n, str) and n and os.path.basename(n) == n and not n.startswith(".") for n in names)
+
+
+def outputs_changed(m: dict, out_dir, files) -> str | None:
+    """Why ``files`` in ``out_dir`` are not the ones manifest ``m`` recorded (a
+    file missing, of another size or content, or a manifest without file_info),
+    or None when every one checks out (size and sha256)."""
+    if not _plain_names(files):
+        return "the manifest's file list is not a list of file names"
+    return verify_files(out_dir, files, m.get("file_info"))
 
 
 def transfer_up_to_date(m: dict | None, out_dir, in_hash: str, set_hash: str) -> bool:
-    """Does manifest ``m`` describe complete transfer outputs of these inputs?"""
+    """Does manifest ``m`` describe complete transfer outputs of these inputs,
+    with every file as the manifest recorded it (size and sha256)?"""
     return bool(m and m.get("input_hash") == in_hash and m.get("settings_hash") == set_hash
-                and _files_present(out_dir, m.get("transfer_files", m.get("files", []))))
+                and outputs_changed(m, out_dir, m.get("transfer_files", m.get("files", []))) is None)
+
+
+def bake_memory_bytes(set_resolution, st: BakeSettings, *, n_triangles: int, bouncing: bool) -> int:
+    """Peak bytes a bake adds to its scene's arrays: Embree's BVH, the largest
+    set (memory.set_bytes) and, with bounces, every set's resident textures.
+    ``set_resolution`` (S, 2) (width, height)."""
+    K = st.bands ** 2
+    per_set = resident = 0
+    for w, h in np.asarray(set_resolution).reshape(-1, 2).tolist():
+        per_set = max(per_set, set_bytes(int(w), int(h), K, threads=st.n_threads, chunk_rays=st.chunk_rays,
+                                         rays=st.rays))
+        resident += bounce_resident_bytes(int(w), int(h), K) if bouncing else 0
+    return bvh_bytes(n_triangles) + per_set + resident
 
 
 def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: str,
@@ -188,7 +245,7 @@ def _vertex_points(sc: Scene, tris: np.ndarray):
     return uniq[:, 1:4], n, inverse.reshape(-1, 3).astype(np.int32)
 
 
-def scene_face_data(sc: Scene, *, analytic: bool = True):
+def scene_face_data(sc: Scene, *, analytic: bool = True, cancel=None):
     """Per-triangle data every set of a bake needs.
 
     Returns (face normals (T, 3) turned to the shaded side (the mean corner
@@ -196,18 +253,25 @@ def scene_face_data(sc: Scene, *, analytic: bool = True):
     faces whose oriented normals agree to 1e-9, -1 for degenerate ones;
     clear (T,) bool from hemisphere_clear; its stats).
     """
+    def check():
+        if cancel is not None and cancel.is_set():
+            raise Cancelled()
+
     fn, _ = face_normals(sc.positions)
     mean_n = sc.normals.astype(np.float64).sum(axis=1)
     fn = np.where((np.einsum("tc,tc->t", fn, mean_n) < 0)[:, None], -fn, fn)
     baked = np.flatnonzero((sc.set_id >= 0) & np.any(fn != 0, axis=1))
     normal_group = np.full(sc.n_triangles, -1, np.int64)
+    check()
     if baked.size:
         _, inv = np.unique(np.round(fn[baked], 9), axis=0, return_inverse=True)
         normal_group[baked] = inv.reshape(-1)
+    check()
     clear = np.zeros(sc.n_triangles, bool)
     stats = {}
     if analytic:
-        clear, stats = clear_triangles(sc.positions, fn, candidates=np.flatnonzero(sc.set_id >= 0))
+        clear, stats = clear_triangles(sc.positions, fn, candidates=np.flatnonzero(sc.set_id >= 0),
+                                       cancel=cancel)
     return fn, normal_group, clear, stats
 
 
@@ -242,11 +306,24 @@ class _SetResult:
     storage: str = "float32"        # precision of T_texels: "float32" (this run) or "half" (loaded)
 
 
+class _AnyEvent:
+    """is_set() of either event: helpers stop when the user cancels *or* the bake
+    fails (without setting the caller's event on a failure)."""
+
+    def __init__(self, *events):
+        self.events = [e for e in events if e is not None]
+
+    def is_set(self) -> bool:
+        return any(e.is_set() for e in self.events)
+
+
 class _Bake:
     """One bake: shared state of its stages (see bake_scene)."""
 
     def __init__(self, sc, out_dir, st, light, progress, cancel, sets):
         self.sc, self.out_dir, self.st, self.progress, self.cancel = sc, out_dir, st, progress, cancel
+        self.failed = threading.Event()
+        self.stop = _AnyEvent(cancel, self.failed)      # what helper tasks check
         self.seconds: dict[str, float] = {}
         self.warnings: list[str] = []
         self.stage = _Stage(out_dir)
@@ -268,28 +345,52 @@ class _Bake:
     def emit(self, **event):
         _emit(self.progress, **event)
 
+    def check_cancel(self):
+        """Raise Cancelled if the bake was cancelled (cheap: between sets, levels, files)."""
+        if self.cancel is not None and self.cancel.is_set():
+            raise Cancelled()
+
+    def wait(self, future):
+        """A helper's result, waiting in 50 ms steps so that cancellation is noticed."""
+        while True:
+            try:
+                return future.result(timeout=0.05)
+            except cf.TimeoutError:
+                self.check_cancel()
+
+    def wait_tables(self):
+        """Wait for the ray patterns and estimator tables (warm_tables on a helper)."""
+        fut = getattr(self, "tables", None)
+        if fut is not None and not fut.done():
+            self.emit(type="progress", stage="tables", fraction=0.0)
+        if fut is not None:
+            self.wait(fut)
+
     def warn(self, msg):
         self.warnings.append(msg)
         self.emit(type="warning", message=msg)
 
     def gbuffer_of(self, s):
         return build_gbuffer(self.sc, s, normal_maps=self.st.normal_maps, executor=self.helpers,
-                             bands=max(2, self.st.n_threads))
+                             bands=max(2, self.st.n_threads), cancel=self.stop)
 
     # --- geometry shared by every stage -------------------------------------------------
     def prepare(self, first_set):
         st = self.st
         first_gb = self.helpers.submit(self.gbuffer_of, first_set) if first_set is not None else None
-        if first_set is not None:
-            self.helpers.submit(warm_tables, st)     # ray patterns, while the cores are not tracing
+        self.tables = None
+        if first_set is not None or st.vertex_mode:
+            # Ray patterns, while the cores are not tracing.
+            self.tables = self.helpers.submit(warm_tables, st, self.stop)
         self.emit(type="progress", stage="bvh", fraction=0.0)
         t = time.perf_counter()
-        self.rs = RayScene(self.sc.positions)
+        self.rs = RayScene(self.sc.positions, cancel=self.cancel)
         self.seconds["bvh"] = time.perf_counter() - t
         t = time.perf_counter()
         if st.analytic:
             self.emit(type="progress", stage="analytic-test", fraction=0.0)
-        self.fn, self.normal_group, self.clear, self.clear_stats = scene_face_data(self.sc, analytic=st.analytic)
+        self.fn, self.normal_group, self.clear, self.clear_stats = scene_face_data(self.sc, analytic=st.analytic,
+                                                                                   cancel=self.cancel)
         self.seconds["analytic_test"] = time.perf_counter() - t
         return first_gb
 
@@ -313,6 +414,7 @@ class _Bake:
             rep["skipped"] = True
             return _SetResult(s, name, rep, [])
         pts = bake_points_input(sc, s, gb, self.fn, self.clear, self.normal_group)
+        self.wait_tables()
         t = time.perf_counter()
 
         def on_progress(done, total, rays):
@@ -349,6 +451,7 @@ class _Bake:
         attrs = dict(self.attrs_common, kind_detail="visibility*cosine", dilate=st.dilate,
                      texels=int(gb.n), analytic_texels=info["analytic_points"])
         fname = f"{name}.transfer.exr"
+        self.check_cancel()
         half = self.write_planes(fname, tex, "transfer", attrs, rgb=False)
         files = [fname]
         for lvl, (mt, _) in enumerate(mips, start=1):
@@ -372,6 +475,8 @@ class _Bake:
 
     def write_planes(self, fname, planes, kind, attrs, *, rgb, half=None):
         """Write staged; half precision unless values overflow it. Returns half."""
+        self.check_cancel()
+        self.emit(type="progress", stage="write", file=fname, fraction=0.0)
         half = self.st.half if half is None else half
         rng = exr_io.value_range(planes, self.helpers)
         over = exr_io.half_overflow(planes, rng) if half else 0
@@ -413,10 +518,12 @@ class _Bake:
             tol = HALF_OPEN_TOLERANCE if r.storage == "half" else OPEN_TOLERANCE
             skip[r.index] = r.pts.analytic | open_texels(r.T_texels, r.gb.normal, st.bands, tol)
         for level in range(1, st.bounces + 1):
+            self.check_cancel()
             shader = HitShader(sc, incident, self.light, st.bands, transfer=(level == 1),
                                normal_maps=st.normal_maps)
             nxt = {}
             for r in live:
+                self.check_cancel()
                 name = r.name
                 t = time.perf_counter()
                 if skip[r.index].all():
@@ -450,34 +557,68 @@ class _Bake:
                 break
         return reports, files
 
-    def close(self):
-        self.helpers.shutdown(wait=True, cancel_futures=True)
+    def close(self, failed: bool = False):
+        """Shut the helper pool down. After a failure its running tasks stop at
+        their next check; after a cancel they are not waited for (a G-buffer
+        band may be inside a long numpy call), so the caller can exit at once."""
+        if failed:
+            self.failed.set()
+        cancelled = self.cancel is not None and self.cancel.is_set()
+        self.helpers.shutdown(wait=not cancelled, cancel_futures=True)
+
+
+def lock_out_dir(out_dir, job=None, source=None) -> FolderLock:
+    """Take the output folder's lock (BakeError naming the other bake if it is busy)."""
+    try:
+        return FolderLock(out_dir, job, source).acquire()
+    except FolderBusyError as exc:
+        raise BakeError(str(exc)) from None
+    except OSError as exc:
+        raise BakeError(f"cannot lock output folder {out_dir}: {exc.strerror or exc}") from exc
 
 
 def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, light=None,
                progress=None, cancel: threading.Event | None = None,
-               skip_if_unchanged: bool = True, sets: list[str] | None = None) -> dict:
+               skip_if_unchanged: bool = True, sets: list[str] | None = None,
+               job: str | None = None, source: str | None = None) -> dict:
     """Bake every texture set of ``sc`` into ``out_dir``.
 
     light : (K', 3) RGB SH of the environment in world coordinates, K' >= bands^2;
             needed for bounce textures (without it they are skipped with a warning).
+    job, source : the job file this scene came from and what that was made from
+          (e.g. the .blend), recorded in the folder's lock so that a second
+          bake into the folder can say which bake holds it.
     Returns the manifest dict (``manifest["skipped"]`` is True when an identical
-    bake was already there). Raises BakeError / SceneError / MemoryLimitError
-    for bad input and transfer.Cancelled when ``cancel`` is set.
+    bake was already there). Raises BakeError (also when another bake holds the
+    folder) / SceneError / MemoryLimitError for bad input and transfer.Cancelled
+    when ``cancel`` is set. The folder lock is released on every exit path.
     """
     from .materials import materials_hash
     from .shading import light_hash
     st = (settings or BakeSettings()).validate()
     out_dir = check_out_dir(out_dir)
     t_all = time.perf_counter()
-    bk = _Bake(sc, out_dir, st, light, progress, cancel, sets)
+    lock = lock_out_dir(out_dir, job, source)
     try:
-        return _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_hash)
-    except BaseException:
-        bk.stage.abort()
-        raise
+        if lock.taken_over:
+            _emit(progress, type="warning", message=f"took over the lock of a bake that is gone "
+                                                    f"(pid {lock.taken_over.get('pid')})")
+        removed = atomic.remove_stale_temporaries(out_dir)
+        bk = _Bake(sc, out_dir, st, light, progress, cancel, sets)
+        if removed:
+            bk.warn(f"removed {len(removed)} temporary file(s) left by an interrupted bake")
+        failed = True
+        try:
+            result = _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_hash)
+            failed = False
+            return result
+        except BaseException:
+            bk.stage.abort()
+            raise
+        finally:
+            bk.close(failed)
     finally:
-        bk.close()
+        lock.release()
 
 
 def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_hash):
@@ -491,10 +632,7 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
     bk.materials_hash = materials_hash(sc)
     b_key = bounce_key(in_hash, set_hash, bk.light, bk.materials_hash, st) if bouncing else None
     old = read_manifest(out_dir)
-    transfer_ok = skip_if_unchanged and transfer_up_to_date(old, out_dir, in_hash, set_hash)
-    old_bounce = (old or {}).get("bounce") or {}
-    bounce_ok = (not bouncing and not old_bounce.get("files")) or (
-        bouncing and old_bounce.get("key") == b_key and _files_present(out_dir, old_bounce.get("files", [])))
+    transfer_ok, bounce_ok = _reusable(bk, old, out_dir, in_hash, set_hash, b_key, bouncing, skip_if_unchanged)
     if transfer_ok and bounce_ok:
         old["skipped"] = True
         bk.emit(type="done", skipped=True, manifest=os.path.join(out_dir, MANIFEST))
@@ -504,7 +642,8 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
     for s in bk.set_ids:
         w, h = (int(v) for v in sc.set_resolution[s])
         check_fits(set_bytes(w, h, bk.K, threads=st.n_threads, chunk_rays=st.chunk_rays, rays=st.rays,
-                             bounce=bouncing), f"texture set {sc.set_names[s]!r} at {w}x{h}, {st.bands} bands")
+                             bounce=bouncing) + bvh_bytes(sc.n_triangles),
+                   f"texture set {sc.set_names[s]!r} at {w}x{h}, {st.bands} bands")
         resident += bounce_resident_bytes(w, h, bk.K) if bouncing else 0
     if resident:
         check_fits(resident, f"bouncing light between {len(bk.set_ids)} texture sets (all stay in memory)")
@@ -514,15 +653,16 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
                       bounce_trace=0.0, bounce_write=0.0)
     todo = bk.set_ids if st.textures else []
     results = []
-    old_reports = {r["name"]: r for r in (old or {}).get("sets", [])}
+    old_reports = {r.get("name"): r for r in _dicts((old or {}).get("sets"))}
     # G-buffers, texel rows, planes, EXR channels: fresh arrays streamed once,
     # which fault in faster as normal pages (memory.numpy_hugepage_advice).
     with numpy_hugepage_advice(False):
         first_gb = bk.prepare(todo[0] if todo else None)
         for si, s in enumerate(todo):
             t = time.perf_counter()
+            bk.check_cancel()
             bk.emit(type="progress", stage="gbuffer", set=sc.set_names[s], fraction=0.0)
-            gb = first_gb.result() if si == 0 else bk.gbuffer_of(s)
+            gb = bk.wait(first_gb) if si == 0 else bk.gbuffer_of(s)
             release_free_memory()       # the rasteriser's temporaries, freed on helper threads
             bk.seconds["gbuffer"] += time.perf_counter() - t
             if transfer_ok:
@@ -538,11 +678,14 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
             name = sc.set_names[s]
             tris = sc.triangles_of_set(s)
             vp, vn, corner = _vertex_points(sc, tris)
+            bk.check_cancel()
             bk.emit(type="progress", stage="vertex", set=name, fraction=0.0)
+            bk.wait_tables()
             pts = Points(vp, vn, vn, np.arange(vp.shape[0], dtype=np.int64) + (np.int64(s) << 40)
                          + (np.int64(1) << 62), np.zeros(vp.shape[0], bool))
             vc, info = bake_points(bk.rs, pts, dataclasses.replace(st, analytic=False), cancel=bk.cancel)
             vname = f"{name}.vertex.npz"
+            bk.check_cancel()
             with open(bk.stage.path(vname), "wb") as f:
                 np.savez(f, format=np.array("prtt-vertex-transfer"), version=np.array(1),
                          bands=np.array(st.bands), positions=vp.astype(np.float32),
@@ -562,10 +705,13 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
                   "rays_traced": sum(r["rays_traced"] for r in reports),
                   "hits_shaded": sum(r["hits_shaded"] for r in reports)}
 
+    reused_info = {}
     if transfer_ok:
         transfer_files = old.get("transfer_files", old.get("files", []))
-        set_reports = old.get("sets", [])
-        vertex_reports, vertex_files = old.get("vertex", []), [v["file"] for v in old.get("vertex", [])]
+        set_reports = _dicts(old.get("sets"))
+        vertex_reports = _dicts(old.get("vertex"))
+        vertex_files = [v.get("file") for v in vertex_reports]
+        reused_info = {f: old["file_info"][f] for f in transfer_files}     # verified by _reusable
     else:
         transfer_files = [f for r in results for f in r.files] + vertex_files
         set_reports = [r.report for r in results]
@@ -593,15 +739,54 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
         "rays_per_second_end_to_end": totals["rays_traced"] / bk.seconds["total"] if not transfer_ok else 0.0,
         "warnings": bk.warnings, "skipped": False,
     }
-    stale = [f for f in (old or {}).get("files", []) if f not in files and ".bounce" in f]
-    bk.stage.commit()
-    with atomic_write(os.path.join(out_dir, MANIFEST)) as tmp:
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(manifest, f, indent=1)
-    for f in stale:                       # bounce levels no longer baked
-        try:
-            os.remove(os.path.join(out_dir, f))
-        except OSError:
-            pass
+    old_files = (old or {}).get("files", [])
+    stale = [f for f in (old_files if _plain_names(old_files) else []) if f not in files and ".bounce" in f]
+    bk.check_cancel()
+    new_info = bk.stage.seal()
+    manifest["file_info"] = {f: (new_info.get(f) or reused_info[f]) for f in files}
+    _commit(bk, manifest, out_dir, stale)
     bk.emit(type="done", skipped=False, manifest=os.path.join(out_dir, MANIFEST))
     return manifest
+
+
+def _commit(bk, manifest: dict, out_dir: str, stale: list[str]) -> None:
+    """Rename the staged outputs into place and write the manifest, holding
+    atomic.COMMIT_LOCK: a signal's watchdog (worker.py) waits for it rather
+    than exiting between the renames and the manifest. A cancel that came
+    before the lock was taken still wins (nothing is renamed)."""
+    with atomic.COMMIT_LOCK:
+        bk.check_cancel()
+        bk.stage.commit()
+        with atomic_write(os.path.join(out_dir, MANIFEST)) as tmp:
+            with open(tmp, "w", encoding="utf-8") as f:
+                json.dump(manifest, f, indent=1)
+        for f in stale:                       # bounce levels no longer baked
+            try:
+                os.remove(os.path.join(out_dir, f))
+            except OSError:
+                pass
+        atomic.mark_committed()
+
+
+def _reusable(bk, old, out_dir, in_hash, set_hash, b_key, bouncing, skip_if_unchanged):
+    """(transfer outputs reusable, bounce outputs reusable) per the old manifest,
+    with every file checked against its recorded size and sha256. A mismatch is
+    reported as a warning and that part is re-baked."""
+    if not (skip_if_unchanged and old):
+        return False, False
+    same_inputs = old.get("input_hash") == in_hash and old.get("settings_hash") == set_hash
+    transfer_ok = False
+    if same_inputs:
+        why = outputs_changed(old, out_dir, old.get("transfer_files", old.get("files", [])))
+        transfer_ok = why is None
+        if why:
+            bk.warn(f"re-baking the transfer: {why}")
+    old_bounce = old.get("bounce") or {}
+    if not bouncing:
+        return transfer_ok, not old_bounce.get("files")
+    if old_bounce.get("key") != b_key:
+        return transfer_ok, False
+    why = outputs_changed(old, out_dir, old_bounce.get("files", []))
+    if why:
+        bk.warn(f"re-baking the bounce textures: {why}")
+    return transfer_ok, why is None

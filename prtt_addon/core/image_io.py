@@ -14,6 +14,19 @@ import numpy as np
 
 HDR_SUFFIXES = (".exr", ".hdr", ".pic", ".rgbe")
 
+# Environment images come from users and the web: their headers are checked
+# against these before any pixel memory is allocated.
+#: Bytes of a Radiance header before its resolution line (real ones are < 1 KB).
+MAX_HDR_HEADER = 1 << 16
+#: Pixels per side and in all of an environment image (a 32K x 16K equirect is 2^29;
+#: SH projection needs nothing near that: 2^28 keeps the float64 copy at 6 GB).
+MAX_ENV_SIDE = 1 << 15
+MAX_ENV_PIXELS = 1 << 28
+#: Peak bytes a pixel costs while reading and converting (RGBE bytes, exponents,
+#: scale, float64 RGB and its product, the float32 result, the float64 copy
+#: envmap.as_environment_image makes): checked against available memory.
+BYTES_PER_PIXEL = 4 + 4 + 8 + 24 + 24 + 12 + 24
+
 
 class ImageReadError(ValueError):
     """An image could not be read as an HDR image; the message says why."""
@@ -50,9 +63,26 @@ def _sniff_ldr(magic: bytes) -> str | None:
     return None
 
 
+def check_image_size(path: str, width: int, height: int, channels: int = 3) -> None:
+    """Refuse (ImageReadError, or memory.MemoryLimitError) an image too large to
+    read, from its header's size alone."""
+    if not (1 <= width <= MAX_ENV_SIDE and 1 <= height <= MAX_ENV_SIDE and width * height <= MAX_ENV_PIXELS):
+        raise ImageReadError(f"{path}: {width}x{height} pixels; an environment image may have 1..{MAX_ENV_SIDE} "
+                             f"pixels a side and at most {MAX_ENV_PIXELS} in all")
+    from .memory import check_fits
+    check_fits(width * height * max(channels, 3) * BYTES_PER_PIXEL // 3, f"reading {path} ({width}x{height})")
+
+
 def _read_exr(path: str) -> np.ndarray:
     import OpenEXR
 
+    try:
+        with OpenEXR.File(path, header_only=True) as f:
+            (x0, y0), (x1, y1) = (tuple(int(v) for v in c) for c in f.header()["dataWindow"])
+            n_chan = len(f.header().get("channels", [])) or 3
+    except Exception as exc:  # the binding raises plain Exceptions
+        raise ImageReadError(f"{path}: unreadable EXR header ({exc})") from exc
+    check_image_size(path, x1 - x0 + 1, y1 - y0 + 1, n_chan)
     try:
         # Copy inside the block: the binding empties its dicts when the file closes.
         with OpenEXR.File(path) as f:
@@ -76,32 +106,46 @@ def _read_exr(path: str) -> np.ndarray:
 _RES_RE = re.compile(rb"^([-+])Y\s+(\d+)\s+([-+])X\s+(\d+)\s*$")
 
 
-def _read_radiance(path: str) -> np.ndarray:
-    """Radiance RGBE (.hdr) with flat or new-style run-length scanlines."""
-    with open(path, "rb") as f:
-        data = f.read()
-    pos = 0
+def _radiance_header(path: str, f) -> tuple[bytes, int, int]:
+    """Read the header and resolution line (at most MAX_HDR_HEADER bytes).
+    Returns (y sign, height, width)."""
     fmt = None
+    used = 0
     while True:
-        end = data.find(b"\n", pos)
-        if end < 0:
+        line = f.readline(MAX_HDR_HEADER - used + 1)
+        used += len(line)
+        if used > MAX_HDR_HEADER:
+            raise ImageReadError(f"{path}: Radiance header longer than {MAX_HDR_HEADER} bytes (corrupt)")
+        if not line.endswith(b"\n"):
             raise ImageReadError(f"{path}: truncated Radiance header")
-        line = data[pos:end].strip()
-        pos = end + 1
+        line = line.strip()
         if not line:
             break
         if line.startswith(b"FORMAT="):
             fmt = line[7:]
     if fmt not in (None, b"32-bit_rle_rgbe"):
-        raise ImageReadError(f"{path}: unsupported Radiance format {fmt.decode(errors='replace')}")
-    end = data.find(b"\n", pos)
-    m = _RES_RE.match(data[pos:end if end >= 0 else len(data)])
-    if not m:
+        raise ImageReadError(f"{path}: unsupported Radiance format {fmt[:40].decode(errors='replace')}")
+    m = _RES_RE.match(f.readline(256))
+    if not m or len(m.group(2)) > 18 or len(m.group(4)) > 18:
         raise ImageReadError(f"{path}: unsupported Radiance resolution line")
-    ysign, h, xsign, w = m.group(1), int(m.group(2)), m.group(3), int(m.group(4))
-    if xsign != b"+":
+    if m.group(3) != b"+":
         raise ImageReadError(f"{path}: Radiance images stored right-to-left are not supported")
-    pos = end + 1
+    return m.group(1), int(m.group(2)), int(m.group(4))
+
+
+def _read_radiance(path: str) -> np.ndarray:
+    """Radiance RGBE (.hdr) with flat or new-style run-length scanlines. The
+    header and the size it declares are checked before pixels are allocated,
+    and no more bytes are read than such an image can take."""
+    with open(path, "rb") as f:
+        ysign, h, w = _radiance_header(path, f)
+        check_image_size(path, w, h)
+        # A scanline takes at most 4 + 8 w bytes (run-length runs of one byte cost
+        # two); read no more than that, nor than the file holds (read(n) would
+        # allocate n bytes first).
+        left = os.fstat(f.fileno()).st_size - f.tell()
+        data = f.read(max(0, min(h * (4 + 8 * w), left)))
+    pos = 0
     rgbe = np.empty((h, w, 4), dtype=np.uint8)
     buf = memoryview(data)
     for row in range(h):

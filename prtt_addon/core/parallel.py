@@ -4,6 +4,10 @@ from __future__ import annotations
 import concurrent.futures as cf
 
 
+class Cancelled(Exception):
+    """The bake was cancelled; nothing was written (re-exported by transfer.py)."""
+
+
 def run_chunks(fn, items, threads: int, on_result=None, cancel=None) -> None:
     """Call ``fn(item)`` for every item on ``threads`` threads.
 

@@ -111,11 +111,14 @@ def _row_spans(P, tri, j):
     return lo, hi
 
 
-def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | None = None) -> Raster:
+def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | None = None,
+              cancel=None) -> Raster:
     """Rasterise UV triangles (T, 3, 2) in [0, 1] onto a width x height texture.
 
     ``rows`` = (y0, y1) restricts the work to texel rows y0 <= j < y1 (bands
-    can run on different threads; texel indices stay global).
+    can run on different threads; texel indices stay global). ``cancel`` (an
+    object with is_set(), e.g. a threading.Event) is checked between chunks:
+    parallel.Cancelled.
     """
     y0, y1 = (0, height) if rows is None else (int(rows[0]), int(rows[1]))
     uvs = np.asarray(uvs, dtype=np.float64)
@@ -162,6 +165,9 @@ def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | 
     for a, b in zip(cuts[:-1], cuts[1:]):
         if a == b:
             continue
+        if cancel is not None and cancel.is_set():
+            from .parallel import Cancelled
+            raise Cancelled()
         cnt = r_cnt[a:b]
         k = np.repeat(np.arange(a, b), cnt)
         i = np.repeat(r_i0[a:b], cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))

@@ -16,7 +16,11 @@ hits its faces from inside: no light leaks).
 Scenes are built with Embree's robust flag: watertight intersection, so a ray
 through a shared edge of a closed mesh cannot slip between its triangles.
 
-embreex releases the GIL, so two Python threads trace on two cores.
+embreex releases the GIL while tracing, so two Python threads trace on two
+cores. Building its triangle buffers, though, is a per-element loop that
+holds the GIL (~0.7 us a triangle): the scene is therefore built as several
+geometries of at most :data:`BUILD_CHUNK` triangles, so that no single call
+holds the GIL for long and a signal's watchdog (worker.py) can always run.
 """
 from __future__ import annotations
 
@@ -24,15 +28,20 @@ import numpy as np
 
 #: Ray origin offset along the geometric normal, in normalised scene units.
 RAY_EPSILON = 2e-6
+#: Triangles per Embree geometry: ~0.2 s of embreex's GIL-holding copy loop.
+#: Embree builds one BVH over all of a scene's geometries, so this costs no speed.
+BUILD_CHUNK = 1 << 18
 
 
 class RayScene:
     """All scene triangles in one Embree scene.
 
     positions : (T, 3, 3) float64 world-space triangles.
+    cancel : optional object with is_set() (a threading.Event), checked between
+             build chunks: parallel.Cancelled.
     """
 
-    def __init__(self, positions: np.ndarray, *, robust: bool = True):
+    def __init__(self, positions: np.ndarray, *, robust: bool = True, cancel=None):
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh
 
@@ -45,9 +54,15 @@ class RayScene:
         self.scale = 1.0 / half if half > 0 else 1.0
         self.n_triangles = int(P.shape[0])
         self.robust = robust
-        tri = np.ascontiguousarray(self.to_local(P.reshape(-1, 3)).reshape(-1, 3, 3))
         self._scene = rtcore_scene.EmbreeScene(robust=robust)
-        self._mesh = TriangleMesh(self._scene, tri)
+        # Geometry g holds triangles g*BUILD_CHUNK ... (geomIDs count up from 0).
+        self._meshes = []
+        for a in range(0, self.n_triangles, BUILD_CHUNK):
+            if cancel is not None and cancel.is_set():
+                from .parallel import Cancelled
+                raise Cancelled()
+            tri = np.ascontiguousarray(self.to_local(P[a:a + BUILD_CHUNK].reshape(-1, 3)).reshape(-1, 3, 3))
+            self._meshes.append(TriangleMesh(self._scene, tri))
         # Commit now, in one thread: embreex commits lazily on the first query,
         # which would race if two threads made the first query together.
         self._scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32),
@@ -75,4 +90,7 @@ class RayScene:
     def intersect(self, origins: np.ndarray, dirs: np.ndarray):
         """Closest hits: (prim (N,) int32, -1 = miss; u, v barycentrics; t distance)."""
         r = self._scene.run(origins, dirs, output=1)
-        return r["primID"], r["u"], r["v"], r["tfar"]
+        prim, geom = r["primID"], r["geomID"]
+        if len(self._meshes) > 1:
+            prim = np.where(geom >= 0, geom * BUILD_CHUNK + prim, -1).astype(np.int32)
+        return prim, r["u"], r["v"], r["tfar"]

@@ -35,8 +35,9 @@ same inputs give bit-identical patterns on every machine.
 """
 from __future__ import annotations
 
-import functools
+import collections
 import math
+import threading
 
 import numpy as np
 
@@ -206,15 +207,77 @@ BALANCE_TOLERANCE = 1e-8
 BALANCE_MAX_SPREAD = 8.0
 
 
-@functools.lru_cache(maxsize=32)
+class _Memo:
+    """A small LRU cache of computed tables, shared by threads.
+
+    Unlike functools.lru_cache it lets the computation take a ``cancel`` event
+    that is not part of the key (a cancelled computation caches nothing), and a
+    key being computed by one thread is waited for, not computed twice (the
+    bake warms tables on a helper while the G-buffer builds, then the trace
+    asks for the same ones).
+    """
+
+    def __init__(self, maxsize: int):
+        self.maxsize = maxsize
+        self.lock = threading.Lock()
+        self.done: collections.OrderedDict = collections.OrderedDict()
+        self.busy: dict = {}
+
+    def get(self, key, compute, cancel=None):
+        while True:
+            with self.lock:
+                if key in self.done:
+                    self.done.move_to_end(key)
+                    return self.done[key]
+                ev = self.busy.get(key)
+                if ev is None:
+                    ev = self.busy[key] = threading.Event()
+                    break
+            # Another thread computes it: wait (cancellable), then look again.
+            while not ev.wait(0.05):
+                _check(cancel)
+        try:
+            value = compute(cancel)
+            with self.lock:
+                self.done[key] = value
+                while len(self.done) > self.maxsize:
+                    self.done.popitem(last=False)
+            return value
+        finally:
+            with self.lock:
+                self.busy.pop(key, None)
+            ev.set()
+
+    def clear(self):
+        with self.lock:
+            self.done.clear()
+
+
+def _check(cancel) -> None:
+    if cancel is not None and cancel.is_set():
+        from .parallel import Cancelled
+        raise Cancelled()
+
+
+_EXACT = _Memo(32)
+_BANKS = _Memo(8)
+
+
 def exact_tables(n_patterns: int, n_rays: int, bands: int, sampler: str,
-                 distribution: str, seed: int, prefix: int) -> np.ndarray:
+                 distribution: str, seed: int, prefix: int, *, cancel=None) -> np.ndarray:
     """(G, prefix, K) float32 tables W'_j = N w_j W_j / N for the first ``prefix``
-    rays of each pattern, with weights balanced so sum_j W'_j = A (see module doc)."""
-    _, W, _ = pattern_bank(n_patterns, n_rays, bands, sampler, distribution, seed)
+    rays of each pattern, with weights balanced so sum_j W'_j = A (see module doc).
+    Cached; ``cancel`` (an Event) is checked between patterns (parallel.Cancelled)."""
+    key = (n_patterns, n_rays, bands, sampler, distribution, seed, prefix)
+    return _EXACT.get(key, lambda c: _exact_tables(*key, c), cancel)
+
+
+def _exact_tables(n_patterns, n_rays, bands, sampler, distribution, seed, prefix, cancel):
+    _, W, _ = pattern_bank(n_patterns, n_rays, bands, sampler, distribution, seed, cancel=cancel)
     A = unoccluded_local(bands)
     out = np.empty((n_patterns, prefix, bands * bands), np.float32)
     for g in range(n_patterns):
+        _check(cancel)
         Wg = W[g, :prefix].astype(np.float64)
         if prefix < bands * bands:
             # Fewer rays than coefficients: K constraints on N < K weights have no
@@ -229,18 +292,24 @@ def exact_tables(n_patterns: int, n_rays: int, bands: int, sampler: str,
     return out
 
 
-@functools.lru_cache(maxsize=8)
 def pattern_bank(n_patterns: int, n_rays: int, bands: int, sampler: str,
-                 distribution: str, seed: int):
+                 distribution: str, seed: int, *, cancel=None):
     """G patterns of S local directions with projection weights.
 
     Returns (dirs (G, S, 3) float32, weights (G, S, K) float32 = cos y / pdf,
     weights_sum (G, S, K) float64 = cumulative sum over the first j+1 rays,
-    used for the plain estimator). Read-only, cached.
+    used for the plain estimator). Read-only, cached; ``cancel`` is checked
+    between patterns.
     """
+    key = (n_patterns, n_rays, bands, sampler, distribution, seed)
+    return _BANKS.get(key, lambda c: _pattern_bank(*key, c), cancel)
+
+
+def _pattern_bank(n_patterns, n_rays, bands, sampler, distribution, seed, cancel):
     dirs = np.empty((n_patterns, n_rays, 3))
     W = np.empty((n_patterns, n_rays, bands * bands))
     for g in range(n_patterns):
+        _check(cancel)
         u = square_points(sampler, n_rays, int(hash_u32(seed, g, 0xD1)))
         d, pdf = to_hemisphere(u, distribution)
         dirs[g] = d

@@ -57,8 +57,7 @@ import time
 
 import numpy as np
 
-from .basis import check_bands
-from .parallel import run_chunks
+from .parallel import Cancelled, run_chunks
 from .raytrace import RAY_EPSILON, RayScene
 from .rotation import rotate_zyz, rotation_zyz
 from .sampling import DISTRIBUTIONS, SAMPLERS, hash_u32, hash_unit, pattern_bank
@@ -68,11 +67,43 @@ from .zonal import clamped_cosine_factors, zonal_to_sh
 SAME_NORMAL = 1e-6
 
 
-class Cancelled(Exception):
-    """The bake was cancelled; nothing was written."""
-
-
 ESTIMATORS = ("balanced", "control-variate", "plain")
+
+#: Integer settings: (lowest, highest, why the bound). Every setting is checked
+#: against these in validate(); the command line uses them for its options.
+INT_LIMITS = {
+    "bands": (1, 16, "SH bands (16 bands = 256 coefficients a texel)"),
+    "rays": (1, 1 << 16, "rays per texel"),
+    "min_rays": (1, 1 << 16, "first adaptive round"),
+    "seed": (0, (1 << 32) - 1, "hashes use 32 bits: larger seeds would repeat smaller ones"),
+    "threads": (0, 256, "0 = all cores; more threads than this is a typo, not a machine"),
+    # Patterns are built one by one (~1.4 ms each at 256 rays with balanced
+    # weights): 1024 keep the table stage near a second and a half.
+    "n_patterns": (1, 1024, "ray patterns"),
+    # Rays per chunk and thread (~66 B a ray in flight): 1024 keeps Embree calls
+    # efficient, 2^22 keeps a thread's buffers under ~280 MB.
+    "chunk_rays": (1 << 10, 1 << 22, "rays per Embree call"),
+}
+#: adaptive_tol: (lowest, highest); above ~2 every texel stops after its first
+#: round anyway (transfer coefficients are below sqrt(pi)).
+ADAPTIVE_TOL_LIMITS = (0.0, 100.0)
+
+
+def check_int(name: str, value, lo: int, hi: int) -> None:
+    """Raise ValueError unless ``value`` is an integer (not a bool) in lo..hi."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+            or not lo <= value <= hi:
+        raise ValueError(f"{name} must be an integer {lo}..{hi}, got {value!r}")
+
+
+def check_choice(name: str, value, choices) -> None:
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
+
+
+def check_flag(name: str, value) -> None:
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be true or false, got {value!r}")
 
 
 @dataclasses.dataclass
@@ -91,27 +122,18 @@ class TransferSettings:
     chunk_rays: int = 1 << 19       # rays per Embree call (bounds memory)
 
     def validate(self) -> "TransferSettings":
-        check_bands(self.bands)
-        if self.bands > 16:
-            raise ValueError(f"bands must be <= 16 for baking, got {self.bands}")
-        for name in ("rays", "min_rays", "n_patterns", "chunk_rays", "seed"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (0 if name == "seed" else 1):
-                raise ValueError(f"{name} must be a {'non-negative' if name == 'seed' else 'positive'} "
-                                 f"integer, got {v!r}")
-        if self.rays > 1 << 16:
-            raise ValueError(f"rays must be <= {1 << 16}, got {self.rays}")
-        if self.sampler not in SAMPLERS:
-            raise ValueError(f"sampler must be one of {SAMPLERS}, got {self.sampler!r}")
-        if self.distribution not in DISTRIBUTIONS:
-            raise ValueError(f"distribution must be one of {DISTRIBUTIONS}, got {self.distribution!r}")
-        if self.estimator not in ESTIMATORS:
-            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
-        if not (isinstance(self.adaptive_tol, (int, float)) and math.isfinite(self.adaptive_tol)
-                and self.adaptive_tol >= 0):
-            raise ValueError(f"adaptive_tol must be a number >= 0, got {self.adaptive_tol!r}")
-        if isinstance(self.threads, bool) or not isinstance(self.threads, (int, np.integer)) or self.threads < 0:
-            raise ValueError(f"threads must be an integer >= 0, got {self.threads!r}")
+        """Check every field's type and range (ValueError "name must be ..., got ...")."""
+        for name, (lo, hi, _) in INT_LIMITS.items():
+            check_int(name, getattr(self, name), lo, hi)
+        check_choice("sampler", self.sampler, SAMPLERS)
+        check_choice("distribution", self.distribution, DISTRIBUTIONS)
+        check_choice("estimator", self.estimator, ESTIMATORS)
+        lo, hi = ADAPTIVE_TOL_LIMITS
+        tol = self.adaptive_tol
+        if isinstance(tol, (bool, np.bool_)) or not isinstance(tol, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(tol) and lo <= tol <= hi):
+            raise ValueError(f"adaptive_tol must be a number {lo:g}..{hi:g}, got {tol!r}")
+        check_flag("analytic", self.analytic)
         return self
 
     @property
@@ -292,28 +314,29 @@ class _Stats:
             self.threads_used.add(threading.get_ident())
 
 
-def _estimator_tables(st: TransferSettings, G: int, prefix: int):
+def _estimator_tables(st: TransferSettings, G: int, prefix: int, cancel=None):
     """(base (G, K) float64, table (G, prefix, K) float32): T = base - O @ table."""
     from .sampling import exact_tables, unoccluded_local
-    _, W, cum = pattern_bank(G, st.rays, st.bands, st.sampler, st.distribution, st.seed)
+    _, W, cum = pattern_bank(G, st.rays, st.bands, st.sampler, st.distribution, st.seed, cancel=cancel)
     A = unoccluded_local(st.bands)
     if st.estimator == "balanced":
         return np.tile(A, (G, 1)), exact_tables(G, st.rays, st.bands, st.sampler,
-                                               st.distribution, st.seed, prefix)
+                                               st.distribution, st.seed, prefix, cancel=cancel)
     table = (W[:, :prefix].astype(np.float64) / prefix).astype(np.float32)
     if st.estimator == "control-variate":
         return np.tile(A, (G, 1)), table
     return cum[:, prefix - 1] / prefix, table
 
 
-def warm_tables(settings: TransferSettings) -> None:
+def warm_tables(settings: TransferSettings, cancel: threading.Event | None = None) -> None:
     """Compute the (cached) ray patterns and estimator tables a bake with these
-    settings will use, e.g. on a helper thread while the G-buffer is built."""
+    settings will use, e.g. on a helper thread while the G-buffer is built.
+    ``cancel`` set -> :class:`Cancelled` (checked between patterns)."""
     st = settings
     G = pattern_count(st)
-    pattern_bank(G, st.rays, st.bands, st.sampler, st.distribution, st.seed)
+    pattern_bank(G, st.rays, st.bands, st.sampler, st.distribution, st.seed, cancel=cancel)
     for c in np.cumsum(st.round_sizes()).tolist():
-        _estimator_tables(st, G, c)
+        _estimator_tables(st, G, c, cancel)
 
 
 class ChunkKernel:
@@ -325,15 +348,15 @@ class ChunkKernel:
     thread.
     """
 
-    def __init__(self, rs: RayScene, pts: Points, st: TransferSettings, G: int):
+    def __init__(self, rs: RayScene, pts: Points, st: TransferSettings, G: int, cancel=None):
         self.rs, self.pts, self.st, self.G = rs, pts, st, G
         self.K = st.bands ** 2
         self.dirs_bank, self.w_bank, self.cum_w = pattern_bank(
-            G, st.rays, st.bands, st.sampler, st.distribution, st.seed)
+            G, st.rays, st.bands, st.sampler, st.distribution, st.seed, cancel=cancel)
         self.rounds = st.round_sizes()
         self.adaptive = len(self.rounds) > 1
         totals = np.cumsum(self.rounds).tolist()
-        self.tables = {c: _estimator_tables(st, G, c) for c in totals}
+        self.tables = {c: _estimator_tables(st, G, c, cancel) for c in totals}
         self.base32 = {c: t[0].astype(np.float32) for c, t in self.tables.items()}
         if self.adaptive:
             self.w2_bank = (self.w_bank.astype(np.float64) ** 2).astype(np.float32)
@@ -510,7 +533,7 @@ def _bake_points(rs, pts, settings, progress, cancel):
     if progress:
         progress(done, N, 0)
     if chunks:
-        kernel = ChunkKernel(rs, pts, st, G)
+        kernel = ChunkKernel(rs, pts, st, G, cancel)
 
         def run_chunk(chunk):
             if cancel is not None and cancel.is_set():
