@@ -213,3 +213,40 @@ def test_preview_of_generated_uvs_fails_clearly_when_they_are_gone(tmp_path):
         preview_scene.clear_caches()
         with pytest.raises(RenderError, match="generated_uvs.npz"):
             render_scene(bpy.context, mode="diffuse", size=(16, 8))
+
+
+@pytest.mark.parametrize("method", ["SMART", "LIGHTMAP", "XATLAS"])
+def test_unwrap_has_no_overlapping_texels(tmp_path, method):
+    """Every unwrap method: zero overlapping texels at the chosen resolution on
+    Suzanne and the room; an Array stack gets a layout per copy at export."""
+    bpy = addon_bpy()
+    st = _settings(bpy, tmp_path, res=1024)
+    from prtt_addon.blender.unwrap import overlap_texels, unwrap_objects
+    bpy.ops.mesh.primitive_monkey_add()
+    suzanne = bpy.context.active_object
+    stack = rs.add_object(bpy, "Stack", rs.cube_mesh(bpy, "stack"), location=(4, 0, 0.5))
+    stack.modifiers.new("arr", "ARRAY").count = 4
+    got = unwrap_objects(bpy.context, [suzanne, stack], method=method, resolution=1024, padding=4, dilate=3)
+    assert got == {"Suzanne": 0, "Stack": 0}
+    assert overlap_texels(suzanne, 1024) == 0
+    from prtt_addon.blender.export import export_scene
+    exp = export_scene(bpy.context, with_light=False)
+    assert exp.objects["Stack"]["uv"] == "generated" and exp.objects["Suzanne"]["uv"] == "map"
+    from prtt_addon.core.raster import rasterize
+    sc = exp.scene
+    for name in ("Stack", "Suzanne"):
+        uv = sc.uvs[sc.object_id == sc.object_names.index(name)]
+        assert rasterize(uv, 1024, 1024).overlap_texels == 0, name
+    assert any("copy faces onto the same PRTT UVs" in w for w in exp.warnings)
+
+
+def test_unwrap_room_has_no_overlapping_texels(tmp_path):
+    bpy = addon_bpy()
+    _settings(bpy, tmp_path, res=1024)
+    from prtt_addon.bench.scenes import room_objects
+    from prtt_addon.blender.scene_build import mesh_object
+    objects = [mesh_object(name, mesh) for name, mesh in room_objects()]
+    from prtt_addon.blender.unwrap import unwrap_objects
+    for method in ("SMART", "LIGHTMAP", "XATLAS"):
+        got = unwrap_objects(bpy.context, objects, method=method, resolution=1024, padding=4, dilate=3, atlas=True)
+        assert set(got.values()) == {0}, (method, got)

@@ -25,7 +25,7 @@ class PRTT_OT_unwrap(bpy.types.Operator):
         try:
             overlaps = unwrap_objects(context, objects, method=st.unwrap_method, resolution=st.resolution,
                                       padding=st.padding, atlas=st.texture_sets == "ATLAS",
-                                      source_map=st.existing_uv_map)
+                                      source_map=st.existing_uv_map, dilate=st.dilate)
         except (UnwrapError, RuntimeError) as exc:
             self.report({"ERROR"}, f"PRTT: {exc}")
             return {"CANCELLED"}

@@ -9,6 +9,7 @@ the PRTT map is checked for overlapping islands at the object's resolution.
 from __future__ import annotations
 
 import contextlib
+import math
 
 import bpy
 import numpy as np
@@ -114,7 +115,7 @@ def _run_edit_mode_op(context, objects, op):
 
 
 def _xatlas(objects, resolution, padding, atlas):
-    from ..core.unwrap import unwrap
+    from ..core.unwrap import pack_uv_charts, unwrap
     groups = [objects] if atlas else [[o] for o in objects]
     for group in groups:
         meshes = []
@@ -122,8 +123,6 @@ def _xatlas(objects, resolution, padding, atlas):
             me = ob.data
             me.calc_loop_triangles()
             T = len(me.loop_triangles)
-            if T == 0:
-                raise UnwrapError(f"object {ob.name!r} has no faces to unwrap")
             loops = np.empty(T * 3, np.int32)
             me.loop_triangles.foreach_get("loops", loops)
             verts = np.empty(len(me.loops), np.int32)
@@ -132,28 +131,57 @@ def _xatlas(objects, resolution, padding, atlas):
             me.vertices.foreach_get("co", co)
             M = np.array(ob.matrix_world, dtype=np.float64)
             world = co.reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
-            meshes.append((world[verts], loops.reshape(-1, 3)))          # a vertex per loop
+            # A vertex per loop: xatlas charts them like welded vertices (it
+            # finds coincident positions) but never across a UV seam of ours.
+            meshes.append((world[verts], loops.reshape(-1, 3)))
         uvs = unwrap(meshes, resolution, padding=padding)
-        for ob, (v, f), uv in zip(group, meshes, uvs):
-            per_loop = _loop_uvs(ob.data, v, f, uv)
-            prtt_layer(ob.data).uv.foreach_set("vector", per_loop.ravel())
+        layouts = [_loop_uvs(ob.data, v, f, uv) for ob, (v, f), uv in zip(group, meshes, uvs)]
+        if any(alone.any() for _, alone, _ in layouts):
+            # Polygons split across charts became charts of their own: pack
+            # every chart of the group again, together (one atlas).
+            keys, faces, base = [], [], 0
+            for i, ((per_loop, alone, verts), (_, f)) in enumerate(zip(layouts, meshes)):
+                key = np.concatenate([np.full((len(verts), 1), i, np.float64), verts[:, None].astype(np.float64),
+                                      np.round(per_loop, 7)], axis=1)
+                key[alone, 1] = -1 - np.flatnonzero(alone)
+                keys.append(key)
+                faces.append(f + base)
+                base += len(verts)
+            _, first, ids = np.unique(np.concatenate(keys), axis=0, return_index=True, return_inverse=True)
+            flat = np.concatenate([pl for pl, _, _ in layouts])
+            packed = pack_uv_charts(flat[first], ids.reshape(-1)[np.concatenate(faces)], resolution,
+                                    padding=padding).reshape(-1, 2)
+            corner = np.concatenate(faces).reshape(-1)
+            flat[corner] = packed
+            base = 0
+            for k, (per_loop, _, verts) in enumerate(layouts):
+                layouts[k] = (flat[base:base + len(verts)], None, verts)
+                base += len(verts)
+        for ob, (per_loop, _, _) in zip(group, layouts):
+            prtt_layer(ob.data).uv.foreach_set("vector", np.clip(per_loop, 0.0, 1.0).astype(np.float32).ravel())
             ob.data.update()
 
 
-def _loop_uvs(me, loop_pos, tris, tri_uv) -> np.ndarray:
-    """Per-loop UVs from xatlas's per-triangle-corner UVs.
+def _loop_uvs(me, loop_pos, tris, tri_uv):
+    """Per-loop UVs from xatlas's per-triangle-corner UVs: (per-loop UVs (L, 2)
+    float64, loops of polygons that must become charts of their own (L,) bool,
+    loop vertex ids (L,)).
 
     Blender stores one UV per loop, shared by all triangles of a polygon; xatlas
     works on triangles and may put two triangles of a non-planar quad in
-    different charts. Such polygons are mapped as a whole through the affine
-    3D -> UV map of their largest triangle, so they stay in one chart.
+    different charts. Such a polygon is mapped as a whole through the affine
+    3D -> UV map of its largest triangle and marked to be a chart of its own
+    (where it is, it would overlap its neighbours); the caller packs again.
     """
     n_loops = len(me.loops)
+    verts = np.empty(n_loops, np.int32)
+    me.loops.foreach_get("vertex_index", verts)
     per_loop = np.zeros((n_loops, 2), np.float64)
     per_loop[tris.reshape(-1)] = tri_uv.reshape(-1, 2)
+    alone = np.zeros(n_loops, bool)
     conflict = np.abs(per_loop[tris] - tri_uv).max(axis=(1, 2)) > 1e-7      # per triangle
     if not conflict.any():
-        return per_loop.astype(np.float32)
+        return per_loop, alone, verts
     poly = np.empty(len(me.loop_triangles), np.int32)
     me.loop_triangles.foreach_get("polygon_index", poly)
     start = np.empty(len(me.polygons), np.int32)
@@ -162,25 +190,87 @@ def _loop_uvs(me, loop_pos, tris, tri_uv) -> np.ndarray:
     me.polygons.foreach_get("loop_total", total)
     for p in np.unique(poly[conflict]):
         ts = np.flatnonzero(poly == p)
-        P = loop_pos[tris[ts]]                                             # (t, 3, 3)
-        area = np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
-        best = ts[int(np.argmax(area))]
-        a, b, c = loop_pos[tris[best]]
-        e1, e2 = b - a, c - a
-        n = np.cross(e1, e2)
-        # Barycentric coordinates in the best triangle's plane -> its UVs.
-        G = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
         loops = np.arange(start[p], start[p] + total[p])
-        d = loop_pos[loops] - a
-        d = d - np.outer(d @ n, n) / max(n @ n, 1e-300)
-        st = np.linalg.solve(G, np.stack([d @ e1, d @ e2]))                 # (2, k)
-        ua, ub, uc = tri_uv[best]
-        per_loop[loops] = ua + np.outer(st[0], ub - ua) + np.outer(st[1], uc - ua)
-    return np.clip(per_loop, 0.0, 1.0).astype(np.float32)
+        Q = loop_pos[loops]
+        # Project along the polygon's Newell normal (the plane that folds it
+        # least: a largest-triangle plane can turn a warped quad into a bow
+        # tie whose triangles overlap), at the texel density xatlas gave its
+        # triangles (UV area over 3D area).
+        nrm = np.cross(Q, np.roll(Q, -1, axis=0)).sum(axis=0)
+        nrm /= max(np.linalg.norm(nrm), 1e-300)
+        e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(nrm, e1)
+        P = loop_pos[tris[ts]]
+        area3 = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
+        U = tri_uv[ts]
+        area2 = 0.5 * np.abs(np.cross(U[:, 1] - U[:, 0], U[:, 2] - U[:, 0])).sum()
+        scale = np.sqrt(area2 / area3) if area3 > 0 and area2 > 0 else 1.0
+        d = Q - Q.mean(axis=0)
+        per_loop[loops] = scale * np.stack([d @ e1, d @ e2], axis=1)
+        alone[loops] = True
+    return per_loop, alone, verts
+
+
+#: Smart UV Project angle limits, tried in turn until the layout has no
+#: overlapping texels: Blender's default first; a lower limit cuts folded
+#: regions (Suzanne's ears at 66 degrees) into more islands.
+SMART_ANGLES = (66.0, 45.0, 30.0, 15.0)
+#: Fewest texels between islands: one for bilinear lookups, one because the
+#: rasteriser counts every texel a triangle touches.
+MIN_MARGIN = 2
+
+
+def margin_texels(padding: int, dilate: int = 0) -> int:
+    """Texels between UV islands at the object's resolution: the user's margin,
+    at least MIN_MARGIN and at least the dilation, so that dilated borders of
+    two islands do not meet (their mip levels stay apart too)."""
+    return max(int(padding), MIN_MARGIN, int(dilate))
+
+
+def _overlap_of(objects, resolution: int, atlas: bool) -> int:
+    """Overlapping texels: per object, or of all objects together for an atlas."""
+    if not atlas or len(objects) == 1:
+        return sum(overlap_texels(ob, resolution) for ob in objects)
+    return rasterize(np.concatenate([_tri_uvs(ob) for ob in objects]), resolution, resolution).overlap_texels
+
+
+def _separate_and_pack(context, group, margin: float) -> None:
+    """Make every face that overlaps another an island of its own and pack all
+    islands again (Blender's Pack Islands, with rotation): what remains are
+    whole faces, which cannot overlap themselves."""
+    import bmesh
+    ts = context.scene.tool_settings
+    sync = ts.use_uv_select_sync
+
+    def op():
+        bpy.ops.uv.select_all(action="DESELECT")
+        bpy.ops.uv.select_overlap()
+        for ob in group:
+            bm = bmesh.from_edit_mesh(ob.data)
+            uvl = bm.loops.layers.uv.active
+            # A different offset per face breaks its UV connection to every neighbour.
+            for i, f in enumerate(x for x in bm.faces if x.select):
+                for loop in f.loops:
+                    loop[uvl].uv.x += 0.01 * (i + 1)
+            bmesh.update_edit_mesh(ob.data)
+        bpy.ops.mesh.select_all(action="SELECT")
+        bpy.ops.uv.select_all(action="SELECT")
+        bpy.ops.uv.pack_islands(margin_method="FRACTION", margin=margin, rotate=True)
+
+    ts.use_uv_select_sync = True            # UV selection = face selection, as bmesh sees it
+    try:
+        _run_edit_mode_op(context, group, op)
+    finally:
+        ts.use_uv_select_sync = sync
+
+
+def _editable(ob) -> bool:
+    return ob.visible_get() and not ob.hide_select and ob.library is None
 
 
 def unwrap_objects(context, objects, *, method: str, resolution: int, padding: int = 4,
-                   atlas: bool = False, source_map: str = "") -> dict:
+                   atlas: bool = False, source_map: str = "", dilate: int = 0) -> dict:
     """Write the PRTT UV map of ``objects``. Returns {object name: overlapping
     texels}. Meshes without faces (points, edges, or faces made only by
     geometry nodes, which get generated UVs at bake time) are left out of
@@ -193,7 +283,9 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
     if not objects:
         raise UnwrapError(f"{', '.join(faceless[:8])}: no faces to unwrap (faces made by geometry "
                           f"nodes get UVs generated when baking)")
-    margin = padding / max(resolution, 1)
+    margin = margin_texels(padding, dilate) / max(resolution, 1)
+    padding = margin_texels(padding, dilate)
+    groups = [objects] if atlas else [[o] for o in objects]
     with _preserved(context, objects):
         if method == "EXISTING":
             for ob in objects:
@@ -210,9 +302,12 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
         elif method == "SMART":
             # Objects edited together are packed together: one call per object
             # for per-object texture sets, one call for an atlas.
-            for group in ([objects] if atlas else [[o] for o in objects]):
-                _run_edit_mode_op(context, group, lambda: bpy.ops.uv.smart_project(
-                    island_margin=margin, scale_to_bounds=False))
+            for group in groups:
+                for angle in SMART_ANGLES:
+                    _run_edit_mode_op(context, group, lambda a=angle: bpy.ops.uv.smart_project(
+                        angle_limit=math.radians(a), island_margin=margin, scale_to_bounds=False))
+                    if _overlap_of(group, resolution, atlas) == 0:
+                        break
         elif method == "LIGHTMAP":
             _run_edit_mode_op(context, objects, lambda: bpy.ops.uv.lightmap_pack(
                 PREF_CONTEXT="ALL_FACES", PREF_PACK_IN_ONE=atlas,
@@ -221,11 +316,15 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
             _xatlas(objects, resolution, padding, atlas)
         else:
             raise UnwrapError(f"unknown unwrap method {method!r}")
+        if method != "EXISTING":           # a copied map is the user's layout, kept as it is
+            for group in groups:
+                if _overlap_of(group, resolution, atlas) and all(_editable(o) for o in group):
+                    _separate_and_pack(context, group, margin)
     return {ob.name: overlap_texels(ob, resolution) for ob in objects}
 
 
-def overlap_texels(ob, resolution: int) -> int:
-    """Texels of the object's PRTT map covered by more than one UV island."""
+def _tri_uvs(ob) -> np.ndarray:
+    """(T, 3, 2) float64 corner UVs of the object's PRTT map, clipped to [0, 1]."""
     me = ob.data
     me.calc_loop_triangles()
     T = len(me.loop_triangles)
@@ -233,5 +332,9 @@ def overlap_texels(ob, resolution: int) -> int:
     me.loop_triangles.foreach_get("loops", loops)
     uv = np.empty(len(me.loops) * 2, np.float32)
     me.uv_layers[UV_MAP].uv.foreach_get("vector", uv)
-    tri_uv = uv.reshape(-1, 2).astype(np.float64)[loops].reshape(T, 3, 2)
-    return rasterize(np.clip(tri_uv, 0.0, 1.0), resolution, resolution).overlap_texels
+    return np.clip(uv.reshape(-1, 2).astype(np.float64)[loops].reshape(T, 3, 2), 0.0, 1.0)
+
+
+def overlap_texels(ob, resolution: int) -> int:
+    """Texels of the object's PRTT map covered by more than one UV island."""
+    return rasterize(_tri_uvs(ob), resolution, resolution).overlap_texels

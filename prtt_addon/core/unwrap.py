@@ -32,10 +32,32 @@ def unwrap(meshes: list[tuple[np.ndarray, np.ndarray]], resolution: int, *,
             pad //= 2
 
 
-def _unwrap(meshes, resolution, padding, max_tries):
+def pack_uv_charts(uvs: np.ndarray, faces: np.ndarray, resolution: int, *, padding: int = 4,
+                   max_tries: int = 6) -> np.ndarray:
+    """Pack existing UV charts into one [0, 1] atlas without overlaps (xatlas's
+    packer on a UV mesh): charts are the groups of faces connected through
+    shared ``uvs`` rows; each is moved, rotated and scaled as a whole.
+
+    uvs : (V, 2) float; faces : (F, 3) int indices into uvs.
+    Returns (F, 3, 2) float64 corner UVs in [0, 1], in face order.
+    """
+    if resolution < 8:
+        raise ValueError(f"atlas resolution must be >= 8, got {resolution}")
+    pad = int(padding)
+    while True:
+        try:
+            return _unwrap([(uvs, faces)], resolution, pad, max_tries, uv_mesh=True)[0]
+        except UnwrapError as exc:
+            if pad == 0 or "could not fit" not in str(exc):
+                raise
+            pad //= 2
+
+
+def _unwrap(meshes, resolution, padding, max_tries, uv_mesh=False):
     """Atlas several meshes together.
 
-    meshes : list of (vertices (V, 3) float, faces (F, 3) int).
+    meshes : list of (vertices (V, 3) float, faces (F, 3) int), or with
+    ``uv_mesh`` of (uvs (V, 2), faces): existing charts, only packed.
     Returns for each mesh its corner UVs (F, 3, 2) float64 in [0, 1], in the
     order of its faces.
     """
@@ -49,7 +71,10 @@ def _unwrap(meshes, resolution, padding, max_tries):
             f = np.ascontiguousarray(f, dtype=np.uint32)
             if f.size == 0:
                 raise UnwrapError("a mesh without faces cannot be unwrapped")
-            atlas.add_mesh(v, f)
+            if uv_mesh:
+                atlas.add_uv_mesh(v, f)
+            else:
+                atlas.add_mesh(v, f)
         po = xatlas.PackOptions()
         po.resolution = int(resolution)
         po.padding = int(padding)
