@@ -7,6 +7,10 @@ from .unwrap import UnwrapError, unwrap_objects
 from .worker_job import WorkerJob
 
 
+#: Scenes whose running bake the Cancel button asked to stop (read by the modal operator).
+_CANCEL_REQUESTS: set = set()
+
+
 class PRTT_OT_unwrap(bpy.types.Operator):
     """Lay out the selected meshes in the dedicated "PRTT" UV map (other UV maps stay as they are)"""
 
@@ -16,7 +20,17 @@ class PRTT_OT_unwrap(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return any(o.type == "MESH" for o in context.selected_objects)
+        if context.mode not in {"OBJECT", "EDIT_MESH"}:
+            cls.poll_message_set("Unwrap works from Object or Edit Mode")
+            return False
+        meshes = [o for o in context.selected_objects if o.type == "MESH"]
+        if not meshes:
+            cls.poll_message_set("Select one or more mesh objects (others get UVs when baked)")
+            return False
+        if all(o.library is not None or o.data.library is not None for o in meshes):
+            cls.poll_message_set("Linked meshes cannot be changed; they get UVs when baked")
+            return False
+        return True
 
     def execute(self, context):
         st = context.scene.prtt
@@ -46,6 +60,9 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
 
     bl_idname = "prtt.bake_transfer"
     bl_label = "Bake Transfer"
+    # One undo step once the bake has changed the scene (its record and the
+    # AO images): pushed when the operator finishes, not when it is cancelled.
+    bl_options = {"UNDO"}
 
     force: bpy.props.BoolProperty(name="Force", default=False,
                                   description="Bake even if the inputs did not change", options={"SKIP_SAVE"})
@@ -56,7 +73,13 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return not context.scene.prtt.baking
+        if context.scene.prtt.baking:
+            cls.poll_message_set("A bake is running (Esc or Cancel stops it)")
+            return False
+        if context.mode != "OBJECT":
+            cls.poll_message_set("Bake from Object Mode (edit-mode changes are not in the scene yet)")
+            return False
+        return True
 
     def execute(self, context):
         # Background mode, scripts and the command lines: run to the end.
@@ -86,12 +109,15 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
         wm.modal_handler_add(self)
-        wm.progress_begin(0, 100)
+        if context.workspace is not None:
+            # The status bar shows a bar too (not wm.progress_begin: that turns the cursor into a counter).
+            context.workspace.status_text_set(_status_bar)
         return {"RUNNING_MODAL"}
 
     def modal(self, context, event):
         st = context.scene.prtt
-        if event.type == "ESC" or (st.status == "cancelling" and not self._job.cancelled):
+        if event.type == "ESC" or (context.scene.name in _CANCEL_REQUESTS and not self._job.cancelled):
+            _CANCEL_REQUESTS.discard(context.scene.name)
             self._job.cancel()
             st.status = "cancelling"
             return {"RUNNING_MODAL"}
@@ -105,14 +131,11 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
             if e.get("type") == "progress":
                 st.progress = float(e.get("fraction", 0.0))
                 st.status = f"{e.get('stage')} {e.get('set', '')}".strip()
-                context.window_manager.progress_update(int(100 * st.progress))
-                if context.workspace is not None:
-                    context.workspace.status_text_set(f"PRTT: {st.status} {100 * st.progress:.0f}%  (Esc cancels)")
             elif e.get("type") == "warning":
                 self.report({"WARNING"}, f"PRTT: {e['message']}")
         if not ended and self._job.returncode is None:
             for area in context.screen.areas if context.screen else []:
-                if area.type == "VIEW_3D":
+                if area.type in {"VIEW_3D", "STATUSBAR"}:
                     area.tag_redraw()
             return {"RUNNING_MODAL"}
         code = self._job.wait()
@@ -126,7 +149,6 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
         wm = context.window_manager
         if self._timer is not None:
             wm.event_timer_remove(self._timer)
-        wm.progress_end()
         if context.workspace is not None:
             context.workspace.status_text_set(None)
 
@@ -134,6 +156,16 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
         level = {"done": "INFO", "skipped": "INFO", "cancelled": "WARNING"}.get(outcome.status, "ERROR")
         self.report({level}, outcome.message)
         return {"FINISHED"} if outcome.status in ("done", "skipped") else {"CANCELLED"}
+
+
+def _status_bar(header, context):
+    """Status bar while baking: a progress bar, what runs, how to stop it."""
+    from .panels import draw_progress
+    st = context.scene.prtt
+    row = header.layout.row(align=True)
+    row.label(text="PRTT")
+    draw_progress(row, st)
+    row.label(text="Esc cancels")
 
 
 class PRTT_OT_cancel_bake(bpy.types.Operator):
@@ -144,9 +176,13 @@ class PRTT_OT_cancel_bake(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return context.scene.prtt.baking
+        if not context.scene.prtt.baking:
+            cls.poll_message_set("No bake is running")
+            return False
+        return True
 
     def execute(self, context):
+        _CANCEL_REQUESTS.add(context.scene.name)
         context.scene.prtt.status = "cancelling"
         return {"FINISHED"}
 
@@ -159,7 +195,13 @@ class PRTT_OT_render_preview(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return bool(context.scene.prtt.last_bake) and context.scene.camera is not None
+        if not context.scene.prtt.last_bake:
+            cls.poll_message_set("Nothing baked yet: Bake Transfer first")
+            return False
+        if context.scene.camera is None:
+            cls.poll_message_set("The scene has no camera to render from")
+            return False
+        return True
 
     def execute(self, context):
         import numpy as np

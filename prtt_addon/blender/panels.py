@@ -11,83 +11,143 @@ class _PRTTPanel:
     bl_category = "PRTT"
 
 
+def _split(layout):
+    """Blender's property-split layout: labels left, values right, no decorators."""
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    return layout
+
+
+def draw_progress(layout, st) -> None:
+    """The running bake as a bar (panel and status bar) with its Cancel button."""
+    row = layout.row(align=True)
+    row.progress(factor=st.progress, type="BAR", text=f"{st.status} {100 * st.progress:.0f}%")
+    row.operator("prtt.cancel_bake", text="", icon="CANCEL")
+
+
 class PRTT_PT_main(_PRTTPanel, bpy.types.Panel):
+    """The active object's PRTT settings; the steps follow as subpanels."""
+
     bl_label = "PRTT"
 
     def draw(self, context):
-        st = context.scene.prtt
-        col = self.layout.column(align=True)
-        if st.baking:
-            col.progress(factor=st.progress, text=f"{st.status} {100 * st.progress:.0f}%")
-            col.operator("prtt.cancel_bake", icon="CANCEL")
-        else:
-            col.operator("prtt.bake_transfer", icon="RENDER_STILL")
-            if st.status:
-                col.label(text=st.status)
+        layout = _split(self.layout)
         ob = context.object
-        if ob is not None and ob.type == "MESH":
-            box = self.layout.box()
-            box.label(text=ob.name, icon="OBJECT_DATA")
-            box.prop(ob.prtt, "bake")
-            box.prop(ob.prtt, "resolution")
+        if ob is None or ob.type not in {"MESH", "CURVE", "SURFACE", "META", "FONT", "EMPTY"}:
+            layout.label(text="Select an object to bake", icon="INFO")
+            return
+        col = layout.column()
+        col.label(text=ob.name, icon="OBJECT_DATA")
+        col.prop(ob.prtt, "bake")
+        sub = col.column()
+        sub.active = ob.prtt.bake
+        sub.prop(ob.prtt, "resolution")
+        if ob.type == "MESH":
             has_uv = "PRTT" in ob.data.uv_layers
-            box.label(text="PRTT UV map: " + ("yes" if has_uv else "missing (Unwrap)"),
+            col.label(text="PRTT UV map: " + ("present" if has_uv else "missing, Unwrap below"),
                       icon="CHECKMARK" if has_uv else "ERROR")
+        elif ob.type != "EMPTY":
+            col.label(text="UVs generated at bake time", icon="INFO")
 
 
 class PRTT_PT_unwrap(_PRTTPanel, bpy.types.Panel):
     bl_label = "Unwrap"
     bl_parent_id = "PRTT_PT_main"
+    bl_order = 0
 
     def draw(self, context):
         st = context.scene.prtt
-        col = self.layout.column()
+        layout = _split(self.layout)
+        col = layout.column()
         col.prop(st, "unwrap_method")
         if st.unwrap_method == "EXISTING":
-            col.prop(st, "existing_uv_map")
+            ob = context.object
+            if ob is not None and ob.type == "MESH":
+                col.prop_search(st, "existing_uv_map", ob.data, "uv_layers", text="Source UV Map")
+            else:
+                col.prop(st, "existing_uv_map", text="Source UV Map")
         col.prop(st, "padding")
         col.prop(st, "texel_density")
-        col.operator("prtt.unwrap", icon="UV")
+        layout.operator("prtt.unwrap", icon="UV")
 
 
 class PRTT_PT_bake(_PRTTPanel, bpy.types.Panel):
-    bl_label = "Bake Settings"
+    bl_label = "Bake"
     bl_parent_id = "PRTT_PT_main"
+    bl_order = 1
 
     def draw(self, context):
         st = context.scene.prtt
-        col = self.layout.column()
+        layout = _split(self.layout)
+        col = layout.column()
         col.prop(st, "resolution")
         col.prop(st, "texture_sets")
-        col.prop(st, "bands")
-        col.prop(st, "rays")
-        row = col.row(align=True)
-        row.prop(st, "adaptive")
-        sub = row.row()
-        sub.active = st.adaptive
-        sub.prop(st, "adaptive_tolerance")
-        col.prop(st, "bounces")
-        if st.bounces:
-            col.prop(st, "bounce_rays")
         col.prop(st, "light_source")
         if st.light_source == "BUILTIN":
             col.prop(st, "builtin_environment")
-        col.prop(st, "normal_maps")
-        col.prop(st, "vertex_transfer")
-        col.prop(st, "dilate")
-        col.prop(st, "storage")
-        col.prop(st, "selection_only")
+        if st.baking:
+            draw_progress(layout, st)
+        else:
+            layout.operator("prtt.bake_transfer", icon="RENDER_STILL")
+            if st.status:
+                layout.label(text=st.status)
+
+
+class PRTT_PT_bake_quality(_PRTTPanel, bpy.types.Panel):
+    bl_label = "Quality"
+    bl_parent_id = "PRTT_PT_bake"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        st = context.scene.prtt
+        col = _split(self.layout).column()
+        col.prop(st, "bands")
+        col.prop(st, "rays")
+        col.prop(st, "adaptive")
+        sub = col.column()
+        sub.active = st.adaptive
+        sub.prop(st, "adaptive_tolerance")
+        col.prop(st, "bounces")
+        sub = col.column()
+        sub.active = st.bounces > 0
+        sub.prop(st, "bounce_rays")
+
+
+class PRTT_PT_bake_output(_PRTTPanel, bpy.types.Panel):
+    bl_label = "Output"
+    bl_parent_id = "PRTT_PT_bake"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        st = context.scene.prtt
+        col = _split(self.layout).column()
         col.prop(st, "output_dir")
+        col.prop(st, "storage")
+        col.prop(st, "dilate")
+        col.prop(st, "vertex_transfer")
+
+
+class PRTT_PT_bake_advanced(_PRTTPanel, bpy.types.Panel):
+    bl_label = "Advanced"
+    bl_parent_id = "PRTT_PT_bake"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        st = context.scene.prtt
+        col = _split(self.layout).column()
+        col.prop(st, "normal_maps")
+        col.prop(st, "selection_only")
 
 
 class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
     bl_label = "Preview"
     bl_parent_id = "PRTT_PT_main"
+    bl_order = 2
 
     def draw(self, context):
         from . import preview_draw, preview_scene
         st = context.scene.prtt
-        col = self.layout.column()
+        col = _split(self.layout).column()
         row = col.row(align=True)
         row.prop(st, "preview", toggle=True, icon="SHADING_RENDERED")
         row.prop(st, "preview_mode", text="")
@@ -120,6 +180,7 @@ class PRTT_PT_last_bake(_PRTTPanel, bpy.types.Panel):
     bl_label = "Last Bake"
     bl_parent_id = "PRTT_PT_main"
     bl_options = {"DEFAULT_CLOSED"}
+    bl_order = 3
 
     @classmethod
     def poll(cls, context):
@@ -137,7 +198,9 @@ class PRTT_PT_last_bake(_PRTTPanel, bpy.types.Panel):
             col.label(text=w, icon="ERROR")
 
 
-_CLASSES = (PRTT_PT_main, PRTT_PT_unwrap, PRTT_PT_bake, PRTT_PT_preview, PRTT_PT_last_bake)
+#: Registration order is drawing order (bl_order says it too): Unwrap -> Bake -> Preview.
+_CLASSES = (PRTT_PT_main, PRTT_PT_unwrap, PRTT_PT_bake, PRTT_PT_bake_quality, PRTT_PT_bake_output,
+            PRTT_PT_bake_advanced, PRTT_PT_preview, PRTT_PT_last_bake)
 
 
 @persistent
