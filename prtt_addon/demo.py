@@ -18,6 +18,7 @@ default: the .blend, the textures, the pictures). Needs no network.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -68,8 +69,10 @@ def build_scene(bpy) -> dict:
     return objects
 
 
-def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, exposure: float = 1.0) -> str:
-    """Two (H, W, 4) linear renders, row 0 at the bottom, as one labelled PNG."""
+def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, exposure: float = 1.0,
+                 title: str = "") -> str:
+    """Two (H, W, 4) linear renders, row 0 at the bottom, as one labelled PNG
+    (a label over each half, ``title`` over both)."""
     from .core.image_write import srgb_encode, write_image
     try:
         import matplotlib
@@ -78,7 +81,9 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, expo
     except ImportError:                       # inside Blender's own Python: no labels
         return write_image(path, np.concatenate([left, right], axis=1), exposure=exposure)
     h, w = left.shape[:2]
-    fig, axes = plt.subplots(1, 2, figsize=(2 * w / 100, h / 100 + 0.45), dpi=100)
+    fig, axes = plt.subplots(1, 2, figsize=(2 * w / 100, h / 100 + (0.75 if title else 0.45)), dpi=100)
+    if title:
+        fig.suptitle(title, fontsize=10)
     for ax, img, label in zip(axes, (left, right), labels):
         rgb = srgb_encode(exposure * img[::-1, :, :3]) * img[::-1, :, 3:] + (1.0 - img[::-1, :, 3:])
         ax.imshow(np.clip(rgb, 0, 1))
@@ -165,10 +170,15 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
     exposure = exposure_of(bpy.context.scene)
     files = [write_image(os.path.join(out_dir, f"demo_{mode}.png"), px, exposure=exposure)
              for mode, px in shots.items()]
+    st = bpy.context.scene.prtt
     image = side_by_side(shots["vertex-tpfl"], shots["tpfl"],
-                         ("vertex TPFL (per-vertex transfer, the traditional baseline)",
-                          "PRTT: fragment TPFL with transfer textures + 1 bounce"),
-                         os.path.join(out_dir, "demo_side_by_side.png"), exposure=exposure)
+                         (f"vertex TPFL: per-vertex transfer at the {tris} triangles' vertices "
+                          f"(the traditional baseline)",
+                          f"PRTT: fragment TPFL, {resolution}\u00b2 transfer texture + {st.bounces} bounce"),
+                         os.path.join(out_dir, "demo_side_by_side.png"), exposure=exposure,
+                         title=f"room-class scene, {tris} triangles; {st.bands} SH bands, {rays} rays/texel, "
+                               f"{bounce_rays} bounce rays; light: {json.loads(st.last_bake).get('light') or 'World'}; "
+                               f"{w}x{h}, rendered on {_gpu_name()}")
     log(f"[4/4] rendered {w}x{h} previews on {_gpu_name()}: fragment TPFL {times['render tpfl']:.1f} s, "
         f"vertex TPFL {times['render vertex-tpfl']:.1f} s (first frames: shader compile and uploads included)")
     times["total"] = time.perf_counter() - t_all
