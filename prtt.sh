@@ -4,17 +4,19 @@
 #   ./prtt.sh test [args]   the whole test suite (pytest; extra args are passed on)
 #   ./prtt.sh slow [args]   the slow, large benchmark-style tests only
 #   ./prtt.sh py ARGS...    run the project's Python (e.g. ./prtt.sh py -m prtt_addon.bench bake)
+# demo and py run in the folder you call them from, so relative paths you give
+# (--out textures, job.npz, scene.blend) are yours; test and slow run in the
+# repository (pytest's configuration and test paths are there).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
-cd "$root"
-tools/bootstrap.sh
+"$root/tools/bootstrap.sh"              # cds into the repository itself, in its own process
 export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
 py="$root/.venv/bin/python"
 cmd="${1:-}"; shift || true
 case "$cmd" in
     demo) exec "$py" -m prtt_addon demo "$@" ;;
-    test) exec "$py" -m pytest -m "not slow" "$@" ;;
-    slow) exec "$py" -m pytest -m slow "$@" ;;
+    test) cd "$root" && exec "$py" -m pytest -m "not slow" "$@" ;;
+    slow) cd "$root" && exec "$py" -m pytest -m slow "$@" ;;
     py)   exec "$py" "$@" ;;
     *) echo "usage: ./prtt.sh demo|test|slow|py ..." >&2; exit 2 ;;
 esac

@@ -17,93 +17,262 @@ def _cmd_demo(args) -> int:
 
 
 class ConsoleProgress:
-    """Human-readable progress for terminals and logs (the worker prints JSON)."""
+    """Human-readable progress of a bake, for ``python -m prtt_addon bake-job``
+    and Blender's ``bake`` command (the worker itself prints JSON lines).
 
-    def __init__(self, out=None, interval=2.0):
+    On a terminal (``out.isatty()``) progress is ONE line rewritten in place
+    with ``\\r``: stage, set, percentage, rays per second, time left (from the
+    stage's fraction and elapsed time). Elsewhere (a log, a pipe) it is plain
+    lines: one when a stage (or set, or bounce level) starts and one every
+    ``interval`` seconds. Warnings always get a line of their own (the progress
+    line is cleared first and drawn again after). ``quiet``: warnings, errors
+    and the final line only. ``final=False``: done/cancelled/error events are
+    left to the caller, which prints its own final line.
+    """
+
+    def __init__(self, out=None, *, quiet=False, tty=None, interval=5.0, refresh=0.1, clock=None,
+                 err=None, final=True, width=None):
+        import shutil
+        import threading
         import time
-        self.out = out or sys.stdout
+        self.out = out if out is not None else sys.stdout
+        self.err = err
+        self.quiet = quiet
+        self.final = final
+        if tty is None:
+            try:
+                tty = self.out.isatty()
+            except (AttributeError, ValueError):
+                tty = False
+        self.tty = tty
         self.interval = interval
-        self._last = 0.0
-        self._stage = None
-        self._time = time.monotonic
+        self.refresh = refresh
+        self._time = clock or time.monotonic
+        self.width = width or max(20, shutil.get_terminal_size((100, 24)).columns - 1)
+        self._key = None            # (stage, set, level) of the last progress event
+        self._t0 = 0.0              # when that stage started
+        self._printed = -1e9        # when the last plain line / TTY update was written
+        self._line = ""             # the progress line now on the terminal ("" = none)
+        self._lock = threading.RLock()   # the watchdog may announce "cancelled" from its thread
+
+    # --- what a progress event says ----------------------------------------------------
+    @staticmethod
+    def _rate(rays_per_s: float) -> str:
+        return f"{rays_per_s / 1e6:.1f} Mrays/s" if rays_per_s >= 1e5 else f"{rays_per_s / 1e3:.0f} krays/s"
+
+    @staticmethod
+    def _duration(seconds: float) -> str:
+        s = int(round(seconds))
+        h, m = s // 3600, s // 60 % 60
+        return f"{h}:{m:02d}:{s % 60:02d}" if h else f"{m}:{s % 60:02d}"
+
+    def describe(self, e: dict, now: float) -> str:
+        """``trace [floor 1/2] 45.3%  28.1 Mrays/s  0:12 left`` for a progress event."""
+        where = ""
+        if e.get("set"):
+            n = f" {e['set_index'] + 1}/{e['sets']}" if e.get("sets", 0) > 1 and "set_index" in e else ""
+            where = f" [{e['set']}{n}]"
+        if e.get("level"):
+            where += f" level {e['level']}"
+        if e.get("file"):
+            where += f" {e['file']}"
+        f = float(e.get("fraction") or 0.0)
+        text = f"{e.get('stage')}{where} {100 * f:5.1f}%"
+        elapsed = now - self._t0
+        rate = e.get("rays_per_s")
+        if not rate and e.get("rays") and elapsed > 0:
+            rate = e["rays"] / elapsed
+        if rate:
+            text += f"  {self._rate(rate)}"
+        if 0.01 <= f < 1.0 and elapsed >= 0.5:
+            text += f"  {self._duration(elapsed * (1.0 - f) / f)} left"
+        return text
+
+    # --- output ------------------------------------------------------------------------
+    def _write(self, text: str) -> None:
+        try:
+            self.out.write(text)
+            self.out.flush()
+        except (OSError, ValueError):
+            pass
+
+    def _clear(self) -> None:
+        if self._line:
+            self._write("\r" + " " * len(self._line) + "\r")
+            self._line = ""
+
+    def _show(self, line: str) -> None:
+        """Draw the TTY progress line (padded over what was there)."""
+        line = line[:self.width]
+        self._write("\r" + line.ljust(len(self._line)))
+        self._line = line
+
+    def say(self, text: str, *, stream=None) -> None:
+        """A line of its own (the TTY progress line is cleared and drawn again)."""
+        shown = self._line
+        self._clear()
+        if stream is None or stream is self.out:
+            self._write(text + "\n")
+        else:
+            try:
+                print(text, file=stream, flush=True)
+            except (OSError, ValueError):
+                pass
+        if shown:
+            self._show(shown)
+
+    def end(self) -> None:
+        """Leave the terminal on a fresh line (clears the progress line)."""
+        with self._lock:
+            self._clear()
 
     def __call__(self, e: dict) -> None:
+        with self._lock:
+            self._handle(e)
+
+    def _handle(self, e: dict) -> None:
         t = e.get("type")
         if t == "progress":
-            key = (e.get("stage"), e.get("set"))
+            if self.quiet:
+                return
             now = self._time()
-            if key != self._stage or now - self._last >= self.interval or e.get("fraction") == 1.0:
-                self._stage, self._last = key, now
-                where = f" [{e['set']}]" if e.get("set") else ""
-                where += f" level {e['level']}" if e.get("level") else ""
-                rate = f"  {e['rays_per_s'] / 1e6:.1f} Mrays/s" if e.get("rays_per_s") else ""
-                print(f"  {e.get('stage')}{where}: {100 * e.get('fraction', 0):5.1f}%{rate}",
-                      file=self.out, flush=True)
+            key = (e.get("stage"), e.get("set"), e.get("level"))
+            new = key != self._key
+            if new:
+                self._key, self._t0 = key, now
+            if self.tty:
+                if new or now - self._printed >= self.refresh or e.get("fraction") == 1.0:
+                    self._printed = now
+                    self._show("prtt: " + self.describe(e, now))
+            elif new or now - self._printed >= self.interval:
+                self._printed = now
+                self._write("prtt: " + self.describe(e, now) + "\n")
         elif t == "warning":
-            print(f"  warning: {e['message']}", file=self.out, flush=True)
-        elif t == "error":
-            print(f"prtt: error: {e['message']}", file=sys.stderr, flush=True)
+            self.say(f"prtt: warning: {e['message']}")
         elif t == "start":
-            print(f"baking {len(e['sets'])} set(s), {e['triangles']} triangles", file=self.out)
+            if not self.quiet:
+                self.say(f"prtt: baking {len(e['sets'])} set(s), {e['triangles']} triangles")
+        elif not self.final:
+            if t in ("done", "cancelled", "error"):
+                self.end()
+        elif t == "error":
+            self.end()
+            print(f"prtt: error: {e['message']}", file=self.err or sys.stderr, flush=True)
         elif t == "cancelled":
-            print("cancelled; previous outputs are intact", file=self.out)
+            self.say("prtt: cancelled; previous outputs are intact")
         elif t == "done":
+            self.end()
             if e.get("skipped"):
-                print(f"up to date, nothing baked ({e['manifest']}); --force bakes anyway", file=self.out)
+                self._write(f"prtt: up to date, nothing baked ({e['manifest']}); --force bakes anyway\n")
             else:
-                print(f"done: {e['manifest']}", file=self.out)
+                self._write(f"prtt: done: {e['manifest']}\n")
 
 
-def _settings_overrides(args) -> dict:
-    o = {}
-    for name in ("rays", "bands", "dilate", "seed", "threads", "sampler", "estimator",
-                 "distribution", "min_rays", "bounces", "bounce_rays"):
-        v = getattr(args, name, None)
-        if v is not None:
-            o[name] = v
-    if args.adaptive is not None:
-        o["adaptive_tol"] = args.adaptive
-    if args.half is not None:
-        o["half"] = args.half
-    for flag, key in (("vertex", "vertex_mode"), ("mips", "mips")):
-        if getattr(args, flag):
-            o[key] = True
-    if args.no_analytic:
-        o["analytic"] = False
-    if args.no_normal_maps:
-        o["normal_maps"] = False
-    if args.overlap:
-        o["overlap"] = args.overlap
-    return o
+# --- options ---------------------------------------------------------------------------------
+
+class CheckedValue(argparse.Action):
+    """An option whose value ``convert`` checks; a refusal is a usage error
+    (exit 2) naming the option, the value and what it must be:
+    ``--rays 0 is out of range: it must be 1..65536``."""
+
+    def __init__(self, option_strings, dest, convert=None, **kwargs):
+        self.convert = convert
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        try:
+            v = self.convert(values)
+        except ValueError as exc:
+            parser.error(f"{option_string} {values} {exc}")
+        setattr(namespace, self.dest, v)
 
 
-def int_in(lo: int, hi: int):
-    """argparse type: an integer lo..hi (argparse then names the option: exit 2)."""
-    def integer(text: str) -> int:
+def int_range(lo: int, hi: int):
+    """Converter: an integer lo..hi."""
+    def convert(text: str) -> int:
         try:
             v = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer {lo}..{hi}, got {text!r}") from None
+            raise ValueError(f"is not an integer: it must be {lo}..{hi}") from None
         if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"must be an integer {lo}..{hi}, got {v}")
+            raise ValueError(f"is out of range: it must be {lo}..{hi}")
         return v
-    return integer
+    return convert
 
 
-def number_in(lo: float, hi: float, *, above: bool = False):
-    """argparse type: a finite number lo..hi (``above``: strictly greater than lo)."""
+def number_range(lo: float, hi: float, *, above: bool = False):
+    """Converter: a finite number lo..hi (``above``: strictly greater than lo)."""
     import math
-    where = f"> {lo:g} and <= {hi:g}" if above else f"{lo:g}..{hi:g}"
+    from .core.settings_schema import _num
+    where = f"> {_num(lo)} and <= {_num(hi)}" if above else f"{_num(lo)}..{_num(hi)}"
 
-    def number(text: str) -> float:
+    def convert(text: str) -> float:
         try:
             v = float(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number {where}, got {text!r}") from None
-        if not (math.isfinite(v) and (v > lo if above else v >= lo) and v <= hi):
-            raise argparse.ArgumentTypeError(f"must be a finite number {where}, got {text}")
+            raise ValueError(f"is not a number: it must be {where}") from None
+        if not math.isfinite(v):
+            raise ValueError(f"is not a finite number: it must be {where}")
+        if not ((v > lo if above else v >= lo) and v <= hi):
+            raise ValueError(f"is out of range: it must be {where}")
         return v
-    return number
+    return convert
+
+
+def one_of(values):
+    """Converter: one of ``values``, case-insensitive, ``_`` for ``-`` too
+    (``SMART`` == ``smart``, ``VERTEX_TPFL`` == ``vertex-tpfl``); returns the
+    value as listed."""
+    values = tuple(values)
+    canon = {v.lower().replace("_", "-"): v for v in values}
+
+    def convert(text: str) -> str:
+        v = canon.get(text.lower().replace("_", "-"))
+        if v is None:
+            raise ValueError(f"is an invalid choice: it must be one of {', '.join(values)}")
+        return v
+    return convert
+
+
+def choice_option(p, *names, values, help=None, default=None, dest=None):
+    """add_argument for a case-insensitive choice (see :func:`one_of`)."""
+    kw = {"dest": dest} if dest else {}
+    return p.add_argument(*names, action=CheckedValue, convert=one_of(values), default=default,
+                          metavar="{" + ",".join(values) + "}", help=help, **kw)
+
+
+def add_setting_options(group, settings, *, defaults: dict | None = None) -> None:
+    """Options for schema settings (core/settings_schema.py): ``dest`` is the
+    setting's name and every default is None (not given: the job's, the
+    scene's or the schema's default applies). ``defaults``: {name: what
+    applies when the option is not given}, where that is not the schema's."""
+    from .core.settings_schema import _num
+    defaults = defaults or {}
+    for s in settings:
+        default_text = defaults.get(s.name)
+        if s.kind == "bool":
+            on, off = s.flags
+            mx = group.add_mutually_exclusive_group()
+            mark = "" if default_text else " (default)"
+            mx.add_argument(on, dest=s.name, action="store_const", const=True, default=None,
+                            help=s.help + (mark if s.default else ""))
+            mx.add_argument(off, dest=s.name, action="store_const", const=False, default=None,
+                            help=s.off_help + (mark if not s.default else ""))
+            continue
+        if s.kind == "choice":
+            choice_option(group, s.option, dest=s.name, values=s.values,
+                          help=f"{s.help} ({default_text or 'default ' + s.default})")
+            continue
+        unit = f" {s.unit}" if s.unit else ""
+        convert = int_range(s.lo, s.hi) if s.kind == "int" else number_range(s.lo, s.hi)
+        group.add_argument(s.option, dest=s.name, action=CheckedValue, convert=convert, default=None,
+                           metavar=s.metavar, help=f"{s.help} ({_num(s.lo)}..{_num(s.hi)}{unit}; "
+                                                   f"{default_text or 'default ' + _num(s.default)})")
+
+
+def given_settings(args, settings) -> dict:
+    """{name: value} of the schema settings given on the command line."""
+    return {s.name: getattr(args, s.name) for s in settings if getattr(args, s.name, None) is not None}
 
 
 #: --env-strength: 0 or less would bake no light (or negative light), silently.
@@ -111,42 +280,25 @@ ENV_STRENGTH_MAX = 1e6
 
 
 def add_bake_options(p: argparse.ArgumentParser) -> None:
-    from .core.bake import BAKE_INT_LIMITS
-    from .core.scene import MAX_RESOLUTION
-    from .core.transfer import ADAPTIVE_TOL_LIMITS, INT_LIMITS
-    lim = {**INT_LIMITS, **BAKE_INT_LIMITS}
-    rng = lambda name: int_in(*lim[name][:2])  # noqa: E731
-    g = p.add_argument_group("bake settings (default: the job's, else PRTT's defaults)")
-    g.add_argument("--resolution", type=int_in(1, MAX_RESOLUTION), help="texels per side for every set")
-    g.add_argument("--rays", type=rng("rays"), help="rays per texel (maximum when adaptive), default 256")
-    g.add_argument("--bands", type=rng("bands"), help="SH bands, default 5 (25 coefficients)")
-    g.add_argument("--dilate", type=rng("dilate"), help="dilation in texels, default 3")
-    g.add_argument("--half", dest="half", action="store_true", default=None, help="float16 EXR (default)")
-    g.add_argument("--float", dest="half", action="store_false", help="float32 EXR")
-    g.add_argument("--adaptive", type=number_in(*ADAPTIVE_TOL_LIMITS), metavar="TOL",
-                   help="stop per texel when the RMS standard error is below TOL")
-    g.add_argument("--min-rays", dest="min_rays", type=rng("min_rays"), help="first adaptive round, default 64")
-    g.add_argument("--sampler", choices=["sobol", "stratified", "random"])
-    g.add_argument("--distribution", choices=["cosine", "uniform"])
-    g.add_argument("--estimator", choices=["balanced", "control-variate", "plain"])
-    g.add_argument("--seed", type=rng("seed"))
-    g.add_argument("--threads", type=rng("threads"), help="0 = all cores")
-    g.add_argument("--vertex", action="store_true", help="also bake per-vertex transfer")
-    g.add_argument("--mips", action="store_true", help="also write coverage-weighted mip levels")
-    g.add_argument("--no-analytic", action="store_true", help="trace provably unoccluded texels too")
-    g.add_argument("--no-normal-maps", action="store_true")
-    g.add_argument("--overlap", choices=["warn", "error"], help="overlapping UVs: warn (default) or fail")
+    """``bake-job``'s options: every bake setting of the schema, and the light."""
+    from .core import settings_schema as schema
+    g = p.add_argument_group("bake settings (override the job's; docs/format.md section 5)")
+    add_setting_options(g, schema.of_scope("job") + schema.core_settings(),
+                        defaults={"resolution": "default: each set's own"})
     g.add_argument("--force", action="store_true", help="bake even if the outputs are up to date")
-    g.add_argument("--bounces", type=rng("bounces"),
-                   help="inter-reflection levels, default 1 (0 = off; needs a light)")
-    g.add_argument("--bounce-rays", dest="bounce_rays", type=rng("bounce_rays"),
-                   help="rays per texel per bounce, default 64")
-    g.add_argument("--env", help="light for bounces: .exr/.hdr or built-in name (overrides the job's light)")
-    g.add_argument("--env-strength", type=number_in(0.0, ENV_STRENGTH_MAX, above=True), default=1.0,
-                   help="multiplies the environment (> 0; for no light use --bounces 0)")
-    g.add_argument("--env-rotation", type=number_in(-360.0, 360.0), default=0.0, metavar="DEG",
-                   help="Z rotation of the World's Mapping node: lookups turn by it before "
-                        "reading the image (the environment appears turned the other way)")
+    lt = p.add_argument_group("light for bounces (overrides the job's)")
+    lt.add_argument("--env", help="an .exr/.hdr file or a built-in name (forest, sunset, city, ...)")
+    lt.add_argument("--env-strength", action=CheckedValue, convert=number_range(0.0, ENV_STRENGTH_MAX, above=True),
+                    default=1.0, metavar="X", help="multiplies the environment (> 0; for no light use --bounces 0)")
+    lt.add_argument("--env-rotation", action=CheckedValue, convert=number_range(-360.0, 360.0), default=0.0,
+                    metavar="DEG", help="Z rotation of the World's Mapping node: lookups turn by it before "
+                                        "reading the image (the environment appears turned the other way)")
+    add_output_options(p)
+
+
+def add_output_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="print only warnings, errors and the final line (no progress)")
 
 
 def env_light(source: str, bands: int, strength: float = 1.0, rotation_z_deg: float = 0.0):
@@ -171,8 +323,9 @@ def _cmd_bake_job(args) -> int:
 
     from .core.memory import MemoryLimitError
     from .worker import EXIT_CANCELLED, finish, install_cancel_handlers, run_job
+    from .core.settings_schema import core_settings
     cancel = threading.Event()
-    progress = ConsoleProgress()
+    progress = ConsoleProgress(quiet=args.quiet)
     watchdog = install_cancel_handlers(cancel, progress)
     light = None
     if args.env:
@@ -184,8 +337,10 @@ def _cmd_bake_job(args) -> int:
         if cancel.is_set():
             progress({"type": "cancelled"})
             return finish(EXIT_CANCELLED, watchdog)
-    return finish(run_job(args.job, args.out, progress, cancel, overrides=_settings_overrides(args),
-                          resolution=args.resolution, force=args.force, light_override=light), watchdog)
+    code = run_job(args.job, args.out, progress, cancel, overrides=given_settings(args, core_settings()),
+                   resolution=args.resolution, force=args.force, light_override=light)
+    progress.end()
+    return finish(code, watchdog)
 
 
 def _in_bpy(entry: str, argv, prog: str, hint: str) -> int:
@@ -223,13 +378,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("env", help="project an equirect environment to SH and report errors")
     e.add_argument("source", help="an .exr/.hdr path or a built-in name (forest, sunset, city, ...)")
-    e.add_argument("--bands", type=int_in(1, 64), default=5)
-    e.add_argument("--method", choices=["area", "samples"], default="area")
+    e.add_argument("--bands", action=CheckedValue, convert=int_range(1, 64), default=5, metavar="N",
+                   help="SH bands (1..64; default 5)")
+    choice_option(e, "--method", values=("area", "samples"), default="area",
+                  help="area: exact integrals over each pixel (default); samples: quadrature at pixel centres")
     e.set_defaults(func=_cmd_env)
 
     b = sub.add_parser("bake-job", help="bake a job/scene file (.npz) without Blender")
     b.add_argument("job", help="job/scene file (.npz, docs/format.md)")
-    b.add_argument("--out", required=True, help="output folder")
+    b.add_argument("--out", required=True, help="output folder (relative to where you run the command)")
     add_bake_options(b)
     b.set_defaults(func=_cmd_bake_job)
 

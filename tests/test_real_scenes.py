@@ -250,3 +250,14 @@ def test_unwrap_room_has_no_overlapping_texels(tmp_path):
     for method in ("SMART", "LIGHTMAP", "XATLAS"):
         got = unwrap_objects(bpy.context, objects, method=method, resolution=1024, padding=4, dilate=3, atlas=True)
         assert set(got.values()) == {0}, (method, got)
+
+
+def test_preview_of_a_bake_with_more_bands_than_it_draws_says_so(tmp_path):
+    bpy = addon_bpy()
+    st = _instances_under_roof(bpy, tmp_path)
+    st.bands, st.rays = 9, 16
+    from prtt_addon.blender.bake_run import bake_blocking
+    assert bake_blocking(bpy.context).status == "done"
+    from prtt_addon.blender.preview_render import RenderError, render_scene
+    with pytest.raises(RenderError, match="this bake has 9 SH bands; the preview draws up to 8"):
+        render_scene(bpy.context, mode="diffuse", size=(16, 8))

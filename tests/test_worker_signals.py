@@ -156,7 +156,7 @@ def test_bake_job_cli_stops_on_sigint(tmp_path):
                           "--out", str(tmp_path / "out")], stdout=subprocess.PIPE, text=True, env=ENV, cwd=ROOT)
     t0 = None
     for line in p.stdout:
-        if line.startswith("  trace"):
+        if line.startswith("prtt: trace"):
             t0 = time.monotonic()
             p.send_signal(signal.SIGINT)
             break

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..core.bake import BakeError, BakeSettings, check_out_dir
 from ..core.scene import save_scene
+from ..core.settings_schema import core_from_ui
 from .export import GENERATED_UVS, ExportError, export_scene
 from .preview_scene import materials_signature
 from .properties import redraw_viewports
@@ -69,10 +70,12 @@ def output_folder(scene) -> str:
 
 
 def bake_settings(scene) -> dict:
+    """The scene's bake settings as a BakeSettings dict: the settings scene.prtt
+    holds, mapped by core/settings_schema.py (Storage -> half, Adaptive +
+    Tolerance -> adaptive_tol, Vertex Transfer -> vertex_mode, ...); the
+    others at their defaults."""
     st = scene.prtt
-    s = BakeSettings(bands=st.bands, rays=st.rays, adaptive_tol=st.adaptive_tolerance if st.adaptive else 0.0,
-                     dilate=st.dilate, half=st.storage == "HALF", normal_maps=st.normal_maps,
-                     bounces=st.bounces, bounce_rays=st.bounce_rays, vertex_mode=st.vertex_transfer)
+    s = BakeSettings(**core_from_ui(lambda name: getattr(st, name)))
     return s.validate().as_dict()
 
 

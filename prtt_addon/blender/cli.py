@@ -11,6 +11,8 @@ both call :func:`bake_file`, which opens the .blend and runs the same
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 
 import bpy
@@ -18,21 +20,34 @@ import bpy
 _CLI_HANDLE = None
 
 
+#: Unwrap methods of ``--unwrap`` (scene.prtt.unwrap_method's identifiers).
+UNWRAP_METHODS = ("EXISTING", "SMART", "LIGHTMAP", "XATLAS")
+
+
 def bake_parser(prog: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description="Bake PRTT transfer textures of a .blend file.")
+    """Options of ``blender -c prtt bake`` / ``python -m prtt_addon bake``.
+    The bake settings are generated from core/settings_schema.py: those the
+    scene holds (scene.prtt) are set on it and saved with the .blend; the
+    others apply to this bake only."""
+    from ..cli import add_output_options, add_setting_options, choice_option
+    from ..core import settings_schema as schema
+    p = argparse.ArgumentParser(
+        prog=prog, description="Bake PRTT transfer textures of a .blend file (paths are relative to where "
+                               "you run the command).",
+        epilog="Exit status: 0 baked (or nothing to do), 1 failed (the message says why), 2 bad options, "
+               "3 cancelled (SIGINT/SIGTERM; the .blend and the previous textures unchanged).")
     p.add_argument("blend", help="the .blend file")
     p.add_argument("--out", help="output folder (default: the file's PRTT setting, //prtt/)")
     p.add_argument("--scene", help="scene name (default: the file's active scene)")
-    p.add_argument("--resolution", type=int)
-    p.add_argument("--rays", type=int)
-    p.add_argument("--bands", type=int)
-    p.add_argument("--bounces", type=int)
-    p.add_argument("--bounce-rays", dest="bounce_rays", type=int)
-    p.add_argument("--dilate", type=int)
-    p.add_argument("--float", dest="half", action="store_false", default=None)
-    p.add_argument("--atlas", action="store_true", help="one texture set for all objects")
-    p.add_argument("--unwrap", choices=["EXISTING", "SMART", "LIGHTMAP", "XATLAS"],
-                   help="unwrap baked objects without a PRTT UV map first")
+    in_scene = schema.of_scope("job") + [s for s in schema.SETTINGS if schema.has_ui(s) and s.scope != "job"]
+    once = [s for s in schema.core_settings() if not schema.has_ui(s)]
+    g = p.add_argument_group("bake settings stored in the scene (scene.prtt; saved with the .blend)")
+    add_setting_options(g, in_scene, defaults={s.name: "default: the scene's" for s in in_scene})
+    g.add_argument("--atlas", action="store_true", help="one texture set for all objects (Texture Sets: One Atlas)")
+    o = p.add_argument_group("bake settings for this bake only (not stored in the .blend)")
+    add_setting_options(o, once)
+    choice_option(p, "--unwrap", values=UNWRAP_METHODS,
+                  help="unwrap baked objects without a PRTT UV map first (case-insensitive)")
     p.add_argument("--force", action="store_true", help="bake even if nothing changed")
     save = p.add_mutually_exclusive_group()
     save.add_argument("--no-save", dest="save", action="store_false", default=True,
@@ -40,25 +55,8 @@ def bake_parser(prog: str) -> argparse.ArgumentParser:
                            "record are then lost, and `render` finds nothing baked)")
     save.add_argument("--save-as", metavar="PATH",
                       help="save the baked scene to PATH instead of over FILE.blend")
+    add_output_options(p)
     return p
-
-
-#: Options stored in scene.prtt, checked against the property's own range
-#: (Blender would clamp an out-of-range value without a word).
-_SCENE_OPTIONS = ("resolution", "rays", "bands", "bounces", "bounce_rays", "dilate")
-
-
-def _check_ranges(args, st) -> str | None:
-    """An error message for the first option outside its property's range, or None."""
-    for name in _SCENE_OPTIONS:
-        v = getattr(args, name)
-        if v is None:
-            continue
-        prop = st.bl_rna.properties[name]
-        if not prop.hard_min <= v <= prop.hard_max:
-            return (f"--{name.replace('_', '-')} {v} is out of range: "
-                    f"it must be {prop.hard_min}..{prop.hard_max}")
-    return None
 
 
 def unwrap_todo(scene, view_layer):
@@ -93,25 +91,54 @@ def _cancel_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, interrupt)
 
 
-def save_blend(path: str | None) -> str:
-    """Save the open .blend (over itself, or as ``path``); returns where. Raises OSError."""
-    import os
+def save_blend(path: str | None, *, quiet: bool = False) -> str:
+    """Save the open .blend (over itself, or as ``path``); returns where. Raises OSError.
+    ``quiet``: without Blender's "Info: Saved" line."""
     target = os.path.abspath(path) if path else bpy.data.filepath
     try:
-        if path:
-            bpy.ops.wm.save_as_mainfile(filepath=target, copy=False)
-        else:
-            bpy.ops.wm.save_mainfile()
+        with blender_log_muted(quiet):
+            if path:
+                bpy.ops.wm.save_as_mainfile(filepath=target, copy=False)
+            else:
+                bpy.ops.wm.save_mainfile()
     except RuntimeError as exc:
         raise OSError(f"cannot save {target}: {str(exc).strip()}") from exc
     return target
 
 
-def open_scene(blend: str, scene_name: str | None):
-    """Open a .blend and return its scene (the named one, else the active one),
-    or None after printing why not."""
+@contextlib.contextmanager
+def blender_log_muted(mute: bool = True):
+    """Keep Blender's own stdout lines ("Read blend: ...", "Info: Saved ...",
+    written by C code) out of a ``--quiet`` command's output: file descriptor 1
+    goes to /dev/null meanwhile. Python's own prints are flushed first."""
+    if not mute:
+        yield
+        return
+    sys.stdout.flush()
     try:
-        bpy.ops.wm.open_mainfile(filepath=blend, load_ui=False)
+        saved = os.dup(1)
+    except OSError:
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        try:
+            sys.stdout.flush()
+        except (OSError, ValueError):
+            pass
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def open_scene(blend: str, scene_name: str | None, *, quiet: bool = False):
+    """Open a .blend and return its scene (the named one, else the active one),
+    or None after printing why not. ``quiet``: without Blender's "Read blend" line."""
+    try:
+        with blender_log_muted(quiet):
+            bpy.ops.wm.open_mainfile(filepath=blend, load_ui=False)
     except RuntimeError as exc:
         print(f"prtt: error: cannot open {blend}: {exc}", file=sys.stderr)
         return None
@@ -135,25 +162,20 @@ def bake_file(argv, prog="prtt bake") -> int:
 
 
 def _bake_file(args) -> int:
-    scene = open_scene(args.blend, args.scene)
+    scene = open_scene(args.blend, args.scene, quiet=args.quiet)
     if scene is None:
         return 1
     if bpy.context.window is not None:
         bpy.context.window.scene = scene
+    from ..cli import ConsoleProgress, given_settings
+    from ..core import settings_schema as schema
     st = scene.prtt
-    bad = _check_ranges(args, st)
-    if bad:
-        print(f"prtt: error: {bad}", file=sys.stderr)
-        return 2
     if args.out:
-        import os
         st.output_dir = os.path.abspath(args.out)
-    for name in _SCENE_OPTIONS:
-        v = getattr(args, name)
-        if v is not None:
-            setattr(st, name, v)
-    if args.half is False:
-        st.storage = "FLOAT"
+    # Ranges were checked by the options (the properties' hard limits are the same).
+    props, overrides = schema.ui_from_values(given_settings(args, schema.SETTINGS))
+    for name, v in props.items():
+        setattr(st, name, v)
     if args.atlas:
         st.texture_sets = "ATLAS"
     with bpy.context.temp_override(scene=scene):
@@ -165,37 +187,43 @@ def _bake_file(args) -> int:
                 for objects, method in ((editable, args.unwrap), (hidden, "XATLAS")):
                     if objects:
                         unwrap_objects(ctx, objects, method=method, resolution=st.resolution,
-                                       padding=st.padding, atlas=st.texture_sets == "ATLAS")
+                                       padding=st.padding, atlas=st.texture_sets == "ATLAS",
+                                       source_map=st.existing_uv_map, dilate=st.dilate)
             except (UnwrapError, RuntimeError) as exc:
                 print(f"prtt: error: unwrap failed: {exc}", file=sys.stderr)
                 return 1
-            if hidden:
+            if hidden and not args.quiet:
                 print(f"prtt: note: {len(hidden)} object(s) hidden in the viewport unwrapped with xatlas: "
                       f"{', '.join(o.name for o in hidden[:8])}", flush=True)
         from .bake_run import bake_blocking
 
-        def progress(e):
-            if e.get("type") == "progress" and e.get("fraction") in (0.0, 1.0):
-                print(f"prtt: {e.get('stage')} {e.get('set', '')}", flush=True)
-            elif e.get("type") == "warning":
-                print(f"prtt: warning: {e['message']}", flush=True)
-
-        outcome = bake_blocking(ctx, force=args.force, on_event=progress)
+        progress = ConsoleProgress(quiet=args.quiet, final=False)
+        try:
+            outcome = bake_blocking(ctx, overrides=overrides, force=args.force, on_event=progress)
+        finally:
+            progress.end()
     for w in (outcome.warnings or []):
         print(f"prtt: warning: {w}", flush=True)
-    print(outcome.message, file=sys.stdout if outcome.status in ("done", "skipped") else sys.stderr)
     code = {"done": 0, "skipped": 0, "cancelled": 3}.get(outcome.status, 1)
-    if code == 0 and args.save:
-        try:
-            where = save_blend(args.save_as)
-        except OSError as exc:
-            print(f"prtt: error: the bake finished but {exc}", file=sys.stderr)
-            return 1
-        print(f"prtt: saved {where}", flush=True)
+    if code != 0:
+        print(outcome.message, file=sys.stderr, flush=True)
+        return code
+    if not args.save:
+        print(outcome.message, flush=True)
+        return code
+    try:
+        where = save_blend(args.save_as, quiet=args.quiet)
+    except OSError as exc:
+        print(outcome.message, flush=True)
+        print(f"prtt: error: the bake finished but {exc}", file=sys.stderr)
+        return 1
+    print(f"{outcome.message}; saved {where}", flush=True)
     return code
 
 
 def _cli(argv) -> int:
+    """``blender -c prtt ...``. Returns the exit status (argparse's exits,
+    ``-h`` included, become the status instead of a SystemExit in Blender)."""
     if not argv or argv[0] in ("-h", "--help"):
         print("usage: blender -c prtt bake FILE.blend [--out DIR] [options]\n"
               "       blender -c prtt render FILE.blend --out IMAGE.png|exr [--mode tpfl|tp|vertex-tpfl|"
@@ -203,11 +231,14 @@ def _cli(argv) -> int:
               "       blender -c prtt bake|render --help")
         return 0 if argv else 2
     cmd, rest = argv[0], argv[1:]
-    if cmd == "bake":
-        return bake_file(rest, prog="blender -c prtt bake")
-    if cmd == "render":
-        from .preview_render import render_file
-        return render_file(rest, prog="blender -c prtt render")
+    try:
+        if cmd == "bake":
+            return bake_file(rest, prog="blender -c prtt bake")
+        if cmd == "render":
+            from .preview_render import render_file
+            return render_file(rest, prog="blender -c prtt render")
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     print(f"prtt: unknown command {cmd!r}; use bake or render", file=sys.stderr)
     return 2
 

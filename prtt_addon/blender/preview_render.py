@@ -235,6 +235,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def render_parser(prog: str) -> argparse.ArgumentParser:
+    from ..cli import choice_option
     p = argparse.ArgumentParser(
         prog=prog, description="Render the PRTT preview of a baked .blend offscreen "
         "(the viewport's shaders; Mesa llvmpipe where there is no GPU).",
@@ -242,9 +243,11 @@ def render_parser(prog: str) -> argparse.ArgumentParser:
                "a texture, the mode, the size, --out), and an existing file at --out is left as it was; "
                "2 bad options.")
     p.add_argument("blend", help="a .blend file that has been baked")
-    p.add_argument("--out", required=True, help="image file: .png (sRGB, 8 bit) or .exr (linear float)")
-    p.add_argument("--mode", default="tpfl", choices=list(MODES),
-                   help="vertex-tpfl and vertex-tp need a bake with Vertex Transfer (default: tpfl)")
+    p.add_argument("--out", required=True, help="image file: .png (sRGB, 8 bit) or .exr (linear float), "
+                                                "relative to where you run the command")
+    choice_option(p, "--mode", values=MODES, default="tpfl",
+                  help="case-insensitive; vertex-tpfl and vertex-tp need a bake with Vertex Transfer "
+                       "(default: tpfl)")
     p.add_argument("--camera", help="camera object (default: the scene camera)")
     p.add_argument("--size", type=parse_size, help="WxH pixels (default: the scene's render size), at most "
                    "the GPU's image size limit and what memory allows")

@@ -374,6 +374,12 @@ def collect(context, *, visible=None, use_bounces: bool = True,
         status.add("INFO", "nothing baked yet: Bake Transfer first")
         return None, status
     bands = int(info["settings"]["bands"])
+    from ..shader_source import MAX_PREVIEW_BANDS
+    if bands > MAX_PREVIEW_BANDS:
+        status.add("ERROR", f"this bake has {bands} SH bands; the preview draws up to {MAX_PREVIEW_BANDS}: "
+                            f"bake with {MAX_PREVIEW_BANDS} or fewer bands to preview it (the textures "
+                            f"themselves are valid)")
+        return None, status
     try:
         out_dir = bake_folder(scene, info)
     except ValueError as exc:

@@ -38,6 +38,7 @@ import time
 import numpy as np
 
 from . import atomic, exr_io
+from . import settings_schema as _schema
 from .atomic import atomic_write
 from .dilate import dilate, mip_chain
 from .gbuffer import build_gbuffer, face_normals
@@ -48,39 +49,36 @@ from .outdir import FolderBusyError, FolderLock, file_info, verify_files
 from .raytrace import RayScene
 from .scene import Scene, geometry_hash
 from .texsample import pixel_major, planes_from_rows
-from .transfer import (SAME_NORMAL, Cancelled, Points, TransferSettings, bake_points, check_choice, check_flag,
-                       check_int, warm_tables)
+from .transfer import SAME_NORMAL, Cancelled, Points, TransferSettings, bake_points, warm_tables
 
 MANIFEST = "manifest.json"
 BAKE_FORMAT_VERSION = 1
-#: Integer settings of the bake beyond TransferSettings': (lowest, highest, why).
-BAKE_INT_LIMITS = {
-    "dilate": (0, 64, "texels of dilation"),
-    "bounces": (0, 8, "inter-reflection levels; each adds a texture per set"),
-    "bounce_rays": (1, 1 << 14, "rays per texel per bounce level"),
-}
+#: Integer settings of the bake beyond TransferSettings': (lowest, highest, why),
+#: derived from settings_schema.SETTINGS (scope "bake").
+BAKE_INT_LIMITS = _schema.int_limits("bake")
+_d = _schema.default
 
 
 @dataclasses.dataclass
 class BakeSettings(TransferSettings):
-    dilate: int = 3                 # texels of dilation
-    half: bool = True               # float16 EXR (auto float32 on overflow)
-    mips: bool = False              # write coverage-weighted mip levels
-    normal_maps: bool = True
-    vertex_mode: bool = False       # also bake per-vertex transfer
-    textures: bool = True           # bake texture sets (False: vertex mode only)
-    overlap: str = "warn"           # overlapping UVs: "warn" or "error"
-    bounces: int = 1                # inter-reflection levels (0 = off; needs a light)
-    bounce_rays: int = 64           # rays per texel per bounce level
+    """Every bake setting (the job file's ``extra.settings``). Defaults, types,
+    ranges and help are declared once in settings_schema.SETTINGS (scope
+    "bake" for these fields); docs/format.md §5 is generated from it."""
+
+    dilate: int = _d("dilate")              # texels of dilation
+    half: bool = _d("half")                 # float16 EXR (auto float32 on overflow)
+    mips: bool = _d("mips")                 # write coverage-weighted mip levels
+    normal_maps: bool = _d("normal_maps")
+    vertex_mode: bool = _d("vertex_mode")   # also bake per-vertex transfer
+    textures: bool = _d("textures")         # bake texture sets (False: vertex mode only)
+    overlap: str = _d("overlap")            # overlapping UVs: "warn" or "error"
+    bounces: int = _d("bounces")            # inter-reflection levels (0 = off; needs a light)
+    bounce_rays: int = _d("bounce_rays")    # rays per texel per bounce level
 
     def validate(self) -> "BakeSettings":
         """Check every field's type and range (ValueError "name must be ..., got ...")."""
         super().validate()
-        for name, (lo, hi, _) in BAKE_INT_LIMITS.items():
-            check_int(name, getattr(self, name), lo, hi)
-        for name in ("half", "mips", "normal_maps", "vertex_mode", "textures"):
-            check_flag(name, getattr(self, name))
-        check_choice("overlap", self.overlap, ("warn", "error"))
+        _schema.validate(self, "bake")
         if not (self.textures or self.vertex_mode):
             raise ValueError("nothing to bake: enable textures or vertex mode")
         return self

@@ -57,83 +57,49 @@ import time
 
 import numpy as np
 
+from . import settings_schema as _schema
 from .parallel import Cancelled, run_chunks
 from .raytrace import RAY_EPSILON, RayScene
 from .rotation import rotate_zyz, rotation_zyz
-from .sampling import DISTRIBUTIONS, SAMPLERS, hash_u32, hash_unit, pattern_bank
+from .sampling import hash_u32, hash_unit, pattern_bank
+from .settings_schema import ESTIMATORS, check_choice, check_flag, check_int  # noqa: F401  (re-exported)
 from .zonal import clamped_cosine_factors, zonal_to_sh
 
 #: Shading and geometric normals closer than this (1 - cos) need no horizon test.
 SAME_NORMAL = 1e-6
 
-
-ESTIMATORS = ("balanced", "control-variate", "plain")
-
-#: Integer settings: (lowest, highest, why the bound). Every setting is checked
-#: against these in validate(); the command line uses them for its options.
-INT_LIMITS = {
-    "bands": (1, 16, "SH bands (16 bands = 256 coefficients a texel)"),
-    "rays": (1, 1 << 16, "rays per texel"),
-    "min_rays": (1, 1 << 16, "first adaptive round"),
-    "seed": (0, (1 << 32) - 1, "hashes use 32 bits: larger seeds would repeat smaller ones"),
-    "threads": (0, 256, "0 = all cores; more threads than this is a typo, not a machine"),
-    # Patterns are built one by one (~1.4 ms each at 256 rays with balanced
-    # weights): 1024 keep the table stage near a second and a half.
-    "n_patterns": (1, 1024, "ray patterns"),
-    # Rays per chunk and thread (~66 B a ray in flight): 1024 keeps Embree calls
-    # efficient, 2^22 keeps a thread's buffers under ~280 MB.
-    "chunk_rays": (1 << 10, 1 << 22, "rays per Embree call"),
-}
+#: Integer settings: (lowest, highest, why the bound), derived from the one
+#: declaration of every setting (settings_schema.SETTINGS); validate() checks
+#: them, the command lines and the add-on's properties use the same ranges.
+INT_LIMITS = _schema.int_limits("transfer")
 #: adaptive_tol: (lowest, highest); above ~2 every texel stops after its first
 #: round anyway (transfer coefficients are below sqrt(pi)).
-ADAPTIVE_TOL_LIMITS = (0.0, 100.0)
-
-
-def check_int(name: str, value, lo: int, hi: int) -> None:
-    """Raise ValueError unless ``value`` is an integer (not a bool) in lo..hi."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
-            or not lo <= value <= hi:
-        raise ValueError(f"{name} must be an integer {lo}..{hi}, got {value!r}")
-
-
-def check_choice(name: str, value, choices) -> None:
-    if not isinstance(value, str) or value not in choices:
-        raise ValueError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
-
-
-def check_flag(name: str, value) -> None:
-    if not isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"{name} must be true or false, got {value!r}")
+ADAPTIVE_TOL_LIMITS = (_schema.get("adaptive_tol").lo, _schema.get("adaptive_tol").hi)
+_d = _schema.default
 
 
 @dataclasses.dataclass
 class TransferSettings:
-    bands: int = 5
-    rays: int = 256                 # rays per point (maximum when adaptive)
-    sampler: str = "sobol"
-    distribution: str = "cosine"
-    estimator: str = "balanced"
-    adaptive_tol: float = 0.0       # 0 = fixed ray count
-    min_rays: int = 64              # first adaptive round
-    analytic: bool = True           # zero-ray path for provably clear points
-    seed: int = 0
-    threads: int = 0                # 0 = all cores
-    n_patterns: int = 64
-    chunk_rays: int = 1 << 19       # rays per Embree call (bounds memory)
+    """Settings of the transfer bake. Defaults, types and ranges are declared in
+    settings_schema.SETTINGS (scope "transfer"), field names here must match
+    (tests/test_settings_schema.py)."""
+
+    bands: int = _d("bands")
+    rays: int = _d("rays")                  # rays per point (maximum when adaptive)
+    sampler: str = _d("sampler")
+    distribution: str = _d("distribution")
+    estimator: str = _d("estimator")
+    adaptive_tol: float = _d("adaptive_tol")    # 0 = fixed ray count
+    min_rays: int = _d("min_rays")          # first adaptive round
+    analytic: bool = _d("analytic")         # zero-ray path for provably clear points
+    seed: int = _d("seed")
+    threads: int = _d("threads")            # 0 = all cores
+    n_patterns: int = _d("n_patterns")
+    chunk_rays: int = _d("chunk_rays")      # rays per Embree call (bounds memory)
 
     def validate(self) -> "TransferSettings":
         """Check every field's type and range (ValueError "name must be ..., got ...")."""
-        for name, (lo, hi, _) in INT_LIMITS.items():
-            check_int(name, getattr(self, name), lo, hi)
-        check_choice("sampler", self.sampler, SAMPLERS)
-        check_choice("distribution", self.distribution, DISTRIBUTIONS)
-        check_choice("estimator", self.estimator, ESTIMATORS)
-        lo, hi = ADAPTIVE_TOL_LIMITS
-        tol = self.adaptive_tol
-        if isinstance(tol, (bool, np.bool_)) or not isinstance(tol, (int, float, np.integer, np.floating)) \
-                or not (math.isfinite(tol) and lo <= tol <= hi):
-            raise ValueError(f"adaptive_tol must be a number {lo:g}..{hi:g}, got {tol!r}")
-        check_flag("analytic", self.analytic)
+        _schema.validate(self, "transfer")
         return self
 
     @property
