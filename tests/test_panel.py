@@ -86,3 +86,30 @@ def test_disabled_operators_say_why():
         bpy.ops.prtt.cancel_bake()
     assert "UNDO" in bpy.types.PRTT_OT_bake_transfer.bl_options
     assert "UNDO" in bpy.types.PRTT_OT_unwrap.bl_options
+
+
+def test_images_the_addon_makes_survive_save_and_reload(tmp_path):
+    import numpy as np
+    bpy = addon_bpy()
+    from tests import real_scenes as rs
+    st = bpy.context.scene.prtt
+    st.output_dir, st.resolution, st.rays, st.bounces = str(tmp_path / "out"), 16, 16, 0
+    rs.floor(bpy, 4.0).data.uv_layers.new(name="PRTT")
+    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5)).data.uv_layers.new(name="PRTT")
+    from prtt_addon.blender.bake_run import bake_blocking
+    assert bake_blocking(bpy.context).status == "done"
+    before = {}
+    for name in ("PRTT AO Floor", "PRTT AO Box"):
+        img = bpy.data.images[name]
+        a = np.empty(len(img.pixels), np.float32)
+        img.pixels.foreach_get(a)
+        assert a[0::4].min() < 0.99                   # the box darkens the floor: not a blank image
+        before[name] = a
+    path = str(tmp_path / "s.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    for name, a in before.items():
+        img = bpy.data.images[name]
+        b = np.empty(len(img.pixels), np.float32)
+        img.pixels.foreach_get(b)
+        np.testing.assert_allclose(b, a, atol=1e-3)

@@ -163,6 +163,15 @@ def write_generated_uvs(out_dir: str, generated: dict) -> None:
                      **{f"uv_{i}": np.asarray(generated[k], np.float32) for i, k in enumerate(keys)})
 
 
+def keep_image(img) -> None:
+    """Make an image the add-on computed survive save and reload: its pixels
+    packed into the .blend (a generated image would come back blank) and a
+    fake user (nothing else uses it, and unused data is not saved)."""
+    img.update()
+    img.pack()
+    img.use_fake_user = True
+
+
 def load_preview_images(out_dir: str, manifest: dict) -> list:
     """Per set an image "PRTT AO <set>": the transfer's DC term normalised so
     open sky is 1 (what Blender can show of a 25-channel EXR)."""
@@ -185,7 +194,7 @@ def load_preview_images(out_dir: str, manifest: dict) -> list:
         rgba = np.ones((h, w, 4), np.float32)
         rgba[..., :3] = ao[..., None]
         img.pixels.foreach_set(rgba.ravel())             # row 0 = bottom, like ours
-        img.update()
+        keep_image(img)
         made.append(img)
     return made
 

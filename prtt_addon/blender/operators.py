@@ -225,7 +225,7 @@ class PRTT_OT_render_preview(bpy.types.Operator):
         px = pixels.copy()
         px[..., :3] *= exposure_of(context.scene)
         img.pixels.foreach_set(np.ascontiguousarray(px, np.float32).ravel())   # bottom row first, like ours
-        img.update()
+        bake_run.keep_image(img)
         for level, text in status.messages:
             if level != "INFO":
                 self.report({"WARNING"}, f"PRTT: {text}")
