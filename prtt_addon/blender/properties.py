@@ -58,6 +58,7 @@ def _scene_annotations() -> dict:
     unwrap = {
         "unwrap_method": EnumProperty(
             name="Method", default="SMART",
+            description="How Unwrap lays out the PRTT UV map (every method ends with no overlapping texels)",
             items=[("EXISTING", "Existing UV Map", "Copy an existing UV map into the PRTT map"),
                    ("SMART", "Smart UV Project", "Blender's Smart UV Project, packed per object"),
                    ("LIGHTMAP", "Lightmap Pack", "Blender's Lightmap Pack: one island per face"),
@@ -70,6 +71,8 @@ def _scene_annotations() -> dict:
     bake = {
         "texture_sets": EnumProperty(
             name="Texture Sets", default="OBJECT",
+            description="One texture set per object, or one atlas for all objects with a PRTT map "
+                        "(instances and generated-UV objects always get sets of their own)",
             items=[("OBJECT", "Per Object", "One texture per object"),
                    ("ATLAS", "One Atlas", "Every object in one shared texture")]),
         "output_dir": StringProperty(name="Output Folder", default="//prtt/", subtype="DIR_PATH",
@@ -78,15 +81,18 @@ def _scene_annotations() -> dict:
                                        description="Bake only selected objects (the others still cast shadows)"),
         "light_source": EnumProperty(
             name="Light", default="WORLD",
+            description="The environment light the preview and the bounce bake use",
             items=[("WORLD", "World", "The scene World's environment texture or colour"),
                    ("BUILTIN", "Studio HDRI", "One of Blender's bundled studio HDRIs")]),
-        "builtin_environment": EnumProperty(name="HDRI", items=_builtin_env_items),
+        "builtin_environment": EnumProperty(name="HDRI", items=_builtin_env_items,
+                                            description="One of the studio HDRIs Blender ships"),
     }
     preview = {
         "preview": BoolProperty(name="Preview", default=False, update=_redraw,
                                 description="Draw baked objects with PRT shading in the 3D viewport"),
         "preview_mode": EnumProperty(
             name="Mode", default="TPFL", update=_redraw,
+            description="How the viewport shades baked objects",
             items=[("TPFL", "TPFL (fragment)", "Triple product with fixed light per pixel, transfer textures"),
                    ("TP", "TP (fragment)", "Full triple product per pixel (slower; same image as TPFL)"),
                    ("VERTEX_TPFL", "TPFL (vertex)",
