@@ -75,6 +75,13 @@ def test_source_tree_passes(built):
     assert "Success parsing TOML" in out
 
 
+def test_repository_root_passes(blender_ext):
+    """``blender_ext.py validate .`` in a checkout, as a contributor runs it."""
+    rc, out = _validate(ROOT)
+    assert rc == 0, out
+    assert "Success parsing TOML" in out
+
+
 def test_staged_manifest_is_the_repositorys(built):
     """What was validated is the repository's manifest plus platforms and wheels."""
     with open(os.path.join(ROOT, "blender_manifest.toml"), "rb") as f:
