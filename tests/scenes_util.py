@@ -33,3 +33,25 @@ def floor_and_box(scale=1.0, floor_size=4.0, box=(1.0, 1.0, 1.0), res=64, subdiv
     f = mg.plane(floor_size, subdiv=subdiv).transformed(scale=scale)
     b = mg.box(box, (0, 0, box[2] / 2)).transformed(scale=scale)
     return scene_from([("floor", f, planar_uvs(f)), ("box", b, mg.box_face_uvs(b))], res)
+
+
+def floor_and_box_with_every_part(res=8) -> Scene:
+    """floor_and_box with every optional part of the job format: a normal map on
+    two triangles (strength 0.7), tangents, a material with a base-colour
+    texture, material UVs. Validated."""
+    from prtt_addon.core.scene import NormalMap, validate
+    sc = floor_and_box(res=res)
+    T = sc.n_triangles
+    sc.normal_maps = [NormalMap(np.full((4, 4, 3), 0.5, np.float32), 0.7)]
+    sc.nm_index = np.full(T, -1, np.int32)
+    sc.nm_index[:2] = 0
+    sc.nm_uvs = sc.uvs.copy()
+    sc.tangents = np.zeros((T, 3, 4), np.float32)
+    sc.tangents[..., 0] = 1
+    sc.tangents[..., 3] = 1
+    sc.material_id = np.zeros(T, np.int32)
+    sc.materials = [{"name": "m", "base_color": [0.5, 0.5, 0.5], "roughness": 0.3, "base_color_texture": 0}]
+    sc.textures = [np.full((4, 4, 3), 0.25, np.float32)]
+    sc.mat_uvs = sc.uvs.copy()
+    validate(sc)
+    return sc

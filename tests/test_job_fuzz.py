@@ -23,8 +23,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from prtt_addon.core.scene import MAX_MEMBERS, MAX_NAME_LENGTH, NormalMap, save_scene, validate
-from tests.scenes_util import floor_and_box
+from prtt_addon.core.scene import MAX_MEMBERS, MAX_NAME_LENGTH, save_scene
+from tests.scenes_util import floor_and_box_with_every_part
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = dict(os.environ, PYTHONPATH=ROOT, PYTHONUNBUFFERED="1")
@@ -59,20 +59,7 @@ def write_npz(path, arrays: dict) -> None:
 def base_job(path) -> dict:
     """A small valid job with every optional part (normal map, materials, a
     texture); returns its arrays as a dict."""
-    sc = floor_and_box(res=8)
-    T = sc.n_triangles
-    sc.normal_maps = [NormalMap(np.full((4, 4, 3), 0.5, np.float32), 0.7)]
-    sc.nm_index = np.full(T, -1, np.int32)
-    sc.nm_index[:2] = 0
-    sc.nm_uvs = sc.uvs.copy()
-    sc.tangents = np.zeros((T, 3, 4), np.float32)
-    sc.tangents[..., 0] = 1
-    sc.tangents[..., 3] = 1
-    sc.material_id = np.zeros(T, np.int32)
-    sc.materials = [{"name": "m", "base_color": [0.5, 0.5, 0.5], "roughness": 0.3, "base_color_texture": 0}]
-    sc.textures = [np.full((4, 4, 3), 0.25, np.float32)]
-    sc.mat_uvs = sc.uvs.copy()
-    validate(sc)
+    sc = floor_and_box_with_every_part(res=8)
     light = np.zeros((25, 3))
     light[0] = 1.0
     save_scene(sc, path, extra={"settings": {"rays": 8, "bounce_rays": 4},

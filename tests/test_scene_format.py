@@ -2,22 +2,12 @@
 import numpy as np
 import pytest
 
-from prtt_addon.core.scene import NormalMap, Scene, SceneError, load_scene, save_scene, scene_hash, validate
-from tests.scenes_util import floor_and_box
+from prtt_addon.core.scene import Scene, SceneError, load_scene, save_scene, scene_hash
+from tests.scenes_util import floor_and_box, floor_and_box_with_every_part
 
 
 def test_round_trip_with_normal_maps_and_extra(tmp_path):
-    sc = floor_and_box(res=16)
-    T = sc.n_triangles
-    sc.normal_maps = [NormalMap(np.full((4, 4, 3), 0.5, np.float32), 0.7)]
-    sc.nm_index = np.full(T, -1, np.int32)
-    sc.nm_index[:2] = 0
-    sc.nm_uvs = sc.uvs.copy()
-    sc.tangents = np.zeros((T, 3, 4), np.float32)
-    sc.tangents[..., 0] = 1
-    sc.material_id = np.zeros(T, np.int32)
-    sc.materials = [{"name": "m", "base_color": [0.5, 0.5, 0.5], "roughness": 0.3}]
-    validate(sc)
+    sc = floor_and_box_with_every_part(res=16)
     save_scene(sc, tmp_path / "job.npz", extra={"settings": {"rays": 64}})
     back, extra = load_scene(tmp_path / "job.npz")
     assert extra == {"settings": {"rays": 64}}
