@@ -34,7 +34,8 @@ class Layout:
 
 def _draw(bpy, cls):
     layout = Layout()
-    panel = type("P", (), {"layout": layout})()
+    # Stands in for the registered panel: its layout, and the class's own attributes.
+    panel = type("P", (), {"layout": layout, "__getattr__": lambda _self, name: getattr(cls, name)})()
     cls.draw(panel, bpy.context)
     return layout
 

@@ -113,30 +113,27 @@ class PRTT_PT_bake_quality(_PRTTPanel, bpy.types.Panel):
         sub.prop(st, "bounce_rays")
 
 
-class PRTT_PT_bake_output(_PRTTPanel, bpy.types.Panel):
+class _SettingsList:
+    """A closed Bake subpanel that lists scene settings, in the order of ``props``."""
+
+    bl_parent_id = "PRTT_PT_bake"
+    bl_options = {"DEFAULT_CLOSED"}
+    props: tuple = ()
+
+    def draw(self, context):
+        col = _split(self.layout).column()
+        for name in self.props:
+            col.prop(context.scene.prtt, name)
+
+
+class PRTT_PT_bake_output(_SettingsList, _PRTTPanel, bpy.types.Panel):
     bl_label = "Output"
-    bl_parent_id = "PRTT_PT_bake"
-    bl_options = {"DEFAULT_CLOSED"}
-
-    def draw(self, context):
-        st = context.scene.prtt
-        col = _split(self.layout).column()
-        col.prop(st, "output_dir")
-        col.prop(st, "storage")
-        col.prop(st, "dilate")
-        col.prop(st, "vertex_transfer")
+    props = ("output_dir", "storage", "dilate", "vertex_transfer")
 
 
-class PRTT_PT_bake_advanced(_PRTTPanel, bpy.types.Panel):
+class PRTT_PT_bake_advanced(_SettingsList, _PRTTPanel, bpy.types.Panel):
     bl_label = "Advanced"
-    bl_parent_id = "PRTT_PT_bake"
-    bl_options = {"DEFAULT_CLOSED"}
-
-    def draw(self, context):
-        st = context.scene.prtt
-        col = _split(self.layout).column()
-        col.prop(st, "normal_maps")
-        col.prop(st, "selection_only")
+    props = ("normal_maps", "selection_only")
 
 
 class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
