@@ -65,12 +65,10 @@ def unwrap_todo(scene, view_layer):
     sources in excluded collections, linked data, geometry-nodes output, curves)
     gets UVs generated at export. Returns (by edit-mode operators, by xatlas):
     objects the viewport hides cannot enter edit mode, so xatlas unwraps them."""
-    from .properties import UV_MAP
+    from .unwrap import needs_user_unwrap
     editable, hidden = [], []
     for o in view_layer.objects:
-        if (o.type != "MESH" or not o.prtt.bake or o.library is not None or o.data.library is not None
-                or UV_MAP in o.data.uv_layers or len(o.data.polygons) == 0
-                or any(m.type == "NODES" for m in o.modifiers)):
+        if not (o.prtt.bake and needs_user_unwrap(o)):
             continue
         (editable if o.visible_get() and not o.hide_select else hidden).append(o)
     return editable, hidden

@@ -41,6 +41,7 @@ from ..core.scene import MAX_RESOLUTION, NormalMap, Scene, SceneError
 from .materials import image_array, parse_material
 from .properties import UV_MAP
 from .scene_objects import reported_without_faces, scene_geometry
+from .unwrap import margin_texels, needs_user_unwrap
 
 #: Texels left empty on each side of an instance tile, so that bilinear lookups
 #: and dilation of one instance never reach its neighbour's texels.
@@ -89,7 +90,7 @@ class Part:
     uv_origin: str = ""          # "map" | "generated"
     uv_group: str = ""
     name: str = ""
-    tile: tuple | None = None    # (columns, rows, column, row, inset u, inset v)
+    tile: tuple | None = None    # (columns, rows, column, row, inset): see apply_tile
     copies_faces: bool = False   # modifiers changed the face count (Array, Mirror ... may copy UVs)
 
     @property
@@ -140,18 +141,6 @@ def _bakes(found, st) -> bool:
     return found.source is None or found.source == owner or found.source.prtt.bake
 
 
-def _needs_unwrap(found) -> bool:
-    """Whether a baked object without the PRTT map should be unwrapped by the
-    user (a plain local mesh would keep the map through its modifiers), rather
-    than get generated UVs."""
-    ob = found.owner
-    if found.kind != "object" or ob.type != "MESH" or ob.library is not None or ob.data.library is not None:
-        return False
-    if UV_MAP in ob.data.uv_layers:
-        return False                       # it has one, but a modifier drops it
-    return not any(m.type == "NODES" for m in ob.modifiers)
-
-
 def export_scene(context, *, with_light: bool = True) -> ExportResult:
     """Collect the evaluated scene. Raises ExportError with the objects to fix."""
     st = context.scene.prtt
@@ -177,7 +166,7 @@ def export_scene(context, *, with_light: bool = True) -> ExportResult:
             continue
         with_faces.add(found.owner.name)
         part.baked = _bakes(found, st)
-        if part.baked and part.uv is None and _needs_unwrap(found):
+        if part.baked and part.uv is None and found.kind == "object" and needs_user_unwrap(found.owner):
             missing_uv.append(found.owner.name)
             continue
         parts.append(part)
@@ -311,13 +300,13 @@ def apply_tile(uv: np.ndarray, tile) -> np.ndarray:
     return out
 
 
-def _generate_uvs(part: Part, resolution: int, padding: int, warnings) -> np.ndarray:
-    """xatlas UVs (T, 3, 2) for a part's object-space mesh, in memory."""
+def _generate_uvs(part: Part, resolution: int, padding: int) -> np.ndarray:
+    """xatlas UVs (T, 3, 2) for a part's object-space mesh, in memory, with
+    ``padding`` texels between charts (unwrap.margin_texels, as Unwrap uses)."""
     from ..core.unwrap import UnwrapError, unwrap
-    from .unwrap import margin_texels
     co, tris = part.local
     try:
-        return unwrap([(co, tris)], max(8, int(resolution)), padding=margin_texels(padding))[0]
+        return unwrap([(co, tris)], max(8, int(resolution)), padding=padding)[0]
     except (UnwrapError, ValueError) as exc:
         raise ExportError(f"could not generate UVs for {part.name!r}: {exc}") from exc
 
@@ -371,7 +360,7 @@ def _layout(parts, st, warnings):
     for i, p in enumerate(parts):
         if p.baked and p.kind == "object" and p.uv_origin == "generated":
             w = res[set_of[i]][0]
-            p.uv = _generate_uvs(p, w, st.padding, warnings)
+            p.uv = _generate_uvs(p, w, margin_texels(st.padding, st.dilate))
             generated[p.uv_group] = p.uv.astype(np.float32)
     for (source, _data, _T, origin), members in groups.items():
         first = parts[members[0]]
@@ -391,7 +380,7 @@ def _layout(parts, st, warnings):
         s = new_set(f"{source}_instances", gx * r, gy * r)
         group = f"instances:{source}:{first.data_name}:{first.triangles}"
         if origin == "generated":
-            uv = _generate_uvs(first, r, st.padding, warnings)
+            uv = _generate_uvs(first, r, margin_texels(st.padding, st.dilate))
             generated[group] = uv.astype(np.float32)
         inset = TILE_INSET / r if r > 4 * TILE_INSET else 0.0
         for j, i in enumerate(members):

@@ -350,11 +350,11 @@ def _parts_by_key(info: dict) -> dict:
     for name, rec in info.get("objects", {}).items():
         rec = dict(rec, _name=name)
         out[rec.get("key") or f"object:{name}"] = rec
+    recorded = set(info.get("objects", {}))
     for set_name, names in info.get("set_objects", {}).items():     # objects without a record
         for name in names:
-            key = f"object:{name}"
-            if not any(r["_name"] == name for r in out.values()):
-                out[key] = {"_name": name, "set": set_name}
+            if name not in recorded:
+                out[f"object:{name}"] = {"_name": name, "set": set_name}
     return out
 
 

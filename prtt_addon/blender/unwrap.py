@@ -85,6 +85,17 @@ def _preserved(context, objects):
                 pass
 
 
+def needs_user_unwrap(ob) -> bool:
+    """Whether a mesh object should get its PRTT map from Unwrap (the user's
+    layout, kept through its modifiers): a local mesh with faces of its own,
+    without the map and without geometry nodes. Everything else that bakes
+    (linked data, faces made only by modifiers or geometry nodes, curves,
+    instances) gets UVs generated at export."""
+    return (ob.type == "MESH" and ob.library is None and ob.data.library is None
+            and UV_MAP not in ob.data.uv_layers and len(ob.data.polygons) > 0
+            and not any(m.type == "NODES" for m in ob.modifiers))
+
+
 def prtt_layer(me):
     """The PRTT UV map of a mesh, created (as a non-render map) if missing."""
     uv = me.uv_layers.get(UV_MAP)
