@@ -38,6 +38,7 @@ def blend(tmp_path_factory):
     rs.collection_instance(bpy, "A", src, (2, 0, 0))
     rs.collection_instance(bpy, "B", src, (-2, 0, 0))
     rs.gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
+    rs.faceless(bpy)                                          # a helper with edges only
     cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
     bpy.context.scene.collection.objects.link(cam)
     cam.location, cam.rotation_euler = (0, -9, 5), (1.05, 0, 0)
@@ -60,6 +61,7 @@ def test_bake_render_bake_render(blend, tmp_path):
     r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=work)
     assert r.returncode == 0, r.stderr + r.stdout
     assert "saved" in r.stdout and (work / "textures" / "manifest.json").is_file()
+    assert "nothing to bake (no faces): Edges" in r.stdout + r.stderr
     assert not [n for n in os.listdir(work / "textures") if n.startswith(".prtt-tmp-")]
     r = run("render", "scene.blend", "--out", "first.png", "--size", "64x48", cwd=work)
     assert r.returncode == 0, r.stderr + r.stdout
