@@ -149,6 +149,9 @@ class ConsoleProgress:
                 self._write("prtt: " + self.describe(e, now) + "\n")
         elif t == "warning":
             self.say(f"prtt: warning: {e['message']}")
+        elif t == "info":
+            if not self.quiet:
+                self.say(f"prtt: {e['message']}")
         elif t == "start":
             if not self.quiet:
                 self.say(f"prtt: baking {len(e['sets'])} set(s), {e['triangles']} triangles")

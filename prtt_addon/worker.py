@@ -9,6 +9,7 @@ per line on stdout, flushed:
   {"type": "progress", "stage": "bvh|analytic-test|gbuffer|tables|trace|vertex|bounce|write",
    "fraction": 0..1, "set": ..., "rays_per_s": ...}
   {"type": "warning", "message": ...}
+  {"type": "info", "message": ...}      (work skipped on purpose, e.g. bounce levels stopped early)
   {"type": "error", "message": ..., "error": "SceneError|BakeError|..."}
   {"type": "cancelled"}
   {"type": "done", "manifest": path, "skipped": bool, "seconds": ...}

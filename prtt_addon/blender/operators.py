@@ -88,6 +88,8 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
                 print(f"PRTT: {e.get('stage')} {e.get('set', '')} {100 * e.get('fraction', 0):.0f}%", flush=True)
             elif e.get("type") == "warning":
                 print(f"PRTT warning: {e['message']}", flush=True)
+            elif e.get("type") == "info":
+                print(f"PRTT: {e['message']}", flush=True)
 
         outcome = bake_run.bake_blocking(context, force=self.force, on_event=progress)
         return self._report(outcome)
@@ -133,6 +135,8 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
                 st.status = f"{e.get('stage')} {e.get('set', '')}".strip()
             elif e.get("type") == "warning":
                 self.report({"WARNING"}, f"PRTT: {e['message']}")
+            elif e.get("type") == "info":
+                self.report({"INFO"}, f"PRTT: {e['message']}")
         if not ended and self._job.returncode is None:
             for area in context.screen.areas if context.screen else []:
                 if area.type in {"VIEW_3D", "STATUSBAR"}:

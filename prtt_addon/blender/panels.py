@@ -111,6 +111,7 @@ class PRTT_PT_bake_quality(_PRTTPanel, bpy.types.Panel):
         sub = col.column()
         sub.active = st.bounces > 0
         sub.prop(st, "bounce_rays")
+        sub.prop(st, "bounce_tolerance")
 
 
 class _SettingsList:

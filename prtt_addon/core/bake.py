@@ -74,6 +74,7 @@ class BakeSettings(TransferSettings):
     overlap: str = _d("overlap")            # overlapping UVs: "warn" or "error"
     bounces: int = _d("bounces")            # inter-reflection levels (0 = off; needs a light)
     bounce_rays: int = _d("bounce_rays")    # rays per texel per bounce level
+    bounce_tolerance: float = _d("bounce_tolerance")  # stop levels below this fraction of the direct energy
 
     def validate(self) -> "BakeSettings":
         """Check every field's type and range (ValueError "name must be ..., got ...")."""
@@ -99,7 +100,7 @@ class BakeSettings(TransferSettings):
     def result_key(self) -> dict:
         """Settings that change the transfer textures (not threads, chunking or bounces)."""
         d = self.as_dict()
-        for k in ("threads", "chunk_rays", "bounces", "bounce_rays"):
+        for k in ("threads", "chunk_rays", "bounces", "bounce_rays", "bounce_tolerance"):
             d.pop(k)
         return d
 
@@ -214,7 +215,8 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
     """Identity of the bounce textures: transfer, light, materials, bounce settings."""
     from .shading import light_hash
     h = hashlib.sha256("|".join([in_hash, set_hash, light_hash(light) if light is not None else "-",
-                                 mat_hash, str(st.bounces), str(st.bounce_rays)]).encode())
+                                 mat_hash, str(st.bounces), str(st.bounce_rays),
+                                 repr(float(st.bounce_tolerance))]).encode())
     return h.hexdigest()
 
 
@@ -502,24 +504,39 @@ class _Bake:
 
     # --- bounces ---------------------------------------------------------------------------
     def bounce_levels(self, results):
-        from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, HitShader, IncidentSet, bake_bounce_set,
-                             bounce_settings, open_texels)
+        """Bake levels 1..bounces of every set that has texels; returns (per set
+        and level reports, files written, early-stop note or None)."""
+        from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, bake_bounce_set, bounce_settings,
+                             exit_textures, glossy_triangles, incident_at, level_energy, open_texels,
+                             surface_texels)
         st, sc, K = self.st, self.sc, self.K
         bst = bounce_settings(st, st.bounce_rays)
         live = [r for r in results if r.incident is not None]
-        incident = {r.index: r.incident for r in live}
         reports, files = [], []
-        skip = {}
+        skip, surf = {}, {}
+        t = time.perf_counter()
         for r in live:
+            self.check_cancel()
             # Zero without rays: analytic texels, and texels no transfer ray saw geometry
             # from (tested against half-float rounding when read back from disk).
             tol = HALF_OPEN_TOLERANCE if r.storage == "half" else OPEN_TOLERANCE
             skip[r.index] = r.pts.analytic | open_texels(r.T_texels, r.gb.normal, st.bands, tol)
+            surf[r.index] = surface_texels(sc, r.gb, st.dilate)
+        glossy_tri = glossy_triangles(sc)
+        # Level 1 leaves each surface with the fixed light times its transfer.
+        Lp = {r.index: incident_at(surf[r.index], r.incident, self.light, st.bands) for r in live}
+        for r in live:
+            r.incident = None                  # the exit textures replace it
+        direct = sum(level_energy(v) for v in Lp.values())
+        self.seconds["bounce_exit"] = time.perf_counter() - t
+        stopped = None
         for level in range(1, st.bounces + 1):
             self.check_cancel()
-            shader = HitShader(sc, incident, self.light, st.bands, transfer=(level == 1),
-                               normal_maps=st.normal_maps)
-            nxt = {}
+            t = time.perf_counter()
+            exits = {i: exit_textures(surf[i], v, st.bands) for i, v in Lp.items()}
+            shader = ExitShader(sc, exits, st.bands, glossy_tri)
+            self.seconds["bounce_exit"] += time.perf_counter() - t
+            nxt, energy = {}, 0.0
             for r in live:
                 self.check_cancel()
                 name = r.name
@@ -537,6 +554,7 @@ class _Bake:
                                                    progress=on_progress, cancel=self.cancel)
                 self.seconds["bounce_trace"] += time.perf_counter() - t
                 t = time.perf_counter()
+                energy += level_energy(tex[:, r.gb.texel].T)
                 tex = tex.reshape(3 * K, r.gb.height, r.gb.width)
                 fname = f"{name}.bounce{level}.exr"
                 attrs = dict(self.attrs_common, level=level, rays=st.bounce_rays,
@@ -546,14 +564,24 @@ class _Bake:
                     dilate(tex, mask, st.dilate, executor=self.helpers)
                     half = self.write_planes(fname, tex, "bounce", attrs, rgb=True)
                 files.append(fname)
-                nxt[r.index] = IncidentSet(pixel_major(tex), r.gb.width, r.gb.height)
+                if level < st.bounces:
+                    nxt[r.index] = tex.reshape(3 * K, -1)[:, surf[r.index].valid].T.reshape(-1, 3, K)
                 stats.update(name=name, level=level, file=fname, storage="half" if half else "float")
                 reports.append(stats)
                 self.seconds["bounce_write"] += time.perf_counter() - t
-            incident = nxt
-            if not incident:
+            del exits, shader
+            Lp = nxt
+            if not Lp:
                 break
-        return reports, files
+            ratio = energy / direct if direct > 0 else 0.0
+            if level < st.bounces and ratio < st.bounce_tolerance:
+                stopped = {"after_level": level, "energy_ratio": ratio, "tolerance": st.bounce_tolerance,
+                           "levels_not_baked": st.bounces - level}
+                self.emit(type="info", message=f"bounce level {level} carries {100 * ratio:.3g} % of the direct "
+                          f"light (< {100 * st.bounce_tolerance:g} %): levels {level + 1}-{st.bounces} "
+                          f"are not baked")
+                break
+        return reports, files, stopped
 
     def close(self, failed: bool = False):
         """Shut the helper pool down. After a failure its running tasks stop at
@@ -648,7 +676,7 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
     bk.attrs_common = {"rays": st.rays, "seed": st.seed, "sampler": st.sampler,
                        "estimator": st.estimator, "input_hash": in_hash}
     bk.seconds.update(gbuffer=0.0, trace=0.0, dilate=0.0, write=0.0, vertex=0.0,
-                      bounce_trace=0.0, bounce_write=0.0)
+                      bounce_exit=0.0, bounce_trace=0.0, bounce_write=0.0)
     todo = bk.set_ids if st.textures else []
     results = []
     old_reports = {r.get("name"): r for r in _dicts((old or {}).get("sets"))}
@@ -696,8 +724,8 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
 
     bounce = None
     if bouncing:
-        reports, bfiles = bk.bounce_levels(results)
-        bounce = {"key": b_key, "levels": st.bounces, "rays": st.bounce_rays,
+        reports, bfiles, stopped = bk.bounce_levels(results)
+        bounce = {"key": b_key, "levels": st.bounces, "rays": st.bounce_rays, "stopped_early": stopped,
                   "light_hash": bk.light_hash, "materials_hash": bk.materials_hash,
                   "files": bfiles, "sets": reports,
                   "rays_traced": sum(r["rays_traced"] for r in reports),

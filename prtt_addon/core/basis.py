@@ -165,12 +165,19 @@ def eval_basis(dirs, bands: int, *, dtype=np.float64, normalize: bool = False) -
     return out[0] if single else out
 
 
-def basis_unchecked(d: np.ndarray, n: int, dtype=np.float64) -> np.ndarray:
+def basis_unchecked(d: np.ndarray, n: int, dtype=np.float64, *, coeff_major: bool = False) -> np.ndarray:
     """The recurrence of :func:`eval_basis` without input checks, for hot loops
-    whose directions are unit by construction. d (N, 3) of ``dtype``."""
+    whose directions are unit by construction. d (N, 3) of ``dtype``, or the
+    tuple of its three columns (x, y, z), each (N,).
+
+    Returns (N, K); with ``coeff_major`` (K, N). The recurrence always fills
+    coefficient rows (contiguous writes); the (N, K) result is their transposed
+    copy, which with it is ~4x faster than writing strided columns."""
     dtype = np.dtype(dtype)
-    x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    out = np.empty((d.shape[0], n * n), dtype=dtype)
+    x, y, z = d if isinstance(d, tuple) else (d[:, 0], d[:, 1], d[:, 2])
+    N = x.shape[0]
+    out = np.empty((n * n, N), dtype=dtype)
+    col = out
     sect = _sectoral_constants(n).astype(dtype)
     sqrt2 = dtype.type(math.sqrt(2.0))
     cm = np.ones_like(x)   # Re (x + i y)^m
@@ -193,8 +200,8 @@ def basis_unchecked(d: np.ndarray, n: int, dtype=np.float64) -> np.ndarray:
                 p = a * (z * p_cur - b * p_prev)
                 p_prev, p_cur = p_cur, p
             if m == 0:
-                out[:, l * l + l] = p
+                col[l * l + l] = p
             else:
-                out[:, l * l + l + m] = sqrt2 * p * cm
-                out[:, l * l + l - m] = sqrt2 * p * sm
-    return out
+                np.multiply(sqrt2 * p, cm, out=col[l * l + l + m])
+                np.multiply(sqrt2 * p, sm, out=col[l * l + l - m])
+    return out if coeff_major else np.ascontiguousarray(out.T)

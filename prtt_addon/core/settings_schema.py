@@ -238,6 +238,12 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("bounce_rays", "bake", "int", 64, "rays per texel per bounce level", unit="rays", lo=1, hi=1 << 14,
             option="--bounce-rays", metavar="N", ui=Ui("bounce_rays", "Bounce Rays", soft_hi=1024,
                                                        why_soft="bounce light is smooth")),
+    Setting("bounce_tolerance", "bake", "float", 0.005, "stop adding bounce levels once one carries less than "
+            "this fraction of the direct light's energy (the sum of DC terms); 0 = bake every level",
+            unit="of the direct light", lo=0.0, hi=1.0, option="--bounce-tolerance", metavar="F",
+            note="each level carries at most the surfaces' albedo times the previous one",
+            ui=Ui("bounce_tolerance", "Bounce Tolerance", soft_hi=0.1, why_soft="above 10 % levels that "
+                  "visibly light the scene stop", precision=4)),
     # --- job (both command lines; not a BakeSettings field) -----------------------------
     Setting("resolution", "job", "int", 1024, "texels per side of each texture set", unit="texels",
             lo=1, hi=MAX_RESOLUTION, option="--resolution", metavar="N",
