@@ -21,6 +21,11 @@ Everything is measured in this run on this machine and written to
   -> bands.csv, bands.png
 * **storage** half vs float: bytes and the error half precision adds.
   -> storage.csv
+* **bounce** / **denoise** (``--only bounce,denoise``): bounce level 1 on the
+  room with 16 ... 256 rays, raw and through each denoiser (edge-aware joint
+  bilateral within UV islands; OIDN RTLightmap on normalised SH when pyoidn
+  is installed), error against a 2048-ray bounce reference, time including
+  the denoiser. -> denoise.csv, bounce_denoise.png (bench/denoise_sweep.py)
 * **scenes** of the paper's table (room 21K, plants 18K, two statues and a
   monkey 458K, dragon-class 1.33M triangles), 256 rays: seconds, peak RSS,
   texels, bytes per texel against the paper's 100 MB per 1024^2 texture.
@@ -386,6 +391,23 @@ def plot_all(out: str, results: dict) -> list:
         paths.append(os.path.join(out, "triangles.png"))
         fig.savefig(paths[-1], dpi=90)
         plt.close(fig)
+    den = results.get("denoise")
+    if den:
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+        for f in sorted({r["filter"] for r in den}):
+            rs = sorted((r for r in den if r["filter"] == f), key=lambda r: r["bounce_rays"])
+            axes[0].loglog([r["total_s"] for r in rs], [r["error"] for r in rs], "o-", ms=3, label=f)
+            axes[1].loglog([r["bounce_rays"] for r in rs], [r["error"] for r in rs], "o-", ms=3, label=f)
+        axes[0].set_xlabel("bounce bake + denoise seconds (room, level 1, 2 cores)")
+        axes[1].set_xlabel("bounce rays per texel")
+        for ax in axes:
+            ax.set_ylabel("relative RMSE vs converged bounce")
+            ax.grid(True, which="both", alpha=0.3)
+        axes[0].legend(fontsize=8)
+        fig.tight_layout()
+        paths.append(os.path.join(out, "bounce_denoise.png"))
+        fig.savefig(paths[-1], dpi=90)
+        plt.close(fig)
     return paths
 
 
@@ -430,6 +452,19 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             results["storage"] = sweep_storage(cfg, sc, ref, previewer, tmp)
             part_seconds["storage"] = time.perf_counter() - t
+        if "bounce" in parts or "denoise" in parts:
+            from .denoise_sweep import rays_for_error, sweep_bounce_denoise
+            print("bounce rays x denoiser (room, level 1):", flush=True)
+            t = time.perf_counter()
+            rows = sweep_bounce_denoise(cfg, light_fn(5), tmp, with_denoise="denoise" in parts)
+            results["denoise"] = rows
+            raw64 = next(r["error"] for r in rows if r["filter"] == "none" and r["bounce_rays"] == max(
+                x["bounce_rays"] for x in rows if x["bounce_rays"] <= 64))
+            for f in sorted({r["filter"] for r in rows} - {"none"}):
+                need = rays_for_error(rows, f, raw64)
+                print(f"  {f}: reaches the raw default's error ({100 * raw64:.2f} %) with "
+                      f"{'never' if need is None else f'{need:.0f}'} rays (pays if <= half the default's)")
+            part_seconds["denoise"] = time.perf_counter() - t
         if "scenes" in parts:
             print("the paper's scene classes (256 rays):", flush=True)
             t = time.perf_counter()
@@ -444,7 +479,8 @@ def main(argv=None) -> int:
             merged = json.load(f)
     merged.update(results, quick=cfg.quick, cpu_count=os.cpu_count())
     merged.setdefault("seconds_per_part", {}).update(part_seconds)
-    plots = plot_all(out, {k: merged[k] for k in ("rays", "resolution", "bands", "storage", "scenes") if k in merged})
+    plots = plot_all(out, {k: merged[k] for k in ("rays", "resolution", "bands", "storage", "scenes", "denoise")
+                           if k in merged})
     with open(summary_path, "w", encoding="utf-8") as f:
         json.dump(merged, f, indent=1)
     print(f"wrote {len(results)} CSV file(s) and {len(plots)} plot(s) to {out} "

@@ -1,0 +1,110 @@
+"""The ``bounce`` and ``denoise`` parts of ``bench sweep``: bounce rays against
+error, raw and denoised, on the room-class scene.
+
+One transfer bake (256 rays) is shared; bounce level 1 is baked with 16 ... 256
+rays per texel and compared with a converged bounce reference (2048 rays,
+cached in .cache/bench). Error: relative RMSE of the bounce texels (all 75 RGB
+SH coefficients, covered texels) against the reference. Each denoiser's time
+is added to the bake's: a denoiser pays when its curve reaches an error with
+at most half the rays of the raw curve (the rule docs/benchmarks.md states).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import time
+
+import numpy as np
+
+from ..core.bake import BakeSettings, bake_scene
+from ..core.denoise import edge_aware, island_labels, oidn_available, oidn_sh
+from ..core.exr_io import read_sh_exr
+from ..core.gbuffer import build_gbuffer
+from . import scenes
+
+REF_BOUNCE_RAYS = 2048
+
+
+def _planes(path: str) -> np.ndarray:
+    data, _ = read_sh_exr(path)                       # (H, W, 3, K), row 0 at the bottom
+    H, W, _, K = data.shape
+    return np.ascontiguousarray(data.transpose(2, 3, 0, 1).reshape(3 * K, H, W)).astype(np.float32)
+
+
+def _guides(sc, set_index: int):
+    gb = build_gbuffer(sc, set_index)
+    H, W = gb.height, gb.width
+    mask = np.zeros(H * W, bool)
+    mask[gb.texel] = True
+    pos = np.zeros((H * W, 3))
+    nrm = np.zeros((H * W, 3))
+    pos[gb.texel], nrm[gb.texel] = gb.position, gb.normal
+    return mask.reshape(H, W), pos.reshape(H, W, 3), nrm.reshape(H, W, 3)
+
+
+def _error(planes: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
+    a, b = planes[:, mask].astype(np.float64), ref[:, mask].astype(np.float64)
+    return float(np.sqrt(((a - b) ** 2).sum() / (b ** 2).sum()))
+
+
+def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> list:
+    res = 64 if cfg.quick else cfg.sweep_res
+    rays_list = (8, 32) if cfg.quick else (16, 32, 64, 128, 256)
+    ref_rays = 128 if cfg.quick else REF_BOUNCE_RAYS
+    sc = scenes.room_scene(res, atlas=True, materials=True)
+    name = sc.set_names[0]
+    work = os.path.join(tmp, "bounce")
+    bake_scene(sc, work, BakeSettings(rays=256, bounces=0, half=False), light=light)
+    cache = os.path.join(scenes.ROOT, ".cache", "bench", f"bounce_ref_{res}_{ref_rays}.npy")
+    if os.path.isfile(cache) and not cfg.quick:
+        ref = np.load(cache)
+    else:
+        print(f"  reference bounce ({ref_rays} rays per texel) ...", flush=True)
+        bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=ref_rays, half=False), light=light)
+        ref = _planes(os.path.join(work, f"{name}.bounce1.exr"))
+        if not cfg.quick:
+            os.makedirs(os.path.dirname(cache), exist_ok=True)
+            np.save(cache, ref)
+    mask, pos, nrm = _guides(sc, 0)
+    labels = island_labels(mask)
+    oidn = with_denoise and oidn_available()
+    rows = []
+    for rays in rays_list:
+        t = time.perf_counter()
+        m = bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=rays, half=False), light=light)
+        bake_s = time.perf_counter() - t
+        assert m["transfer_reused"]
+        raw = _planes(os.path.join(work, f"{name}.bounce1.exr"))
+        rows.append(dict(bounce_rays=rays, filter="none", bake_s=bake_s, denoise_s=0.0, total_s=bake_s,
+                         error=_error(raw, ref, mask)))
+        if with_denoise:
+            t = time.perf_counter()
+            den = edge_aware(raw, mask, pos, nrm, labels=labels)
+            s = time.perf_counter() - t
+            rows.append(dict(bounce_rays=rays, filter="edge-aware", bake_s=bake_s, denoise_s=s,
+                             total_s=bake_s + s, error=_error(den, ref, mask)))
+        if oidn:
+            t = time.perf_counter()
+            den = oidn_sh(raw, mask, 5)
+            s = time.perf_counter() - t
+            rows.append(dict(bounce_rays=rays, filter="oidn", bake_s=bake_s, denoise_s=s,
+                             total_s=bake_s + s, error=_error(den, ref, mask)))
+        for r in rows[-3:]:
+            if r["bounce_rays"] == rays:
+                print(f"  {rays:5d} rays {r['filter']:>10s}: {r['total_s']:7.2f} s, error {100 * r['error']:.2f} %",
+                      flush=True)
+    shutil.rmtree(work, ignore_errors=True)
+    return rows
+
+
+def rays_for_error(rows: list, filt: str, error: float) -> float | None:
+    """Bounce rays the ``filt`` curve needs to reach ``error`` (log-linear
+    interpolation between measured points; None when it never does)."""
+    pts = sorted((r["bounce_rays"], r["error"]) for r in rows if r["filter"] == filt)
+    for (r0, e0), (r1, e1) in zip(pts, pts[1:]):
+        if e0 >= error >= e1 and e0 != e1:
+            f = (np.log(e0) - np.log(error)) / (np.log(e0) - np.log(e1))
+            return float(np.exp(np.log(r0) + f * (np.log(r1) - np.log(r0))))
+    if pts and pts[0][1] <= error:
+        return float(pts[0][0])
+    return None

@@ -1,0 +1,170 @@
+"""Denoising baked SH textures in texture space (measured in ``bench sweep --only denoise``).
+
+Two filters, both optional and off by default (docs/benchmarks.md has the
+curves that decided it):
+
+* :func:`edge_aware`: a joint (cross) bilateral filter guided by the
+  G-buffer: within a (2r+1)^2 window, a texel's neighbours are weighted by
+  texel distance, world-space distance and normal agreement, and only texels
+  of the **same UV island** (:func:`island_labels`) ever mix. Linear in the
+  coefficients, so it is applied to every SH channel alike.
+* :func:`oidn_sh`: Intel Open Image Denoise (``pyoidn``, CPU) with the
+  RTLightmap filter, on SH normalised the way production lightmappers do:
+  the DC terms (RGB) as an HDR lightmap, every higher coefficient divided by
+  sqrt(2l + 1) times its colour's DC term (in [-1, 1] for a non-negative
+  function) as a *directional* lightmap, then restored. OIDN sees an image:
+  it can blend across the empty gutters between islands (within the
+  dilation it does not matter; further it is measured, not prevented).
+
+Textures are channel planes (C, H, W) float32, row 0 = bottom, as the bake
+keeps them; ``mask`` (H, W) bool marks covered texels. Empty texels are
+returned unchanged (dilation refills them).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .basis import band_of_coeffs
+
+_OFFSETS8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
+
+
+def island_labels(mask: np.ndarray) -> np.ndarray:
+    """(H, W) int64: the label of each covered texel's 8-connected island (the
+    smallest flat index in it), -1 for empty texels.
+
+    Min-label propagation with pointer jumping: each round every texel takes
+    the smallest label among its covered neighbours, then follows labels to
+    their own label; rounds repeat until nothing changes (a few dozen for
+    islands hundreds of texels long)."""
+    H, W = mask.shape
+    flat = np.where(mask.reshape(-1), np.arange(H * W), -1).reshape(H, W)
+    big = np.int64(H * W)
+    lab = np.where(flat >= 0, flat, big)
+    while True:
+        pad = np.pad(lab, 1, constant_values=big)
+        new = lab.copy()
+        for dy, dx in _OFFSETS8:
+            np.minimum(new, pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W], out=new)
+        new = np.where(mask, new, big)
+        # Pointer jumping: a label is a texel index; follow it to that texel's label.
+        nf = new.reshape(-1)
+        covered = nf < big
+        while True:
+            nxt = nf.copy()
+            nxt[covered] = nf[nf[covered]]
+            if np.array_equal(nxt, nf):
+                break
+            nf = nxt
+        new = nf.reshape(H, W)
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    return np.where(mask, lab, -1)
+
+
+def edge_aware(planes: np.ndarray, mask: np.ndarray, position: np.ndarray, normal: np.ndarray, *,
+               radius: int = 2, sigma_texels: float = 1.5, sigma_world: float | None = None,
+               normal_power: float = 16.0, labels: np.ndarray | None = None) -> np.ndarray:
+    """Joint bilateral filter of ``planes`` (C, H, W) within UV islands.
+
+    position, normal : (H, W, 3) world position and unit shading normal of
+        covered texels (the G-buffer, scattered to the texture).
+    sigma_world : world distance scale; default 2x the median distance between
+        horizontally adjacent covered texels (a texel's footprint).
+    Weight of neighbour q for texel p (same island only):
+        exp(-|q - p|^2 / 2 sigma_texels^2) exp(-|x_q - x_p|^2 / 2 sigma_world^2) max(0, n_p.n_q)^normal_power.
+    Returns new planes (float32); empty texels are copied unchanged.
+    """
+    C, H, W = planes.shape
+    if labels is None:
+        labels = island_labels(mask)
+    pos = np.asarray(position, np.float64)
+    nrm = np.asarray(normal, np.float64)
+    if sigma_world is None:
+        both = mask[:, 1:] & mask[:, :-1]
+        d = np.linalg.norm(pos[:, 1:] - pos[:, :-1], axis=-1)[both]
+        sigma_world = 2.0 * float(np.median(d)) if d.size else 1.0
+        sigma_world = max(sigma_world, 1e-12)
+    acc = np.zeros((C, H, W), np.float64)
+    wsum = np.zeros((H, W), np.float64)
+    r = int(radius)
+    padw = ((r, r), (r, r))
+    lab_p = np.pad(labels, padw, constant_values=-1)
+    pos_p = np.pad(pos, padw + ((0, 0),))
+    nrm_p = np.pad(nrm, padw + ((0, 0),))
+    pl_p = np.pad(planes, ((0, 0),) + padw)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            sl = (slice(r + dy, r + dy + H), slice(r + dx, r + dx + W))
+            same = (lab_p[sl] == labels) & mask
+            if not same.any():
+                continue
+            dw = np.sum((pos_p[sl] - pos) ** 2, axis=-1)
+            cos = np.clip(np.sum(nrm_p[sl] * nrm, axis=-1), 0.0, 1.0)
+            w = (math.exp(-(dy * dy + dx * dx) / (2.0 * sigma_texels ** 2))
+                 * np.exp(-dw / (2.0 * sigma_world ** 2)) * cos ** normal_power)
+            w = np.where(same, w, 0.0)
+            wsum += w
+            acc += pl_p[(slice(None),) + sl] * w
+    out = planes.astype(np.float32, copy=True)
+    ok = mask & (wsum > 0)
+    out[:, ok] = (acc[:, ok] / wsum[ok]).astype(np.float32)
+    return out
+
+
+def oidn_available() -> bool:
+    try:
+        import pyoidn  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _oidn_run(img: np.ndarray, directional: bool) -> np.ndarray:
+    import pyoidn
+    dev = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
+    dev.commit()
+    flt = pyoidn.Filter(dev, pyoidn.OIDN_FILTER_TYPE_RT_LIGHTMAP)
+    src = np.ascontiguousarray(img, np.float32)
+    out = np.empty_like(src)
+    H, W, _ = src.shape
+    flt.set_image(pyoidn.OIDN_IMAGE_COLOR, src, pyoidn.OIDN_FORMAT_FLOAT3, W, H)
+    flt.set_image(pyoidn.OIDN_IMAGE_OUTPUT, out, pyoidn.OIDN_FORMAT_FLOAT3, W, H)
+    if directional:
+        flt.set_bool("directional", True)
+    flt.commit()
+    flt.execute()
+    flt.release()
+    dev.release()
+    return out
+
+
+def oidn_sh(planes: np.ndarray, mask: np.ndarray, bands: int) -> np.ndarray:
+    """OIDN RTLightmap on RGB SH planes (3K, H, W) (R coefficients, then G, then B).
+
+    Raises ImportError with a clear message when pyoidn is not installed."""
+    try:
+        import pyoidn  # noqa: F401
+    except ImportError as e:
+        raise ImportError("OIDN denoising needs the optional package pyoidn (pip install pyoidn)") from e
+    K = bands * bands
+    C, H, W = planes.shape
+    if C != 3 * K:
+        raise ValueError(f"expected {3 * K} RGB SH planes for {bands} bands, got {C}")
+    sh = planes.reshape(3, K, H, W).astype(np.float32)
+    dc = np.maximum(sh[:, 0], 0.0)                                        # (3, H, W)
+    dc_d = np.maximum(_oidn_run(dc.transpose(1, 2, 0), False).transpose(2, 0, 1), 0.0)
+    out = np.empty_like(sh)
+    out[:, 0] = dc_d
+    scale = np.sqrt(2.0 * band_of_coeffs(bands) + 1.0)
+    safe = np.where(dc > 1e-12, dc, 1.0)
+    for k in range(1, K):
+        ratio = np.where(dc > 1e-12, sh[:, k] / (scale[k] * safe), 0.0)
+        ratio = np.clip(ratio, -1.0, 1.0)
+        den = _oidn_run(ratio.transpose(1, 2, 0), True).transpose(2, 0, 1)
+        out[:, k] = den * scale[k] * dc_d
+    res = out.reshape(C, H, W)
+    return np.where(mask[None], res, planes).astype(np.float32)

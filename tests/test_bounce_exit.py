@@ -1,0 +1,141 @@
+"""The bounce bake's precomputed exit radiance against a slow per-hit reference,
+its determinism across thread counts, and the early stop of bounce levels."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from prtt_addon.core import exr_io
+from prtt_addon.core.bake import BakeSettings, bake_scene
+from prtt_addon.core.bounce import (ExitShader, IncidentSet, exit_textures, glossy_triangles, incident_at,
+                                    level_energy, surface_texels)
+from prtt_addon.core.gaunt import tpfl_matrix
+from prtt_addon.core.gbuffer import build_gbuffer
+from prtt_addon.core.materials import ShadingParams
+from prtt_addon.core.shading import outgoing
+from tests.test_bounce import corner_scene, sky
+
+GLOSSY_WALL = {"name": "glossy", "base_color": [0.2, 0.3, 0.9], "roughness": 0.3, "specular": 1.0,
+               "metallic": 0.5}
+DIFFUSE_FLOOR = {"name": "floor", "base_color": [0.5, 0.4, 0.3], "specular": 0.0}
+
+
+def _reference_radiance(sc, surf, T_pm, light, bands, tri, u, v, view):
+    """Per hit, in float64, one hit at a time: the texel nearest to the hit's uv,
+    that texel's transfer lit by the light through the triple-product matrix,
+    and the reference shading model (shading.outgoing) with that texel's
+    material and normal, the lobe only on triangles whose material has one."""
+    K = bands * bands
+    M = tpfl_matrix(np.asarray(light, np.float64)[:K], bands)          # (3, K, K)
+    where = {int(t): i for i, t in enumerate(surf.valid)}
+    glossy = glossy_triangles(sc)
+    out = np.zeros((tri.size, 3))
+    for h in range(tri.size):
+        t = int(tri[h])
+        b = np.array([1.0 - u[h] - v[h], u[h], v[h]])
+        uv = b @ sc.uvs[t].astype(np.float64)
+        ix = min(max(int(math.floor(uv[0] * surf.width)), 0), surf.width - 1)
+        iy = min(max(int(math.floor(uv[1] * surf.height)), 0), surf.height - 1)
+        i = where.get(iy * surf.width + ix)
+        if i is None:
+            continue                                    # an empty texel: nothing leaves
+        T = T_pm[iy * surf.width + ix].astype(np.float64)
+        Lp = np.einsum("cik,k->ci", M, T)[None]                         # (1, 3, K)
+        spec = surf.spec[i:i + 1] if glossy[t] else np.zeros((1, 3))
+        p = ShadingParams(surf.albedo[i:i + 1], spec, surf.exponent[i:i + 1])
+        out[h] = outgoing(Lp, surf.normal[i:i + 1], view[h:h + 1].astype(np.float64), p)[0]
+    return out
+
+
+@pytest.mark.parametrize("wall", [GLOSSY_WALL, {"name": "diffuse", "base_color": [0.9, 0.6, 0.3],
+                                                "specular": 0.0}])
+def test_exit_radiance_equals_slow_per_hit_reference(wall):
+    sc = corner_scene(wall, res=16)
+    sc.materials[0] = DIFFUSE_FLOOR
+    bands = 5
+    light = sky(bands)
+    rng = np.random.default_rng(3)
+    exits, surfs, T_pms = {}, {}, {}
+    for s in range(len(sc.set_names)):
+        gb = build_gbuffer(sc, s)
+        surf = surface_texels(sc, gb, 2)
+        # A transfer texture with every texel different (a real bake's values
+        # would hide indexing mistakes behind smooth data).
+        T_pm = np.zeros((gb.width * gb.height, bands * bands), np.float32)
+        T_pm[surf.valid] = rng.normal(0.5, 0.3, (surf.valid.size, bands * bands))
+        Lp = incident_at(surf, IncidentSet(T_pm, gb.width, gb.height), light, bands)
+        exits[s] = exit_textures(surf, Lp, bands)
+        surfs[s], T_pms[s] = surf, T_pm
+    shader = ExitShader(sc, exits, bands, glossy_triangles(sc))
+    n = 400
+    tri = rng.integers(0, sc.n_triangles, n)
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    view = rng.normal(size=(n, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    got = shader.radiance(tri.astype(np.int64), u.astype(np.float32), v.astype(np.float32),
+                          view.astype(np.float32))
+    ref = np.zeros((n, 3))
+    for s in exits:
+        sel = np.flatnonzero(sc.set_id[tri] == s)
+        ref[sel] = _reference_radiance(sc, surfs[s], T_pms[s], light, bands, tri[sel], u[sel], v[sel], view[sel])
+    assert np.count_nonzero(ref) > n                       # most hits see light
+    scale = np.abs(ref).max()
+    assert np.abs(got - ref).max() <= 2e-5 * scale, np.abs(got - ref).max() / scale
+    wall_hits = np.flatnonzero(sc.set_id[tri] == 1)
+    no_lobe = ExitShader(sc, exits, bands, np.zeros(sc.n_triangles, bool)).radiance(
+        tri.astype(np.int64), u.astype(np.float32), v.astype(np.float32), view.astype(np.float32))
+    lobe = np.abs(no_lobe[wall_hits] - got[wall_hits]).max()
+    if wall is GLOSSY_WALL:
+        assert lobe > 0.05 * scale               # the glossy path is exercised, and matches
+    else:
+        assert lobe == 0.0                       # no lobe row for a diffuse set
+
+
+def test_bounce_textures_identical_for_any_thread_count(tmp_path):
+    sc = corner_scene(GLOSSY_WALL, res=24)
+    outs = []
+    for threads in (1, 2, 3):
+        d = tmp_path / f"t{threads}"
+        bake_scene(sc, d, BakeSettings(rays=64, bounces=2, bounce_rays=32, threads=threads, half=False,
+                                       bounce_tolerance=0.0), light=sky())
+        outs.append([(d / f"{n}.bounce{k}.exr") for n in ("floor", "wall") for k in (1, 2)])
+    for files in outs[1:]:
+        for a, b in zip(outs[0], files):
+            da, _ = exr_io.read_sh_exr(a)
+            db, _ = exr_io.read_sh_exr(b)
+            assert np.array_equal(da, db), (a, b)
+
+
+def test_levels_stop_early_below_the_tolerance_and_say_so(tmp_path):
+    dark = {"name": "dark", "base_color": [0.05, 0.05, 0.05], "specular": 0.0}
+    sc = corner_scene(dark, res=16)
+    sc.materials[0] = {"name": "floor", "base_color": [0.05, 0.05, 0.05], "specular": 0.0}
+    events = []
+    m = bake_scene(sc, tmp_path / "stop", BakeSettings(rays=64, bounces=3, bounce_rays=32,
+                                                       bounce_tolerance=0.01),
+                   light=sky(), progress=events.append)
+    stop = m["bounce"]["stopped_early"]
+    assert stop["after_level"] == 1 and stop["levels_not_baked"] == 2 and stop["energy_ratio"] < 0.01
+    assert all(".bounce1." in f for f in m["bounce"]["files"])
+    info = [e for e in events if e.get("type") == "info"]
+    assert len(info) == 1 and "levels 2-3 are not baked" in info[0]["message"]
+    json.dumps(m)                                         # the note is plain JSON
+    # The ratio is the level's DC energy over the direct light's.
+    data, _ = exr_io.read_sh_exr(tmp_path / "stop" / "wall.bounce1.exr")
+    assert data[..., 0].sum() > 0
+    # Tolerance 0 bakes every level.
+    m0 = bake_scene(sc, tmp_path / "all", BakeSettings(rays=64, bounces=3, bounce_rays=32, bounce_tolerance=0.0),
+                    light=sky())
+    assert m0["bounce"]["stopped_early"] is None
+    assert any(".bounce3." in f for f in m0["bounce"]["files"])
+
+
+def test_level_energy_is_the_dc_sum():
+    rows = np.zeros((4, 3, 9))
+    rows[:, :, 0] = [[1, 2, 3]] * 4
+    rows[:, :, 1] = 100.0                                  # higher bands carry no energy
+    assert level_energy(rows) == pytest.approx(24.0)
+    assert level_energy(rows.reshape(4, 27)) == pytest.approx(24.0)
