@@ -74,9 +74,9 @@ from .parallel import run_chunks
 from .raytrace import RayScene
 from .rotation import rotate_zyz
 from .transfer import (Cancelled, Points, TransferSettings, _estimator_tables, chunk_frames,  # noqa: F401
-                       chunk_plan, unoccluded_transfer)
+                       chunk_plan)
 from .sampling import pattern_bank
-from .zonal import phong_factors
+from .zonal import clamped_cosine_factors, phong_factors
 
 SQRT_4PI = math.sqrt(4.0 * math.pi)
 
@@ -310,10 +310,23 @@ class ExitShader:
 
 
 def open_texels(T_texels: np.ndarray, normals: np.ndarray, bands: int,
-                tol: float = OPEN_TOLERANCE) -> np.ndarray:
-    """(N,) bool: transfer equals the unoccluded clamped cosine (no ray blocked)."""
-    A = unoccluded_transfer(normals, bands)
-    return np.abs(T_texels.astype(np.float64) - A).max(axis=1) <= tol
+                tol: float = OPEN_TOLERANCE, block: int = 1 << 16) -> np.ndarray:
+    """(N,) bool: transfer equals the unoccluded clamped cosine (no ray blocked).
+
+    The unoccluded transfer is A_l y_lm(n) (transfer.unoccluded_transfer),
+    built here coefficient by coefficient in blocks of texels so the test
+    needs no (N, K) float64 temporaries."""
+    A = clamped_cosine_factors(bands)[band_of_coeffs(bands)]
+    n = np.asarray(normals, np.float64)
+    out = np.empty(n.shape[0], bool)
+    for a in range(0, n.shape[0], block):
+        b = min(a + block, n.shape[0])
+        nb = n[a:b]
+        nb = nb / np.linalg.norm(nb, axis=1, keepdims=True)
+        y = basis_unchecked((nb[:, 0].copy(), nb[:, 1].copy(), nb[:, 2].copy()), bands, coeff_major=True)
+        diff = np.abs(np.asarray(T_texels[a:b], np.float64).T - A[:, None] * y)
+        out[a:b] = diff.max(axis=0) <= tol
+    return out
 
 
 def level_points(pts: Points, skip: np.ndarray, level: int) -> tuple[np.ndarray, Points]:
@@ -322,8 +335,9 @@ def level_points(pts: Points, skip: np.ndarray, level: int) -> tuple[np.ndarray,
     frames from the one seed scheme (transfer.chunk_plan, chunk_frames)."""
     todo = np.flatnonzero(~skip)
     ids = pts.ids[todo] + (np.int64(level) << 50)
+    group = None if pts.frame_group is None else pts.frame_group[todo]
     return todo, Points(pts.position[todo], pts.normal[todo], pts.geo_normal[todo], ids,
-                        np.zeros(todo.size, bool), None)
+                        np.zeros(todo.size, bool), group)
 
 
 def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: ExitShader,
@@ -345,9 +359,13 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
         g, idx = chunk.g, chunk.idx
         if cancel is not None and cancel.is_set():
             raise Cancelled()
-        fr = chunk_frames(rs, sub, idx, st.seed)
+        fr = chunk_frames(rs, sub, idx, st.seed, shared=chunk.shared)
         n, S = idx.size, st.rays
-        D = np.matmul(dirs_bank[g][None], fr.R.transpose(0, 2, 1)).reshape(-1, 3)
+        if fr.shared:
+            # Texels of one flat face group share the frame (as in the transfer bake).
+            D = np.tile(dirs_bank[g] @ np.asarray(fr.R[0]).T, (n, 1))
+        else:
+            D = np.matmul(dirs_bank[g][None], fr.R.transpose(0, 2, 1)).reshape(-1, 3)
         O = np.repeat(fr.origins, S, axis=0)
         prim, u, v, _ = rs.intersect(O, np.ascontiguousarray(D))
         hit = np.flatnonzero(prim >= 0)
@@ -356,9 +374,15 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
             L[hit] = shader.radiance(prim[hit].astype(np.int64), u[hit], v[hit], -D[hit])
         # One product for the three colours: (n*3, S) @ (S, K).
         Lt = np.ascontiguousarray(L.reshape(n, S, 3).transpose(0, 2, 1)).reshape(n * 3, S)
-        local = Lt @ table[g]
-        rep = lambda a: np.repeat(a, 3)  # noqa: E731
-        world = rotate_zyz(local, rep(fr.alpha), rep(fr.beta), rep(fr.gamma))
+        if fr.shared:
+            # One frame: turn the estimator table to world once, not every texel's result.
+            ang = lambda v: np.full(K, v)  # noqa: E731
+            Dt = rotate_zyz(np.eye(K), ang(fr.alpha[0]), ang(fr.beta[0]), ang(fr.gamma[0]))
+            world = Lt @ (table[g].astype(np.float64) @ Dt).astype(np.float32)
+        else:
+            local = Lt @ table[g]
+            rep = lambda a: np.repeat(a, 3)  # noqa: E731
+            world = rotate_zyz(local, rep(fr.alpha), rep(fr.beta), rep(fr.gamma))
         tex[:, cols[idx]] = world.reshape(n, 3 * K).T
         with lock:
             stats["rays_traced"] += n * S

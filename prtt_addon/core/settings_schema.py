@@ -407,6 +407,10 @@ def core_from_ui(get: Callable[[str], Any]) -> dict:
             out[s.name] = UI_MAPPINGS[s.name]["to_core"](get)
         elif s.ui is not None:
             v = get(s.ui.prop)
+            if s.kind == "float":
+                # Blender stores float properties in single precision: take the
+                # shortest decimal that rounds to it (0.005, not 0.004999999888).
+                v = float(str(np.float32(v)))
             out[s.name] = v.lower() if s.kind == "choice" else v
     return out
 
