@@ -15,25 +15,25 @@ The radiance leaving a hit q towards p is the reference shading model
 (shading.outgoing) with q's incident radiance Lp_q (3, K): M(L) T_q for
 k = 1, the previous bounce texture for k > 1. Everything in it that does not
 depend on the ray is computed once per level for every texel of the source
-set, in the texture's own layout (:func:`exit_textures`, a few large array
-products):
+set, one row per texel (:func:`exit_textures`, a few large array products):
 
-    diffuse  D_c    = rho_c sqrt(4 pi) / pi * Lp_c,0                (3 channels)
+    diffuse  D_c    = rho_c sqrt(4 pi) / pi * Lp_c,0                (3 floats)
     glossy   G_c,lm = k_s,c A_l(s) Lp_c,lm, and the shading normal   (3K + 3)
 
 with the material (rho, k_s, s) and the shading normal (normal-mapped) taken
-at each texel's centre, then dilated like the textures so bilinear lookups
-near island borders never read empty texels. Per hit only a bilinear fetch and
-an evaluation remain:
+at each texel's centre and dilated like the textures (so hits near island
+borders never read an empty texel). Per hit only a lookup and an evaluation
+remain:
 
-    L(q -> p)_c = max(0, D_c(uv) + [q glossy] sum_lm G_c,lm(uv) y_lm(r)),
-    r = reflect(q -> p, normalise(n(uv))),
+    L(q -> p)_c = max(0, D_c + [q glossy] sum_lm G_c,lm y_lm(r)),
+    r = reflect(q -> p, normalise(n)),
 
 where [q glossy] says the hit triangle's material has a specular lobe, and
-D, G and n are read at the texel nearest to q (:class:`ExitShader` says why). Against the former per-hit evaluation this moves the
-material and normal from the hit point to the texel grid (what the renderer
-does for the transfer anyway); the difference is far below the Monte Carlo
-noise (tests/test_bounce.py keeps its brute-force tolerances).
+D, G and n are those of the texel nearest to q (:class:`ExitShader` says
+why). Against evaluating the model at the exact hit point this moves the
+material and normal to the texel grid (what the renderer does for the
+transfer anyway); the difference is far below the Monte Carlo noise
+(tests/test_bounce.py keeps its brute-force tolerances).
 
 Rays: the transfer bake's chunk planner and seed scheme (transfer.chunk_plan,
 frames and Sobol' patterns, balanced weights), each level with its own ids.
@@ -112,6 +112,7 @@ class SurfaceTexels:
     value: covered texels and the dilation rings around them. Per valid texel:
     ``albedo``/``spec`` (M, 3), Phong ``exponent`` (M,), unit shading
     ``normal`` (M, 3) (normal-mapped where the G-buffer is), all float64.
+    ``row_of`` (H * W,) int32: each texel's index in ``valid``, M where empty.
     """
 
     width: int
@@ -121,6 +122,7 @@ class SurfaceTexels:
     spec: np.ndarray
     exponent: np.ndarray
     normal: np.ndarray
+    row_of: np.ndarray
 
     @property
     def glossy(self) -> bool:
@@ -146,22 +148,27 @@ def surface_texels(sc, gb: GBuffer, dilate_iterations: int) -> SurfaceTexels:
     rows = planes.reshape(10, H * W)[:, valid].T
     n = rows[:, 7:10]
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    row_of = np.full(H * W, valid.size, np.int32)
+    row_of[valid] = np.arange(valid.size, dtype=np.int32)
     return SurfaceTexels(W, H, valid, np.ascontiguousarray(rows[:, 0:3]), np.ascontiguousarray(rows[:, 3:6]),
-                         np.ascontiguousarray(rows[:, 6]), np.ascontiguousarray(n))
+                         np.ascontiguousarray(rows[:, 6]), np.ascontiguousarray(n), row_of)
 
 
 @dataclasses.dataclass
 class ExitTextures:
-    """Radiance leaving one set's surface, ready for lookups (pixel-major float32).
+    """Radiance leaving one set's surface, ready for lookups (float32 rows).
 
-    ``diffuse`` (H * W, 3): D_c. ``glossy`` (H * W, 6 + 3K) or None when the
+    One row per valid texel (``SurfaceTexels.valid`` order) and a last row of
+    zeros; ``row_of`` (H * W,) maps a texel to its row (the zero row where
+    empty), so no texture-sized array is filled for a level.
+    ``diffuse`` (M + 1, 3): D_c. ``glossy`` (M + 1, 6 + 3K) or None when the
     set has no specular lobe: D_c again (one lookup for a glossy hit), the
-    shading normal, then G_R, G_G, G_B (K each). Texels outside
-    ``SurfaceTexels.valid`` are zero.
+    shading normal, then G_R, G_G, G_B (K each).
     """
 
     width: int
     height: int
+    row_of: np.ndarray
     diffuse: np.ndarray
     glossy: np.ndarray | None
 
@@ -177,26 +184,25 @@ def exit_textures(surf: SurfaceTexels, Lp: np.ndarray, bands: int) -> ExitTextur
     M = surf.valid.size
     if Lp.shape != (M, 3, K):
         raise ValueError(f"incident radiance must be ({M}, 3, {K}), got {Lp.shape}")
-    HW = surf.width * surf.height
-    D = ((surf.albedo * (SQRT_4PI / math.pi)) * Lp[:, :, 0]).astype(np.float32)
-    diffuse = np.zeros((HW, 3), np.float32)
-    diffuse[surf.valid] = D
+    diffuse = np.zeros((M + 1, 3), np.float32)
+    D = diffuse[:M]
+    D[...] = (surf.albedo * (SQRT_4PI / math.pi)) * Lp[:, :, 0]
     glossy = None
     if surf.glossy:
         u, inv = np.unique(surf.exponent, return_inverse=True)
         A = phong_factors(u, bands)[:, band_of_coeffs(bands)].astype(np.float32)     # (distinct, K)
         A = A[inv.reshape(-1)]                                                      # (M, K)
         spec = surf.spec.astype(np.float32)
-        rows = np.empty((M, 6 + 3 * K), np.float32)
+        glossy = np.empty((M + 1, 6 + 3 * K), np.float32)
+        glossy[M] = 0.0
+        rows = glossy[:M]
         rows[:, :3] = D
         rows[:, 3:6] = surf.normal
         for c in range(3):
             blk = rows[:, 6 + c * K:6 + (c + 1) * K]
             np.multiply(A, spec[:, c:c + 1], out=blk)
             blk *= Lp[:, c, :]
-        glossy = np.zeros((HW, 6 + 3 * K), np.float32)
-        glossy[surf.valid] = rows
-    return ExitTextures(surf.width, surf.height, diffuse, glossy)
+    return ExitTextures(surf.width, surf.height, surf.row_of, diffuse, glossy)
 
 
 def incident_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray | None, bands: int) -> np.ndarray:
@@ -269,11 +275,11 @@ class ExitShader:
             y = f[:, 1] + us[:, 0] * f[:, 3] + vs[:, 0] * f[:, 5]
             ix = np.clip((x * ex.width).astype(np.int64), 0, ex.width - 1)
             iy = np.clip((y * ex.height).astype(np.int64), 0, ex.height - 1)
-            near = iy * ex.width + ix
+            near = ex.row_of[iy * ex.width + ix]
             # Visit the hits in texel order: random lookups in a texture of
             # hundreds of MB are ~5x slower than ordered ones, and a radix sort
             # on 16-bit keys (blocks of texels) costs a fraction of that.
-            shift = max(0, int(ex.width * ex.height - 1).bit_length() - 16)
+            shift = max(0, int(ex.diffuse.shape[0] - 1).bit_length() - 16)
             o = np.argsort((near >> shift).astype(np.uint16), kind="stable")
             sel, near = sel[o], near[o]
             gl = self.glossy_tri[tri[sel]] if ex.glossy is not None else None
@@ -290,10 +296,10 @@ class ExitShader:
             out[sel] = val
         return out
 
-    def _glossy(self, ex: ExitTextures, texel: np.ndarray, view: np.ndarray) -> np.ndarray:
-        """D_c + sum_lm G_c,lm y_lm(r) (m, 3) at ``texel``, r the reflection of view."""
-        G = np.take(ex.glossy, texel, axis=0)                                 # (m, 6 + 3K)
-        m, K = texel.size, self.K
+    def _glossy(self, ex: ExitTextures, row: np.ndarray, view: np.ndarray) -> np.ndarray:
+        """D_c + sum_lm G_c,lm y_lm(r) (m, 3) at exit rows ``row``, r the reflection of view."""
+        G = np.take(ex.glossy, row, axis=0)                                   # (m, 6 + 3K)
+        m, K = row.size, self.K
         # Coordinates as rows (3, m): every operation below then runs on
         # contiguous arrays (strided columns of G made this twice as slow).
         n = np.ascontiguousarray(G[:, 3:6].T)
