@@ -85,5 +85,34 @@ def test_oidn_sh_restores_normalisation_and_keeps_empty_texels():
     inner[6:18, 6:18] = True
     assert np.allclose(out[0][inner], 1.0, rtol=0.05)
     assert np.allclose(out[2][inner], 0.3, rtol=0.08)
-    with pytest.raises(ValueError, match="expected 75"):
+    with pytest.raises(ValueError, match="expected 25 or 75"):
         oidn_sh(planes[:10], mask, 5)
+    scalar = oidn_sh(planes[:25], mask, 5)                    # a transfer texture
+    assert np.allclose(scalar[0][inner], 1.0, rtol=0.05)
+    assert np.allclose(scalar[2][inner], 0.3, rtol=0.08)
+
+
+def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
+    from prtt_addon.core import exr_io
+    from prtt_addon.core.bake import BakeError, BakeSettings, bake_scene
+    from tests.test_bounce import corner_scene, sky
+    sc = corner_scene({"name": "w", "base_color": [0.6, 0.5, 0.4], "specular": 0.0}, res=24)
+    st = dict(rays=64, bounces=1, bounce_rays=16, half=False)
+    raw_m = bake_scene(sc, tmp_path / "raw", BakeSettings(**st), light=sky())
+    m = bake_scene(sc, tmp_path / "den", BakeSettings(bounce_denoise="edge-aware", **st), light=sky())
+    assert m["bounce"]["key"] != raw_m["bounce"]["key"]
+    rep = [r for r in m["bounce"]["sets"] if r["name"] == "floor"][0]
+    assert rep["denoise"]["filter"] == "edge-aware" and rep["denoise"]["seconds"] >= 0
+    raw, _ = exr_io.read_sh_exr(tmp_path / "raw" / "floor.bounce1.exr")
+    den, _ = exr_io.read_sh_exr(tmp_path / "den" / "floor.bounce1.exr")
+    assert not np.array_equal(raw, den)
+    # Smoother: neighbouring texels of the floor differ less after filtering.
+    rough = lambda t: np.abs(np.diff(t[4:20, 4:20, :, 0], axis=1)).mean()  # noqa: E731
+    assert rough(den) < 0.8 * rough(raw)
+    # Same transfer (only the bounce changed).
+    assert (tmp_path / "raw" / "floor.transfer.exr").read_bytes() == (tmp_path / "den" / "floor.transfer.exr").read_bytes()
+    import prtt_addon.core.denoise as dn
+    monkeypatch.setattr(dn, "oidn_available", lambda: False)
+    with pytest.raises(BakeError, match="needs the optional package pyoidn"):
+        bake_scene(sc, tmp_path / "o", BakeSettings(bounce_denoise="oidn", **st), light=sky())
+    assert not (tmp_path / "o" / "floor.transfer.exr").exists()

@@ -108,3 +108,40 @@ def rays_for_error(rows: list, filt: str, error: float) -> float | None:
     if pts and pts[0][1] <= error:
         return float(pts[0][0])
     return None
+
+
+def sweep_transfer_denoise(cfg, sc, ref: dict, tmp: str) -> list:
+    """Transfer textures (5 bands) at 32 ... 512 rays, raw and denoised, against
+    the sweep's converged reference (texel error; contact shadows are where a
+    filter that blurs shows up in it)."""
+    from .sweep import load_set_textures, texel_error
+    rays_list = (16, 64) if cfg.quick else (32, 64, 128, 256, 512)
+    guides = {}
+    for s, name in enumerate(sc.set_names):
+        mask, pos, nrm = _guides(sc, s)
+        guides[name] = (mask, pos, nrm, island_labels(mask))
+    oidn = oidn_available()
+    rows = []
+    for rays in rays_list:
+        d = os.path.join(tmp, f"tdn{rays}")
+        t = time.perf_counter()
+        bake_scene(sc, d, BakeSettings(rays=rays, bands=5, half=False, bounces=0), skip_if_unchanged=False)
+        bake_s = time.perf_counter() - t
+        raw = load_set_textures(d, sc)                    # name -> (H, W, K)
+        variants = {"none": (raw, 0.0)}
+        for filt in ("edge-aware", "oidn") if oidn else ("edge-aware",):
+            t = time.perf_counter()
+            out = {}
+            for name, tex in raw.items():
+                mask, pos, nrm, labels = guides[name]
+                planes = np.ascontiguousarray(tex.transpose(2, 0, 1))
+                den = (edge_aware(planes, mask, pos, nrm, labels=labels) if filt == "edge-aware"
+                       else oidn_sh(planes, mask, 5))
+                out[name] = den.transpose(1, 2, 0)
+            variants[filt] = (out, time.perf_counter() - t)
+        for filt, (tex, s) in variants.items():
+            err = texel_error(tex, ref)
+            rows.append(dict(rays=rays, filter=filt, bake_s=bake_s, denoise_s=s, total_s=bake_s + s, error=err))
+            print(f"  transfer {rays:5d} rays {filt:>10s}: {bake_s + s:7.2f} s, error {100 * err:.2f} %", flush=True)
+        shutil.rmtree(d, ignore_errors=True)
+    return rows

@@ -391,21 +391,24 @@ def plot_all(out: str, results: dict) -> list:
         paths.append(os.path.join(out, "triangles.png"))
         fig.savefig(paths[-1], dpi=90)
         plt.close(fig)
-    den = results.get("denoise")
-    if den:
+    for key, rays_key, what, fname in (("denoise", "bounce_rays", "bounce", "bounce_denoise.png"),
+                                       ("denoise_transfer", "rays", "transfer", "transfer_denoise.png")):
+        den = results.get(key)
+        if not den:
+            continue
         fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
         for f in sorted({r["filter"] for r in den}):
-            rs = sorted((r for r in den if r["filter"] == f), key=lambda r: r["bounce_rays"])
+            rs = sorted((r for r in den if r["filter"] == f), key=lambda r: r[rays_key])
             axes[0].loglog([r["total_s"] for r in rs], [r["error"] for r in rs], "o-", ms=3, label=f)
-            axes[1].loglog([r["bounce_rays"] for r in rs], [r["error"] for r in rs], "o-", ms=3, label=f)
-        axes[0].set_xlabel("bounce bake + denoise seconds (room, level 1, 2 cores)")
-        axes[1].set_xlabel("bounce rays per texel")
+            axes[1].loglog([r[rays_key] for r in rs], [r["error"] for r in rs], "o-", ms=3, label=f)
+        axes[0].set_xlabel(f"{what} bake + denoise seconds (room, 2 cores)")
+        axes[1].set_xlabel(f"{what} rays per texel")
         for ax in axes:
-            ax.set_ylabel("relative RMSE vs converged bounce")
+            ax.set_ylabel(f"relative RMSE vs converged {what}")
             ax.grid(True, which="both", alpha=0.3)
         axes[0].legend(fontsize=8)
         fig.tight_layout()
-        paths.append(os.path.join(out, "bounce_denoise.png"))
+        paths.append(os.path.join(out, fname))
         fig.savefig(paths[-1], dpi=90)
         plt.close(fig)
     return paths
@@ -464,6 +467,19 @@ def main(argv=None) -> int:
                 need = rays_for_error(rows, f, raw64)
                 print(f"  {f}: reaches the raw default's error ({100 * raw64:.2f} %) with "
                       f"{'never' if need is None else f'{need:.0f}'} rays (pays if <= half the default's)")
+            if "denoise" in parts:
+                from .denoise_sweep import sweep_transfer_denoise
+                print("transfer rays x denoiser (room, %d^2):" % cfg.sweep_res, flush=True)
+                if not {"rays", "bands", "storage"} & set(parts):
+                    ref_dir, ref = reference(cfg, sc)
+                trows = sweep_transfer_denoise(cfg, sc, ref, tmp)
+                results["denoise_transfer"] = trows
+                raw64 = next(r["error"] for r in trows if r["filter"] == "none" and r["rays"] == max(
+                    x["rays"] for x in trows if x["rays"] <= 256))
+                for f in sorted({r["filter"] for r in trows} - {"none"}):
+                    need = rays_for_error([dict(r, bounce_rays=r["rays"]) for r in trows], f, raw64)
+                    print(f"  {f}: reaches the raw 256-ray error ({100 * raw64:.2f} %) with "
+                          f"{'never' if need is None else f'{need:.0f}'} rays (pays if <= 128)")
             part_seconds["denoise"] = time.perf_counter() - t
         if "scenes" in parts:
             print("the paper's scene classes (256 rays):", flush=True)
@@ -479,8 +495,8 @@ def main(argv=None) -> int:
             merged = json.load(f)
     merged.update(results, quick=cfg.quick, cpu_count=os.cpu_count())
     merged.setdefault("seconds_per_part", {}).update(part_seconds)
-    plots = plot_all(out, {k: merged[k] for k in ("rays", "resolution", "bands", "storage", "scenes", "denoise")
-                           if k in merged})
+    plots = plot_all(out, {k: merged[k] for k in ("rays", "resolution", "bands", "storage", "scenes", "denoise",
+                                                  "denoise_transfer") if k in merged})
     with open(summary_path, "w", encoding="utf-8") as f:
         json.dump(merged, f, indent=1)
     print(f"wrote {len(results)} CSV file(s) and {len(plots)} plot(s) to {out} "

@@ -75,6 +75,7 @@ class BakeSettings(TransferSettings):
     bounces: int = _d("bounces")            # inter-reflection levels (0 = off; needs a light)
     bounce_rays: int = _d("bounce_rays")    # rays per texel per bounce level
     bounce_tolerance: float = _d("bounce_tolerance")  # stop levels below this fraction of the direct energy
+    bounce_denoise: str = _d("bounce_denoise")        # "none", "edge-aware" or "oidn" (core/denoise.py)
 
     def validate(self) -> "BakeSettings":
         """Check every field's type and range (ValueError "name must be ..., got ...")."""
@@ -100,7 +101,7 @@ class BakeSettings(TransferSettings):
     def result_key(self) -> dict:
         """Settings that change the transfer textures (not threads, chunking or bounces)."""
         d = self.as_dict()
-        for k in ("threads", "chunk_rays", "bounces", "bounce_rays", "bounce_tolerance"):
+        for k in ("threads", "chunk_rays", "bounces", "bounce_rays", "bounce_tolerance", "bounce_denoise"):
             d.pop(k)
         return d
 
@@ -216,7 +217,7 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
     from .shading import light_hash
     h = hashlib.sha256("|".join([in_hash, set_hash, light_hash(light) if light is not None else "-",
                                  mat_hash, str(st.bounces), str(st.bounce_rays),
-                                 repr(float(st.bounce_tolerance))]).encode())
+                                 repr(float(st.bounce_tolerance)), st.bounce_denoise]).encode())
     return h.hexdigest()
 
 
@@ -509,6 +510,7 @@ class _Bake:
         from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, bake_bounce_set, bounce_settings,
                              exit_textures, glossy_triangles, incident_at, level_energy, open_texels,
                              surface_texels)
+        from .denoise import denoise_bounce
         st, sc, K = self.st, self.sc, self.K
         bst = bounce_settings(st, st.bounce_rays)
         live = [r for r in results if r.incident is not None]
@@ -554,8 +556,13 @@ class _Bake:
                                                    progress=on_progress, cancel=self.cancel)
                 self.seconds["bounce_trace"] += time.perf_counter() - t
                 t = time.perf_counter()
-                energy += level_energy(tex[:, r.gb.texel].T)
                 tex = tex.reshape(3 * K, r.gb.height, r.gb.width)
+                if st.bounce_denoise != "none":
+                    td = time.perf_counter()
+                    self.check_cancel()
+                    tex = denoise_bounce(tex, r.gb, st.bounce_denoise, st.bands)
+                    stats["denoise"] = {"filter": st.bounce_denoise, "seconds": time.perf_counter() - td}
+                energy += level_energy(tex.reshape(3 * K, -1)[:, r.gb.texel].T)
                 fname = f"{name}.bounce{level}.exr"
                 attrs = dict(self.attrs_common, level=level, rays=st.bounce_rays,
                              light_hash=self.light_hash, materials_hash=self.materials_hash,
@@ -654,6 +661,11 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
     if bouncing and bk.light is None:
         bk.warn("no light given: bounce textures (which bake the light in) are skipped")
         bouncing = False
+    if bouncing and st.bounce_denoise == "oidn":
+        from .denoise import oidn_available
+        if not oidn_available():
+            raise BakeError("bounce denoiser 'oidn' needs the optional package pyoidn (pip install pyoidn); "
+                            "or use --bounce-denoise edge-aware or none")
     bk.light_hash = light_hash(bk.light) if bk.light is not None else None
     bk.materials_hash = materials_hash(sc)
     b_key = bounce_key(in_hash, set_hash, bk.light, bk.materials_hash, st) if bouncing else None

@@ -28,6 +28,9 @@ import numpy as np
 
 from .basis import band_of_coeffs
 
+#: The ``bounce_denoise`` setting's values (settings_schema declares their help).
+FILTERS = ("none", "edge-aware", "oidn")
+
 _OFFSETS8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 
 
@@ -66,7 +69,7 @@ def island_labels(mask: np.ndarray) -> np.ndarray:
 
 
 def edge_aware(planes: np.ndarray, mask: np.ndarray, position: np.ndarray, normal: np.ndarray, *,
-               radius: int = 2, sigma_texels: float = 1.5, sigma_world: float | None = None,
+               radius: int = 1, sigma_texels: float = 1.0, sigma_world: float | None = None,
                normal_power: float = 16.0, labels: np.ndarray | None = None) -> np.ndarray:
     """Joint bilateral filter of ``planes`` (C, H, W) within UV islands.
 
@@ -88,31 +91,58 @@ def edge_aware(planes: np.ndarray, mask: np.ndarray, position: np.ndarray, norma
         d = np.linalg.norm(pos[:, 1:] - pos[:, :-1], axis=-1)[both]
         sigma_world = 2.0 * float(np.median(d)) if d.size else 1.0
         sigma_world = max(sigma_world, 1e-12)
-    acc = np.zeros((C, H, W), np.float64)
-    wsum = np.zeros((H, W), np.float64)
+    # Only covered texels are filtered: gather them once as rows (N, C) and
+    # walk the window offsets over that list (float32 sums: the weights are
+    # positive and sum to at most (2r+1)^2, far from float32's limits).
+    ys, xs = np.nonzero(mask)
+    N = ys.size
+    vals = np.ascontiguousarray(planes[:, ys, xs].T, dtype=np.float32)       # (N, C)
+    index = np.full((H, W), -1, np.int64)
+    index[ys, xs] = np.arange(N)
+    lab, p0, n0 = labels[ys, xs], pos[ys, xs], nrm[ys, xs]
+    acc = np.zeros((N, C), np.float32)
+    wsum = np.zeros(N, np.float64)
     r = int(radius)
-    padw = ((r, r), (r, r))
-    lab_p = np.pad(labels, padw, constant_values=-1)
-    pos_p = np.pad(pos, padw + ((0, 0),))
-    nrm_p = np.pad(nrm, padw + ((0, 0),))
-    pl_p = np.pad(planes, ((0, 0),) + padw)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
-            sl = (slice(r + dy, r + dy + H), slice(r + dx, r + dx + W))
-            same = (lab_p[sl] == labels) & mask
-            if not same.any():
+            y2, x2 = ys + dy, xs + dx
+            inside = (y2 >= 0) & (y2 < H) & (x2 >= 0) & (x2 < W)
+            j = np.full(N, -1, np.int64)
+            j[inside] = index[y2[inside], x2[inside]]
+            ok = np.flatnonzero(j >= 0)
+            ok = ok[lab[j[ok]] == lab[ok]]
+            if ok.size == 0:
                 continue
-            dw = np.sum((pos_p[sl] - pos) ** 2, axis=-1)
-            cos = np.clip(np.sum(nrm_p[sl] * nrm, axis=-1), 0.0, 1.0)
+            q = j[ok]
+            dw = np.sum((pos[ys[q], xs[q]] - p0[ok]) ** 2, axis=1)
+            cos = np.clip(np.sum(nrm[ys[q], xs[q]] * n0[ok], axis=1), 0.0, 1.0)
             w = (math.exp(-(dy * dy + dx * dx) / (2.0 * sigma_texels ** 2))
                  * np.exp(-dw / (2.0 * sigma_world ** 2)) * cos ** normal_power)
-            w = np.where(same, w, 0.0)
-            wsum += w
-            acc += pl_p[(slice(None),) + sl] * w
+            wsum[ok] += w
+            acc[ok] += vals[q] * w.astype(np.float32)[:, None]
     out = planes.astype(np.float32, copy=True)
-    ok = mask & (wsum > 0)
-    out[:, ok] = (acc[:, ok] / wsum[ok]).astype(np.float32)
+    good = wsum > 0
+    out[:, ys[good], xs[good]] = (acc[good] / wsum[good, None].astype(np.float32)).T
     return out
+
+
+def denoise_bounce(planes: np.ndarray, gb, filt: str, bands: int) -> np.ndarray:
+    """One bounce level's RGB SH planes (3K, H, W), covered texels from the
+    G-buffer ``gb`` (texel, position, normal), through filter ``filt``."""
+    if filt == "none":
+        return planes
+    H, W = gb.height, gb.width
+    mask = np.zeros(H * W, bool)
+    mask[gb.texel] = True
+    mask = mask.reshape(H, W)
+    if filt == "oidn":
+        return oidn_sh(planes, mask, bands)
+    if filt != "edge-aware":
+        raise ValueError(f"unknown denoiser {filt!r}; use one of {', '.join(FILTERS)}")
+    pos = np.zeros((H * W, 3))
+    nrm = np.zeros((H * W, 3))
+    pos[gb.texel], nrm[gb.texel] = gb.position, gb.normal
+    return edge_aware(planes, mask, pos.reshape(H, W, 3), nrm.reshape(H, W, 3), radius=1, sigma_texels=1.0)
 
 
 def oidn_available() -> bool:
@@ -143,7 +173,8 @@ def _oidn_run(img: np.ndarray, directional: bool) -> np.ndarray:
 
 
 def oidn_sh(planes: np.ndarray, mask: np.ndarray, bands: int) -> np.ndarray:
-    """OIDN RTLightmap on RGB SH planes (3K, H, W) (R coefficients, then G, then B).
+    """OIDN RTLightmap on SH planes: (3K, H, W) RGB (R coefficients, then G,
+    then B) or (K, H, W) scalar (a transfer texture).
 
     Raises ImportError with a clear message when pyoidn is not installed."""
     try:
@@ -152,19 +183,33 @@ def oidn_sh(planes: np.ndarray, mask: np.ndarray, bands: int) -> np.ndarray:
         raise ImportError("OIDN denoising needs the optional package pyoidn (pip install pyoidn)") from e
     K = bands * bands
     C, H, W = planes.shape
-    if C != 3 * K:
-        raise ValueError(f"expected {3 * K} RGB SH planes for {bands} bands, got {C}")
-    sh = planes.reshape(3, K, H, W).astype(np.float32)
-    dc = np.maximum(sh[:, 0], 0.0)                                        # (3, H, W)
-    dc_d = np.maximum(_oidn_run(dc.transpose(1, 2, 0), False).transpose(2, 0, 1), 0.0)
+    if C not in (K, 3 * K):
+        raise ValueError(f"expected {K} or {3 * K} SH planes for {bands} bands, got {C}")
+    rgb = C == 3 * K
+    sh = planes.reshape(C // K, K, H, W).astype(np.float32)               # (colours, K, H, W)
+    dc = np.maximum(sh[:, 0], 0.0)
+    dc3 = dc if rgb else np.repeat(dc, 3, axis=0)
+    dc_d = np.maximum(_oidn_run(dc3.transpose(1, 2, 0), False).transpose(2, 0, 1), 0.0)
+    if not rgb:
+        dc_d = dc_d.mean(axis=0, keepdims=True)
     out = np.empty_like(sh)
     out[:, 0] = dc_d
     scale = np.sqrt(2.0 * band_of_coeffs(bands) + 1.0)
     safe = np.where(dc > 1e-12, dc, 1.0)
-    for k in range(1, K):
-        ratio = np.where(dc > 1e-12, sh[:, k] / (scale[k] * safe), 0.0)
-        ratio = np.clip(ratio, -1.0, 1.0)
-        den = _oidn_run(ratio.transpose(1, 2, 0), True).transpose(2, 0, 1)
-        out[:, k] = den * scale[k] * dc_d
+    ratio = np.where(dc[:, None] > 1e-12, sh[:, 1:] / (scale[1:, None, None] * safe[:, None]), 0.0)
+    ratio = np.clip(ratio, -1.0, 1.0)                                     # (colours, K - 1, H, W)
+    if rgb:
+        for k in range(K - 1):
+            den = _oidn_run(ratio[:, k].transpose(1, 2, 0), True).transpose(2, 0, 1)
+            out[:, k + 1] = den * scale[k + 1] * dc_d
+    else:
+        # A scalar texture: three coefficients per directional lightmap image.
+        r = ratio[0]
+        for a in range(0, K - 1, 3):
+            grp = np.zeros((3, H, W), np.float32)
+            n = min(3, K - 1 - a)
+            grp[:n] = r[a:a + n]
+            den = _oidn_run(grp.transpose(1, 2, 0), True).transpose(2, 0, 1)
+            out[0, a + 1:a + 1 + n] = den[:n] * scale[a + 1:a + 1 + n, None, None] * dc_d[0]
     res = out.reshape(C, H, W)
     return np.where(mask[None], res, planes).astype(np.float32)

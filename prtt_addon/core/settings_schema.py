@@ -47,6 +47,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from .denoise import FILTERS as DENOISE_FILTERS
 from .sampling import DISTRIBUTIONS, SAMPLERS
 
 #: Bands the viewport preview can draw (== shader_source.MAX_PREVIEW_BANDS:
@@ -244,6 +245,13 @@ SETTINGS: tuple[Setting, ...] = (
             note="each level carries at most the surfaces' albedo times the previous one",
             ui=Ui("bounce_tolerance", "Bounce Tolerance", soft_hi=0.1, why_soft="above 10 % levels that "
                   "visibly light the scene stop", precision=4)),
+    Setting("bounce_denoise", "bake", "choice", "none", "filter each bounce level in texture space, see "
+            "docs/benchmarks.md (off by default: measured, it does not pay at the default rays)",
+            choices=_choices(DENOISE_FILTERS, {
+                "none": ("None", "the bounce textures as traced"),
+                "edge-aware": ("Edge-Aware", "joint bilateral within UV islands, guided by positions and normals"),
+                "oidn": ("OIDN", "Intel Open Image Denoise on normalised SH (needs the optional pyoidn)")}),
+            option="--bounce-denoise"),
     # --- job (both command lines; not a BakeSettings field) -----------------------------
     Setting("resolution", "job", "int", 1024, "texels per side of each texture set", unit="texels",
             lo=1, hi=MAX_RESOLUTION, option="--resolution", metavar="N",
