@@ -25,6 +25,10 @@ import time
 
 import numpy as np
 
+from .core.settings_schema import BY_NAME as _SETTINGS
+
+_BOUNCE_RAYS_DEFAULT = _SETTINGS["bounce_rays"].default
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -95,7 +99,7 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, expo
     return path
 
 
-def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: int = 64,
+def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: int | None = None,
         size=(960, 540), log=print) -> dict:
     import bpy
 
@@ -122,6 +126,8 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
     st = bpy.context.scene.prtt
     st.output_dir = os.path.join(out_dir, "textures")
     st.resolution, st.rays, st.texture_sets, st.unwrap_method = resolution, rays, "ATLAS", "SMART"
+    if bounce_rays is None:
+        bounce_rays = int(_BOUNCE_RAYS_DEFAULT)
     st.bounces, st.bounce_rays, st.vertex_transfer = 1, bounce_rays, True
     for ob in bpy.context.view_layer.objects:
         ob.select_set(ob.type == "MESH")
@@ -204,7 +210,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=os.path.join(ROOT, "out", "demo"), help="output folder (default out/demo)")
     p.add_argument("--resolution", type=int, default=1024, help="atlas texels per side")
     p.add_argument("--rays", type=int, default=256, help="transfer rays per texel")
-    p.add_argument("--bounce-rays", type=int, default=64)
+    p.add_argument("--bounce-rays", type=int, default=None, help="default: the bake default")
     p.add_argument("--size", default="960x540", help="each preview image, WxH")
 
 

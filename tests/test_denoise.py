@@ -98,7 +98,7 @@ def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
     from tests.test_bounce import corner_scene, sky
     sc = corner_scene({"name": "w", "base_color": [0.6, 0.5, 0.4], "specular": 0.0}, res=24)
     st = dict(rays=64, bounces=1, bounce_rays=16, half=False)
-    raw_m = bake_scene(sc, tmp_path / "raw", BakeSettings(**st), light=sky())
+    raw_m = bake_scene(sc, tmp_path / "raw", BakeSettings(bounce_denoise="none", **st), light=sky())
     m = bake_scene(sc, tmp_path / "den", BakeSettings(bounce_denoise="edge-aware", **st), light=sky())
     assert m["bounce"]["key"] != raw_m["bounce"]["key"]
     rep = [r for r in m["bounce"]["sets"] if r["name"] == "floor"][0]
@@ -111,6 +111,12 @@ def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
     assert rough(den) < 0.8 * rough(raw)
     # Same transfer (only the bounce changed).
     assert (tmp_path / "raw" / "floor.transfer.exr").read_bytes() == (tmp_path / "den" / "floor.transfer.exr").read_bytes()
+    # "auto" (the default) is edge-aware below 128 bounce rays, none from there on.
+    auto = bake_scene(sc, tmp_path / "auto", BakeSettings(**st), light=sky())
+    assert [r["denoise"]["filter"] for r in auto["bounce"]["sets"] if "denoise" in r] == ["edge-aware"] * 2
+    assert (tmp_path / "auto" / "floor.bounce1.exr").read_bytes() == (tmp_path / "den" / "floor.bounce1.exr").read_bytes()
+    many = bake_scene(sc, tmp_path / "many", BakeSettings(**dict(st, bounce_rays=128)), light=sky())
+    assert not any("denoise" in r for r in many["bounce"]["sets"])
     import prtt_addon.core.denoise as dn
     monkeypatch.setattr(dn, "oidn_available", lambda: False)
     with pytest.raises(BakeError, match="needs the optional package pyoidn"):

@@ -24,17 +24,19 @@ def main(argv=None) -> int:
     p.add_argument("--resolution", type=int, default=1024)
     p.add_argument("--rays", type=int, default=256, help="transfer rays per texel")
     p.add_argument("--bounces", type=int, default=1)
-    p.add_argument("--bounce-rays", type=int, default=64)
+    p.add_argument("--bounce-rays", type=int, default=BakeSettings().bounce_rays)
+    p.add_argument("--bounce-denoise", default=BakeSettings().bounce_denoise)
     p.add_argument("--env", default="forest")
     p.add_argument("--no-combined", dest="combined", action="store_false",
                    help="skip the third bake (transfer and bounces in one run)")
     args = p.parse_args(argv)
     sc = scenes.room_scene(args.resolution, atlas=True, materials=True)
     light = env_light(args.env, 5)
-    st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_rays=args.bounce_rays)
+    st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_rays=args.bounce_rays,
+                      bounce_denoise=args.bounce_denoise)
     print(f"room-class scene: {sc.n_triangles} triangles, {args.resolution}^2 atlas, "
           f"{len(sc.materials)} materials, light '{args.env}'; transfer {args.rays} rays, "
-          f"{args.bounces} bounce(s) x {args.bounce_rays} rays")
+          f"{args.bounces} bounce(s) x {args.bounce_rays} rays, denoise {args.bounce_denoise}")
     with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
         t = time.perf_counter()
         bake_scene(sc, d, BakeSettings(rays=args.rays, bounces=0), light=light)

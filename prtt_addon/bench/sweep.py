@@ -465,8 +465,8 @@ def main(argv=None) -> int:
                 x["bounce_rays"] for x in rows if x["bounce_rays"] <= 64))
             for f in sorted({r["filter"] for r in rows} - {"none"}):
                 need = rays_for_error(rows, f, raw64)
-                print(f"  {f}: reaches the raw default's error ({100 * raw64:.2f} %) with "
-                      f"{'never' if need is None else f'{need:.0f}'} rays (pays if <= half the default's)")
+                print(f"  {f}: reaches the raw 64-ray error ({100 * raw64:.2f} %, the default before #15) with "
+                      f"{'never' if need is None else f'{need:.0f}'} rays (on by default if <= 32)")
             if "denoise" in parts:
                 from .denoise_sweep import sweep_transfer_denoise
                 print("transfer rays x denoiser (room, %d^2):" % cfg.sweep_res, flush=True)

@@ -75,7 +75,7 @@ class BakeSettings(TransferSettings):
     bounces: int = _d("bounces")            # inter-reflection levels (0 = off; needs a light)
     bounce_rays: int = _d("bounce_rays")    # rays per texel per bounce level
     bounce_tolerance: float = _d("bounce_tolerance")  # stop levels below this fraction of the direct energy
-    bounce_denoise: str = _d("bounce_denoise")        # "none", "edge-aware" or "oidn" (core/denoise.py)
+    bounce_denoise: str = _d("bounce_denoise")        # "auto", "none", "edge-aware", "oidn" (core/denoise.py)
 
     def validate(self) -> "BakeSettings":
         """Check every field's type and range (ValueError "name must be ..., got ...")."""
@@ -510,7 +510,7 @@ class _Bake:
         from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, bake_bounce_set, bounce_settings,
                              exit_textures, glossy_triangles, incident_at, level_energy, open_texels,
                              surface_texels)
-        from .denoise import denoise_bounce
+        from .denoise import denoise_bounce, resolve_filter
         st, sc, K = self.st, self.sc, self.K
         bst = bounce_settings(st, st.bounce_rays)
         live = [r for r in results if r.incident is not None]
@@ -557,11 +557,12 @@ class _Bake:
                 self.seconds["bounce_trace"] += time.perf_counter() - t
                 t = time.perf_counter()
                 tex = tex.reshape(3 * K, r.gb.height, r.gb.width)
-                if st.bounce_denoise != "none":
+                filt = resolve_filter(st.bounce_denoise, st.bounce_rays)
+                if filt != "none":
                     td = time.perf_counter()
                     self.check_cancel()
-                    tex = denoise_bounce(tex, r.gb, st.bounce_denoise, st.bands)
-                    stats["denoise"] = {"filter": st.bounce_denoise, "seconds": time.perf_counter() - td}
+                    tex = denoise_bounce(tex, r.gb, filt, st.bands)
+                    stats["denoise"] = {"filter": filt, "seconds": time.perf_counter() - td}
                 energy += level_energy(tex.reshape(3 * K, -1)[:, r.gb.texel].T)
                 fname = f"{name}.bounce{level}.exr"
                 attrs = dict(self.attrs_common, level=level, rays=st.bounce_rays,

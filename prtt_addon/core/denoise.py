@@ -29,7 +29,21 @@ import numpy as np
 from .basis import band_of_coeffs
 
 #: The ``bounce_denoise`` setting's values (settings_schema declares their help).
-FILTERS = ("none", "edge-aware", "oidn")
+FILTERS = ("auto", "none", "edge-aware", "oidn")
+#: "auto" filters bounce levels traced with fewer rays than this with the
+#: edge-aware filter: measured on the room (docs/benchmarks.md), the filter
+#: reaches 64 raw rays' error with 24 rays and is better up to ~128 rays; from
+#: there on its bias (8 % of the converged bounce, contact light blurred over
+#: a texel) is more than the noise it removes.
+AUTO_MAX_RAYS = 128
+
+
+def resolve_filter(filt: str, bounce_rays: int) -> str:
+    """The filter a bounce level gets: ``filt``, or for "auto" edge-aware below
+    :data:`AUTO_MAX_RAYS` rays and none from there on."""
+    if filt == "auto":
+        return "edge-aware" if bounce_rays < AUTO_MAX_RAYS else "none"
+    return filt
 
 _OFFSETS8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 
@@ -128,7 +142,8 @@ def edge_aware(planes: np.ndarray, mask: np.ndarray, position: np.ndarray, norma
 
 def denoise_bounce(planes: np.ndarray, gb, filt: str, bands: int) -> np.ndarray:
     """One bounce level's RGB SH planes (3K, H, W), covered texels from the
-    G-buffer ``gb`` (texel, position, normal), through filter ``filt``."""
+    G-buffer ``gb`` (texel, position, normal), through filter ``filt`` (already
+    resolved: not "auto")."""
     if filt == "none":
         return planes
     H, W = gb.height, gb.width
