@@ -25,7 +25,8 @@ def test_bake_bench():
 
 def test_bounce_bench():
     out = bench("bounce", "--resolution", "256", "--rays", "64", "--bounce-rays", "16")
-    assert "shading evaluations" in out
+    assert "shading evaluations" in out and "bounce / transfer:" in out
+    assert "x the transfer-only bake" in out
 
 
 def test_sweep_quick(tmp_path):
@@ -33,6 +34,13 @@ def test_sweep_quick(tmp_path):
     for name in ("rays", "resolution", "bands", "storage", "scenes"):
         assert (tmp_path / f"{name}.csv").is_file(), out
     assert (tmp_path / "error_vs_seconds.png").is_file()
+
+
+def test_sweep_denoise_quick(tmp_path):
+    out = bench("sweep", "--quick", "--only", "bounce,denoise", "--out", str(tmp_path))
+    assert (tmp_path / "denoise.csv").is_file() and (tmp_path / "denoise_transfer.csv").is_file(), out
+    assert (tmp_path / "bounce_denoise.png").is_file() and (tmp_path / "transfer_denoise.png").is_file()
+    assert "edge-aware: reaches the raw 64-ray error" in out
 
 
 def test_stress_bench():
