@@ -111,11 +111,13 @@ def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
     assert rough(den) < 0.8 * rough(raw)
     # Same transfer (only the bounce changed).
     assert (tmp_path / "raw" / "floor.transfer.exr").read_bytes() == (tmp_path / "den" / "floor.transfer.exr").read_bytes()
-    # "auto" (the default) is edge-aware below 128 bounce rays, none from there on.
-    auto = bake_scene(sc, tmp_path / "auto", BakeSettings(**st), light=sky())
+    # "auto" is edge-aware below 128 bounce rays, none from there on; the default is none.
+    assert BakeSettings().bounce_denoise == "none"
+    auto = bake_scene(sc, tmp_path / "auto", BakeSettings(bounce_denoise="auto", **st), light=sky())
     assert [r["denoise"]["filter"] for r in auto["bounce"]["sets"] if "denoise" in r] == ["edge-aware"] * 2
     assert (tmp_path / "auto" / "floor.bounce1.exr").read_bytes() == (tmp_path / "den" / "floor.bounce1.exr").read_bytes()
-    many = bake_scene(sc, tmp_path / "many", BakeSettings(**dict(st, bounce_rays=128)), light=sky())
+    many = bake_scene(sc, tmp_path / "many", BakeSettings(bounce_denoise="auto", **dict(st, bounce_rays=128)),
+                      light=sky())
     assert not any("denoise" in r for r in many["bounce"]["sets"])
     import prtt_addon.core.denoise as dn
     monkeypatch.setattr(dn, "oidn_available", lambda: False)

@@ -60,7 +60,8 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
         ref = np.load(cache)
     else:
         print(f"  reference bounce ({ref_rays} rays per texel) ...", flush=True)
-        bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=ref_rays, half=False), light=light)
+        bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=ref_rays, half=False,
+                                                     bounce_denoise="none"), light=light)
         ref = _planes(os.path.join(work, f"{name}.bounce1.exr"))
         if not cfg.quick:
             os.makedirs(os.path.dirname(cache), exist_ok=True)
@@ -71,7 +72,8 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
     rows = []
     for rays in rays_list:
         t = time.perf_counter()
-        m = bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=rays, half=False), light=light)
+        m = bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=rays, half=False,
+                                               bounce_denoise="none"), light=light)
         bake_s = time.perf_counter() - t
         assert m["transfer_reused"]
         raw = _planes(os.path.join(work, f"{name}.bounce1.exr"))
@@ -110,12 +112,25 @@ def rays_for_error(rows: list, filt: str, error: float) -> float | None:
     return None
 
 
-def sweep_transfer_denoise(cfg, sc, ref: dict, tmp: str) -> list:
+#: Rays of the transfer denoise part's reference (default sampler and estimator,
+#: its own seed): its noise, ~0.5 % of the coefficients, is far below the
+#: 32 ... 512-ray errors compared against it.
+REF_TRANSFER_RAYS = 8192
+
+
+def sweep_transfer_denoise(cfg, sc, tmp: str) -> list:
     """Transfer textures (5 bands) at 32 ... 512 rays, raw and denoised, against
-    the sweep's converged reference (texel error; contact shadows are where a
-    filter that blurs shows up in it)."""
+    a converged transfer (texel error; contact shadows are where a filter that
+    blurs shows up in it)."""
     from .sweep import load_set_textures, texel_error
     rays_list = (16, 64) if cfg.quick else (32, 64, 128, 256, 512)
+    ref_rays = 1024 if cfg.quick else REF_TRANSFER_RAYS
+    ref_dir = os.path.join(scenes.CACHE, f"denoise-ref-{cfg.sweep_res}-{ref_rays}")
+    if not os.path.isfile(os.path.join(ref_dir, "manifest.json")):
+        print(f"  transfer reference ({ref_rays} rays per texel, cached) ...", flush=True)
+        bake_scene(sc, ref_dir, BakeSettings(rays=ref_rays, bands=5, half=False, bounces=0, seed=777),
+                   skip_if_unchanged=False)
+    ref = load_set_textures(ref_dir, sc)
     guides = {}
     for s, name in enumerate(sc.set_names):
         mask, pos, nrm = _guides(sc, s)

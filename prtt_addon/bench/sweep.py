@@ -466,13 +466,11 @@ def main(argv=None) -> int:
             for f in sorted({r["filter"] for r in rows} - {"none"}):
                 need = rays_for_error(rows, f, raw64)
                 print(f"  {f}: reaches the raw 64-ray error ({100 * raw64:.2f} %, the default before #15) with "
-                      f"{'never' if need is None else f'{need:.0f}'} rays (on by default if <= 32)")
+                      f"{'never' if need is None else f'{need:.0f}'} rays (rays criterion: <= 32)")
             if "denoise" in parts:
                 from .denoise_sweep import sweep_transfer_denoise
                 print("transfer rays x denoiser (room, %d^2):" % cfg.sweep_res, flush=True)
-                if not {"rays", "bands", "storage"} & set(parts):
-                    ref_dir, ref = reference(cfg, sc)
-                trows = sweep_transfer_denoise(cfg, sc, ref, tmp)
+                trows = sweep_transfer_denoise(cfg, sc, tmp)
                 results["denoise_transfer"] = trows
                 raw64 = next(r["error"] for r in trows if r["filter"] == "none" and r["rays"] == max(
                     x["rays"] for x in trows if x["rays"] <= 256))

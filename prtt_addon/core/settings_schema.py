@@ -236,7 +236,7 @@ SETTINGS: tuple[Setting, ...] = (
             unit="levels", lo=0, hi=8, option="--bounces", metavar="N", ui=Ui("bounces", "Bounces", soft_hi=3,
                                                                                 why_soft="each level adds "
                                                                                          "less light")),
-    Setting("bounce_rays", "bake", "int", 32, "rays per texel per bounce level", unit="rays", lo=1, hi=1 << 14,
+    Setting("bounce_rays", "bake", "int", 64, "rays per texel per bounce level", unit="rays", lo=1, hi=1 << 14,
             option="--bounce-rays", metavar="N", ui=Ui("bounce_rays", "Bounce Rays", soft_hi=1024,
                                                        why_soft="bounce light is smooth")),
     Setting("bounce_tolerance", "bake", "float", 0.005, "stop adding bounce levels once one carries less than "
@@ -245,8 +245,8 @@ SETTINGS: tuple[Setting, ...] = (
             note="each level carries at most the surfaces' albedo times the previous one",
             ui=Ui("bounce_tolerance", "Bounce Tolerance", soft_hi=0.1, why_soft="above 10 % levels that "
                   "visibly light the scene stop", precision=4)),
-    Setting("bounce_denoise", "bake", "choice", "auto", "filter each bounce level in texture space "
-            "(docs/benchmarks.md has the curves)",
+    Setting("bounce_denoise", "bake", "choice", "none", "filter each bounce level in texture space "
+            "(off by default: on the run-time curve it does not pay, docs/benchmarks.md)",
             choices=_choices(DENOISE_FILTERS, {
                 "auto": ("Auto", "edge-aware below 128 bounce rays (where it pays, measured), none from there on"),
                 "none": ("None", "the bounce textures as traced"),
