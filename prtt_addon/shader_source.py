@@ -38,7 +38,6 @@ the guaranteed minimum); NormalMatrix[3][3] is the sign of det(ModelMatrix).
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 
 MODES = ("tpfl", "tp", "diffuse", "vertex-tpfl", "vertex-tp")
@@ -177,8 +176,3 @@ def light_block_bytes(bands: int) -> int:
     """Size of the PRTTLight uniform block for ``bands``."""
     k, k4 = sh_sizes(bands)
     return 16 * (3 * k * k4 + k)
-
-
-def gaunt_texture_shape(bands: int) -> tuple[int, int]:
-    """(height, width) of the Gaunt non-zero texture."""
-    return max(1, math.ceil(gaunt_nnz(bands) / GAUNT_WIDTH)), GAUNT_WIDTH

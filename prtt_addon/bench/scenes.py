@@ -77,13 +77,6 @@ def _wall(center, size, facing) -> mg.Mesh:
     return mg.Mesh(v, p.faces)
 
 
-def bunny_subdivided(levels: int) -> tuple[str, mg.Mesh]:
-    b = mg.load_obj(mg.asset_path("stanford-bunny.obj"), smooth=False)
-    for _ in range(levels):
-        b = mg.subdivide(b)
-    return ("bunny", b)
-
-
 def triangle_scaling_scene(target: int, resolution: int = 1024) -> Scene:
     """The room (same atlas, same texels) plus copies of the 69K-triangle bunny
     to reach about ``target`` triangles: bake time vs. triangles with

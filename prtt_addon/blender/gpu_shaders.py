@@ -54,7 +54,3 @@ def surface_shader(mode: str, bands: int, bounce: bool):
 
 def depth_shader():
     return build(depth_variant())
-
-
-def clear_cache() -> None:
-    _CACHE.clear()

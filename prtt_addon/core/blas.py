@@ -58,8 +58,3 @@ def single_threaded_blas():
     finally:
         for put, n in saved:
             put(n)
-
-
-def blas_threads() -> list[int]:
-    """Current OpenBLAS thread counts (one per loaded OpenBLAS), for tests."""
-    return [get() for get, _ in _openblas_libs()]

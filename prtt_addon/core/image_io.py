@@ -12,8 +12,6 @@ import re
 
 import numpy as np
 
-HDR_SUFFIXES = (".exr", ".hdr", ".pic", ".rgbe")
-
 # Environment images come from users and the web: their headers are checked
 # against these before any pixel memory is allocated.
 #: Bytes of a Radiance header before its resolution line (real ones are < 1 KB).

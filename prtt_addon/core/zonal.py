@@ -79,13 +79,6 @@ def phong_factors(exponent, bands: int) -> np.ndarray:
     return out
 
 
-def zh_factors_from_zh(zh) -> np.ndarray:
-    """Convolution factors A_l = sqrt(4 pi / (2l + 1)) h_l from ZH coefficients."""
-    h = np.asarray(zh, dtype=np.float64)
-    l = np.arange(h.shape[-1])
-    return h * np.sqrt(4.0 * math.pi / (2 * l + 1))
-
-
 def convolve(coeffs, factors, *, axis: int = 0) -> np.ndarray:
     """Scale every band l of ``coeffs`` by ``factors[l]`` along ``axis``.
 
