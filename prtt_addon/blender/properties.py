@@ -9,10 +9,18 @@ from ..core import settings_schema
 UV_MAP = "PRTT"
 
 
+_ENV_ITEMS: list = []
+
+
 def _builtin_env_items(self, context):
-    from ..core.envmap import builtin_environments
-    names = sorted(builtin_environments()) or ["forest"]
-    return [(n, n.capitalize(), f"Blender's studio light '{n}'") for n in names]
+    """Blender's studio HDRIs, listed once: the callback runs on every redraw, and
+    Blender needs the returned strings to stay referenced from Python (a fresh
+    list each time would also scan the datafiles folder each time)."""
+    if not _ENV_ITEMS:
+        from ..core.envmap import builtin_environments
+        names = sorted(builtin_environments()) or ["forest"]
+        _ENV_ITEMS.extend((n, n.capitalize(), f"Blender's studio light '{n}'") for n in names)
+    return _ENV_ITEMS
 
 
 def redraw_viewports(context) -> None:
