@@ -248,7 +248,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("bounce_denoise", "bake", "choice", "none", "filter each bounce level in texture space "
             "(off by default: on the run-time curve it does not pay, docs/benchmarks.md)",
             choices=_choices(DENOISE_FILTERS, {
-                "auto": ("Auto", "edge-aware below 128 bounce rays (where it pays, measured), none from there on"),
+                "auto": ("Auto", "edge-aware below 128 bounce rays (where it lowers the error at equal rays), "
+                         "none from there on"),
                 "none": ("None", "the bounce textures as traced"),
                 "edge-aware": ("Edge-Aware", "joint bilateral within UV islands, guided by positions and normals"),
                 "oidn": ("OIDN", "Intel Open Image Denoise on normalised SH (needs the optional pyoidn)")}),
