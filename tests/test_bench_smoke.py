@@ -40,7 +40,8 @@ def test_sweep_denoise_quick(tmp_path):
     out = bench("sweep", "--quick", "--only", "bounce,denoise", "--out", str(tmp_path))
     assert (tmp_path / "denoise.csv").is_file() and (tmp_path / "denoise_transfer.csv").is_file(), out
     assert (tmp_path / "bounce_denoise.png").is_file() and (tmp_path / "transfer_denoise.png").is_file()
-    assert "edge-aware: reaches the raw 64-ray error" in out
+    assert "edge-aware: reaches the raw 32-ray bounce error" in out
+    assert "edge-aware: reaches the raw 64-ray transfer error" in out
 
 
 def test_stress_bench():

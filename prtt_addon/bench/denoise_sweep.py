@@ -99,10 +99,10 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
     return rows
 
 
-def rays_for_error(rows: list, filt: str, error: float) -> float | None:
-    """Bounce rays the ``filt`` curve needs to reach ``error`` (log-linear
+def rays_for_error(rows: list, filt: str, error: float, rays_key: str = "bounce_rays") -> float | None:
+    """Rays the ``filt`` curve needs to reach ``error`` (log-linear
     interpolation between measured points; None when it never does)."""
-    pts = sorted((r["bounce_rays"], r["error"]) for r in rows if r["filter"] == filt)
+    pts = sorted((r[rays_key], r["error"]) for r in rows if r["filter"] == filt)
     for (r0, e0), (r1, e1) in zip(pts, pts[1:]):
         if e0 >= error >= e1 and e0 != e1:
             f = (np.log(e0) - np.log(error)) / (np.log(e0) - np.log(e1))
@@ -111,6 +111,16 @@ def rays_for_error(rows: list, filt: str, error: float) -> float | None:
         return float(pts[0][0])
     return None
 
+
+def print_rays_needed(rows: list, rays_key: str, raw_rays: int, what: str) -> None:
+    """Per denoiser: the rays it needs to reach the raw curve's error at
+    ``raw_rays`` (or the largest measured count below it), against half of them."""
+    base = max(r[rays_key] for r in rows if r[rays_key] <= raw_rays)
+    raw = next(r["error"] for r in rows if r["filter"] == "none" and r[rays_key] == base)
+    for f in sorted({r["filter"] for r in rows} - {"none"}):
+        need = rays_for_error(rows, f, raw, rays_key)
+        print(f"  {f}: reaches the raw {base}-ray {what} error ({100 * raw:.2f} %) with "
+              f"{'never' if need is None else f'{need:.0f}'} rays (rays criterion: <= {base // 2})")
 
 #: Rays of the transfer denoise part's reference (default sampler and estimator,
 #: its own seed): its noise, ~0.5 % of the coefficients, is far below the

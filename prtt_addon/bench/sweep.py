@@ -456,28 +456,15 @@ def main(argv=None) -> int:
             results["storage"] = sweep_storage(cfg, sc, ref, previewer, tmp)
             part_seconds["storage"] = time.perf_counter() - t
         if "bounce" in parts or "denoise" in parts:
-            from .denoise_sweep import rays_for_error, sweep_bounce_denoise
+            from .denoise_sweep import print_rays_needed, sweep_bounce_denoise, sweep_transfer_denoise
             print("bounce rays x denoiser (room, level 1):", flush=True)
             t = time.perf_counter()
-            rows = sweep_bounce_denoise(cfg, light_fn(5), tmp, with_denoise="denoise" in parts)
-            results["denoise"] = rows
-            raw64 = next(r["error"] for r in rows if r["filter"] == "none" and r["bounce_rays"] == max(
-                x["bounce_rays"] for x in rows if x["bounce_rays"] <= 64))
-            for f in sorted({r["filter"] for r in rows} - {"none"}):
-                need = rays_for_error(rows, f, raw64)
-                print(f"  {f}: reaches the raw 64-ray error ({100 * raw64:.2f} %, the default before #15) with "
-                      f"{'never' if need is None else f'{need:.0f}'} rays (rays criterion: <= 32)")
+            results["denoise"] = sweep_bounce_denoise(cfg, light_fn(5), tmp, with_denoise="denoise" in parts)
+            print_rays_needed(results["denoise"], "bounce_rays", 64, "bounce")    # 64: the default
             if "denoise" in parts:
-                from .denoise_sweep import sweep_transfer_denoise
                 print("transfer rays x denoiser (room, %d^2):" % cfg.sweep_res, flush=True)
-                trows = sweep_transfer_denoise(cfg, sc, tmp)
-                results["denoise_transfer"] = trows
-                raw64 = next(r["error"] for r in trows if r["filter"] == "none" and r["rays"] == max(
-                    x["rays"] for x in trows if x["rays"] <= 256))
-                for f in sorted({r["filter"] for r in trows} - {"none"}):
-                    need = rays_for_error([dict(r, bounce_rays=r["rays"]) for r in trows], f, raw64)
-                    print(f"  {f}: reaches the raw 256-ray error ({100 * raw64:.2f} %) with "
-                          f"{'never' if need is None else f'{need:.0f}'} rays (pays if <= 128)")
+                results["denoise_transfer"] = sweep_transfer_denoise(cfg, sc, tmp)
+                print_rays_needed(results["denoise_transfer"], "rays", 256, "transfer")
             part_seconds["denoise"] = time.perf_counter() - t
         if "scenes" in parts:
             print("the paper's scene classes (256 rays):", flush=True)

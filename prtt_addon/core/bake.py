@@ -514,6 +514,7 @@ class _Bake:
         st, sc, K = self.st, self.sc, self.K
         bst = bounce_settings(st, st.bounce_rays)
         live = [r for r in results if r.incident is not None]
+        filt = resolve_filter(st.bounce_denoise, st.bounce_rays)
         reports, files = [], []
         skip, surf = {}, {}
         t = time.perf_counter()
@@ -557,7 +558,6 @@ class _Bake:
                 self.seconds["bounce_trace"] += time.perf_counter() - t
                 t = time.perf_counter()
                 tex = tex.reshape(3 * K, r.gb.height, r.gb.width)
-                filt = resolve_filter(st.bounce_denoise, st.bounce_rays)
                 if filt != "none":
                     td = time.perf_counter()
                     self.check_cancel()

@@ -177,7 +177,6 @@ def basis_unchecked(d: np.ndarray, n: int, dtype=np.float64, *, coeff_major: boo
     x, y, z = d if isinstance(d, tuple) else (d[:, 0], d[:, 1], d[:, 2])
     N = x.shape[0]
     out = np.empty((n * n, N), dtype=dtype)
-    col = out
     sect = _sectoral_constants(n).astype(dtype)
     sqrt2 = dtype.type(math.sqrt(2.0))
     cm = np.ones_like(x)   # Re (x + i y)^m
@@ -200,8 +199,8 @@ def basis_unchecked(d: np.ndarray, n: int, dtype=np.float64, *, coeff_major: boo
                 p = a * (z * p_cur - b * p_prev)
                 p_prev, p_cur = p_cur, p
             if m == 0:
-                col[l * l + l] = p
+                out[l * l + l] = p
             else:
-                np.multiply(sqrt2 * p, cm, out=col[l * l + l + m])
-                np.multiply(sqrt2 * p, sm, out=col[l * l + l - m])
+                np.multiply(sqrt2 * p, cm, out=out[l * l + l + m])
+                np.multiply(sqrt2 * p, sm, out=out[l * l + l - m])
     return out if coeff_major else np.ascontiguousarray(out.T)

@@ -64,7 +64,7 @@ import time
 
 import numpy as np
 
-from .basis import band_of_coeffs, basis_unchecked
+from .basis import basis_unchecked
 from .blas import single_threaded_blas
 from .dilate import dilate
 from .gaunt import tpfl_matrix
@@ -74,9 +74,9 @@ from .parallel import run_chunks
 from .raytrace import RayScene
 from .rotation import rotate_zyz
 from .transfer import (Cancelled, Points, TransferSettings, _estimator_tables, chunk_frames,  # noqa: F401
-                       chunk_plan)
+                       chunk_plan, shared_rotation, unoccluded_transfer)
 from .sampling import pattern_bank
-from .zonal import clamped_cosine_factors, phong_factors
+from .shading import lobe_factors
 
 SQRT_4PI = math.sqrt(4.0 * math.pi)
 
@@ -172,10 +172,6 @@ class ExitTextures:
     diffuse: np.ndarray
     glossy: np.ndarray | None
 
-    @property
-    def nbytes(self) -> int:
-        return self.diffuse.nbytes + (0 if self.glossy is None else self.glossy.nbytes)
-
 
 def exit_textures(surf: SurfaceTexels, Lp: np.ndarray, bands: int) -> ExitTextures:
     """Exit radiance textures from incident radiance ``Lp`` (M, 3, K) at the
@@ -189,9 +185,7 @@ def exit_textures(surf: SurfaceTexels, Lp: np.ndarray, bands: int) -> ExitTextur
     D[...] = (surf.albedo * (SQRT_4PI / math.pi)) * Lp[:, :, 0]
     glossy = None
     if surf.glossy:
-        u, inv = np.unique(surf.exponent, return_inverse=True)
-        A = phong_factors(u, bands)[:, band_of_coeffs(bands)].astype(np.float32)     # (distinct, K)
-        A = A[inv.reshape(-1)]                                                      # (M, K)
+        A = lobe_factors(surf.exponent, bands).astype(np.float32)                    # (M, K)
         spec = surf.spec.astype(np.float32)
         glossy = np.empty((M + 1, 6 + 3 * K), np.float32)
         glossy[M] = 0.0
@@ -205,13 +199,11 @@ def exit_textures(surf: SurfaceTexels, Lp: np.ndarray, bands: int) -> ExitTextur
     return ExitTextures(surf.width, surf.height, surf.row_of, diffuse, glossy)
 
 
-def incident_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray | None, bands: int) -> np.ndarray:
-    """Lp (M, 3, K) float32 at the valid texels: M(L) T for a transfer texture
-    (``light`` given), the RGB SH itself for a bounce texture (``light`` None)."""
+def incident_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray, bands: int) -> np.ndarray:
+    """Lp (M, 3, K) float32 at the valid texels: M(L) T of a transfer texture lit
+    by ``light`` (level 1; later levels read the previous bounce planes)."""
     K = bands * bands
     rows = incident.pm[surf.valid]
-    if light is None:
-        return rows.reshape(-1, 3, K)
     Mx = tpfl_matrix(np.asarray(light)[:K], bands)                               # (3, K, K)
     M2 = np.ascontiguousarray(Mx.reshape(3 * K, K).T, dtype=np.float32)
     return (rows[:, :K] @ M2).reshape(-1, 3, K)
@@ -270,9 +262,9 @@ class ExitShader:
             if sel.size == 0:
                 continue
             f = np.take(self.uv_frame, tri[sel], axis=0)
-            us, vs = u[sel, None], v[sel, None]
-            x = f[:, 0] + us[:, 0] * f[:, 2] + vs[:, 0] * f[:, 4]
-            y = f[:, 1] + us[:, 0] * f[:, 3] + vs[:, 0] * f[:, 5]
+            us, vs = u[sel], v[sel]
+            x = f[:, 0] + us * f[:, 2] + vs * f[:, 4]
+            y = f[:, 1] + us * f[:, 3] + vs * f[:, 5]
             ix = np.clip((x * ex.width).astype(np.int64), 0, ex.width - 1)
             iy = np.clip((y * ex.height).astype(np.int64), 0, ex.height - 1)
             near = ex.row_of[iy * ex.width + ix]
@@ -318,20 +310,12 @@ class ExitShader:
 def open_texels(T_texels: np.ndarray, normals: np.ndarray, bands: int,
                 tol: float = OPEN_TOLERANCE, block: int = 1 << 16) -> np.ndarray:
     """(N,) bool: transfer equals the unoccluded clamped cosine (no ray blocked).
-
-    The unoccluded transfer is A_l y_lm(n) (transfer.unoccluded_transfer),
-    built here coefficient by coefficient in blocks of texels so the test
-    needs no (N, K) float64 temporaries."""
-    A = clamped_cosine_factors(bands)[band_of_coeffs(bands)]
-    n = np.asarray(normals, np.float64)
-    out = np.empty(n.shape[0], bool)
-    for a in range(0, n.shape[0], block):
-        b = min(a + block, n.shape[0])
-        nb = n[a:b]
-        nb = nb / np.linalg.norm(nb, axis=1, keepdims=True)
-        y = basis_unchecked((nb[:, 0].copy(), nb[:, 1].copy(), nb[:, 2].copy()), bands, coeff_major=True)
-        diff = np.abs(np.asarray(T_texels[a:b], np.float64).T - A[:, None] * y)
-        out[a:b] = diff.max(axis=0) <= tol
+    In blocks of texels: whole-set (N, K) float64 temporaries made it 2-3x slower."""
+    out = np.empty(len(T_texels), bool)
+    for a in range(0, out.size, block):
+        b = min(a + block, out.size)
+        A = unoccluded_transfer(normals[a:b], bands)
+        out[a:b] = np.abs(np.asarray(T_texels[a:b], np.float64) - A).max(axis=1) <= tol
     return out
 
 
@@ -382,9 +366,7 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
         Lt = np.ascontiguousarray(L.reshape(n, S, 3).transpose(0, 2, 1)).reshape(n * 3, S)
         if fr.shared:
             # One frame: turn the estimator table to world once, not every texel's result.
-            ang = lambda v: np.full(K, v)  # noqa: E731
-            Dt = rotate_zyz(np.eye(K), ang(fr.alpha[0]), ang(fr.beta[0]), ang(fr.gamma[0]))
-            world = Lt @ (table[g].astype(np.float64) @ Dt).astype(np.float32)
+            world = Lt @ (table[g].astype(np.float64) @ shared_rotation(fr, K)).astype(np.float32)
         else:
             local = Lt @ table[g]
             rep = lambda a: np.repeat(a, 3)  # noqa: E731
@@ -404,8 +386,6 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
         if progress:
             progress(done, todo.size, stats["rays_traced"])
 
-    # The chunks' products are small and run one per core: OpenBLAS's own
-    # threads would only spin against them (a third of the time, measured).
     # The chunks' products are small and run one per core: OpenBLAS's own
     # threads would only spin against them (a third of the time, measured).
     with single_threaded_blas():

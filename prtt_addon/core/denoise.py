@@ -46,6 +46,7 @@ def resolve_filter(filt: str, bounce_rays: int) -> str:
         return "edge-aware" if bounce_rays < AUTO_MAX_RAYS else "none"
     return filt
 
+
 _OFFSETS8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 
 
@@ -169,7 +170,7 @@ def denoise_bounce(planes: np.ndarray, gb, filt: str, bands: int) -> np.ndarray:
     pos = np.zeros((H * W, 3))
     nrm = np.zeros((H * W, 3))
     pos[gb.texel], nrm[gb.texel] = gb.position, gb.normal
-    return edge_aware(planes, mask, pos.reshape(H, W, 3), nrm.reshape(H, W, 3), radius=1, sigma_texels=1.0)
+    return edge_aware(planes, mask, pos.reshape(H, W, 3), nrm.reshape(H, W, 3))
 
 
 def oidn_available() -> bool:

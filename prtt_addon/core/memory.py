@@ -66,10 +66,10 @@ def bvh_bytes(n_triangles: int) -> int:
 
 def bounce_resident_bytes(width: int, height: int, n_coeffs: int) -> int:
     """Bytes a set keeps in memory during bounce levels, per texel: its incident
-    radiance at the valid texels (3K floats), its exit textures (3 + 3 + 3K
-    floats, read by every set's rays), the level being baked (3K floats), its
-    surface texels (10 doubles) and its G-buffer (~140 B): 4 (9K + 6) + 220."""
-    return width * height * (4 * (9 * n_coeffs + 6) + 220)
+    radiance at the valid texels (3K floats), its exit rows (3 + 6 + 3K floats,
+    read by every set's rays), the level being baked (3K floats), its surface
+    texels (10 doubles) and its G-buffer (~140 B): 4 (9K + 9) + 220."""
+    return width * height * (4 * (9 * n_coeffs + 9) + 220)
 
 
 def check_fits(needed: int, what: str, *, fraction: float = 0.8) -> None:

@@ -55,10 +55,8 @@ def planes_from_rows(texel: np.ndarray, rows: np.ndarray, n_texels: int, *,
     return planes
 
 
-def bilinear_taps(width: int, height: int, uv: np.ndarray):
-    """The four texels (flat indices, each (n,) int64: bottom-left, bottom-right,
-    top-left, top-right) and the blend weights fx, fy ((n, 1) float32) of
-    bilinear lookups at uv (n, 2); share them between textures of one layout."""
+def bilinear(tex_pm: np.ndarray, width: int, height: int, uv: np.ndarray) -> np.ndarray:
+    """Sample a pixel-major texture (H * W, C) at uv (n, 2); returns (n, C) float32."""
     x = np.asarray(uv[:, 0], dtype=np.float64) * width - 0.5
     y = np.asarray(uv[:, 1], dtype=np.float64) * height - 0.5
     x0 = np.floor(x)
@@ -69,26 +67,15 @@ def bilinear_taps(width: int, height: int, uv: np.ndarray):
     y0 = y0.astype(np.int64)
     xa, xb = np.clip(x0, 0, width - 1), np.clip(x0 + 1, 0, width - 1)
     ya, yb = np.clip(y0, 0, height - 1) * width, np.clip(y0 + 1, 0, height - 1) * width
-    return ya + xa, ya + xb, yb + xa, yb + xb, fx, fy
-
-
-def gather(tex_pm: np.ndarray, taps) -> np.ndarray:
-    """Blend a pixel-major texture (H * W, C) at :func:`bilinear_taps`; (n, C) float32."""
-    i00, i01, i10, i11, fx, fy = taps
     # np.take copies whole rows (several times faster than fancy indexing here);
     # the blend runs in place to keep temporaries down.
-    top = np.take(tex_pm, i00, axis=0)
+    top = np.take(tex_pm, ya + xa, axis=0)
     top *= 1 - fx
-    top += np.take(tex_pm, i01, axis=0) * fx
-    bottom = np.take(tex_pm, i10, axis=0)
+    top += np.take(tex_pm, ya + xb, axis=0) * fx
+    bottom = np.take(tex_pm, yb + xa, axis=0)
     bottom *= 1 - fx
-    bottom += np.take(tex_pm, i11, axis=0) * fx
+    bottom += np.take(tex_pm, yb + xb, axis=0) * fx
     top *= 1 - fy
     bottom *= fy
     top += bottom
     return top
-
-
-def bilinear(tex_pm: np.ndarray, width: int, height: int, uv: np.ndarray) -> np.ndarray:
-    """Sample a pixel-major texture (H * W, C) at uv (n, 2); returns (n, C) float32."""
-    return gather(tex_pm, bilinear_taps(width, height, uv))

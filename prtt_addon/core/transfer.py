@@ -183,6 +183,13 @@ def chunk_frames(rs: RayScene, pts: Points, idx: np.ndarray, seed: int,
     return ChunkFrames(alpha, beta, gamma, R, org, ng.astype(np.float32), hz)
 
 
+def shared_rotation(fr: ChunkFrames, K: int) -> np.ndarray:
+    """D^T (K, K) float64 of a shared-frame chunk: world coefficients = local @ D^T."""
+    # Rows of rotate_zyz(I) are D(R) e_i, i.e. it returns D^T.
+    ang = lambda v: np.full(K, v)  # noqa: E731
+    return rotate_zyz(np.eye(K), ang(fr.alpha[0]), ang(fr.beta[0]), ang(fr.gamma[0]))
+
+
 def pattern_count(st: TransferSettings) -> int:
     """Patterns in the bank: n_patterns, capped so the bank stays <= 64 MB."""
     return max(1, min(st.n_patterns, int(2 ** 24 // max(st.rays * st.bands ** 2, 1))))
@@ -407,10 +414,7 @@ class ChunkKernel:
         return rotate_zyz(local, fr.alpha, fr.beta, fr.gamma), (traced, below, early)
 
     def _shared_rotation(self, fr: ChunkFrames) -> np.ndarray:
-        """D^T (K, K) float64 of a shared frame: world coefficients = local @ D^T."""
-        # Rows of rotate_zyz(I) are D(R) e_i, i.e. it returns D^T.
-        ang = lambda v: np.full(self.K, v)  # noqa: E731
-        return rotate_zyz(np.eye(self.K), ang(fr.alpha[0]), ang(fr.beta[0]), ang(fr.gamma[0]))
+        return shared_rotation(fr, self.K)
 
     def _run_adaptive(self, g, fr, n, cancel):
         st, K = self.st, self.K
