@@ -206,7 +206,7 @@ def int_range(lo: int, hi: int):
 def number_range(lo: float, hi: float, *, above: bool = False):
     """Converter: a finite number lo..hi (``above``: strictly greater than lo)."""
     import math
-    from .core.settings_schema import _num
+    from .core.bake.settings_schema import _num
     where = f"> {_num(lo)} and <= {_num(hi)}" if above else f"{_num(lo)}..{_num(hi)}"
 
     def convert(text: str) -> float:
@@ -245,11 +245,11 @@ def choice_option(p, *names, values, help=None, default=None, dest=None):
 
 
 def add_setting_options(group, settings, *, defaults: dict | None = None) -> None:
-    """Options for schema settings (core/settings_schema.py): ``dest`` is the
+    """Options for schema settings (core/bake/settings_schema.py): ``dest`` is the
     setting's name and every default is None (not given: the job's, the
     scene's or the schema's default applies). ``defaults``: {name: what
     applies when the option is not given}, where that is not the schema's."""
-    from .core.settings_schema import _num
+    from .core.bake.settings_schema import _num
     defaults = defaults or {}
     for s in settings:
         default_text = defaults.get(s.name)
@@ -284,7 +284,7 @@ ENV_STRENGTH_MAX = 1e6
 
 def add_bake_options(p: argparse.ArgumentParser) -> None:
     """``bake-job``'s options: every bake setting of the schema, and the light."""
-    from .core import settings_schema as schema
+    from .core.bake import settings_schema as schema
     g = p.add_argument_group("bake settings (override the job's; docs/format.md section 5)")
     add_setting_options(g, schema.of_scope("job") + schema.core_settings(),
                         defaults={"resolution": "default: each set's own"})
@@ -310,7 +310,8 @@ def env_light(source: str, bands: int, strength: float = 1.0, rotation_z_deg: fl
 
     import numpy as np
 
-    from .core import envmap, sh
+    from .core.sh import envmap
+    from .core import sh
     L = envmap.project_equirect(source, bands) * strength
     if rotation_z_deg:
         # Mapping (Point) turns the lookup direction: L(w) = img(R w) = img((R^T)^-1 w),
@@ -324,9 +325,9 @@ def env_light(source: str, bands: int, strength: float = 1.0, rotation_z_deg: fl
 def _cmd_bake_job(args) -> int:
     import threading
 
-    from .core.memory import MemoryLimitError
+    from .core.bake.memory import MemoryLimitError
     from .worker import EXIT_CANCELLED, finish, install_cancel_handlers, run_job
-    from .core.settings_schema import core_settings
+    from .core.bake.settings_schema import core_settings
     cancel = threading.Event()
     progress = ConsoleProgress(quiet=args.quiet)
     watchdog = install_cancel_handlers(cancel, progress)
@@ -370,7 +371,7 @@ def _cmd_bake_blend(args) -> int:
 
 def _cmd_render_blend(args) -> int:
     """``python -m prtt_addon render scene.blend --out img ...``: the viewport's draw code, offscreen."""
-    return _in_bpy("preview_render.render_file", args.rest, "python -m prtt_addon render",
+    return _in_bpy("preview.render.render_file", args.rest, "python -m prtt_addon render",
                    "blender -c prtt render scene.blend --out image.png")
 
 

@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from .core.settings_schema import BY_NAME as _SETTINGS
+from .core.bake.settings_schema import BY_NAME as _SETTINGS
 
 _BOUNCE_RAYS_DEFAULT = _SETTINGS["bounce_rays"].default
 
@@ -49,8 +49,8 @@ def floor_textures(n: int = 512, planks: int = 8, seed: int = 3):
 def build_scene(bpy) -> dict:
     """The demo scene in the current (empty) Blender file; returns its objects."""
     from .bench.scenes import ROOM_MATERIALS, room_objects
-    from .blender import scene_build as sb
-    from .core.envmap import builtin_environment_path
+    from .bench import scene_build as sb
+    from .core.sh.envmap import builtin_environment_path
     base, rough = floor_textures()
     mats = {}
     for name, spec in ROOM_MATERIALS.items():
@@ -77,7 +77,7 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, expo
                  title: str = "") -> str:
     """Two (H, W, 4) linear renders, row 0 at the bottom, as one labelled PNG
     (a label over each half, ``title`` over both)."""
-    from .core.image_write import srgb_encode, write_image
+    from .core.io.image_write import srgb_encode, write_image
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -104,8 +104,8 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
     import bpy
 
     from . import register
-    from .blender.preview_render import exposure_of, render_scene
-    from .blender.properties import UV_MAP
+    from .blender.preview.render import exposure_of, render_scene
+    from .blender.ui.properties import UV_MAP
     t_all = time.perf_counter()
     times = {}
     os.makedirs(out_dir, exist_ok=True)
@@ -146,7 +146,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         if e.get("type") == "progress" and e.get("fraction") == 1.0:
             log(f"      {e.get('stage')} {e.get('set', '')} done")
 
-    from .blender.bake_run import bake_blocking
+    from .blender.bake.run import bake_blocking
     outcome = bake_blocking(bpy.context, force=True, on_event=progress)
     if outcome.status != "done":
         raise RuntimeError(outcome.message)
@@ -172,7 +172,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         for level, text in status.messages:
             if level != "INFO":
                 log(f"      {level.lower()}: {text}")
-    from .core.image_write import write_image
+    from .core.io.image_write import write_image
     exposure = exposure_of(bpy.context.scene)
     files = [write_image(os.path.join(out_dir, f"demo_{mode}.png"), px, exposure=exposure)
              for mode, px in shots.items()]

@@ -16,7 +16,8 @@ import time
 
 import numpy as np
 
-from .core import envmap, sh
+from .core.sh import envmap
+from .core import sh
 
 
 def fibonacci_dirs(n: int) -> np.ndarray:

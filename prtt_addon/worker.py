@@ -109,9 +109,9 @@ def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
     not fit in the available memory, from its headers alone (before loading)."""
     import numpy as np
 
-    from .core.bake import bake_memory_bytes
-    from .core.memory import GiB, check_fits
-    from .core.scene import MAX_RESOLUTION
+    from .core.bake.runner import bake_memory_bytes
+    from .core.bake.memory import GiB, check_fits
+    from .core.io.scene import MAX_RESOLUTION
     res = job.set_resolution() if resolution is None else np.full((len(job.set_resolution()), 2), resolution)
     # An out-of-range resolution fails validation with its own message; here it
     # must not fail first as an absurd memory need: such sets count as 1 texel.
@@ -129,13 +129,13 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
     """Load a job and bake it, reporting through ``emit``. Returns an exit status.
 
     The job's headers, settings and memory need are checked before any array
-    is read (core.scene.JobFile); ``cancel`` is honoured while loading too.
+    is read (core.io.scene.JobFile); ``cancel`` is honoured while loading too.
     """
-    from .core.bake import BakeError, BakeSettings, bake_scene
-    from .core.memory import MemoryLimitError
-    from .core.scene import JobFile, SceneError, validate
-    from .core.transfer import Cancelled
-    from .core.unwrap import UnwrapError
+    from .core.bake.runner import BakeError, BakeSettings, bake_scene
+    from .core.bake.memory import MemoryLimitError
+    from .core.io.scene import JobFile, SceneError, validate
+    from .core.bake.transfer import Cancelled
+    from .core.texels.unwrap import UnwrapError
 
     try:
         with JobFile(job_path) as job:
@@ -237,7 +237,7 @@ class Watchdog:
         self.hard_exit()
 
     def hard_exit(self) -> None:
-        from .core import atomic
+        from .core.io import atomic
         # Never between a commit's renames and its manifest; the lock is held for
         # milliseconds (files were hashed and synced before it was taken).
         atomic.COMMIT_LOCK.acquire(timeout=30)

@@ -5,11 +5,11 @@
  *   - transfer T travels as vec4 T4[SH_K4]: coefficient k is T4[k / 4][k % 4];
  *   - `view` v is the unit vector from the surface towards the eye, r = 2 (n.v) n - v.
  * Every formula here has a numpy twin it is tested against (tests/test_shader_harness.py):
- *   sh_eval          <-> prtt_addon.core.basis.basis_unchecked (same recurrence)
- *   phong_factors    <-> prtt_addon.core.zonal.phong_factors
- *   phong_exponent   <-> prtt_addon.core.materials.phong_exponent
+ *   sh_eval          <-> prtt_addon.core.sh.basis.basis_unchecked (same recurrence)
+ *   phong_factors    <-> prtt_addon.core.sh.zonal.phong_factors
+ *   phong_exponent   <-> prtt_addon.core.shading.materials.phong_exponent
  *   glossy_weights,
- *   outgoing         <-> prtt_addon.core.shading.outgoing
+ *   outgoing         <-> prtt_addon.core.shading.model.outgoing
  * Requires the defines SH_BANDS, SH_K (= SH_BANDS^2) and SH_K4 (= ceil(SH_K / 4)).
  */
 
@@ -98,7 +98,7 @@ float phong_exponent(float roughness)
 }
 
 /* Bilinear lookup with repeat wrapping, texel centres at (i + 0.5) / W, done by
- * hand so that it is exact and the same on every GPU (core.gbuffer.sample_bilinear). */
+ * hand so that it is exact and the same on every GPU (core.texels.gbuffer.sample_bilinear). */
 vec4 bilinear_repeat(sampler2D tex, vec2 uv)
 {
   ivec2 size = textureSize(tex, 0);
@@ -123,7 +123,7 @@ vec3 safe_normal(vec3 n, vec3 fallback)
   return (len2 > 1e-12) ? n * inversesqrt(len2) : fallback;
 }
 
-/* Tangent-space normal map (core.gbuffer.apply_normal_maps): encoded 0..1 rgb,
+/* Tangent-space normal map (core.texels.gbuffer.apply_normal_maps): encoded 0..1 rgb,
  * Gram-Schmidt tangent, bitangent sign, blend by strength. */
 vec3 normal_mapped(vec3 n, vec4 tangent, vec3 encoded, float strength)
 {
@@ -147,7 +147,7 @@ vec3 normal_mapped(vec3 n, vec4 tangent, vec3 encoded, float strength)
 }
 
 /* Lambert albedo, specular weight and Phong exponent from Principled values
- * (core.materials.derive). */
+ * (core.shading.materials.derive). */
 void derive_material(vec3 base, float metallic, float roughness, float f0,
                      out vec3 albedo, out vec3 spec, out float exponent)
 {
@@ -160,7 +160,7 @@ void derive_material(vec3 base, float metallic, float roughness, float f0,
 
 /* Glossy weights w_k = A_l(s) y_k(r) at the reflection direction r = 2 (n.v) n - v:
  * the normalised Phong lobe's Funk-Hecke factors times the basis, so that the
- * glossy radiance is sum_k w_k Lp_k (core.shading.outgoing). */
+ * glossy radiance is sum_k w_k Lp_k (core.shading.model.outgoing). */
 void glossy_weights(vec3 n, vec3 v, float exponent, out float w[SH_K])
 {
   vec3 r = 2.0 * dot(n, v) * n - v;
@@ -177,7 +177,7 @@ void glossy_weights(vec3 n, vec3 v, float exponent, out float w[SH_K])
 }
 
 /* Outgoing radiance from the incident radiance's DC term Lp_0 and its glossy
- * contraction sum_k w_k Lp_k (core.shading.outgoing):
+ * contraction sum_k w_k Lp_k (core.shading.model.outgoing):
  * B = albedo / pi * sqrt(4 pi) Lp_0 + spec * glossy, clamped at 0 (SH ringing). */
 vec3 outgoing(vec3 dc, vec3 glossy, vec3 albedo, vec3 spec)
 {

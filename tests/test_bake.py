@@ -8,10 +8,10 @@ import threading
 import numpy as np
 import pytest
 
-from prtt_addon.core import exr_io, meshgen as mg
-from prtt_addon.core.bake import BakeError, BakeSettings, bake_scene
-from prtt_addon.core.memory import MemoryLimitError
-from prtt_addon.core.transfer import Cancelled, unoccluded_transfer
+from prtt_addon.core.io import exr_io, meshgen as mg
+from prtt_addon.core.bake.runner import BakeError, BakeSettings, bake_scene
+from prtt_addon.core.bake.memory import MemoryLimitError
+from prtt_addon.core.bake.transfer import Cancelled, unoccluded_transfer
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -286,7 +286,7 @@ def test_bad_settings(bad, match, tmp_path):
 def test_atomic_writes_get_normal_permissions(tmp_path):
     """mkstemp makes 0600 files; outputs must be as readable as open() would make
     them (others on a render farm read the textures), and keep an old file's mode."""
-    from prtt_addon.core import atomic
+    from prtt_addon.core.io import atomic
     good = np.zeros((4, 4, 9), np.float32)
     exr_io.write_sh_exr(tmp_path / "new.exr", good, kind="transfer")
     assert os.stat(tmp_path / "new.exr").st_mode & 0o777 == 0o666 & ~atomic._UMASK
@@ -296,7 +296,7 @@ def test_atomic_writes_get_normal_permissions(tmp_path):
 
 
 def _hugepage_advice_now() -> bool:
-    from prtt_addon.core.memory import _numpy_hugepage_switch
+    from prtt_addon.core.bake.memory import _numpy_hugepage_switch
     switch = _numpy_hugepage_switch()
     now = switch(True)
     switch(now)
@@ -307,7 +307,7 @@ def test_hugepage_advice_off_for_streamed_stages_only(tmp_path):
     """Transfer stages (G-buffer .. EXR) run without numpy's huge-page advice,
     the bounce stage with the caller's setting, and the bake restores it
     (memory.numpy_hugepage_advice: both measured to be faster that way)."""
-    from prtt_addon.core.memory import numpy_hugepage_advice
+    from prtt_addon.core.bake.memory import numpy_hugepage_advice
     with numpy_hugepage_advice(False):
         with numpy_hugepage_advice(True):
             assert _hugepage_advice_now() is True
@@ -331,7 +331,7 @@ def test_hugepage_advice_off_for_streamed_stages_only(tmp_path):
 _TRIM_PROBE = """
 import sys, threading
 import numpy as np
-from prtt_addon.core.memory import release_free_memory
+from prtt_addon.core.bake.memory import release_free_memory
 def rss():
     return next(int(l.split()[1]) for l in open('/proc/self/status') if l.startswith('VmRSS')) / 1024
 keep = []
@@ -350,7 +350,7 @@ print(ran, before, after)
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc; malloc_trim is glibc's")
 def test_release_free_memory_returns_a_helper_threads_freed_arena():
     """What the G-buffer's helper threads free stays in their glibc arenas
-    (RSS) until core.memory.release_free_memory hands it back."""
+    (RSS) until core.bake.memory.release_free_memory hands it back."""
     r = subprocess.run([sys.executable, "-c", _TRIM_PROBE], capture_output=True, text=True, timeout=120,
                        env=dict(os.environ, PYTHONPATH=ROOT))
     ran, before, after = r.stdout.split()

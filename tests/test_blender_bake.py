@@ -37,8 +37,8 @@ def test_cancel_or_kill_mid_bake_keeps_everything(tmp_path, how):
     st = bpy.context.scene.prtt
     before_meta = st.last_bake
     st.resolution, st.rays = 256, 4096                    # long enough to interrupt
-    from prtt_addon.blender import bake_run
-    from prtt_addon.blender.worker_job import WorkerJob
+    from prtt_addon.blender.bake import run as bake_run
+    from prtt_addon.blender.bake.worker_job import WorkerJob
     prepared = bake_run.prepare(bpy.context)
     job = WorkerJob(prepared.job, prepared.out_dir).start()
     while True:
@@ -67,7 +67,7 @@ def test_bad_input_gets_clear_reports(tmp_path):
     bpy = addon_bpy()
     st = bpy.context.scene.prtt
     st.output_dir, st.resolution, st.rays, st.bounces = str(tmp_path / "out"), 16, 16, 0
-    from prtt_addon.blender.bake_run import bake_blocking
+    from prtt_addon.blender.bake.run import bake_blocking
     # nothing to bake at all
     out = bake_blocking(bpy.context)
     assert out.status == "failed" and "no object to bake" in out.message
@@ -143,7 +143,7 @@ def test_three_headless_entry_points_agree(tmp_path):
     for other in ("cli", "pym"):
         b = snapshot_files(tmp_path / other)
         for f in ("Plane.transfer.exr", "Suzanne.transfer.exr"):
-            from prtt_addon.core.exr_io import read_sh_exr
+            from prtt_addon.core.io.exr_io import read_sh_exr
             np.testing.assert_array_equal(read_sh_exr(tmp_path / "prtt_out" / f)[0],
                                           read_sh_exr(tmp_path / other / f)[0])
         assert set(b) == set(a)

@@ -6,14 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from prtt_addon.core import exr_io
-from prtt_addon.core.bake import BakeSettings, bake_scene
-from prtt_addon.core.bounce import (ExitShader, IncidentSet, exit_textures, glossy_triangles, incident_at,
-                                    level_energy, surface_texels)
-from prtt_addon.core.gaunt import tpfl_matrix
-from prtt_addon.core.gbuffer import build_gbuffer
-from prtt_addon.core.materials import ShadingParams
-from prtt_addon.core.shading import outgoing
+from prtt_addon.core.io import exr_io
+from prtt_addon.core.bake.runner import BakeSettings, bake_scene
+from prtt_addon.core.bake.bounce import (ExitShader, IncidentSet, exit_textures, glossy_triangles,
+                                         incident_at, level_energy, surface_texels)
+from prtt_addon.core.sh.gaunt import tpfl_matrix
+from prtt_addon.core.texels.gbuffer import build_gbuffer
+from prtt_addon.core.shading.materials import ShadingParams
+from prtt_addon.core.shading.model import outgoing
 from tests.test_bounce import corner_scene, sky
 
 GLOSSY_WALL = {"name": "glossy", "base_color": [0.2, 0.3, 0.9], "roughness": 0.3, "specular": 1.0,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from prtt_addon.core.denoise import edge_aware, island_labels, oidn_available, oidn_sh
+from prtt_addon.core.bake.denoise import edge_aware, island_labels, oidn_available, oidn_sh
 
 
 def test_island_labels_match_scipy():
@@ -93,8 +93,8 @@ def test_oidn_sh_restores_normalisation_and_keeps_empty_texels():
 
 
 def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
-    from prtt_addon.core import exr_io
-    from prtt_addon.core.bake import BakeError, BakeSettings, bake_scene
+    from prtt_addon.core.io import exr_io
+    from prtt_addon.core.bake.runner import BakeError, BakeSettings, bake_scene
     from tests.test_bounce import corner_scene, sky
     sc = corner_scene({"name": "w", "base_color": [0.6, 0.5, 0.4], "specular": 0.0}, res=24)
     st = dict(rays=64, bounces=1, bounce_rays=16, half=False)
@@ -119,7 +119,7 @@ def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
     many = bake_scene(sc, tmp_path / "many", BakeSettings(bounce_denoise="auto", **dict(st, bounce_rays=128)),
                       light=sky())
     assert not any("denoise" in r for r in many["bounce"]["sets"])
-    import prtt_addon.core.denoise as dn
+    import prtt_addon.core.bake.denoise as dn
     monkeypatch.setattr(dn, "oidn_available", lambda: False)
     with pytest.raises(BakeError, match="needs the optional package pyoidn"):
         bake_scene(sc, tmp_path / "o", BakeSettings(bounce_denoise="oidn", **st), light=sky())

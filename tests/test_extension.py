@@ -47,8 +47,8 @@ def test_zip_layout(extension_zip):
         names = set(z.namelist())
         man = tomllib.loads(z.read("blender_manifest.toml").decode())
         licence = z.read("LICENSE")
-    assert {"blender_manifest.toml", "LICENSE", "__init__.py", "worker.py", "core/sh.py", "blender/operators.py",
-            "shader_source.py", "shaders/prtt_common.glsl", "shaders/prtt_surface_frag.glsl"} <= names
+    assert {"blender_manifest.toml", "LICENSE", "__init__.py", "worker.py", "core/sh/__init__.py", "blender/ui/operators.py",
+            "core/preview/shader_source.py", "shaders/prtt_common.glsl", "shaders/prtt_surface_frag.glsl"} <= names
     # Runtime files only: the package's modules, shaders, wheels, the licence.
     assert "demo.py" not in names
     assert not any(n.startswith(("bench/", "tests/", "docs/", "tools/", "assets/")) or "__pycache__" in n
@@ -94,7 +94,7 @@ def test_install_enable_and_bake(extension_zip, tmp_path):
         assert bpy.ops.prtt.bake_transfer() == {{"FINISHED"}}
         print("FILES", sorted(os.listdir({str(tmp_path / "out")!r})))
         # The installed copy finds its shaders inside the extension folder.
-        from bl_ext.user_default.prtt_addon.shader_source import shader_dir
+        from bl_ext.user_default.prtt_addon.core.preview.shader_source import shader_dir
         assert shader_dir().startswith(os.path.dirname(pkg.__file__)), shader_dir()
         bpy.ops.object.camera_add(location=(4, -4, 3), rotation=(1.0, 0.0, 0.8))
         bpy.context.scene.camera = bpy.context.active_object

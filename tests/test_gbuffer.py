@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from prtt_addon.core import meshgen as mg
-from prtt_addon.core.gbuffer import build_gbuffer
-from prtt_addon.core.raster import rasterize
-from prtt_addon.core.scene import NormalMap
+from prtt_addon.core.io import meshgen as mg
+from prtt_addon.core.texels.gbuffer import build_gbuffer
+from prtt_addon.core.texels.raster import rasterize
+from prtt_addon.core.io.scene import NormalMap
 from tests.scenes_util import planar_uvs, scene_from
 
 
@@ -101,7 +101,7 @@ def test_zero_area_uv_triangles_are_reported_not_rasterised():
 
 def test_banded_rasterisation_matches_whole(rng):
     m = mg.uv_sphere(1.0, 24, 12)
-    from prtt_addon.core.unwrap import unwrap
+    from prtt_addon.core.texels.unwrap import unwrap
     uvs = unwrap([(m.vertices, m.faces)], 64)[0]
     whole = rasterize(uvs, 64, 64)
     parts = [rasterize(uvs, 64, 64, (a, b)) for a, b in [(0, 20), (20, 41), (41, 64)]]
@@ -143,7 +143,7 @@ def normal_mapped_floor(tangent_space_normal, res, strength=1.0):
     sc.tangents = np.zeros((T, 3, 4), np.float32)
     sc.tangents[..., 0] = 1.0
     sc.tangents[..., 3] = 1.0
-    from prtt_addon.core.scene import validate
+    from prtt_addon.core.io.scene import validate
     validate(sc)
     return sc
 

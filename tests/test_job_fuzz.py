@@ -23,7 +23,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from prtt_addon.core.scene import MAX_MEMBERS, MAX_NAME_LENGTH, save_scene
+from prtt_addon.core.io.scene import MAX_MEMBERS, MAX_NAME_LENGTH, save_scene
 from tests.scenes_util import floor_and_box_with_every_part
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

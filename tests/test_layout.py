@@ -20,15 +20,19 @@ def _imports(path):
 
 def test_core_never_imports_bpy_statically():
     core = os.path.join(ROOT, "prtt_addon", "core")
-    for name in os.listdir(core):
-        if name.endswith(".py"):
-            mods = set(_imports(os.path.join(core, name)))
-            assert not {m for m in mods if m.split(".")[0] in ("bpy", "gpu", "mathutils", "bmesh")}, name
+    seen = 0
+    for folder, _, names in os.walk(core):
+        for name in names:
+            if name.endswith(".py"):
+                mods = set(_imports(os.path.join(folder, name)))
+                assert not {m for m in mods if m.split(".")[0] in ("bpy", "gpu", "mathutils", "bmesh")}, name
+                seen += 1
+    assert seen > 30, seen
 
 
 def test_core_imports_in_plain_python_without_bpy():
     code = ("import sys, importlib, pkgutil, prtt_addon, prtt_addon.core as c\n"
-            "for m in pkgutil.iter_modules(c.__path__): importlib.import_module('prtt_addon.core.' + m.name)\n"
+            "for m in pkgutil.walk_packages(c.__path__, 'prtt_addon.core.'): importlib.import_module(m.name)\n"
             "import prtt_addon.cli\n"
             "assert 'bpy' not in sys.modules, 'bpy imported'\n")
     env = dict(os.environ, PYTHONPATH=ROOT)

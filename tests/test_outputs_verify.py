@@ -1,7 +1,7 @@
 """Outputs are verifiable and folders are not shared: the manifest's file_info
 (size, sha256) catches missing, truncated and replaced outputs, which are
 re-baked; stale temporaries of dead bakes are removed, a live bake's kept;
-one bake per output folder (core/outdir.py, core/atomic.py, core/bake.py)."""
+one bake per output folder (core/io/outdir.py, core/io/atomic.py, core/bake/runner.py)."""
 import json
 import os
 import subprocess
@@ -12,10 +12,10 @@ import time
 import numpy as np
 import pytest
 
-from prtt_addon.core import atomic, exr_io
-from prtt_addon.core.bake import MANIFEST, BakeError, BakeSettings, bake_scene
-from prtt_addon.core.outdir import LOCK_FILE, FolderLock, file_info
-from prtt_addon.core.transfer import Cancelled
+from prtt_addon.core.io import atomic, exr_io
+from prtt_addon.core.bake.runner import MANIFEST, BakeError, BakeSettings, bake_scene
+from prtt_addon.core.io.outdir import LOCK_FILE, FolderLock, file_info
+from prtt_addon.core.bake.transfer import Cancelled
 from tests.scenes_util import floor_and_box
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -139,7 +139,7 @@ def test_temporaries_carry_the_pid(tmp_path):
 
 HOLD = """
 import sys, time
-from prtt_addon.core.outdir import FolderLock
+from prtt_addon.core.io.outdir import FolderLock
 lock = FolderLock(sys.argv[1], job=sys.argv[2], source="/scenes/a.blend").acquire()
 print("locked", flush=True)
 time.sleep(60)

@@ -43,7 +43,7 @@ def _draw(bpy, cls):
 def test_panel_order_split_and_closed_subpanels():
     bpy = addon_bpy()
     bpy.ops.mesh.primitive_monkey_add()
-    from prtt_addon.blender import panels
+    from prtt_addon.blender.ui import panels
     children = [c for c in panels._CLASSES if getattr(c, "bl_parent_id", "") == "PRTT_PT_main"]
     assert [c.bl_label for c in sorted(children, key=lambda c: c.bl_order)] == \
         ["Unwrap", "Bake", "Preview", "Last Bake"]
@@ -70,7 +70,7 @@ def test_panel_order_split_and_closed_subpanels():
 def test_source_uv_map_is_chosen_from_the_objects_maps():
     bpy = addon_bpy()
     bpy.ops.mesh.primitive_monkey_add()
-    from prtt_addon.blender import panels
+    from prtt_addon.blender.ui import panels
     bpy.context.scene.prtt.unwrap_method = "EXISTING"
     log = _draw(bpy, panels.PRTT_PT_unwrap).log
     (search,) = [(a, k) for n, a, k in log if n == "prop_search"]
@@ -97,7 +97,7 @@ def test_images_the_addon_makes_survive_save_and_reload(tmp_path):
     st.output_dir, st.resolution, st.rays, st.bounces = str(tmp_path / "out"), 16, 16, 0
     rs.floor(bpy, 4.0).data.uv_layers.new(name="PRTT")
     rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5)).data.uv_layers.new(name="PRTT")
-    from prtt_addon.blender.bake_run import bake_blocking
+    from prtt_addon.blender.bake.run import bake_blocking
     assert bake_blocking(bpy.context).status == "done"
     before = {}
     for name in ("PRTT AO Floor", "PRTT AO Box"):

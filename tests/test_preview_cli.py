@@ -23,8 +23,8 @@ def run(args, timeout=300):
 
 
 def test_python_m_render_matches_in_process(blend, tmp_path):
-    from prtt_addon.blender.preview_render import render_scene
-    from prtt_addon.core.image_write import read_exr_rgba
+    from prtt_addon.blender.preview.render import render_scene
+    from prtt_addon.core.io.image_write import read_exr_rgba
     out = str(tmp_path / "tpfl.exr")
     r = run(["-m", "prtt_addon", "render", blend, "--out", out, "--mode", "tpfl", "--size", "64x48"])
     assert r.returncode == 0, r.stdout + r.stderr

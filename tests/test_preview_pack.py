@@ -1,8 +1,8 @@
-"""The preview's data layouts (core/preview_pack.py) and image writer, without Blender."""
+"""The preview's data layouts (core/preview/pack.py) and image writer, without Blender."""
 import numpy as np
 import pytest
 
-from prtt_addon.core import preview_pack as pp
+from prtt_addon.core.preview import pack as pp
 
 
 def test_build_mesh_merges_identical_corners_and_sorts_by_material():
@@ -64,7 +64,7 @@ def test_layer_packing_layouts():
 
 
 def test_light_block_holds_the_tpfl_matrix():
-    from prtt_addon.core.gaunt import sparse_gaunt
+    from prtt_addon.core.sh.gaunt import sparse_gaunt
     bands, K = 5, 25
     L = np.random.default_rng(3).normal(size=(K, 3))
     blk = pp.light_block(L, bands)
@@ -77,7 +77,7 @@ def test_light_block_holds_the_tpfl_matrix():
     np.testing.assert_allclose(rows, want, atol=1e-6)
     np.testing.assert_allclose(blk[3 * K * 28:].reshape(K, 4)[:, :3], L, rtol=1e-6)
     assert blk.nbytes == 16 * (3 * K * 7 + K)
-    from prtt_addon.shader_source import light_block_bytes
+    from prtt_addon.core.preview.shader_source import light_block_bytes
     assert light_block_bytes(bands) == blk.nbytes
 
 
@@ -90,7 +90,7 @@ def test_half_exact():
 def test_image_writer(tmp_path):
     import matplotlib.image as mpimg
 
-    from prtt_addon.core.image_write import read_exr_rgba, srgb_encode, write_image
+    from prtt_addon.core.io.image_write import read_exr_rgba, srgb_encode, write_image
     a = np.random.default_rng(4).random((6, 9, 4)).astype(np.float32)
     a[0, 0, :3] = [np.nan, 5.0, -1.0]
     write_image(str(tmp_path / "x.png"), a, exposure=0.5)
@@ -106,7 +106,7 @@ def test_image_writer(tmp_path):
 
 
 def test_shader_variants_are_described():
-    from prtt_addon.shader_source import MODES, depth_variant, variant
+    from prtt_addon.core.preview.shader_source import MODES, depth_variant, variant
     for mode in MODES:
         for bounce in (False, True):
             v = variant(mode, 5, bounce=bounce)

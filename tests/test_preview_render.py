@@ -2,8 +2,8 @@
 
 Real Blender, real GLSL on Mesa llvmpipe (one tiny Workbench render
 initialises the gpu module), offscreen float32 targets. The reference
-(core/preview_reference.py) finds each pixel's surface by Embree ray casting
-and shades it with core.shading in float64.
+(core/preview/reference.py) finds each pixel's surface by Embree ray casting
+and shades it with core.shading.model in float64.
 """
 import math
 
@@ -25,8 +25,8 @@ def blend(tmp_path_factory):
 
 
 def frame(bpy, bounces=True):
-    from prtt_addon.blender.preview_render import camera_view, ensure_gpu
-    from prtt_addon.blender.preview_scene import collect
+    from prtt_addon.blender.preview.render import camera_view, ensure_gpu
+    from prtt_addon.blender.preview.scene import collect
     ensure_gpu()
     ps, status = collect(bpy.context, use_bounces=bounces)
     assert ps is not None, status.messages
@@ -53,8 +53,8 @@ def test_scene_exercises_every_feature(blend):
 @pytest.mark.parametrize("bounces", [True, False], ids=["bounce", "direct"])
 @pytest.mark.parametrize("mode", ["tpfl", "tp", "diffuse", "vertex-tpfl", "vertex-tp"])
 def test_gpu_matches_reference(blend, mode, bounces):
-    from prtt_addon.blender.gpu_preview import Renderer, render_offscreen
-    from prtt_addon.core.preview_reference import reference_image, relative_error
+    from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
+    from prtt_addon.core.preview.reference import reference_image, relative_error
     bpy = open_blend(blend)
     ps, _, vp, cam = frame(bpy, bounces)
     px, stats = render_offscreen(Renderer(), ps, mode, vp, cam, W, H, exposure=EXPOSURE)
@@ -75,7 +75,7 @@ def test_gpu_matches_reference(blend, mode, bounces):
 
 
 def test_tp_equals_tpfl_and_prepass_changes_nothing(blend):
-    from prtt_addon.blender.gpu_preview import Renderer, render_offscreen
+    from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
     bpy = open_blend(blend)
     ps, _, vp, cam = frame(bpy)
     r = Renderer()
@@ -88,8 +88,8 @@ def test_tp_equals_tpfl_and_prepass_changes_nothing(blend):
 
 
 def test_bounces_add_light_and_vertex_modes_miss_the_contact_shadow(blend):
-    from prtt_addon.blender.gpu_preview import Renderer, render_offscreen
-    from prtt_addon.core.preview_reference import trace_pixels
+    from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
+    from prtt_addon.core.preview.reference import trace_pixels
     bpy = open_blend(blend)
     ps, _, vp, cam = frame(bpy)
     r = Renderer()
@@ -119,9 +119,9 @@ def test_bounces_add_light_and_vertex_modes_miss_the_contact_shadow(blend):
 def test_world_rotation_is_an_sh_rotation_of_a_cached_projection(blend):
     """Turning the environment must not re-project it, and must equal an
     independent projection of the turned image (90 deg = a quarter roll)."""
-    from prtt_addon.blender import preview_scene
-    from prtt_addon.core import envmap
-    from prtt_addon.core.image_io import read_hdr_image
+    from prtt_addon.blender.preview import scene as preview_scene
+    from prtt_addon.core.sh import envmap
+    from prtt_addon.core.io.image_io import read_hdr_image
     bpy = open_blend(blend)
     scene = bpy.context.scene
     mapping = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
@@ -142,7 +142,7 @@ def test_world_rotation_is_an_sh_rotation_of_a_cached_projection(blend):
 
 
 def test_stale_and_moved_warnings(blend):
-    from prtt_addon.blender.preview_scene import collect
+    from prtt_addon.blender.preview.scene import collect
     bpy = open_blend(blend)
     scene = bpy.context.scene
 
@@ -174,8 +174,8 @@ def test_viewport_draw_path_and_resources(blend):
     the offscreen render; GPU resources go when their objects go."""
     import gpu
 
-    from prtt_addon.blender import preview_draw
-    from prtt_addon.blender.gpu_preview import Renderer, read_pixels, render_offscreen
+    from prtt_addon.blender.preview import draw as preview_draw
+    from prtt_addon.blender.preview.renderer import Renderer, read_pixels, render_offscreen
     bpy = open_blend(blend)
     assert preview_draw._HANDLE is None                       # background mode: no draw handler
     assert preview_draw._on_depsgraph in bpy.app.handlers.depsgraph_update_post   # survived the load

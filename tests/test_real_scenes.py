@@ -55,7 +55,7 @@ def test_instances_geometry_nodes_curves_text_and_faceless_all_bake(tmp_path):
     eye_hidden.prtt.bake = False                                      # an occluder the viewport hides
     eye_hidden.hide_set(True)
     before = uv_snapshot(bpy)
-    from prtt_addon.blender.export import export_scene
+    from prtt_addon.blender.export.scene import export_scene
     exp = export_scene(bpy.context, with_light=False)
     recs = _by_name(exp)
     # every instance has texels of its own: 2 of Src (A, B nested), 1 linked, 3 geometry-nodes
@@ -81,7 +81,7 @@ def test_instances_geometry_nodes_curves_text_and_faceless_all_bake(tmp_path):
     # the viewport-hidden occluder still casts shadows (it renders)
     assert "EyeHidden" in sc.object_names and (sc.set_id[sc.object_id == sc.object_names.index("EyeHidden")] < 0).all()
     # bake them all; textures per set; the user's meshes and UV maps untouched
-    from prtt_addon.blender.bake_run import bake_blocking
+    from prtt_addon.blender.bake.run import bake_blocking
     out = bake_blocking(bpy.context)
     assert out.status == "done", out.message
     files = set(os.listdir(tmp_path / "out"))
@@ -102,7 +102,7 @@ def test_all_zero_area_and_faceless_scene_says_why(tmp_path):
     _settings(bpy, tmp_path)
     rs.faceless(bpy)
     rs.zero_area(bpy)
-    from prtt_addon.blender.bake_run import bake_blocking
+    from prtt_addon.blender.bake.run import bake_blocking
     out = bake_blocking(bpy.context)
     assert out.status == "failed"
     assert "no object to bake" in out.message and "Flat (zero area)" in out.message and "Edges" in out.message
@@ -131,14 +131,14 @@ def _instances_under_roof(bpy, tmp_path):
 def test_each_instance_has_its_own_texels_in_bake_and_preview(tmp_path):
     bpy = addon_bpy()
     _instances_under_roof(bpy, tmp_path)
-    from prtt_addon.blender.bake_run import bake_blocking
+    from prtt_addon.blender.bake.run import bake_blocking
     out = bake_blocking(bpy.context)
     assert out.status == "done", out.message
     info = json.loads(bpy.context.scene.prtt.last_bake)
     a, b = info["objects"]["A/SrcCube"], info["objects"]["B/SrcCube"]
     assert a["set"] == b["set"]
     # the texture: the roofed instance's tile sees less sky (DC term) than the open one's
-    from prtt_addon.core.exr_io import read_sh_exr
+    from prtt_addon.core.io.exr_io import read_sh_exr
     T, _ = read_sh_exr(tmp_path / "out" / f"{a['set']}.transfer.exr")
     H, W = T.shape[:2]
 
@@ -149,7 +149,7 @@ def test_each_instance_has_its_own_texels_in_bake_and_preview(tmp_path):
 
     assert tile_dc(a) < 0.9 * tile_dc(b)
     # the preview draws each instance with its own texels: the roofed cube is darker
-    from prtt_addon.blender.preview_render import render_scene
+    from prtt_addon.blender.preview.render import render_scene
     pixels, stats, status, _ = render_scene(bpy.context, mode="diffuse", size=(64, 32))
     assert sorted(stats.drawn) == ["A/SrcCube", "B/SrcCube"], (stats.drawn, status.messages)
     lum = pixels[..., :3].mean(axis=2)                     # row 0 = bottom; x -4..4 over 64 px
@@ -180,7 +180,7 @@ def test_more_kinds_metaball_surface_skinned_particles_linked_object(tmp_path):
             col.hide_render = True
         else:
             bpy.context.view_layer.layer_collection.children[cname].exclude = True
-    from prtt_addon.blender.export import export_scene
+    from prtt_addon.blender.export.scene import export_scene
     exp = export_scene(bpy.context, with_light=False)
     recs = exp.objects
     kinds = {"Mball": "generated", "SurfSphere": "generated", "Skinned": "map", "Emitter": "map",
@@ -195,7 +195,7 @@ def test_more_kinds_metaball_surface_skinned_particles_linked_object(tmp_path):
     i = exp.scene.object_names.index("Skinned")
     P = exp.scene.positions[exp.scene.object_id == i].reshape(-1, 3)
     assert np.ptp(P[:, 1]) > 1.2                          # a 1 m cube turned by 0.4 rad reaches further in y
-    from prtt_addon.blender.bake_run import bake_blocking
+    from prtt_addon.blender.bake.run import bake_blocking
     out = bake_blocking(bpy.context)
     assert out.status == "done", out.message
 
@@ -204,10 +204,10 @@ def test_preview_of_generated_uvs_fails_clearly_when_they_are_gone(tmp_path):
     """A render must not draw an object without its UVs: a clear error, no partial image."""
     bpy = addon_bpy()
     _instances_under_roof(bpy, tmp_path)
-    from prtt_addon.blender.bake_run import bake_blocking
+    from prtt_addon.blender.bake.run import bake_blocking
     assert bake_blocking(bpy.context).status == "done"
-    from prtt_addon.blender import preview_scene
-    from prtt_addon.blender.preview_render import RenderError, render_scene
+    from prtt_addon.blender.preview import scene as preview_scene
+    from prtt_addon.blender.preview.render import RenderError, render_scene
     for damage in (b"", b"not a zip"):
         (tmp_path / "out" / "generated_uvs.npz").write_bytes(damage)
         preview_scene.clear_caches()
@@ -221,7 +221,7 @@ def test_unwrap_has_no_overlapping_texels(tmp_path, method):
     Suzanne and the room; an Array stack gets a layout per copy at export."""
     bpy = addon_bpy()
     st = _settings(bpy, tmp_path, res=1024)
-    from prtt_addon.blender.unwrap import overlap_texels, unwrap_objects
+    from prtt_addon.blender.export.unwrap import overlap_texels, unwrap_objects
     bpy.ops.mesh.primitive_monkey_add()
     suzanne = bpy.context.active_object
     stack = rs.add_object(bpy, "Stack", rs.cube_mesh(bpy, "stack"), location=(4, 0, 0.5))
@@ -229,10 +229,10 @@ def test_unwrap_has_no_overlapping_texels(tmp_path, method):
     got = unwrap_objects(bpy.context, [suzanne, stack], method=method, resolution=1024, padding=4, dilate=3)
     assert got == {"Suzanne": 0, "Stack": 0}
     assert overlap_texels(suzanne, 1024) == 0
-    from prtt_addon.blender.export import export_scene
+    from prtt_addon.blender.export.scene import export_scene
     exp = export_scene(bpy.context, with_light=False)
     assert exp.objects["Stack"]["uv"] == "generated" and exp.objects["Suzanne"]["uv"] == "map"
-    from prtt_addon.core.raster import rasterize
+    from prtt_addon.core.texels.raster import rasterize
     sc = exp.scene
     for name in ("Stack", "Suzanne"):
         uv = sc.uvs[sc.object_id == sc.object_names.index(name)]
@@ -244,9 +244,9 @@ def test_unwrap_room_has_no_overlapping_texels(tmp_path):
     bpy = addon_bpy()
     _settings(bpy, tmp_path, res=1024)
     from prtt_addon.bench.scenes import room_objects
-    from prtt_addon.blender.scene_build import mesh_object
+    from prtt_addon.bench.scene_build import mesh_object
     objects = [mesh_object(name, mesh) for name, mesh in room_objects()]
-    from prtt_addon.blender.unwrap import unwrap_objects
+    from prtt_addon.blender.export.unwrap import unwrap_objects
     for method in ("SMART", "LIGHTMAP", "XATLAS"):
         got = unwrap_objects(bpy.context, objects, method=method, resolution=1024, padding=4, dilate=3, atlas=True)
         assert set(got.values()) == {0}, (method, got)
@@ -256,8 +256,8 @@ def test_preview_of_a_bake_with_more_bands_than_it_draws_says_so(tmp_path):
     bpy = addon_bpy()
     st = _instances_under_roof(bpy, tmp_path)
     st.bands, st.rays = 9, 16
-    from prtt_addon.blender.bake_run import bake_blocking
+    from prtt_addon.blender.bake.run import bake_blocking
     assert bake_blocking(bpy.context).status == "done"
-    from prtt_addon.blender.preview_render import RenderError, render_scene
+    from prtt_addon.blender.preview.render import RenderError, render_scene
     with pytest.raises(RenderError, match="this bake has 9 SH bands; the preview draws up to 8"):
         render_scene(bpy.context, mode="diffuse", size=(16, 8))

@@ -116,7 +116,7 @@ def damaged(path, how):
             with open(path, "wb") as f:
                 f.write(data[: len(data) // 2])
         elif how == "bands":
-            from prtt_addon.core.exr_io import write_sh_exr
+            from prtt_addon.core.io.exr_io import write_sh_exr
             write_sh_exr(path, np.zeros((32, 32, 9), np.float32), kind="transfer", attrs={"bands": 3})
         else:
             os.remove(path)
@@ -230,7 +230,7 @@ def test_unreadable_blend_is_named(tmp_path):
 
 
 def test_write_error_names_the_given_path(tmp_path):
-    from prtt_addon.core.image_write import ImageWriteError, write_image
+    from prtt_addon.core.io.image_write import ImageWriteError, write_image
     path = str(tmp_path / "gone" / "x.exr")
     with pytest.raises(ImageWriteError) as e:
         write_image(path, np.zeros((2, 3, 4), np.float32))
@@ -238,7 +238,7 @@ def test_write_error_names_the_given_path(tmp_path):
 
 
 def test_help(baked, tmp_path, capsys):
-    from prtt_addon.blender.preview_render import render_file
+    from prtt_addon.blender.preview.render import render_file
     with pytest.raises(SystemExit) as e:          # blender -c prtt render -h lands here
         render_file(["-h"], prog="blender -c prtt render")
     assert e.value.code == 0

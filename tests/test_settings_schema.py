@@ -1,4 +1,4 @@
-"""One declaration of the bake settings (core/settings_schema.py) and the four
+"""One declaration of the bake settings (core/bake/settings_schema.py) and the four
 places generated from it: the core dataclasses, the bake-job command line, the
 Blender command line and scene.prtt's properties, plus docs/format.md §5.
 
@@ -11,9 +11,9 @@ import os
 
 import pytest
 
-from prtt_addon.core import settings_schema as schema
-from prtt_addon.core.bake import BAKE_INT_LIMITS, BakeSettings
-from prtt_addon.core.transfer import ADAPTIVE_TOL_LIMITS, INT_LIMITS, TransferSettings
+from prtt_addon.core.bake import settings_schema as schema
+from prtt_addon.core.bake.runner import BAKE_INT_LIMITS, BakeSettings
+from prtt_addon.core.bake.transfer import ADAPTIVE_TOL_LIMITS, INT_LIMITS, TransferSettings
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TYPES = {"int": "int", "float": "float", "bool": "bool", "choice": "str"}
@@ -73,8 +73,9 @@ def test_validate_enforces_the_schema():
 
 
 def test_derived_limits_and_shared_constants():
-    from prtt_addon.core import sampling, scene, transfer
-    from prtt_addon.shader_source import MAX_PREVIEW_BANDS
+    from prtt_addon.core.bake import sampling, transfer
+    from prtt_addon.core.io import scene
+    from prtt_addon.core.preview.shader_source import MAX_PREVIEW_BANDS
     ints = {s.name: (s.lo, s.hi) for s in schema.core_settings() if s.kind == "int"}
     assert {k: v[:2] for k, v in {**INT_LIMITS, **BAKE_INT_LIMITS}.items()} == ints
     assert ADAPTIVE_TOL_LIMITS == (schema.get("adaptive_tol").lo, schema.get("adaptive_tol").hi)
@@ -213,7 +214,7 @@ def test_scene_properties_are_the_schema():
 def test_bake_settings_come_from_the_scene_through_the_schema():
     from tests.blender_util import addon_bpy
     bpy = addon_bpy()
-    from prtt_addon.blender.bake_run import bake_settings
+    from prtt_addon.blender.bake.run import bake_settings
     st = bpy.context.scene.prtt
     assert bake_settings(bpy.context.scene) == BakeSettings().as_dict()
     values = {"bands": 16, "rays": 1, "adaptive_tol": 0.25, "dilate": 64, "half": False, "normal_maps": False,
@@ -239,7 +240,7 @@ def test_format_md_table_is_generated():
     with open(os.path.join(ROOT, "docs", "format.md"), encoding="utf-8") as f:
         text = f.read()
     assert schema.doc_section(text) == schema.settings_table(), \
-        "docs/format.md's settings table is stale: python -m prtt_addon.core.settings_schema --write"
+        "docs/format.md's settings table is stale: python -m prtt_addon.core.bake.settings_schema --write"
     table = schema.settings_table()
     for s in schema.SETTINGS:                   # every setting has its row
         assert f"| `{s.name}` |" in table

@@ -4,7 +4,7 @@ import concurrent.futures as cf
 import numpy as np
 import pytest
 
-from prtt_addon.core.texsample import pixel_major, planes_from_rows
+from prtt_addon.core.texels.texsample import pixel_major, planes_from_rows
 
 
 @pytest.mark.parametrize("n_texels,density,block", [

@@ -1,7 +1,7 @@
 """``python -m prtt_addon.bench bake``: the transfer bake against raw Embree.
 
 Bakes the room-class scene (1024^2 atlas, 5 bands, 256 rays per texel by
-default) through the real pipeline (``core.bake.bake_scene``: G-buffer,
+default) through the real pipeline (``core.bake.runner.bake_scene``: G-buffer,
 analytic test, rays, projection, dilation, EXR writing) and prints seconds per
 stage and rays/s end to end. Then, in the same run, it regenerates the *same
 rays* for a sample of the bake's chunks and traces them with bare embreex
@@ -28,11 +28,11 @@ import time
 
 import numpy as np
 
-from ..core.bake import BakeSettings, bake_points_input, bake_scene, scene_face_data
-from ..core.gbuffer import build_gbuffer
-from ..core.raytrace import RayScene
-from ..core.sampling import pattern_bank
-from ..core.transfer import chunk_frames, chunk_plan
+from ..core.bake.runner import BakeSettings, bake_points_input, bake_scene, scene_face_data
+from ..core.texels.gbuffer import build_gbuffer
+from ..core.bake.raytrace import RayScene
+from ..core.bake.sampling import pattern_bank
+from ..core.bake.transfer import chunk_frames, chunk_plan
 from . import scenes
 
 #: Reference: an open C++ SH-lightmap baker on Embree 4, per core (issue 3).

@@ -14,7 +14,7 @@ import tempfile
 import time
 
 from ..cli import env_light
-from ..core.bake import BakeSettings, bake_scene
+from ..core.bake.runner import BakeSettings, bake_scene
 from . import scenes
 
 

@@ -2,7 +2,7 @@
 
 A minimally tessellated floor (2 triangles, 4 vertices) under the 69K-triangle
 bunny and a box, lit by Blender's "city" HDRI, glossy floor. Rendered with
-the preview's shaders (offscreen, blender/gpu_preview.py) three ways:
+the preview's shaders (offscreen, blender/preview/renderer.py) three ways:
 
 * fragment TPFL with transfer textures (PRTT, the paper's method);
 * vertex TPFL with per-vertex transfer on the same 2-triangle floor (the
@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from ..core import meshgen as mg
+from ..core.io import meshgen as mg
 from . import scenes
 
 ROOT = scenes.ROOT
@@ -45,7 +45,7 @@ def _objects(floor_subdiv: int):
 
 
 def build(floor_subdiv: int, resolution: int):
-    from ..core.scene import validate
+    from ..core.io.scene import validate
     objs = _objects(floor_subdiv)
     sc = mg.assemble(objs, resolution=resolution, keep_uvs=True,
                      resolutions={"bunny": 256, "box": 128})
@@ -57,7 +57,7 @@ def build(floor_subdiv: int, resolution: int):
 
 
 def camera(width: int, height: int):
-    from ..core.preview_reference import look_at, perspective
+    from ..core.preview.reference import look_at, perspective
     eye = np.array([1.35, -1.65, 0.95])
     vp = perspective(42.0, width / height) @ look_at(eye, (0.2, 0.15, 0.22))
     return vp, np.array([*eye, 1.0])
@@ -66,12 +66,12 @@ def camera(width: int, height: int):
 def experiment(width: int = 480, height: int = 320, *, resolution: int = 512, rays: int = 256,
                ref_rays: int = 1024, dense: int = 32, env: str = "city", work_dir: str | None = None) -> dict:
     """Render the three pictures and the ground truth; returns images and errors."""
-    from ..blender.gpu_preview import Renderer, render_offscreen
-    from ..blender.preview_render import ensure_gpu
+    from ..blender.preview.renderer import Renderer, render_offscreen
+    from ..blender.preview.render import ensure_gpu
     from ..cli import env_light
-    from ..core.bake import BakeSettings, bake_scene
-    from ..core.preview_pack import from_core_scene
-    from ..core.preview_reference import trace_pixels, traced_reference
+    from ..core.bake.runner import BakeSettings, bake_scene
+    from ..core.preview.pack import from_core_scene
+    from ..core.preview.reference import trace_pixels, traced_reference
     ensure_gpu()
     light = env_light(env, 5)
     vp, cam = camera(width, height)
@@ -128,7 +128,7 @@ def save_figure(res: dict, folder: str) -> list:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..core.image_write import srgb_encode, write_image
+    from ..core.io.image_write import srgb_encode, write_image
     os.makedirs(folder, exist_ok=True)
     paths = []
     for name, img in res["images"].items():

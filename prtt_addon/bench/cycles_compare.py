@@ -40,9 +40,9 @@ def band_limited_environment(path: str, bands: int = 5, source: str = "city", he
     """Write the band-limited, Hann-windowed environment as an equirect EXR; returns its SH."""
     import OpenEXR
 
-    from ..core.atomic import atomic_write
-    from ..core.envmap import project_equirect, reconstruct_equirect
-    from ..core.zonal import convolve, window_factors
+    from ..core.io.atomic import atomic_write
+    from ..core.sh.envmap import project_equirect, reconstruct_equirect
+    from ..core.sh.zonal import convolve, window_factors
     L = convolve(project_equirect(source, bands), window_factors(bands, "hanning"))
     img = reconstruct_equirect(L, height).astype(np.float32)          # (H, 2H, 3), row 0 = top
     if img.min() < 0:
@@ -56,7 +56,7 @@ def band_limited_environment(path: str, bands: int = 5, source: str = "city", he
 
 def build(bpy, env_path: str, out_dir: str, *, resolution: int, rays: int, bounces: int):
     """The diffuse room in the current (empty) file, unwrapped and baked with the add-on."""
-    from ..blender import scene_build as sb
+    from . import scene_build as sb
     for name, mesh in scenes.room_objects():
         colour = tuple(scenes.ROOM_MATERIALS.get(name, {"base_color": [0.6, 0.6, 0.6]})["base_color"])
         sb.mesh_object(name, mesh, material=sb.principled(f"{name}_diffuse", base_color=colour, diffuse=True))
@@ -72,7 +72,7 @@ def build(bpy, env_path: str, out_dir: str, *, resolution: int, rays: int, bounc
         ob.select_set(ob.type == "MESH")
     if bpy.ops.prtt.unwrap() != {"FINISHED"}:
         raise RuntimeError("unwrap failed")
-    from ..blender.bake_run import bake_blocking
+    from ..blender.bake.run import bake_blocking
     outcome = bake_blocking(bpy.context, force=True)
     if outcome.status != "done":
         raise RuntimeError(outcome.message)
@@ -80,7 +80,7 @@ def build(bpy, env_path: str, out_dir: str, *, resolution: int, rays: int, bounc
 
 
 def render_cycles(bpy, path: str, size, samples: int, bounces: int, seed: int) -> np.ndarray:
-    from ..core.image_write import read_exr_rgba
+    from ..core.io.image_write import read_exr_rgba
     scene = bpy.context.scene
     r = scene.render
     r.engine = "CYCLES"
@@ -109,9 +109,9 @@ def compare(size=(320, 180), *, samples: int = 1024, resolution: int = 1024, ray
     import bpy
 
     from .. import register
-    from ..blender.preview_render import camera_view, render_scene
-    from ..blender.preview_scene import collect
-    from ..core.preview_reference import trace_pixels
+    from ..blender.preview.render import camera_view, render_scene
+    from ..blender.preview.scene import collect
+    from ..core.preview.reference import trace_pixels
     tmp = tempfile.TemporaryDirectory(prefix="prtt-cycles-") if work_dir is None else None
     d = work_dir or tmp.name
     try:
@@ -166,7 +166,7 @@ def save_figure(res: dict, path: str) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..core.image_write import srgb_encode
+    from ..core.io.image_write import srgb_encode
     im = res["images"]
     exposure = 0.5
     fig, axes = plt.subplots(1, 3, figsize=(15, 3.4))

@@ -16,10 +16,10 @@ import time
 
 import numpy as np
 
-from ..core.bake import BakeSettings, bake_scene
-from ..core.denoise import edge_aware, island_labels, oidn_available, oidn_sh
-from ..core.exr_io import read_sh_exr
-from ..core.gbuffer import build_gbuffer
+from ..core.bake.runner import BakeSettings, bake_scene
+from ..core.bake.denoise import edge_aware, island_labels, oidn_available, oidn_sh
+from ..core.io.exr_io import read_sh_exr
+from ..core.texels.gbuffer import build_gbuffer
 from . import scenes
 
 REF_BOUNCE_RAYS = 2048

@@ -6,7 +6,7 @@ Scenes (bench/scenes.py): the room-class scene (21K triangles) alone and with
 one drawn, each copy with its own 256^2 texture set), baked once with 32 rays,
 per-vertex transfer and one bounce (cached in .cache/bench/render-*).
 
-Each frame is the preview's own draw code (blender/gpu_preview.py: depth
+Each frame is the preview's own draw code (blender/preview/renderer.py: depth
 pre-pass for the fragment modes, then shading) into a float32 offscreen
 buffer; a 1-pixel read-back waits for the GPU to finish. The first frame
 (shader compile, uploads) is reported separately. The camera sees the room
@@ -33,8 +33,8 @@ BUNNIES = {"21K": 0, "300K": 4, "1.3M": 18}
 
 def baked_preview(bunnies: int, light, *, bands: int = 5, rays: int = 32):
     """(PreviewScene, triangles, bake seconds) of the scaling scene with ``bunnies`` copies."""
-    from ..core.bake import BakeSettings, bake_scene
-    from ..core.preview_pack import from_core_scene
+    from ..core.bake.runner import BakeSettings, bake_scene
+    from ..core.preview.pack import from_core_scene
     sc = scenes.render_scaling_scene(bunnies)
     sc = scenes.with_room_materials(sc)
     out = os.path.join(scenes.CACHE, f"render-{bunnies}")
@@ -46,7 +46,7 @@ def baked_preview(bunnies: int, light, *, bands: int = 5, rays: int = 32):
 
 
 def camera(width: int, height: int):
-    from ..core.preview_reference import look_at, perspective
+    from ..core.preview.reference import look_at, perspective
     eye = np.array([0.0, -5.6, 2.3])
     vp = perspective(62.0, width / height) @ look_at(eye, (0.0, 0.6, 0.7))
     return vp, np.array([*eye, 1.0])
@@ -56,7 +56,7 @@ def time_frames(renderer, ps, mode, width, height, frames):
     """(first frame seconds, median seconds of the next ``frames``, FrameStats)."""
     import gpu
 
-    from ..blender.gpu_preview import read_pixels
+    from ..blender.preview.renderer import read_pixels
     vp, cam = camera(width, height)
     off = gpu.types.GPUOffScreen(width, height, format="RGBA32F")
     times = []
@@ -89,8 +89,8 @@ def main(argv=None) -> int:
     import bpy  # noqa: F401  (Blender as a module provides gpu)
     import gpu
 
-    from ..blender.gpu_preview import Renderer
-    from ..blender.preview_render import ensure_gpu
+    from ..blender.preview.renderer import Renderer
+    from ..blender.preview.render import ensure_gpu
     from ..cli import env_light
     ensure_gpu()
     print(f"GPU: {gpu.platform.renderer_get()} ({gpu.platform.backend_type_get()}), {os.cpu_count()} CPU cores")

@@ -16,8 +16,8 @@ import os
 
 import numpy as np
 
-from ..core import meshgen as mg
-from ..core.scene import Scene, load_scene, save_scene
+from ..core.io import meshgen as mg
+from ..core.io.scene import Scene, load_scene, save_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CACHE = os.path.join(ROOT, ".cache", "bench")
@@ -144,7 +144,7 @@ ROOM_MATERIALS = {
 
 def with_room_materials(sc: Scene) -> Scene:
     """The room scene with one Principled-style material per object."""
-    from ..core.scene import validate
+    from ..core.io.scene import validate
     names = sc.object_names
     sc.materials = [dict(name=n, **ROOM_MATERIALS.get(n, {"base_color": [0.6, 0.6, 0.6], "roughness": 0.5}))
                     for n in names]
@@ -168,7 +168,7 @@ def _bunny_unwrapped(resolution: int = 256):
     if os.path.isfile(path):
         with np.load(path) as z:
             return b, np.array(z["uv"])
-    from ..core.unwrap import unwrap
+    from ..core.texels.unwrap import unwrap
     uv = unwrap([(b.vertices, b.faces)], resolution, padding=2)[0]
     os.makedirs(CACHE, exist_ok=True)
     np.savez(path, uv=uv)
@@ -230,7 +230,7 @@ def unwrapped_asset(name: str, resolution: int, *, y_up: bool) -> mg.Mesh:
         with np.load(path) as z:
             m.uvs = np.array(z["uv"])
         return m
-    from ..core.unwrap import unwrap
+    from ..core.texels.unwrap import unwrap
     m.uvs = unwrap([(m.vertices, m.faces)], resolution, padding=2)[0]
     os.makedirs(CACHE, exist_ok=True)
     np.savez(path, uv=m.uvs)

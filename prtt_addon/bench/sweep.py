@@ -46,9 +46,9 @@ import time
 
 import numpy as np
 
-from ..core.bake import BakeSettings, bake_scene
-from ..core.exr_io import read_sh_exr
-from ..core.scene import save_scene
+from ..core.bake.runner import BakeSettings, bake_scene
+from ..core.io.exr_io import read_sh_exr
+from ..core.io.scene import save_scene
 from . import scenes
 
 OUT = os.path.join(scenes.ROOT, "docs", "bench")
@@ -151,9 +151,9 @@ class Previewer:
     def __init__(self, sc, light, size):
         import bpy  # noqa: F401  (provides gpu)
 
-        from ..blender.gpu_preview import Renderer
-        from ..blender.preview_render import ensure_gpu
-        from ..core.preview_reference import look_at, perspective
+        from ..blender.preview.renderer import Renderer
+        from ..blender.preview.render import ensure_gpu
+        from ..core.preview.reference import look_at, perspective
         ensure_gpu()
         self.sc, self.light, (self.w, self.h) = sc, light, size
         eye = np.array([0.0, -5.6, 2.3])
@@ -162,17 +162,17 @@ class Previewer:
         self.renderer = Renderer()
 
     def scene(self, out_dir, bands):
-        from ..core.preview_pack import from_core_scene
+        from ..core.preview.pack import from_core_scene
         return from_core_scene(self.sc, out_dir, self.light, bands, use_bounces=False)
 
     def render(self, out_dir, bands=5) -> np.ndarray:
-        from ..blender.gpu_preview import render_offscreen
+        from ..blender.preview.renderer import render_offscreen
         img, _ = render_offscreen(self.renderer, self.scene(out_dir, bands), "tpfl", self.vp, self.cam, self.w, self.h)
         return img
 
     def ground_truth(self, out_dir, bands, rays) -> np.ndarray:
         """Per-pixel ray-traced transfer, shaded by the same model (no texture)."""
-        from ..core.preview_reference import traced_reference
+        from ..core.preview.reference import traced_reference
         img, _ = traced_reference(self.scene(out_dir, bands), self.vp, self.cam, self.w, self.h, rays=rays)
         return img
 

@@ -26,11 +26,11 @@ UNWRAP_METHODS = ("EXISTING", "SMART", "LIGHTMAP", "XATLAS")
 
 def bake_parser(prog: str) -> argparse.ArgumentParser:
     """Options of ``blender -c prtt bake`` / ``python -m prtt_addon bake``.
-    The bake settings are generated from core/settings_schema.py: those the
+    The bake settings are generated from core/bake/settings_schema.py: those the
     scene holds (scene.prtt) are set on it and saved with the .blend; the
     others apply to this bake only."""
     from ..cli import add_output_options, add_setting_options, choice_option
-    from ..core import settings_schema as schema
+    from ..core.bake import settings_schema as schema
     p = argparse.ArgumentParser(
         prog=prog, description="Bake PRTT transfer textures of a .blend file (paths are relative to where "
                                "you run the command).",
@@ -65,7 +65,7 @@ def unwrap_todo(scene, view_layer):
     sources in excluded collections, linked data, geometry-nodes output, curves)
     gets UVs generated at export. Returns (by edit-mode operators, by xatlas):
     objects the viewport hides cannot enter edit mode, so xatlas unwraps them."""
-    from .unwrap import needs_user_unwrap
+    from .export.unwrap import needs_user_unwrap
     editable, hidden = [], []
     for o in view_layer.objects:
         if not (o.prtt.bake and needs_user_unwrap(o)):
@@ -166,7 +166,7 @@ def _bake_file(args) -> int:
     if bpy.context.window is not None:
         bpy.context.window.scene = scene
     from ..cli import ConsoleProgress, given_settings
-    from ..core import settings_schema as schema
+    from ..core.bake import settings_schema as schema
     st = scene.prtt
     if args.out:
         st.output_dir = os.path.abspath(args.out)
@@ -179,7 +179,7 @@ def _bake_file(args) -> int:
     with bpy.context.temp_override(scene=scene):
         ctx = bpy.context
         if args.unwrap:
-            from .unwrap import UnwrapError, unwrap_objects
+            from .export.unwrap import UnwrapError, unwrap_objects
             editable, hidden = unwrap_todo(scene, ctx.view_layer)
             try:
                 for objects, method in ((editable, args.unwrap), (hidden, "XATLAS")):
@@ -193,7 +193,7 @@ def _bake_file(args) -> int:
             if hidden and not args.quiet:
                 print(f"prtt: note: {len(hidden)} object(s) hidden in the viewport unwrapped with xatlas: "
                       f"{', '.join(o.name for o in hidden[:8])}", flush=True)
-        from .bake_run import bake_blocking
+        from .bake.run import bake_blocking
 
         progress = ConsoleProgress(quiet=args.quiet, final=False)
         try:
@@ -233,7 +233,7 @@ def _cli(argv) -> int:
         if cmd == "bake":
             return bake_file(rest, prog="blender -c prtt bake")
         if cmd == "render":
-            from .preview_render import render_file
+            from .preview.render import render_file
             return render_file(rest, prog="blender -c prtt render")
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)

@@ -1,7 +1,9 @@
 """register()/unregister() of every Blender class and property PRTT adds."""
 
 
-from . import cli, operators, panels, preview_draw, properties
+from . import cli
+from .ui import operators, panels, properties
+from .preview import draw as preview_draw
 
 _MODULES = (properties, operators, panels, preview_draw)
 

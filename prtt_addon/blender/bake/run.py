@@ -1,0 +1,232 @@
+"""One bake code path for the UI, background mode and both command lines.
+
+``prepare`` exports the evaluated scene into a job file in the output folder,
+``finish`` turns the worker's result into images and metadata on the scene,
+and ``bake_blocking`` runs the worker to the end (background mode,
+``blender -c prtt bake``, ``python -m prtt_addon bake``). The modal operator
+uses prepare/finish with its own polling.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+import uuid
+
+import bpy
+import numpy as np
+
+from ...core.bake.runner import BakeError, BakeSettings, check_out_dir
+from ...core.io.scene import save_scene
+from ...core.bake.settings_schema import core_from_ui
+from ..export.scene import GENERATED_UVS, ExportError, export_scene
+from ..preview.scene import materials_signature
+from ..ui.properties import redraw_viewports
+from .worker_job import WorkerJob
+
+EXIT_CANCELLED = 3
+
+
+def job_path(out_dir: str) -> str:
+    """A fresh job file name in ``out_dir`` for this bake.
+
+    Named per bake (this process and a random token), so two bakes into one
+    folder never read each other's scene (the worker's folder lock then lets
+    one of them run). It is a temporary of this (Blender's) process: a later
+    bake removes it only once this process is gone (atomic.remove_stale_temporaries).
+    """
+    from ...core.io.atomic import temp_prefix
+    return os.path.join(out_dir, f"{temp_prefix('job')}{uuid.uuid4().hex[:12]}.npz")
+
+
+@dataclasses.dataclass
+class Prepared:
+    job: str
+    out_dir: str
+    export: object
+    settings: dict
+    materials_signature: str = ""     # of the scene as exported (it may change while the worker runs)
+
+
+@dataclasses.dataclass
+class Outcome:
+    status: str                # "done", "skipped", "cancelled", "failed"
+    message: str
+    manifest: dict | None = None
+    warnings: list = dataclasses.field(default_factory=list)   # the export's (the worker reports its own)
+
+
+def output_folder(scene) -> str:
+    """The absolute output folder; a relative one needs a saved .blend."""
+    raw = scene.prtt.output_dir or "//prtt/"
+    if raw.startswith("//") and not bpy.data.filepath:
+        raise ExportError("the .blend file is not saved, so '//' has no folder: save the file, "
+                          "or set an absolute Output Folder in PRTT > Bake")
+    path = os.path.abspath(bpy.path.abspath(raw))
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ExportError(f"the output folder {path} is a file")
+    return path
+
+
+def bake_settings(scene) -> dict:
+    """The scene's bake settings as a BakeSettings dict: the settings scene.prtt
+    holds, mapped by core/bake/settings_schema.py (Storage -> half, Adaptive +
+    Tolerance -> adaptive_tol, Vertex Transfer -> vertex_mode, ...); the
+    others at their defaults."""
+    st = scene.prtt
+    s = BakeSettings(**core_from_ui(lambda name: getattr(st, name)))
+    return s.validate().as_dict()
+
+
+def prepare(context, overrides: dict | None = None) -> Prepared:
+    """Export the scene to a job file. Raises ExportError (nothing written)."""
+    scene = context.scene
+    out_dir = output_folder(scene)
+    settings = bake_settings(scene)
+    settings.update(overrides or {})
+    BakeSettings.from_dict(settings).validate()
+    exp = export_scene(context, with_light=settings.get("bounces", 0) > 0)
+    try:
+        check_out_dir(out_dir)
+    except BakeError as exc:
+        raise ExportError(str(exc)) from exc
+    extra = {"settings": settings, "blend": bpy.data.filepath, "set_objects": exp.set_objects}
+    if exp.light is not None:
+        extra["light"] = {"coeffs": exp.light.tolist(), "description": exp.light_description}
+    job = job_path(out_dir)
+    save_scene(exp.scene, job, extra=extra)
+    return Prepared(job, out_dir, exp, settings, materials_signature(scene))
+
+
+def interpret(job: WorkerJob, code: int) -> Outcome:
+    """The worker's exit and last message as an Outcome."""
+    last = job.last_event or {}
+    if code == 0 and last.get("type") == "done":
+        with open(last["manifest"], encoding="utf-8") as f:
+            manifest = json.load(f)
+        if last.get("skipped"):
+            return Outcome("skipped", "PRTT: inputs unchanged since the last bake; nothing to do", manifest)
+        return Outcome("done", "PRTT: bake finished", manifest)
+    if code == EXIT_CANCELLED or job.cancelled:
+        return Outcome("cancelled", "PRTT: bake cancelled; the previous textures are unchanged")
+    if last.get("type") == "error":
+        return Outcome("failed", f"PRTT: {last['message']}")
+    tail = job.stderr_tail()
+    how = f"was killed (signal {-code})" if code is not None and code < 0 else f"exited with code {code}"
+    return Outcome("failed", f"PRTT: the bake worker {how}; the previous textures are unchanged"
+                   + (f". Its last output: {tail}" if tail else ""))
+
+
+def finish(context, prepared: Prepared, outcome: Outcome) -> None:
+    """Record the result on the scene and load the baked textures as images."""
+    st = context.scene.prtt
+    st.baking = False
+    st.progress = 1.0 if outcome.status in ("done", "skipped") else 0.0
+    st.status = outcome.message.replace("PRTT: ", "")
+    try:
+        os.remove(prepared.job)
+    except OSError:
+        pass
+    if outcome.status not in ("done", "skipped") or outcome.manifest is None:
+        return
+    m = outcome.manifest
+    write_generated_uvs(prepared.out_dir, prepared.export.generated_uvs)
+    summary = {"out_dir": prepared.out_dir, "files": m["files"], "input_hash": m["input_hash"],
+               "settings": m["settings"], "set_objects": prepared.export.set_objects,
+               "bounce": None if not m.get("bounce") else {k: m["bounce"][k] for k in
+                                                          ("levels", "light_hash", "materials_hash", "files")},
+               "light": prepared.export.light_description, "seconds": m["seconds"].get("total"),
+               "warnings": m.get("warnings", []) + prepared.export.warnings,
+               "objects": prepared.export.objects,
+               "materials_signature": prepared.materials_signature,
+               "time": time.strftime("%Y-%m-%d %H:%M:%S")}
+    st.last_bake = json.dumps(summary)
+    load_preview_images(prepared.out_dir, m)
+    redraw_viewports(context)
+
+
+def write_generated_uvs(out_dir: str, generated: dict) -> None:
+    """The UVs the export generated (export.GENERATED_UVS), written atomically
+    after a successful bake so that they always match the textures beside them.
+    Removed when the bake generated none."""
+    from ...core.io.atomic import atomic_write
+    path = os.path.join(out_dir, GENERATED_UVS)
+    if not generated:
+        if os.path.exists(path):
+            os.remove(path)
+        return
+    keys = sorted(generated)
+    with atomic_write(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, keys=np.array(keys, dtype=str),
+                     **{f"uv_{i}": np.asarray(generated[k], np.float32) for i, k in enumerate(keys)})
+
+
+def keep_image(img) -> None:
+    """Make an image the add-on computed survive save and reload: its pixels
+    packed into the .blend (a generated image would come back blank) and a
+    fake user (nothing else uses it, and unused data is not saved)."""
+    img.update()
+    img.pack()
+    img.use_fake_user = True
+
+
+def load_preview_images(out_dir: str, manifest: dict) -> list:
+    """Per set an image "PRTT AO <set>": the transfer's DC term normalised so
+    open sky is 1 (what Blender can show of a 25-channel EXR)."""
+    from ...core.io.exr_io import read_sh_exr
+    made = []
+    for name in manifest.get("transfer_files", manifest["files"]):
+        if not name.endswith(".transfer.exr"):
+            continue
+        data, _ = read_sh_exr(os.path.join(out_dir, name))
+        ao = np.clip(data[..., 0] / 0.886226925, 0.0, None)     # A_0 y_00 = pi / (2 sqrt(pi))
+        h, w = ao.shape
+        title = f"PRTT AO {name[:-len('.transfer.exr')]}"
+        img = bpy.data.images.get(title)
+        if img is not None and tuple(img.size) != (w, h):
+            bpy.data.images.remove(img)
+            img = None
+        if img is None:
+            img = bpy.data.images.new(title, w, h, float_buffer=True, alpha=False)
+            img.colorspace_settings.name = "Non-Color"
+        rgba = np.ones((h, w, 4), np.float32)
+        rgba[..., :3] = ao[..., None]
+        img.pixels.foreach_set(rgba.ravel())             # row 0 = bottom, like ours
+        keep_image(img)
+        made.append(img)
+    return made
+
+
+def bake_blocking(context, *, overrides=None, force=False, on_event=None) -> Outcome:
+    """Export, run the worker to the end, finish. Never raises for bad input:
+    the Outcome says what happened."""
+    st = context.scene.prtt
+    try:
+        prepared = prepare(context, overrides)
+    except (ExportError, ValueError, OSError) as exc:
+        st.status = str(exc)
+        return Outcome("failed", f"PRTT: {exc}")
+    job = WorkerJob(prepared.job, prepared.out_dir, force=force).start()
+    st.baking = True
+    try:
+        while True:
+            evs = job.events(timeout=0.5)
+            for e in evs:
+                if e is None:
+                    break
+                if on_event is not None:
+                    on_event(e)
+            if None in evs:
+                break
+            if job.returncode is not None and not evs:
+                break
+        code = job.wait()
+    except KeyboardInterrupt:
+        job.cancel()
+        code = job.wait()
+    outcome = interpret(job, code)
+    outcome.warnings = list(prepared.export.warnings)
+    finish(context, prepared, outcome)
+    return outcome

@@ -1,0 +1,119 @@
+"""Running ``python -m prtt_addon.worker`` as a child of Blender's Python.
+
+The child is started with Blender's own interpreter (``sys.executable``) and a
+``PYTHONPATH`` holding the folder above this package (so ``prtt_addon``
+imports by that name: the extension's id) and Blender's own search path (the
+extension's wheels live in Blender's user site-packages, which a plain child
+would not see). Reader threads move its JSON lines into a queue, so the UI
+polls without blocking; ``cancel`` sends SIGTERM (the worker stops and leaves
+the previous textures untouched).
+"""
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+
+#: The prtt_addon/ folder (this file is prtt_addon/blender/bake/worker_job.py).
+PACKAGE_DIR = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def python_executable() -> str:
+    """Blender's bundled Python (sys.executable in Blender 4.2+), or this interpreter."""
+    exe = sys.executable
+    if os.path.basename(exe).lower().startswith("blender"):
+        # Very old Blenders reported their own binary; look beside the stdlib.
+        for cand in ("python3", f"python{sys.version_info[0]}.{sys.version_info[1]}", "python.exe"):
+            p = os.path.join(sys.prefix, "bin", cand)
+            if os.path.isfile(p):
+                return p
+    return exe
+
+
+def child_env() -> dict:
+    if os.path.basename(PACKAGE_DIR) != "prtt_addon":
+        raise RuntimeError(f"PRTT's package folder must be named 'prtt_addon' (it is {PACKAGE_DIR}); "
+                           f"reinstall the extension")
+    paths = [os.path.dirname(PACKAGE_DIR)] + [p for p in sys.path if p and os.path.isdir(p)]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+class WorkerJob:
+    def __init__(self, job_path: str, out_dir: str, *, force: bool = False):
+        self.cmd = [python_executable(), "-m", "prtt_addon.worker", job_path, out_dir]
+        if force:
+            self.cmd.append("--force")
+        self.proc = None
+        self._events: queue.Queue = queue.Queue()
+        self._stderr: list[str] = []
+        self.last_event: dict | None = None
+        self.cancelled = False
+
+    def start(self) -> "WorkerJob":
+        kwargs = {}
+        if os.name == "posix":
+            kwargs["start_new_session"] = True     # a Ctrl+C in Blender's terminal is not a cancel
+        self.proc = subprocess.Popen(self.cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     env=child_env(), bufsize=1, **kwargs)
+        threading.Thread(target=self._read_stdout, daemon=True).start()
+        threading.Thread(target=self._read_stderr, daemon=True).start()
+        return self
+
+    def _read_stdout(self):
+        for line in self.proc.stdout:
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                self._events.put(json.loads(line))
+            except ValueError:
+                self._stderr.append(line)
+        self._events.put(None)                     # end of stream
+
+    def _read_stderr(self):
+        for line in self.proc.stderr:
+            self._stderr.append(line.rstrip())
+            del self._stderr[:-40]
+
+    def events(self, timeout: float | None = None) -> list:
+        """Events so far (blocks up to ``timeout`` for the first one); None marks the end."""
+        out = []
+        try:
+            out.append(self._events.get(timeout=timeout) if timeout else self._events.get_nowait())
+            while True:
+                out.append(self._events.get_nowait())
+        except queue.Empty:
+            pass
+        for e in out:
+            if e is not None:
+                self.last_event = e
+        return out
+
+    def cancel(self):
+        self.cancelled = True
+        if self.proc is not None and self.proc.poll() is None:
+            if os.name == "posix":
+                self.proc.send_signal(signal.SIGTERM)
+            else:
+                self.proc.terminate()
+
+    def kill(self):
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+
+    def wait(self, timeout: float | None = None) -> int:
+        return self.proc.wait(timeout=timeout)
+
+    @property
+    def returncode(self):
+        return None if self.proc is None else self.proc.poll()
+
+    def stderr_tail(self) -> str:
+        return "\n".join(self._stderr[-10:])

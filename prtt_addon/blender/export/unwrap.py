@@ -1,0 +1,351 @@
+"""Unwrapping into the dedicated "PRTT" UV map, touching nothing else.
+
+Methods: copy an existing map, Blender's Smart UV Project or Lightmap Pack
+(on the PRTT map, made active only while the operator runs), or xatlas
+in-process. Afterwards the user's active and render UV maps, the mesh's
+selection flags, the active object, the selection and the mode are put back;
+the PRTT map is checked for overlapping islands at the object's resolution.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+
+import bpy
+import numpy as np
+
+from ...core.texels.raster import rasterize
+from ..ui.properties import UV_MAP
+
+
+class UnwrapError(ValueError):
+    pass
+
+
+#: The attribute behind each element collection's ``select`` flag.
+_SELECT_ATTRIBUTE = {"vertices": ".select_vert", "edges": ".select_edge", "polygons": ".select_poly"}
+
+
+def _select_flag_usable(me, coll: str) -> bool:
+    """Whether ``coll``'s ``select`` flags can go through foreach_get/set safely.
+
+    Blender 5.0.1's ``Mesh.from_pydata`` without explicit edges leaves
+    ``.select_edge`` typed INT32_2D; ``edges.foreach_set("select", ...)`` then
+    writes booleans into it and crashes Blender. Such a domain is left alone.
+    """
+    attr = me.attributes.get(_SELECT_ATTRIBUTE[coll])
+    return attr is None or (attr.data_type == "BOOLEAN" and len(attr.data) == len(getattr(me, coll)))
+
+
+@contextlib.contextmanager
+def _preserved(context, objects):
+    """Restore mode, selection, active object, active/render UV maps and mesh
+    selection flags after the block."""
+    view_layer = context.view_layer
+    active = view_layer.objects.active
+    mode = context.object.mode if context.object else "OBJECT"
+    selected = [o for o in context.selected_objects]
+    saved = {}
+    for ob in objects:
+        me = ob.data
+        uv = me.uv_layers
+        flags = {}
+        for coll in ("vertices", "edges", "polygons"):
+            if not _select_flag_usable(me, coll):
+                continue
+            c = getattr(me, coll)
+            a = np.empty(len(c), bool)
+            c.foreach_get("select", a)
+            flags[coll] = a
+        saved[ob.name] = (uv.active.name if uv.active else None,
+                          next((u.name for u in uv if u.active_render), None), flags)
+    try:
+        yield
+    finally:
+        if context.object and context.object.mode != "OBJECT":
+            bpy.ops.object.mode_set(mode="OBJECT")
+        for ob in objects:
+            me = ob.data
+            act, render, flags = saved[ob.name]
+            if act is not None and act in me.uv_layers:
+                me.uv_layers.active = me.uv_layers[act]
+            if render is not None and render in me.uv_layers:
+                me.uv_layers[render].active_render = True
+            for coll, a in flags.items():
+                if _select_flag_usable(me, coll) and len(getattr(me, coll)) == len(a):
+                    getattr(me, coll).foreach_set("select", a)
+            me.update()
+        for o in context.view_layer.objects:
+            o.select_set(o in selected)
+        view_layer.objects.active = active
+        if active is not None and mode != "OBJECT" and active.mode != mode:
+            try:
+                bpy.ops.object.mode_set(mode=mode)
+            except RuntimeError:
+                pass
+
+
+def needs_user_unwrap(ob) -> bool:
+    """Whether a mesh object should get its PRTT map from Unwrap (the user's
+    layout, kept through its modifiers): a local mesh with faces of its own,
+    without the map and without geometry nodes. Everything else that bakes
+    (linked data, faces made only by modifiers or geometry nodes, curves,
+    instances) gets UVs generated at export."""
+    return (ob.type == "MESH" and ob.library is None and ob.data.library is None
+            and UV_MAP not in ob.data.uv_layers and len(ob.data.polygons) > 0
+            and not any(m.type == "NODES" for m in ob.modifiers))
+
+
+def prtt_layer(me):
+    """The PRTT UV map of a mesh, created (as a non-render map) if missing."""
+    uv = me.uv_layers.get(UV_MAP)
+    if uv is None:
+        render = next((u.name for u in me.uv_layers if u.active_render), None)
+        uv = me.uv_layers.new(name=UV_MAP, do_init=False)
+        if render is not None:                     # uv_layers.new may take the render flag
+            me.uv_layers[render].active_render = True
+    return uv
+
+
+def _run_edit_mode_op(context, objects, op):
+    """Run a UV operator with every object in edit mode, all faces selected and
+    its PRTT map active."""
+    if context.view_layer.objects.active is not None and context.view_layer.objects.active.mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
+    for o in context.view_layer.objects:
+        o.select_set(False)
+    for ob in objects:
+        ob.select_set(True)
+        me = ob.data
+        me.uv_layers.active = prtt_layer(me)
+    context.view_layer.objects.active = objects[0]
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.select_all(action="SELECT")
+    op()
+    bpy.ops.object.mode_set(mode="OBJECT")
+
+
+def _xatlas(objects, resolution, padding, atlas):
+    from ...core.texels.unwrap import pack_uv_charts, unwrap
+    groups = [objects] if atlas else [[o] for o in objects]
+    for group in groups:
+        meshes = []
+        for ob in group:
+            me = ob.data
+            me.calc_loop_triangles()
+            T = len(me.loop_triangles)
+            loops = np.empty(T * 3, np.int32)
+            me.loop_triangles.foreach_get("loops", loops)
+            verts = np.empty(len(me.loops), np.int32)
+            me.loops.foreach_get("vertex_index", verts)
+            co = np.empty(len(me.vertices) * 3, np.float32)
+            me.vertices.foreach_get("co", co)
+            M = np.array(ob.matrix_world, dtype=np.float64)
+            world = co.reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
+            # A vertex per loop: xatlas charts them like welded vertices (it
+            # finds coincident positions) but never across a UV seam of ours.
+            meshes.append((world[verts], loops.reshape(-1, 3)))
+        uvs = unwrap(meshes, resolution, padding=padding)
+        layouts = [_loop_uvs(ob.data, v, f, uv) for ob, (v, f), uv in zip(group, meshes, uvs)]
+        if any(alone.any() for _, alone, _ in layouts):
+            # Polygons split across charts became charts of their own: pack
+            # every chart of the group again, together (one atlas).
+            keys, faces, base = [], [], 0
+            for i, ((per_loop, alone, verts), (_, f)) in enumerate(zip(layouts, meshes)):
+                key = np.concatenate([np.full((len(verts), 1), i, np.float64), verts[:, None].astype(np.float64),
+                                      np.round(per_loop, 7)], axis=1)
+                key[alone, 1] = -1 - np.flatnonzero(alone)
+                keys.append(key)
+                faces.append(f + base)
+                base += len(verts)
+            _, first, ids = np.unique(np.concatenate(keys), axis=0, return_index=True, return_inverse=True)
+            flat = np.concatenate([pl for pl, _, _ in layouts])
+            packed = pack_uv_charts(flat[first], ids.reshape(-1)[np.concatenate(faces)], resolution,
+                                    padding=padding).reshape(-1, 2)
+            corner = np.concatenate(faces).reshape(-1)
+            flat[corner] = packed
+            base = 0
+            for k, (per_loop, _, verts) in enumerate(layouts):
+                layouts[k] = (flat[base:base + len(verts)], None, verts)
+                base += len(verts)
+        for ob, (per_loop, _, _) in zip(group, layouts):
+            prtt_layer(ob.data).uv.foreach_set("vector", np.clip(per_loop, 0.0, 1.0).astype(np.float32).ravel())
+            ob.data.update()
+
+
+def _loop_uvs(me, loop_pos, tris, tri_uv):
+    """Per-loop UVs from xatlas's per-triangle-corner UVs: (per-loop UVs (L, 2)
+    float64, loops of polygons that must become charts of their own (L,) bool,
+    loop vertex ids (L,)).
+
+    Blender stores one UV per loop, shared by all triangles of a polygon; xatlas
+    works on triangles and may put two triangles of a non-planar quad in
+    different charts. Such a polygon is mapped as a whole through the affine
+    3D -> UV map of its largest triangle and marked to be a chart of its own
+    (where it is, it would overlap its neighbours); the caller packs again.
+    """
+    n_loops = len(me.loops)
+    verts = np.empty(n_loops, np.int32)
+    me.loops.foreach_get("vertex_index", verts)
+    per_loop = np.zeros((n_loops, 2), np.float64)
+    per_loop[tris.reshape(-1)] = tri_uv.reshape(-1, 2)
+    alone = np.zeros(n_loops, bool)
+    conflict = np.abs(per_loop[tris] - tri_uv).max(axis=(1, 2)) > 1e-7      # per triangle
+    if not conflict.any():
+        return per_loop, alone, verts
+    poly = np.empty(len(me.loop_triangles), np.int32)
+    me.loop_triangles.foreach_get("polygon_index", poly)
+    start = np.empty(len(me.polygons), np.int32)
+    me.polygons.foreach_get("loop_start", start)
+    total = np.empty(len(me.polygons), np.int32)
+    me.polygons.foreach_get("loop_total", total)
+    for p in np.unique(poly[conflict]):
+        ts = np.flatnonzero(poly == p)
+        loops = np.arange(start[p], start[p] + total[p])
+        Q = loop_pos[loops]
+        # Project along the polygon's Newell normal (the plane that folds it
+        # least: a largest-triangle plane can turn a warped quad into a bow
+        # tie whose triangles overlap), at the texel density xatlas gave its
+        # triangles (UV area over 3D area).
+        nrm = np.cross(Q, np.roll(Q, -1, axis=0)).sum(axis=0)
+        nrm /= max(np.linalg.norm(nrm), 1e-300)
+        e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(nrm, e1)
+        P = loop_pos[tris[ts]]
+        area3 = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
+        U = tri_uv[ts]
+        area2 = 0.5 * np.abs(np.cross(U[:, 1] - U[:, 0], U[:, 2] - U[:, 0])).sum()
+        scale = np.sqrt(area2 / area3) if area3 > 0 and area2 > 0 else 1.0
+        d = Q - Q.mean(axis=0)
+        per_loop[loops] = scale * np.stack([d @ e1, d @ e2], axis=1)
+        alone[loops] = True
+    return per_loop, alone, verts
+
+
+#: Smart UV Project angle limits, tried in turn until the layout has no
+#: overlapping texels: Blender's default first; a lower limit cuts folded
+#: regions (Suzanne's ears at 66 degrees) into more islands.
+SMART_ANGLES = (66.0, 45.0, 30.0, 15.0)
+#: Fewest texels between islands: one for bilinear lookups, one because the
+#: rasteriser counts every texel a triangle touches.
+MIN_MARGIN = 2
+
+
+def margin_texels(padding: int, dilate: int = 0) -> int:
+    """Texels between UV islands at the object's resolution: the user's margin,
+    at least MIN_MARGIN and at least the dilation, so that dilated borders of
+    two islands do not meet (their mip levels stay apart too)."""
+    return max(int(padding), MIN_MARGIN, int(dilate))
+
+
+def _overlap_of(objects, resolution: int, atlas: bool) -> int:
+    """Overlapping texels: per object, or of all objects together for an atlas."""
+    if not atlas or len(objects) == 1:
+        return sum(overlap_texels(ob, resolution) for ob in objects)
+    return rasterize(np.concatenate([_tri_uvs(ob) for ob in objects]), resolution, resolution).overlap_texels
+
+
+def _separate_and_pack(context, group, margin: float) -> None:
+    """Make every face that overlaps another an island of its own and pack all
+    islands again (Blender's Pack Islands, with rotation): what remains are
+    whole faces, which cannot overlap themselves."""
+    import bmesh
+    ts = context.scene.tool_settings
+    sync = ts.use_uv_select_sync
+
+    def op():
+        bpy.ops.uv.select_all(action="DESELECT")
+        bpy.ops.uv.select_overlap()
+        for ob in group:
+            bm = bmesh.from_edit_mesh(ob.data)
+            uvl = bm.loops.layers.uv.active
+            # A different offset per face breaks its UV connection to every neighbour.
+            for i, f in enumerate(x for x in bm.faces if x.select):
+                for loop in f.loops:
+                    loop[uvl].uv.x += 0.01 * (i + 1)
+            bmesh.update_edit_mesh(ob.data)
+        bpy.ops.mesh.select_all(action="SELECT")
+        bpy.ops.uv.select_all(action="SELECT")
+        bpy.ops.uv.pack_islands(margin_method="FRACTION", margin=margin, rotate=True)
+
+    ts.use_uv_select_sync = True            # UV selection = face selection, as bmesh sees it
+    try:
+        _run_edit_mode_op(context, group, op)
+    finally:
+        ts.use_uv_select_sync = sync
+
+
+def _editable(ob) -> bool:
+    return ob.visible_get() and not ob.hide_select and ob.library is None
+
+
+def unwrap_objects(context, objects, *, method: str, resolution: int, padding: int = 4,
+                   atlas: bool = False, source_map: str = "", dilate: int = 0) -> dict:
+    """Write the PRTT UV map of ``objects``. Returns {object name: overlapping
+    texels}. Meshes without faces (points, edges, or faces made only by
+    geometry nodes, which get generated UVs at bake time) are left out of
+    the result; only if every object is such a mesh is it an error."""
+    objects = [o for o in objects if o.type == "MESH"]
+    if not objects:
+        raise UnwrapError("select one or more mesh objects to unwrap")
+    faceless = [ob.name for ob in objects if len(ob.data.polygons) == 0]
+    objects = [ob for ob in objects if len(ob.data.polygons) > 0]
+    if not objects:
+        raise UnwrapError(f"{', '.join(faceless[:8])}: no faces to unwrap (faces made by geometry "
+                          f"nodes get UVs generated when baking)")
+    margin = margin_texels(padding, dilate) / max(resolution, 1)
+    padding = margin_texels(padding, dilate)
+    groups = [objects] if atlas else [[o] for o in objects]
+    with _preserved(context, objects):
+        if method == "EXISTING":
+            for ob in objects:
+                me = ob.data
+                name = source_map or next((u.name for u in me.uv_layers if u.active_render and u.name != UV_MAP),
+                                          None)
+                if not name or name not in me.uv_layers or name == UV_MAP:
+                    raise UnwrapError(f"object {ob.name!r} has no UV map {name or '(render UV map)'!r} to copy; "
+                                      f"choose another method")
+                src = np.empty(len(me.loops) * 2, np.float32)
+                me.uv_layers[name].uv.foreach_get("vector", src)
+                prtt_layer(me).uv.foreach_set("vector", src)
+                me.update()
+        elif method == "SMART":
+            # Objects edited together are packed together: one call per object
+            # for per-object texture sets, one call for an atlas.
+            for group in groups:
+                for angle in SMART_ANGLES:
+                    _run_edit_mode_op(context, group, lambda a=angle: bpy.ops.uv.smart_project(
+                        angle_limit=math.radians(a), island_margin=margin, scale_to_bounds=False))
+                    if _overlap_of(group, resolution, atlas) == 0:
+                        break
+        elif method == "LIGHTMAP":
+            _run_edit_mode_op(context, objects, lambda: bpy.ops.uv.lightmap_pack(
+                PREF_CONTEXT="ALL_FACES", PREF_PACK_IN_ONE=atlas,
+                PREF_MARGIN_DIV=max(0.001, min(1.0, padding * 0.1 / 4.0))))
+        elif method == "XATLAS":
+            _xatlas(objects, resolution, padding, atlas)
+        else:
+            raise UnwrapError(f"unknown unwrap method {method!r}")
+        if method != "EXISTING":           # a copied map is the user's layout, kept as it is
+            for group in groups:
+                if _overlap_of(group, resolution, atlas) and all(_editable(o) for o in group):
+                    _separate_and_pack(context, group, margin)
+    return {ob.name: overlap_texels(ob, resolution) for ob in objects}
+
+
+def _tri_uvs(ob) -> np.ndarray:
+    """(T, 3, 2) float64 corner UVs of the object's PRTT map, clipped to [0, 1]."""
+    me = ob.data
+    me.calc_loop_triangles()
+    T = len(me.loop_triangles)
+    loops = np.empty(T * 3, np.int32)
+    me.loop_triangles.foreach_get("loops", loops)
+    uv = np.empty(len(me.loops) * 2, np.float32)
+    me.uv_layers[UV_MAP].uv.foreach_get("vector", uv)
+    return np.clip(uv.reshape(-1, 2).astype(np.float64)[loops].reshape(T, 3, 2), 0.0, 1.0)
+
+
+def overlap_texels(ob, resolution: int) -> int:
+    """Texels of the object's PRTT map covered by more than one UV island."""
+    return rasterize(_tri_uvs(ob), resolution, resolution).overlap_texels

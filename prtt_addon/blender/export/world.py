@@ -1,0 +1,170 @@
+"""The scene's World as a spherical-harmonic light.
+
+Understood node setups (anything else falls back to a clear error naming the
+node, or to the panel's studio HDRI):
+
+    [Texture Coordinate (Generated/Object)] -> [Mapping] -> [Environment Texture]
+        -> [Background] -> [World Output]
+    [Background] with an unlinked colour (a constant environment)
+
+* The Environment Texture's image is read from its file (EXR/HDR, through
+  core.io.image_io) or, for packed/generated images, from Blender's pixels
+  (byte sRGB images are linearised).
+* Background strength multiplies the light.
+* The Mapping node's rotation (Euler XYZ, types Point and Texture) turns the
+  light by an SH rotation: with Point mapping the lookup direction is
+  R w, so L(w) = img(R w) and the image's coefficients are rotated by R^T
+  (Texture mapping applies the inverse, so by R). Location and scale do not
+  change a direction lookup's result for rotation-only use and are ignored
+  (scale must be uniform).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import numpy as np
+
+from ...core.sh import envmap
+from ...core import sh
+from .materials import image_array
+
+
+class WorldLightError(ValueError):
+    """The World's nodes are not a setup PRTT can turn into SH light."""
+
+
+def _linked(socket):
+    return socket.links[0].from_node if socket.is_linked else None
+
+
+def _image_pixels(image) -> np.ndarray:
+    """(H, W, 3) float32 in file order (top row first), linear."""
+    path = ""
+    if image.source == "FILE" and not image.packed_file:
+        import bpy
+        path = bpy.path.abspath(image.filepath, library=image.library)
+    if path and os.path.isfile(path) and path.lower().endswith((".exr", ".hdr")):
+        from ...core.io.image_io import read_hdr_image
+        return read_hdr_image(path)
+    px = image_array(image, linearise=True)          # reloads an image without data
+    if px.size == 0:
+        raise WorldLightError(f"World image {image.name!r} has no pixels (missing file {image.filepath!r}?)")
+    rgb = px[..., :3] if image.channels >= 3 else np.repeat(px[..., :1], 3, axis=-1)
+    return np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def euler_xyz_matrix(rx, ry, rz) -> np.ndarray:
+    """Blender's Euler XYZ: R = Rz @ Ry @ Rx."""
+    cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def mapping_rotation(node) -> np.ndarray:
+    """The rotation a Mapping node applies to lookup directions."""
+    if node.vector_type not in {"POINT", "TEXTURE"}:
+        raise WorldLightError(f"Mapping node {node.name!r}: type {node.vector_type} is not supported "
+                              f"(use Point or Texture)")
+    for name in ("Rotation", "Scale"):
+        if node.inputs[name].is_linked:
+            raise WorldLightError(f"Mapping node {node.name!r}: a linked {name} is not supported")
+    rot = node.inputs["Rotation"].default_value
+    R = euler_xyz_matrix(*rot)
+    return R if node.vector_type == "POINT" else R.T
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldSetup:
+    """The World's light as parsed from its nodes, before any pixels are read.
+
+    key identifies the unrotated, unscaled projection (it changes when the image
+    or the constant colour does, not when strength or rotation do), so the
+    viewport can cache the projection and turn the light in real time."""
+
+    key: tuple
+    source: object            # image pixels loader (callable), or an rgb constant (np.ndarray)
+    strength: float
+    rotation: np.ndarray | None   # R of the Mapping node (lookup directions are R w), or None
+    description: str
+
+
+def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> WorldSetup:
+    """Parse the World's nodes (or the studio HDRI choice). Cheap: reads no pixels."""
+    if source == "BUILTIN":
+        return WorldSetup(("builtin", builtin), lambda: envmap.builtin_environment_path(builtin), 1.0, None,
+                          f"studio HDRI '{builtin}'")
+    world = scene.world
+    if world is None:
+        raise WorldLightError("the scene has no World: add one, or choose a studio HDRI as the light")
+    if not world.node_tree:
+        c = np.array(world.color[:3], dtype=np.float64)
+        return WorldSetup(("color", tuple(c)), c, 1.0, None,
+                          f"World colour {tuple(round(float(x), 3) for x in c)}")
+    out = next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output),
+               None) or next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeOutputWorld"), None)
+    if out is None or not out.inputs["Surface"].is_linked:
+        raise WorldLightError(f"World {world.name!r} has no connected World Output")
+    bg = _linked(out.inputs["Surface"])
+    if bg.bl_idname != "ShaderNodeBackground":
+        raise WorldLightError(f"World {world.name!r}: {bg.name!r} ({bg.bl_label}) feeds the output; "
+                              f"PRTT understands a Background node (or choose a studio HDRI)")
+    if bg.inputs["Strength"].is_linked:
+        raise WorldLightError(f"World {world.name!r}: a linked Background strength is not supported")
+    strength = float(bg.inputs["Strength"].default_value)
+    col = bg.inputs["Color"]
+    if not col.is_linked:
+        c = np.array(col.default_value[:3], dtype=np.float64)
+        return WorldSetup(("color", tuple(c)), c, strength, None, f"World colour x{strength:g}")
+    env = _linked(col)
+    if env.bl_idname != "ShaderNodeTexEnvironment":
+        raise WorldLightError(f"World {world.name!r}: {env.name!r} ({env.bl_label}) feeds the Background; "
+                              f"PRTT understands an Environment Texture (or choose a studio HDRI)")
+    img = env.image
+    if img is None:
+        raise WorldLightError(f"World {world.name!r}: the Environment Texture has no image")
+    if env.projection != "EQUIRECTANGULAR":
+        raise WorldLightError(f"World {world.name!r}: only equirectangular environments are supported")
+    desc = f"World image {img.name!r} x{strength:g}"
+    R = None
+    vec = env.inputs["Vector"]
+    if vec.is_linked:
+        m = _linked(vec)
+        if m.bl_idname != "ShaderNodeMapping":
+            raise WorldLightError(f"World {world.name!r}: {m.name!r} ({m.bl_label}) feeds the Environment "
+                                  f"Texture's vector; PRTT understands a Mapping node")
+        R = mapping_rotation(m)
+        desc += ", rotated"
+    key = ("image", img.name, img.filepath, img.source, tuple(img.size), bool(img.packed_file), img.is_dirty)
+    return WorldSetup(key, lambda: _image_pixels(img), strength, R, desc)
+
+
+def project_setup(setup: WorldSetup, bands: int) -> np.ndarray:
+    """(K, 3) SH of the unrotated environment at strength 1 (the expensive part)."""
+    if isinstance(setup.source, np.ndarray):
+        return _constant(setup.source, bands)
+    return envmap.project_equirect(setup.source(), bands)
+
+
+def compose_light(setup: WorldSetup, projection: np.ndarray) -> np.ndarray:
+    """The world-frame light: projection x strength, turned by the Mapping rotation."""
+    L = projection * setup.strength
+    if setup.rotation is not None:
+        # L(w) = img(R w)  ->  the image's coefficients rotated by R^T.
+        L = sh.rotate(L, setup.rotation.T)
+    return L
+
+
+def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "forest") -> tuple[np.ndarray, str]:
+    """(K, 3) SH light and a one-line description, from the scene's World or a studio HDRI."""
+    setup = world_setup(scene, source=source, builtin=builtin)
+    return compose_light(setup, project_setup(setup, bands)), setup.description
+
+
+def _constant(c, bands) -> np.ndarray:
+    L = np.zeros((bands * bands, 3))
+    L[0] = np.asarray(c) * math.sqrt(4.0 * math.pi)
+    return L

@@ -1,0 +1,1 @@
+"""The viewport and offscreen preview: GPU shaders, the renderer, draw handler and render command."""

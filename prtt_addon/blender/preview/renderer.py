@@ -1,0 +1,373 @@
+"""Draw a PreviewScene with Blender's ``gpu`` module: viewport and offscreen.
+
+One :class:`Renderer` owns every GPU resource (textures, vertex/index
+buffers, uniform blocks), created lazily from the scene's arrays and cached by
+key; whatever a frame did not use is freed at the end of the frame, so
+resources go away with the objects and textures they belonged to.
+
+A frame (``Renderer.draw``):
+
+1. per-fragment modes: a depth pre-pass of every mesh (colour writes off),
+   then the shading pass with depth test LESS_EQUAL and depth writes off, so
+   each visible pixel runs the expensive shader once (the paper's early depth);
+2. per mesh: its set's transfer (and summed bounce) texture, per material
+   range its uniform block and textures.
+
+The caller sets up the framebuffer (the viewport's, or an offscreen one in
+:func:`render_offscreen`).
+
+An object that cannot be drawn (no per-vertex transfer in a vertex mode, a
+texture that cannot be read or uploaded) is left out of the frame and listed
+in ``FrameStats.skipped`` with the reason and the remedy: the viewport keeps
+drawing the rest, while offscreen renders (preview_render) ask
+:meth:`Renderer.prepare` first and refuse to make a partial image.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import zipfile
+
+import gpu
+import numpy as np
+
+from ...core.preview import pack as pp
+from ...core.io.exr_io import TextureError
+from ...core.preview.shader_source import FRAGMENT_MODES, GAUNT_WIDTH, MODES, VERTEX_MODES
+from . import shaders as gpu_shaders
+
+
+def _buffer(a: np.ndarray):
+    a = np.ascontiguousarray(a, dtype=np.float32).ravel()
+    return gpu.types.Buffer("FLOAT", a.size, a)
+
+
+def _digest(*arrays) -> str:
+    h = hashlib.sha1()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def _matrix(M: np.ndarray):
+    import mathutils
+    return mathutils.Matrix(np.asarray(M, np.float64).tolist())
+
+
+#: Why an object is left out of a vertex-mode frame, with what to do about it.
+NO_VERTEX_TRANSFER = ("the bake has no per-vertex transfer: bake again with Vertex Transfer on "
+                      "(PRTT > Bake Settings > Vertex Transfer)")
+STALE_VERTEX_TRANSFER = ("its per-vertex transfer does not match its mesh (edited since the bake?): "
+                         "bake again")
+
+
+class TextureUploadError(ValueError):
+    """A baked texture cannot be used: unreadable, the wrong shape, or beyond the
+    GPU's limits. The message names the file."""
+
+
+@dataclasses.dataclass
+class FrameStats:
+    drawn: list = dataclasses.field(default_factory=list)
+    skipped: dict = dataclasses.field(default_factory=dict)   # mesh name -> reason
+    triangles: int = 0
+    texture_bytes: int = 0
+
+
+class Renderer:
+    """GPU resources and drawing for the preview (one per viewport/offscreen user)."""
+
+    def __init__(self):
+        self._res: dict = {}
+        self._stamp: dict = {}      # key -> frame number of its last use
+        self._frame = 0
+        self._view_ubo = None
+
+    # --- resources ------------------------------------------------------------------
+    def _get(self, key, make):
+        self._stamp[key] = self._frame
+        r = self._res.get(key)
+        if r is None:
+            r = self._res[key] = make()
+        return r
+
+    def _array_texture(self, packed: np.ndarray, path: str = "texture"):
+        """(L, H, W, 4) -> RGBA 2D array texture, half when that changes no value.
+
+        Raises TextureUploadError naming ``path`` when the GPU cannot hold it:
+        checked against the GL limits first, since drivers answer an oversized
+        texture with an anonymous allocation failure."""
+        L, H, W, _ = packed.shape
+        size, layers = gpu.capabilities.max_texture_size_get(), gpu.capabilities.max_texture_layers_get()
+        if W > size or H > size or L > layers:
+            raise TextureUploadError(f"{path}: {W}x{H} texels in {L} layers exceeds this GPU's limits "
+                                     f"({size} texels per side, {layers} layers); bake at a lower resolution")
+        fmt = "RGBA16F" if pp.half_exact(packed) else "RGBA32F"
+        try:
+            tex = gpu.types.GPUTexture((W, H), layers=L, format=fmt, data=_buffer(packed))
+        except RuntimeError as exc:     # out of (GPU) memory
+            raise TextureUploadError(f"{path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
+                                     f"texture ({exc}); bake at a lower resolution") from exc
+        return tex, packed.size * (2 if fmt == "RGBA16F" else 4)
+
+    def _texture_2d(self, rgba_bottom_first: np.ndarray):
+        H, W, _ = rgba_bottom_first.shape
+        return gpu.types.GPUTexture((W, H), format="RGBA32F", data=_buffer(rgba_bottom_first))
+
+    def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int):
+        """The set's (transfer, bounce, vertex) textures, each (GPUTexture, bytes) or
+        None; loaded, checked against the bake's band count and uploaded once."""
+        key, K = s.key, bands * bands
+
+        def transfer():
+            data = _load(s.load_transfer, s.transfer)
+            _check_coeffs(data, 3, K, s.transfer)
+            return self._array_texture(pp.pack_layers(data), s.transfer)
+
+        def bounce():
+            where = ", ".join(s.bounces)
+            data = _load(s.load_bounce, where)
+            _check_coeffs(data, 4, K, where)
+            return self._array_texture(pp.pack_bounce(data), where)
+
+        def vertex():
+            data = _load(s.load_vertex, s.vertex)
+            _check_coeffs(data, 2, K, s.vertex)
+            return self._array_texture(pp.pack_vertex_transfer(data), s.vertex)
+
+        return (self._get(("transfer", key), transfer),
+                self._get(("bounce", key), bounce) if want_bounce and s.bounces else None,
+                self._get(("vertex", key), vertex) if want_vertex and s.vertex else None)
+
+    def _dummy(self, layered: bool):
+        if layered:
+            return self._get(("dummy", "array"), lambda: gpu.types.GPUTexture(
+                (1, 1), layers=1, format="RGBA32F", data=_buffer(np.zeros(4))))
+        return self._get(("dummy", "2d"), lambda: gpu.types.GPUTexture(
+            (1, 1), format="RGBA32F", data=_buffer(np.zeros(4))))
+
+    def _mesh_batch(self, m: pp.DrawMesh):
+        def make():
+            fmt = gpu.types.GPUVertFormat()
+            for name, n in (("pos", 3), ("nor", 3), ("uv", 2), ("muv", 2), ("nuv", 2), ("tan", 4), ("vidx", 1)):
+                fmt.attr_add(id=name, comp_type="F32", len=n, fetch_mode="FLOAT")
+            vbo = gpu.types.GPUVertBuf(fmt, m.positions.shape[0])
+            for name, a in (("pos", m.positions), ("nor", m.normals), ("uv", m.uv), ("muv", m.mat_uv),
+                            ("nuv", m.nm_uv), ("tan", m.tangents), ("vidx", m.vidx)):
+                vbo.attr_fill(name, np.ascontiguousarray(a, np.float32))
+            ibo = gpu.types.GPUIndexBuf(type="TRIS", seq=np.ascontiguousarray(m.indices, np.uint32))
+            return gpu.types.GPUBatch(type="TRIS", buf=vbo, elem=ibo)
+        return self._get(("mesh", m.key or id(m)), make)
+
+    def _light_ubo(self, light: np.ndarray, bands: int):
+        L = np.asarray(light, np.float64)[:bands * bands]
+        return self._get(("light", bands, _digest(L)), lambda: gpu.types.GPUUniformBuf(_buffer(pp.light_block(L, bands))))
+
+    def _material_ubo(self, mat: pp.PreviewMaterial):
+        block = mat.block()
+        return self._get(("material", _digest(block)), lambda: gpu.types.GPUUniformBuf(_buffer(block)))
+
+    def _image(self, ps: pp.PreviewScene, i: int):
+        key = ps.image_keys[i] if i < len(ps.image_keys) else _digest(ps.images[i])
+        return self._get(("image", key), lambda: self._texture_2d(pp.image_rgba(ps.images[i])))
+
+    def _gaunt(self, bands: int):
+        return self._get(("gaunt", bands), lambda: self._texture_2d(pp.gaunt_table(bands, GAUNT_WIDTH)))
+
+    def end_frame(self, keep: int = 0) -> None:
+        """Free what the last ``keep`` + 1 frames did not use (GPU memory goes
+        with Python's last reference)."""
+        for k in [k for k, f in self._stamp.items() if f < self._frame - keep]:
+            self._res.pop(k, None)
+            del self._stamp[k]
+        self._frame += 1
+
+    def free(self) -> None:
+        self._res.clear()
+        self._stamp.clear()
+        self._view_ubo = None
+
+    def resource_keys(self) -> list:
+        return list(self._res)
+
+    def resource_bytes(self) -> int:
+        return sum(v[1] for k, v in self._res.items() if k[0] in ("transfer", "bounce", "vertex"))
+
+    # --- drawing --------------------------------------------------------------------
+    def _plan(self, ps: pp.PreviewScene, mode: str, skipped: dict) -> list:
+        """[(mesh, textures)] of the meshes ``ps`` can draw in ``mode``, their
+        textures loaded and uploaded; the others go to ``skipped`` with why."""
+        if mode not in MODES:
+            raise ValueError(f"unknown preview mode {mode!r}; use one of {', '.join(MODES)}")
+        vertex_mode = mode in VERTEX_MODES
+        todo = []
+        for m in ps.meshes:
+            s = ps.sets.get(m.set_name)
+            if s is None:
+                skipped[m.name] = "no baked texture set: bake again"
+                continue
+            if vertex_mode and not s.vertex:
+                skipped[m.name] = NO_VERTEX_TRANSFER
+                continue
+            if vertex_mode and not m.has_vertex_transfer():
+                skipped[m.name] = STALE_VERTEX_TRANSFER
+                continue
+            try:
+                tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands)
+            except TextureUploadError as exc:
+                skipped[m.name] = f"cannot use its texture {exc}"
+                continue
+            todo.append((m, tex))
+        return todo
+
+    def prepare(self, ps: pp.PreviewScene, mode: str) -> dict:
+        """Load and upload what a frame of ``ps`` in ``mode`` needs, before any
+        framebuffer exists; returns {mesh name: why it cannot be drawn} (empty
+        when every mesh can). The next :meth:`draw` finds the textures cached."""
+        skipped: dict = {}
+        self._plan(ps, mode, skipped)
+        return skipped
+
+    def draw(self, ps: pp.PreviewScene, mode: str, view_projection, camera, *, exposure: float = 1.0,
+             depth_bias: float = 0.0, prepass: bool = True) -> FrameStats:
+        """Draw every mesh of ``ps`` into the bound framebuffer.
+
+        view_projection (4, 4) world -> clip; camera (4,): eye position and 1, or
+        unit direction towards the eye and 0 (orthographic)."""
+        stats = FrameStats()
+        todo = self._plan(ps, mode, stats.skipped)
+        view_data = _buffer(pp.view_block(view_projection, camera, exposure, ps.bands, depth_bias))
+        if self._view_ubo is None:
+            self._view_ubo = gpu.types.GPUUniformBuf(view_data)
+        else:
+            self._view_ubo.update(view_data)
+        if not todo:
+            return stats
+        light = self._light_ubo(ps.light, ps.bands)
+        old_test, old_mask = gpu.state.depth_test_get(), gpu.state.depth_mask_get()
+        try:
+            gpu.state.depth_test_set("LESS_EQUAL")
+            if prepass and mode in FRAGMENT_MODES:
+                depth = gpu_shaders.depth_shader()
+                depth.bind()
+                depth.uniform_block("view", self._view_ubo)
+                gpu.state.depth_mask_set(True)
+                gpu.state.color_mask_set(False, False, False, False)
+                for m, _ in todo:
+                    depth.uniform_float("ModelMatrix", _matrix(m.matrix))
+                    self._mesh_batch(m).draw(depth)
+                gpu.state.color_mask_set(True, True, True, True)
+                gpu.state.depth_mask_set(False)
+            else:
+                gpu.state.depth_mask_set(True)
+            for m, (transfer, bounce, vertex) in todo:
+                self._draw_mesh(ps, m, mode, light, transfer, bounce, vertex)
+                stats.drawn.append(m.name)
+                stats.triangles += m.triangles
+        finally:
+            gpu.state.depth_mask_set(old_mask)
+            gpu.state.depth_test_set(old_test)
+            gpu.state.color_mask_set(True, True, True, True)
+        stats.texture_bytes = self.resource_bytes()
+        return stats
+
+    def _draw_mesh(self, ps, m, mode, light, transfer, bounce, vertex):
+        sh = gpu_shaders.surface_shader(mode, ps.bands, bounce is not None)
+        sh.bind()
+        sh.uniform_block("view", self._view_ubo)
+        sh.uniform_block("light", light)
+        sh.uniform_float("ModelMatrix", _matrix(m.matrix))
+        if mode != "diffuse":
+            sh.uniform_float("NormalMatrix", _matrix(pp.normal_matrix(m.matrix)))
+        if mode in FRAGMENT_MODES:
+            sh.uniform_sampler("transferTex", transfer[0])
+        if vertex is not None:
+            sh.uniform_sampler("vertexTex", vertex[0])
+        if bounce is not None:
+            sh.uniform_sampler("bounceTex", bounce[0])
+        if mode in ("tp", "vertex-tp"):
+            sh.uniform_sampler("gauntTex", self._gaunt(ps.bands))
+        batch = self._mesh_batch(m)
+        dummy = self._dummy(False)
+        for mat_index, first, count in m.ranges:
+            mat = ps.materials[mat_index] if 0 <= mat_index < len(ps.materials) else pp.PreviewMaterial()
+            if not ps.normal_maps and mat.normal_texture >= 0:
+                mat = dataclasses.replace(mat, normal_texture=-1)
+            sh.uniform_block("material", self._material_ubo(mat))
+            sh.uniform_sampler("baseTex", self._image(ps, mat.base_texture) if mat.base_texture >= 0 else dummy)
+            sh.uniform_sampler("roughTex", self._image(ps, mat.roughness_texture)
+                               if mat.roughness_texture >= 0 else dummy)
+            if mode in FRAGMENT_MODES:
+                sh.uniform_sampler("normalTex", self._image(ps, mat.normal_texture)
+                                   if mat.normal_texture >= 0 else dummy)
+            batch.draw_range(sh, elem_start=3 * first, elem_count=3 * count)
+
+
+def _load(loader, path: str) -> np.ndarray:
+    """``loader()``, its failures (missing, truncated or foreign files) as a
+    TextureUploadError naming the file."""
+    try:
+        data = loader()
+    except TextureError as exc:             # core.io.exr_io's messages start with the file
+        raise TextureUploadError(f"{exc}; bake again") from exc
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:   # a damaged .npz
+        raise TextureUploadError(f"{path}: unreadable ({exc}); bake again") from exc
+    if data is None:
+        raise TextureUploadError(f"{path}: holds no data; bake again")
+    return data
+
+
+def _check_coeffs(data: np.ndarray, ndim: int, K: int, path: str) -> None:
+    """A texture must hold at least the bake's K coefficients in its last axis
+    (fewer would leave layers the shaders read empty: a silently dark image)."""
+    if data.ndim != ndim or data.shape[-1] < K:
+        raise TextureUploadError(f"{path}: holds {data.shape[-1] if data.ndim else 0} SH coefficients "
+                                 f"in shape {data.shape}, the bake has {K}; bake again")
+
+
+class OffscreenError(RuntimeError):
+    """The GPU cannot make the offscreen image asked for (too large)."""
+
+
+def new_offscreen(width: int, height: int):
+    """A float32 RGBA offscreen buffer, or OffscreenError saying what was refused.
+
+    Checked against the GL texture size limit first; drivers also refuse sizes
+    within it (Mesa's llvmpipe: no single texture much over 1.5 GiB), which
+    only the allocation can tell."""
+    limit = gpu.capabilities.max_texture_size_get()
+    if width > limit or height > limit:
+        raise OffscreenError(f"{width}x{height} exceeds this GPU's largest image, {limit} pixels per side")
+    try:
+        return gpu.types.GPUOffScreen(width, height, format="RGBA32F")
+    except RuntimeError as exc:
+        gib = width * height * 16 / 1024 ** 3
+        raise OffscreenError(f"the GPU could not allocate a {width}x{height} float image "
+                             f"({gib:.1f} GiB): {exc}") from exc
+
+
+def read_pixels(fb, width: int, height: int) -> np.ndarray:
+    """(H, W, 4) float32 of the bound framebuffer, row 0 at the bottom."""
+    buf = gpu.types.Buffer("FLOAT", width * height * 4)
+    fb.read_color(0, 0, width, height, 4, 0, "FLOAT", data=buf)
+    return np.asarray(buf).reshape(height, width, 4).copy()
+
+
+def render_offscreen(renderer: Renderer, ps: pp.PreviewScene, mode: str, view_projection, camera,
+                     width: int, height: int, *, exposure: float = 1.0, prepass: bool = True,
+                     background=(0.0, 0.0, 0.0, 0.0)) -> tuple[np.ndarray, FrameStats]:
+    """Render to a float32 offscreen buffer: (H, W, 4) linear RGBA, row 0 at the bottom.
+
+    Raises OffscreenError when the GPU cannot make a buffer that large."""
+    off = new_offscreen(width, height)
+    try:
+        with off.bind():
+            fb = gpu.state.active_framebuffer_get()
+            fb.clear(color=tuple(background), depth=1.0)
+            gpu.state.viewport_set(0, 0, width, height)
+            stats = renderer.draw(ps, mode, view_projection, camera, exposure=exposure, prepass=prepass)
+            pixels = read_pixels(fb, width, height)
+        renderer.end_frame()
+    finally:
+        off.free()
+    return pixels, stats

@@ -1,0 +1,56 @@
+"""Compile the preview's shader variants with Blender's ``gpu`` module (cached)."""
+from __future__ import annotations
+
+import gpu
+
+from ...core.preview.shader_source import Variant, depth_variant, variant
+
+_CACHE: dict = {}
+
+
+class ShaderError(RuntimeError):
+    """A preview shader failed to compile; the message names the variant."""
+
+
+def create_info(v: Variant):
+    info = gpu.types.GPUShaderCreateInfo()
+    for name, value in v.defines:
+        info.define(name, value)
+    info.typedef_source(v.typedefs)
+    for slot, typ, name in v.vertex_in:
+        info.vertex_in(slot, typ, name)
+    if v.interface:
+        iface = gpu.types.GPUStageInterfaceInfo(f"{v.name}_iface")
+        for interp, typ, name in v.interface:
+            getattr(iface, interp)(typ, name)
+        info.vertex_out(iface)
+    for slot, typ, name in v.samplers:
+        info.sampler(slot, typ, name)
+    for slot, struct, name in v.uniform_bufs:
+        info.uniform_buf(slot, struct, name)
+    for typ, name in v.push_constants:
+        info.push_constant(typ, name)
+    info.fragment_out(0, "VEC4", "FragColor")
+    info.vertex_source(v.vertex_source())
+    info.fragment_source(v.fragment_source())
+    return info
+
+
+def build(v: Variant):
+    """The compiled GPUShader of a variant (compiled once per process)."""
+    sh = _CACHE.get(v.name)
+    if sh is None:
+        try:
+            sh = gpu.shader.create_from_info(create_info(v))
+        except Exception as exc:   # Blender raises a bare Exception with the compiler log on stderr
+            raise ShaderError(f"PRTT shader {v.name} failed to compile: {exc}") from exc
+        _CACHE[v.name] = sh
+    return sh
+
+
+def surface_shader(mode: str, bands: int, bounce: bool):
+    return build(variant(mode, bands, bounce=bounce))
+
+
+def depth_shader():
+    return build(depth_variant())

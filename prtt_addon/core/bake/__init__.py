@@ -1,0 +1,1 @@
+"""The bake: settings, chunk planning and sampling, transfer and bounce estimators, ray tracing, the stage runner."""

@@ -1,0 +1,402 @@
+"""Inter-reflection ("bounce") textures, the paper's section on inter-reflections.
+
+Bounce level k at a texel p is the cosine-weighted incident radiance that
+arrives after exactly k reflections, projected to SH:
+
+    B_k(p)_c = integral (1 - V(w)) L_{k-1}(q(w) -> p)_c max(0, n.w) y(w) dw,
+
+stored as ``<set>.bounce<k>.exr`` (channels R.sh000.., G.sh000.., B.sh000..).
+At render time it is simply added to the direct incident radiance M(L) T
+before the material lobes (shading.shade(..., bounces=...)).
+
+Exit radiance, precomputed per texel (docs/shading.md, "Bounce bake")
+----------------------------------------------------------------------
+The radiance leaving a hit q towards p is the reference shading model
+(shading.outgoing) with q's incident radiance Lp_q (3, K): M(L) T_q for
+k = 1, the previous bounce texture for k > 1. Everything in it that does not
+depend on the ray is computed once per level for every texel of the source
+set, one row per texel (:func:`exit_textures`, a few large array products):
+
+    diffuse  D_c    = rho_c sqrt(4 pi) / pi * Lp_c,0                (3 floats)
+    glossy   G_c,lm = k_s,c A_l(s) Lp_c,lm, and the shading normal   (3K + 3)
+
+with the material (rho, k_s, s) and the shading normal (normal-mapped) taken
+at each texel's centre and dilated like the textures (so hits near island
+borders never read an empty texel). Per hit only a lookup and an evaluation
+remain:
+
+    L(q -> p)_c = max(0, D_c + [q glossy] sum_lm G_c,lm y_lm(r)),
+    r = reflect(q -> p, normalise(n)),
+
+where [q glossy] says the hit triangle's material has a specular lobe, and
+D, G and n are those of the texel nearest to q (:class:`ExitShader` says
+why). Against evaluating the model at the exact hit point this moves the
+material and normal to the texel grid (what the renderer does for the
+transfer anyway); the difference is far below the Monte Carlo noise
+(tests/test_bounce.py keeps its brute-force tolerances).
+
+Rays: the transfer bake's chunk planner and seed scheme (transfer.chunk_plan,
+frames and Sobol' patterns, balanced weights), each level with its own ids.
+
+Skipped work, all counted in the manifest:
+* rays that miss are never shaded (their term is exactly 0);
+* occluder-only triangles (set -1) have no texture: they absorb (radiance 0);
+* texels on the zero-ray analytic path, and texels all of whose *transfer*
+  rays escaped (their transfer equals the unoccluded value), get exactly 0
+  with no rays. The latter is an approximation: bounce rays are a different
+  sample of the hemisphere, so a tiny object that every transfer ray missed
+  is missed here too - an error of the size of the transfer's own noise;
+* a set whose texels are all skipped is not traced at all and gets no file
+  (the renderer treats a missing bounce texture as zero);
+* levels after one whose energy is below ``bounce_tolerance`` of the direct
+  light's are not baked (:func:`level_energy`; the manifest says so).
+
+Bounce textures bake the light and the materials in (the paper's stated
+limitation): the manifest records their hashes so the add-on can flag stale
+bounces.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+import time
+
+import numpy as np
+
+from ..sh.basis import basis_unchecked
+from .blas import single_threaded_blas
+from ..texels.dilate import dilate
+from ..sh.gaunt import tpfl_matrix
+from ..texels.gbuffer import GBuffer
+from ..shading.materials import Material, eval_materials
+from .parallel import run_chunks
+from .raytrace import RayScene
+from ..sh.rotation import rotate_zyz
+from .transfer import (Cancelled, Points, TransferSettings, _estimator_tables, chunk_frames, chunk_plan,
+                       shared_rotation, unoccluded_transfer)  # noqa: F401
+from .sampling import pattern_bank
+from ..shading.model import lobe_factors
+
+SQRT_4PI = math.sqrt(4.0 * math.pi)
+
+#: A texel whose float32 transfer is within this of the unoccluded value saw no
+#: geometry with any transfer ray (the balanced estimator is exact there; one
+#: blocked ray of 4096 moves the DC term by ~2e-4).
+OPEN_TOLERANCE = 2e-5
+#: The same test on a half-float texture read back from disk (half rounds the
+#: coefficients, <= 1.8, by up to 5e-4; one blocked ray of 256 moves the DC
+#: term by ~3e-3, of 4096 by ~2e-4, which this then misses).
+HALF_OPEN_TOLERANCE = 1.5e-3
+#: Rays per bounce chunk. A hit's shading makes temporaries of ~350 B; at the
+#: transfer's 2^19 rays a chunk's arrays are tens of MB, which the allocator
+#: maps fresh (and the kernel zeroes) every time: the shading ran 1.5x slower
+#: than with 2^16, whose arrays are reused from the heap and stay in cache.
+BOUNCE_CHUNK_RAYS = 1 << 16
+
+
+@dataclasses.dataclass
+class IncidentSet:
+    """One set's texture that radiance leaving its surface is computed from."""
+
+    pm: np.ndarray        # (H * W, C) float32, pixel-major
+    width: int
+    height: int
+
+
+@dataclasses.dataclass
+class SurfaceTexels:
+    """One set's shading inputs per texel, dilated like its textures.
+
+    ``valid`` (M,) ascending flat texel indices (row 0 = bottom) that hold a
+    value: covered texels and the dilation rings around them. Per valid texel:
+    ``albedo``/``spec`` (M, 3), Phong ``exponent`` (M,), unit shading
+    ``normal`` (M, 3) (normal-mapped where the G-buffer is), all float64.
+    ``row_of`` (H * W,) int32: each texel's index in ``valid``, M where empty.
+    """
+
+    width: int
+    height: int
+    valid: np.ndarray
+    albedo: np.ndarray
+    spec: np.ndarray
+    exponent: np.ndarray
+    normal: np.ndarray
+    row_of: np.ndarray
+
+    @property
+    def glossy(self) -> bool:
+        return bool(np.any(self.spec > 0.0))
+
+
+def surface_texels(sc, gb: GBuffer, dilate_iterations: int) -> SurfaceTexels:
+    """Material and shading normal at every texel centre of ``gb``, dilated by
+    ``dilate_iterations`` rings (the mean of filled neighbours, the textures'
+    rule; normals renormalised)."""
+    p = eval_materials(sc, gb.tri, gb.bary)
+    H, W = gb.height, gb.width
+    planes = np.zeros((10, H * W))
+    planes[0:3, gb.texel] = p.albedo.T
+    planes[3:6, gb.texel] = p.spec.T
+    planes[6, gb.texel] = p.exponent
+    planes[7:10, gb.texel] = gb.normal.T
+    mask = np.zeros(H * W, bool)
+    mask[gb.texel] = True
+    planes = planes.reshape(10, H, W)
+    grown = dilate(planes, mask.reshape(H, W), dilate_iterations).reshape(-1)
+    valid = np.flatnonzero(grown)
+    rows = planes.reshape(10, H * W)[:, valid].T
+    n = rows[:, 7:10]
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    row_of = np.full(H * W, valid.size, np.int32)
+    row_of[valid] = np.arange(valid.size, dtype=np.int32)
+    return SurfaceTexels(W, H, valid, np.ascontiguousarray(rows[:, 0:3]), np.ascontiguousarray(rows[:, 3:6]),
+                         np.ascontiguousarray(rows[:, 6]), np.ascontiguousarray(n), row_of)
+
+
+@dataclasses.dataclass
+class ExitTextures:
+    """Radiance leaving one set's surface, ready for lookups (float32 rows).
+
+    One row per valid texel (``SurfaceTexels.valid`` order) and a last row of
+    zeros; ``row_of`` (H * W,) maps a texel to its row (the zero row where
+    empty), so no texture-sized array is filled for a level.
+    ``diffuse`` (M + 1, 3): D_c. ``glossy`` (M + 1, 6 + 3K) or None when the
+    set has no specular lobe: D_c again (one lookup for a glossy hit), the
+    shading normal, then G_R, G_G, G_B (K each).
+    """
+
+    width: int
+    height: int
+    row_of: np.ndarray
+    diffuse: np.ndarray
+    glossy: np.ndarray | None
+
+
+def exit_textures(surf: SurfaceTexels, Lp: np.ndarray, bands: int) -> ExitTextures:
+    """Exit radiance textures from incident radiance ``Lp`` (M, 3, K) at the
+    valid texels (float32 or float64; computed in float32, which the lookups use)."""
+    K = bands * bands
+    M = surf.valid.size
+    if Lp.shape != (M, 3, K):
+        raise ValueError(f"incident radiance must be ({M}, 3, {K}), got {Lp.shape}")
+    diffuse = np.zeros((M + 1, 3), np.float32)
+    D = diffuse[:M]
+    D[...] = (surf.albedo * (SQRT_4PI / math.pi)) * Lp[:, :, 0]
+    glossy = None
+    if surf.glossy:
+        A = lobe_factors(surf.exponent, bands).astype(np.float32)                    # (M, K)
+        spec = surf.spec.astype(np.float32)
+        glossy = np.empty((M + 1, 6 + 3 * K), np.float32)
+        glossy[M] = 0.0
+        rows = glossy[:M]
+        rows[:, :3] = D
+        rows[:, 3:6] = surf.normal
+        for c in range(3):
+            blk = rows[:, 6 + c * K:6 + (c + 1) * K]
+            np.multiply(A, spec[:, c:c + 1], out=blk)
+            blk *= Lp[:, c, :]
+    return ExitTextures(surf.width, surf.height, surf.row_of, diffuse, glossy)
+
+
+def incident_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray, bands: int) -> np.ndarray:
+    """Lp (M, 3, K) float32 at the valid texels: M(L) T of a transfer texture lit
+    by ``light`` (level 1; later levels read the previous bounce planes)."""
+    K = bands * bands
+    rows = incident.pm[surf.valid]
+    Mx = tpfl_matrix(np.asarray(light)[:K], bands)                               # (3, K, K)
+    M2 = np.ascontiguousarray(Mx.reshape(3 * K, K).T, dtype=np.float32)
+    return (rows[:, :K] @ M2).reshape(-1, 3, K)
+
+
+def level_energy(tex_rows: np.ndarray) -> float:
+    """Energy of incident-radiance SH rows (n, 3K) or (n, 3, K): the sum of the
+    DC terms (cosine-weighted irradiance / sqrt(4 pi)) over texels and colours."""
+    r = np.asarray(tex_rows)
+    r = r.reshape(r.shape[0], 3, -1)
+    return float(np.sum(r[:, :, 0], dtype=np.float64))
+
+
+def glossy_triangles(sc) -> np.ndarray:
+    """(T,) bool: the triangle's material has a specular lobe somewhere
+    (textured materials count as glossy if any factor could make one)."""
+    T = sc.n_triangles
+    p = eval_materials(sc, np.arange(T), np.full((T, 3), 1.0 / 3.0))
+    out = np.any(p.spec > 0.0, axis=1)
+    if sc.material_id is not None and sc.materials:
+        mats = [Material.from_dict(m) for m in sc.materials]
+        textured = [i for i, m in enumerate(mats) if m.textured]
+        if textured:
+            out |= np.isin(sc.material_id, textured)
+    return out
+
+
+class ExitShader:
+    """Radiance leaving hit points towards the ray origins, from per-set
+    :class:`ExitTextures` (set index -> textures; sets without are black).
+
+    Lookups take the nearest texel. Bilinear lookups (the renderer's filter)
+    read four rows instead of one and were, with the glossy rows' 312 bytes,
+    two thirds of the bounce bake's time; within a texel the exit radiance
+    varies far less than a bounce texel's Monte Carlo noise, and the
+    receiver averages many hits (tests/test_bounce.py keeps its brute-force
+    tolerances; docs/benchmarks.md has the measurement).
+    """
+
+    def __init__(self, sc, exits: dict, bands: int, glossy_tri: np.ndarray):
+        self.sc, self.exits, self.bands = sc, exits, bands
+        self.K = bands * bands
+        uv = sc.uvs.astype(np.float64)
+        # Per triangle: uv of corner 0 and the two edge vectors, one gather per hit.
+        self.uv_frame = np.ascontiguousarray(
+            np.concatenate([uv[:, 0], uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]], axis=1), dtype=np.float32)
+        self.glossy_tri = glossy_tri
+
+    def radiance(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 for hits on triangles ``tri`` at Embree's (u, v),
+        ``view`` (n, 3) float32 unit vectors from the hit towards the ray origin."""
+        out = np.zeros((tri.size, 3), np.float32)
+        sets = self.sc.set_id[tri]
+        for s, ex in self.exits.items():
+            sel = np.flatnonzero(sets == s)
+            if sel.size == 0:
+                continue
+            f = np.take(self.uv_frame, tri[sel], axis=0)
+            us, vs = u[sel], v[sel]
+            x = f[:, 0] + us * f[:, 2] + vs * f[:, 4]
+            y = f[:, 1] + us * f[:, 3] + vs * f[:, 5]
+            ix = np.clip((x * ex.width).astype(np.int64), 0, ex.width - 1)
+            iy = np.clip((y * ex.height).astype(np.int64), 0, ex.height - 1)
+            near = ex.row_of[iy * ex.width + ix]
+            # Visit the hits in texel order: random lookups in a texture of
+            # hundreds of MB are ~5x slower than ordered ones, and a radix sort
+            # on 16-bit keys (blocks of texels) costs a fraction of that.
+            shift = max(0, int(ex.diffuse.shape[0] - 1).bit_length() - 16)
+            o = np.argsort((near >> shift).astype(np.uint16), kind="stable")
+            sel, near = sel[o], near[o]
+            gl = self.glossy_tri[tri[sel]] if ex.glossy is not None else None
+            if gl is None or not gl.any():
+                val = np.take(ex.diffuse, near, axis=0)
+            else:
+                val = np.empty((sel.size, 3), np.float32)
+                d = np.flatnonzero(~gl)
+                if d.size:
+                    val[d] = np.take(ex.diffuse, near[d], axis=0)
+                g = np.flatnonzero(gl)
+                val[g] = self._glossy(ex, near[g], view[sel[g]])
+            np.maximum(val, 0.0, out=val)
+            out[sel] = val
+        return out
+
+    def _glossy(self, ex: ExitTextures, row: np.ndarray, view: np.ndarray) -> np.ndarray:
+        """D_c + sum_lm G_c,lm y_lm(r) (m, 3) at exit rows ``row``, r the reflection of view."""
+        G = np.take(ex.glossy, row, axis=0)                                   # (m, 6 + 3K)
+        m, K = row.size, self.K
+        # Coordinates as rows (3, m): every operation below then runs on
+        # contiguous arrays (strided columns of G made this twice as slow).
+        n = np.ascontiguousarray(G[:, 3:6].T)
+        w = np.ascontiguousarray(view.T)
+        # r = 2 (n.w) n / |n|^2 - w: the reflection about the (dilated, unnormalised) normal.
+        d = 2.0 * (n * w).sum(axis=0) / np.maximum((n * n).sum(axis=0), np.float32(1e-30))
+        r = d * n
+        r -= w
+        r /= np.sqrt(np.maximum((r * r).sum(axis=0), np.float32(1e-30)))
+        y = basis_unchecked((r[0], r[1], r[2]), self.bands, np.float32)     # (m, K)
+        out = np.einsum("nck,nk->nc", G[:, 6:].reshape(m, 3, K), y)
+        out += G[:, :3]
+        return out
+
+
+def open_texels(T_texels: np.ndarray, normals: np.ndarray, bands: int,
+                tol: float = OPEN_TOLERANCE, block: int = 1 << 16) -> np.ndarray:
+    """(N,) bool: transfer equals the unoccluded clamped cosine (no ray blocked).
+    In blocks of texels: whole-set (N, K) float64 temporaries made it 2-3x slower."""
+    out = np.empty(len(T_texels), bool)
+    for a in range(0, out.size, block):
+        b = min(a + block, out.size)
+        A = unoccluded_transfer(normals[a:b], bands)
+        out[a:b] = np.abs(np.asarray(T_texels[a:b], np.float64) - A).max(axis=1) <= tol
+    return out
+
+
+def level_points(pts: Points, skip: np.ndarray, level: int) -> tuple[np.ndarray, Points]:
+    """The texels a bounce level traces (indices into ``pts``) and their Points,
+    with ids tagged by the level so every level draws its own patterns and
+    frames from the one seed scheme (transfer.chunk_plan, chunk_frames)."""
+    todo = np.flatnonzero(~skip)
+    ids = pts.ids[todo] + (np.int64(level) << 50)
+    group = None if pts.frame_group is None else pts.frame_group[todo]
+    return todo, Points(pts.position[todo], pts.normal[todo], pts.geo_normal[todo], ids,
+                        np.zeros(todo.size, bool), group)
+
+
+def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: ExitShader,
+                    st: TransferSettings, level: int, *, progress=None, cancel=None):
+    """One set's bounce level: returns ((3K, H*W) float32 texture, coverage mask
+    (H, W), stats). ``skip`` (N,) marks texels that get zero without rays."""
+    K = st.bands ** 2
+    tex = np.zeros((3 * K, gb.height * gb.width), np.float32)
+    todo, sub = level_points(pts, skip, level)
+    stats = {"texels": int(gb.n), "skipped_texels": int(skip.sum()), "rays_traced": 0,
+             "hits_shaded": 0}
+    lock = threading.Lock()
+    chunks, G = chunk_plan(sub, st)
+    dirs_bank, _, _ = pattern_bank(G, st.rays, st.bands, st.sampler, st.distribution, st.seed)
+    _, table = _estimator_tables(st, G, st.rays)
+    cols = gb.texel[todo]
+
+    def run(chunk):
+        g, idx = chunk.g, chunk.idx
+        if cancel is not None and cancel.is_set():
+            raise Cancelled()
+        fr = chunk_frames(rs, sub, idx, st.seed, shared=chunk.shared)
+        n, S = idx.size, st.rays
+        if fr.shared:
+            # Texels of one flat face group share the frame (as in the transfer bake).
+            D = np.tile(dirs_bank[g] @ np.asarray(fr.R[0]).T, (n, 1))
+        else:
+            D = np.matmul(dirs_bank[g][None], fr.R.transpose(0, 2, 1)).reshape(-1, 3)
+        O = np.repeat(fr.origins, S, axis=0)
+        prim, u, v, _ = rs.intersect(O, np.ascontiguousarray(D))
+        hit = np.flatnonzero(prim >= 0)
+        L = np.zeros((n * S, 3), np.float32)
+        if hit.size:
+            L[hit] = shader.radiance(prim[hit].astype(np.int64), u[hit], v[hit], -D[hit])
+        # One product for the three colours: (n*3, S) @ (S, K).
+        Lt = np.ascontiguousarray(L.reshape(n, S, 3).transpose(0, 2, 1)).reshape(n * 3, S)
+        if fr.shared:
+            # One frame: turn the estimator table to world once, not every texel's result.
+            world = Lt @ (table[g].astype(np.float64) @ shared_rotation(fr, K)).astype(np.float32)
+        else:
+            local = Lt @ table[g]
+            rep = lambda a: np.repeat(a, 3)  # noqa: E731
+            world = rotate_zyz(local, rep(fr.alpha), rep(fr.beta), rep(fr.gamma))
+        tex[:, cols[idx]] = world.reshape(n, 3 * K).T
+        with lock:
+            stats["rays_traced"] += n * S
+            stats["hits_shaded"] += int(hit.size)
+        return n
+
+    t0 = time.perf_counter()
+    done = 0
+
+    def on_result(n):
+        nonlocal done
+        done += n
+        if progress:
+            progress(done, todo.size, stats["rays_traced"])
+
+    # The chunks' products are small and run one per core: OpenBLAS's own
+    # threads would only spin against them (a third of the time, measured).
+    with single_threaded_blas():
+        run_chunks(run, sorted(chunks, key=lambda c: -c.idx.size), st.n_threads, on_result, cancel)
+    stats["seconds"] = time.perf_counter() - t0
+    mask = np.zeros(gb.height * gb.width, bool)
+    mask[gb.texel] = True
+    return tex, mask.reshape(gb.height, gb.width), stats
+
+
+def bounce_settings(st: TransferSettings, bounce_rays: int) -> TransferSettings:
+    """The transfer settings a bounce pass traces with (its own ray count)."""
+    return dataclasses.replace(st, rays=bounce_rays, adaptive_tol=0.0, analytic=False,
+                               estimator="balanced", chunk_rays=min(st.chunk_rays, BOUNCE_CHUNK_RAYS))

@@ -1,0 +1,193 @@
+"""SH textures as OpenEXR files (format: docs/format.md).
+
+One scanline EXR per texture: channels ``sh000 .. sh{K-1}`` (transfer, coefficient
+order k = l^2 + l + m) or ``R.sh000 .. B.sh{K-1}`` (RGB bounce textures), half
+(default) or float32, ZIP compressed, with ``prtt_*`` header attributes.
+
+The bake keeps textures channel-first, (C, H, W) with C = K (transfer) or 3K
+(RGB, ordered R.sh000.., G.sh000.., B.sh000..), row 0 at the *bottom* (v up, like
+UVs and Blender's Image.pixels); :func:`write_sh_planes` takes that layout.
+:func:`write_sh_exr` and :func:`read_sh_exr` use the pixel-major (H, W, K) or
+(H, W, 3, K) layout that is handier for tests and shaders. Files are written
+top row first as usual for images, so an EXR viewer shows the UV layout the
+right way up.
+
+The OpenEXR Python binding silently writes garbage for non-contiguous array
+views, so every channel is copied to a contiguous array first. Writes are
+atomic (see atomic.py).
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from .atomic import atomic_write
+from ..sh.basis import bands_of
+
+#: Version of the texture format described in docs/format.md.
+TEXTURE_FORMAT_VERSION = 1
+#: The SH convention string stored in every texture.
+CONVENTION = "real-orthonormal,condon-shortley,z-up,k=l*l+l+m"
+#: Largest finite float16 value; larger magnitudes need float32 storage.
+HALF_MAX = 65504.0
+
+
+class TextureError(ValueError):
+    """A texture file is missing, unreadable or not a PRTT texture."""
+
+
+def channel_names(n_coeffs: int, rgb: bool = False) -> list[str]:
+    names = [f"sh{k:03d}" for k in range(n_coeffs)]
+    if rgb:
+        return [f"{c}.{n}" for c in "RGB" for n in names]
+    return names
+
+
+def value_range(values: np.ndarray, executor=None) -> tuple[float, float]:
+    """(min, max) of ``values`` (NaN if any value is NaN; (0, 0) when empty).
+
+    With an ``executor`` the leading axis (channels) is reduced in parallel.
+    One range serves both :func:`check_finite` and :func:`half_overflow`.
+    """
+    a = np.asarray(values)
+    if a.size == 0:
+        return 0.0, 0.0
+    if executor is None or a.ndim < 2 or a.shape[0] < 2:
+        return float(np.min(a)), float(np.max(a))
+    per = list(executor.map(lambda c: (np.min(c), np.max(c)), a))
+    # np.min/np.max propagate NaN; Python's min() would depend on the order.
+    return float(np.min([p[0] for p in per])), float(np.max([p[1] for p in per]))
+
+
+def half_overflow(values: np.ndarray, rng: tuple[float, float] | None = None) -> int:
+    """How many finite values would overflow float16 (|v| > 65504).
+    ``rng``: the values' :func:`value_range`, if already known."""
+    lo, hi = rng if rng is not None else value_range(values)
+    if -HALF_MAX <= lo and hi <= HALF_MAX:
+        return 0                         # two reductions, no temporaries
+    return int(np.count_nonzero(np.abs(values) > HALF_MAX))
+
+
+def check_finite(values: np.ndarray, what: str, rng: tuple[float, float] | None = None) -> None:
+    """Raise if any value is NaN or Inf (min/max propagate both)."""
+    lo, hi = rng if rng is not None else value_range(values)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise ValueError(f"refusing to write non-finite values to {what}")
+
+
+def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
+                    rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
+                    executor=None, rng: tuple[float, float] | None = None) -> str:
+    """Write an SH texture from channel-first ``planes`` (C, H, W), row 0 at the bottom.
+
+    C = K for kind "transfer", 3K when ``rgb`` (bounce; R.sh000.., G.., B..).
+    half : store float16 (the caller checks :func:`half_overflow` first).
+    attrs : extra header attributes (str/int/float/list of str); keys get a
+            ``prtt_`` prefix if they lack one.
+    rng : the planes' :func:`value_range`, if the caller has it.
+    Returns the path written.
+    """
+    import OpenEXR
+
+    # ZIP compression runs on OpenEXR's thread pool (~1.6x faster on 2 cores).
+    OpenEXR.set_global_thread_count(os.cpu_count() or 1)
+    a = np.asarray(planes)
+    if a.ndim != 3:
+        raise ValueError(f"SH planes must be (C, H, W), got {a.shape}")
+    K = a.shape[0] // 3 if rgb else a.shape[0]
+    if rgb and a.shape[0] != 3 * K:
+        raise ValueError(f"RGB SH planes need 3K channels, got {a.shape[0]}")
+    bands = bands_of(K)
+    rng = rng if rng is not None else value_range(a, executor)
+    check_finite(a, os.fspath(path), rng)
+    if half and half_overflow(a, rng):
+        raise ValueError(f"{half_overflow(a, rng)} values exceed the half-float range; write float32")
+    dtype = np.float16 if half else np.float32
+    H, W = a.shape[1:]
+    # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).
+    names = channel_names(K, rgb)
+    convert = lambda c: np.ascontiguousarray(a[c, ::-1], dtype=dtype)  # noqa: E731
+    mapper = executor.map if executor is not None else map
+    channels = dict(zip(names, mapper(convert, range(len(names)))))
+    header = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "prtt_format_version": TEXTURE_FORMAT_VERSION,
+        "prtt_kind": kind,
+        "prtt_bands": bands,
+        "prtt_convention": CONVENTION,
+        "prtt_resolution": f"{W}x{H}",
+        "prtt_storage": "half" if half else "float",
+    }
+    for k, v in (attrs or {}).items():
+        key = k if k.startswith("prtt_") else "prtt_" + k
+        if isinstance(v, (bool, np.bool_)):
+            v = int(v)
+        elif isinstance(v, np.integer):
+            v = int(v)
+        elif isinstance(v, np.floating):
+            v = float(v)
+        header[key] = v
+    path = os.fspath(path)
+    if atomic:
+        with atomic_write(path) as tmp:
+            with OpenEXR.File(header, channels) as f:
+                f.write(tmp)
+    else:
+        with OpenEXR.File(header, channels) as f:
+            f.write(path)
+    return path
+
+
+def write_sh_exr(path, data: np.ndarray, *, kind: str, half: bool = True,
+                 rgb: bool = False, attrs: dict | None = None, atomic: bool = True) -> str:
+    """Write an SH texture given pixel-major data: (H, W, K), or (H, W, 3, K)
+    when ``rgb``; row 0 at the bottom. See :func:`write_sh_planes`."""
+    a = np.asarray(data)
+    if rgb:
+        if a.ndim != 4 or a.shape[2] != 3:
+            raise ValueError(f"RGB SH texture must be (H, W, 3, K), got {a.shape}")
+        planes = a.reshape(a.shape[0], a.shape[1], -1)
+    else:
+        if a.ndim != 3:
+            raise ValueError(f"SH texture must be (H, W, K), got {a.shape}")
+        planes = a
+    return write_sh_planes(path, np.moveaxis(planes, 2, 0), kind=kind, half=half, rgb=rgb,
+                           attrs=attrs, atomic=atomic)
+
+
+def read_sh_exr(path) -> tuple[np.ndarray, dict]:
+    """Read a PRTT SH texture. Returns (data float32, attrs).
+
+    data is (H, W, K) or (H, W, 3, K) for RGB textures, row 0 at the bottom.
+    attrs holds the ``prtt_*`` header entries without the prefix.
+    """
+    import OpenEXR
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise TextureError(f"{path}: no such texture")
+    try:
+        # Copy inside the block: the binding empties its dicts when the file closes.
+        with OpenEXR.File(path) as f:
+            header = dict(f.header())
+            chans = {n: np.array(c.pixels, copy=True) for n, c in f.channels().items()}
+    except Exception as exc:
+        raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
+    attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
+    if "bands" not in attrs or "kind" not in attrs:
+        raise TextureError(f"{path}: not a PRTT texture (no prtt_bands/prtt_kind header)")
+    K = int(attrs["bands"]) ** 2
+    rgb = any(n.startswith("R.") for n in chans)
+    names = channel_names(K, rgb)
+    missing = [n for n in names if n not in chans]
+    if missing:
+        raise TextureError(f"{path}: missing channels {missing[:4]}{'...' if len(missing) > 4 else ''}")
+    planes = [chans[n].astype(np.float32) for n in names]
+    H, W = planes[0].shape
+    if rgb:
+        data = np.stack(planes, axis=-1).reshape(H, W, 3, K)
+    else:
+        data = np.stack(planes, axis=-1)
+    return np.ascontiguousarray(data[::-1]), attrs

@@ -1,0 +1,1 @@
+"""The preview without Blender: texture packing, the numpy reference renderer and the GLSL assembly."""

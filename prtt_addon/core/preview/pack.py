@@ -1,0 +1,396 @@
+"""What the viewport preview draws, as plain arrays (no bpy, no gpu).
+
+The preview's GPU code (blender/preview/renderer.py) and its numpy reference
+(core/preview/reference.py) consume the same :class:`PreviewScene`, built
+from a Blender scene (blender/preview/scene.py) or from a core Scene and its
+bake (benchmarks, tests).
+
+Layouts (core/preview/shader_source.py documents the GPU side):
+
+* SH textures go to 2D array textures of ceil(K/4) RGBA layers: coefficient
+  k is layer k // 4, component k % 4; rows bottom first (like UVs). Bounce
+  textures (all levels summed: they add linearly) use 3 ceil(K/4) layers,
+  channel c of coefficient k at layer c ceil(K/4) + k // 4.
+* Per-vertex transfer: texel i (x = i % W, y = i // W) of a W-wide array
+  texture, same layer packing.
+* Meshes are indexed triangle lists in object space; corners with identical
+  attributes share a vertex (so the vertex baselines shade each once), and
+  triangles are sorted by material so each material is one draw range.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import numpy as np
+
+from ..sh.gaunt import sparse_gaunt, tpfl_matrix
+from ..shading.materials import DEFAULT, dielectric_f0
+
+#: Width of the per-vertex transfer texture.
+VERTEX_TEXTURE_WIDTH = 4096
+
+FLAG_BASE_TEXTURE = 1
+FLAG_ROUGHNESS_TEXTURE = 2
+FLAG_NORMAL_MAP = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class PreviewMaterial:
+    """Principled values of one material; textures index PreviewScene.images."""
+
+    base_color: tuple = DEFAULT.base_color
+    metallic: float = DEFAULT.metallic
+    roughness: float = DEFAULT.roughness
+    f0: float = float(dielectric_f0(DEFAULT.ior, DEFAULT.specular))
+    base_texture: int = -1
+    roughness_texture: int = -1
+    normal_texture: int = -1
+    normal_strength: float = 1.0
+
+    @classmethod
+    def from_spec(cls, spec: dict, *, normal_texture: int = -1, normal_strength: float = 1.0,
+                  texture_index=None) -> "PreviewMaterial":
+        """From a core material dict (core.shading.materials.Material fields).
+
+        texture_index maps the dict's texture numbers to PreviewScene.images
+        indices (identity when None)."""
+        d = {**DEFAULT.as_dict(), **spec}
+        remap = texture_index or (lambda i: i)
+        bt, rt = int(d.get("base_color_texture", -1)), int(d.get("roughness_texture", -1))
+        return cls(base_color=tuple(float(c) for c in d["base_color"]), metallic=float(d["metallic"]),
+                   roughness=float(d["roughness"]), f0=float(dielectric_f0(d["ior"], d["specular"])),
+                   base_texture=remap(bt) if bt >= 0 else -1, roughness_texture=remap(rt) if rt >= 0 else -1,
+                   normal_texture=normal_texture, normal_strength=float(normal_strength))
+
+    @property
+    def flags(self) -> int:
+        return ((FLAG_BASE_TEXTURE if self.base_texture >= 0 else 0)
+                | (FLAG_ROUGHNESS_TEXTURE if self.roughness_texture >= 0 else 0)
+                | (FLAG_NORMAL_MAP if self.normal_texture >= 0 else 0))
+
+    def block(self) -> np.ndarray:
+        """The PRTTMaterial uniform block: (8,) float32."""
+        return np.array([*self.base_color, self.metallic, self.roughness, self.f0, self.normal_strength,
+                         float(self.flags)], dtype=np.float32)
+
+
+@dataclasses.dataclass
+class DrawMesh:
+    """One object's triangles in object space, ready for a vertex buffer.
+
+    positions, normals (V, 3); uv (PRTT map), mat_uv (material textures), nm_uv
+    (normal map) (V, 2); tangents (V, 4) xyz + bitangent sign; vidx (V,) row of
+    the set's per-vertex transfer (-1: none); indices (T, 3); ranges: list of
+    (material index, first triangle, triangle count); matrix (4, 4) model
+    matrix (object -> world, float64). All float arrays float32.
+    """
+
+    name: str
+    set_name: str | None
+    positions: np.ndarray
+    normals: np.ndarray
+    uv: np.ndarray
+    mat_uv: np.ndarray
+    nm_uv: np.ndarray
+    tangents: np.ndarray
+    vidx: np.ndarray
+    indices: np.ndarray
+    ranges: list
+    matrix: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    key: str = ""
+
+    @property
+    def triangles(self) -> int:
+        return int(self.indices.shape[0])
+
+    def has_vertex_transfer(self) -> bool:
+        return self.vidx.size > 0 and bool(np.all(self.vidx >= 0))
+
+    def world_corners(self, attr: str) -> np.ndarray:
+        """(T, 3, C) float64 corner values; positions/normals/tangents in world space."""
+        a = getattr(self, attr)[self.indices].astype(np.float64)
+        M = np.asarray(self.matrix, np.float64)
+        if attr == "positions":
+            return a @ M[:3, :3].T + M[:3, 3]
+        if attr == "normals":
+            return a @ normal_matrix(M)[:3, :3].T
+        if attr == "tangents":
+            out = a.copy()
+            out[..., :3] = a[..., :3] @ M[:3, :3].T
+            out[..., 3] *= np.sign(np.linalg.det(M[:3, :3])) or 1.0
+            return out
+        return a
+
+
+def normal_matrix(M: np.ndarray) -> np.ndarray:
+    """Inverse transpose of the 3x3 part, as a 4x4 whose [3, 3] is sign(det)."""
+    M3 = np.asarray(M, np.float64)[:3, :3]
+    det = np.linalg.det(M3)
+    out = np.zeros((4, 4))
+    out[:3, :3] = np.linalg.inv(M3).T if abs(det) > 1e-300 else np.eye(3)
+    out[3, 3] = -1.0 if det < 0 else 1.0
+    return out
+
+
+def fix_corner_normals(normals: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Replace zero-length corner normals by their triangle's face normal
+    (or +Z for a degenerate triangle), so interpolation rarely meets zero.
+    normals, positions: (T, 3, 3)."""
+    n = np.asarray(normals, np.float64).copy()
+    ln = np.linalg.norm(n, axis=2)
+    bad = ln < 1e-12
+    if np.any(bad):
+        P = np.asarray(positions, np.float64)
+        fn = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+        fl = np.linalg.norm(fn, axis=1, keepdims=True)
+        fn = np.where(fl > 1e-300, fn / np.where(fl > 0, fl, 1.0), [0.0, 0.0, 1.0])
+        n[bad] = np.broadcast_to(fn[:, None, :], n.shape)[bad]
+    return n
+
+
+def build_mesh(name: str, set_name: str | None, corners: dict, material: np.ndarray, *,
+               matrix=None, key: str = "") -> DrawMesh:
+    """A DrawMesh from per-corner arrays (T, 3, C) and the material of each triangle.
+
+    corners: positions, normals (required); uv, mat_uv, nm_uv, tangents, vidx
+    (optional: zeros / -1 when absent). Identical corners are merged.
+    """
+    P = np.asarray(corners["positions"], np.float64)
+    T = P.shape[0]
+    if T == 0:
+        raise ValueError(f"{name}: no triangles to draw")
+    cols = {
+        "positions": P.astype(np.float32),
+        "normals": fix_corner_normals(corners["normals"], P).astype(np.float32),
+        "uv": np.asarray(corners.get("uv", np.zeros((T, 3, 2))), np.float32),
+        "mat_uv": np.asarray(corners.get("mat_uv", np.zeros((T, 3, 2))), np.float32),
+        "nm_uv": np.asarray(corners.get("nm_uv", np.zeros((T, 3, 2))), np.float32),
+        "tangents": np.asarray(corners.get("tangents", np.tile([1.0, 0, 0, 1], (T, 3, 1))), np.float32),
+        "vidx": np.asarray(corners.get("vidx", np.full((T, 3), -1.0)), np.float32)[..., None],
+    }
+    widths = {k: v.shape[2] for k, v in cols.items()}
+    mat = np.asarray(material, np.int64).reshape(T)
+    # Merge identical corners (rows compared as raw bytes); the material is part
+    # of the key, so a vertex is shaded with one material in the vertex baselines.
+    mat_col = np.repeat(mat.astype(np.float32), 3)[:, None]
+    flat = np.ascontiguousarray(np.concatenate([v.reshape(T * 3, -1) for v in cols.values()] + [mat_col], axis=1))
+    rows = flat.view(np.dtype((np.void, flat.dtype.itemsize * flat.shape[1]))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    uniq = flat[first]
+    indices = inverse.reshape(T, 3).astype(np.uint32)
+    order = np.argsort(mat, kind="stable")
+    indices = indices[order]
+    ms = mat[order]
+    starts = np.flatnonzero(np.r_[True, ms[1:] != ms[:-1]])
+    counts = np.diff(np.r_[starts, T])
+    ranges = [(int(ms[s]), int(s), int(c)) for s, c in zip(starts, counts)]
+    out, o = {}, 0
+    for k, w in widths.items():
+        out[k] = np.ascontiguousarray(uniq[:, o:o + w])
+        o += w
+    return DrawMesh(name=name, set_name=set_name, positions=out["positions"], normals=out["normals"],
+                    uv=out["uv"], mat_uv=out["mat_uv"], nm_uv=out["nm_uv"], tangents=out["tangents"],
+                    vidx=out["vidx"][:, 0], indices=indices, ranges=ranges,
+                    matrix=np.eye(4) if matrix is None else np.asarray(matrix, np.float64), key=key)
+
+
+@dataclasses.dataclass
+class PreviewSet:
+    """The baked textures of one texture set, loaded on demand.
+
+    transfer: path of ``<set>.transfer.exr``; bounces: paths of its bounce
+    levels; vertex: path of ``<set>.vertex.npz`` or None.
+    """
+
+    name: str
+    transfer: str
+    bounces: tuple = ()
+    vertex: str | None = None
+
+    @property
+    def key(self) -> str:
+        parts = []
+        for p in (self.transfer, *self.bounces, self.vertex):
+            if p:
+                try:
+                    st = os.stat(p)
+                    parts.append(f"{p}:{st.st_mtime_ns}:{st.st_size}")
+                except OSError:
+                    parts.append(f"{p}:missing")
+        return "|".join(parts)
+
+    def load_transfer(self) -> np.ndarray:
+        """(H, W, K) float32, row 0 at the bottom."""
+        from ..io.exr_io import read_sh_exr
+        return read_sh_exr(self.transfer)[0]
+
+    def load_bounce(self) -> np.ndarray | None:
+        """(H, W, 3, K) float32: every bounce level summed, or None."""
+        from ..io.exr_io import read_sh_exr
+        total = None
+        for p in self.bounces:
+            b = read_sh_exr(p)[0]
+            total = b if total is None else total + b
+        return total
+
+    def load_vertex(self) -> np.ndarray | None:
+        """(V, K) float32 per-vertex transfer, or None."""
+        if not self.vertex:
+            return None
+        with np.load(self.vertex) as z:
+            return np.asarray(z["coeffs"], np.float32)
+
+
+@dataclasses.dataclass
+class PreviewScene:
+    """Everything one preview frame draws.
+
+    light: (K, 3) float64 world-frame RGB SH (rotation and strength applied);
+    images: list of (H, W, 4) float32 material textures / normal maps, file
+    order (row 0 = top), linear values; image_keys: a cache key per image.
+    """
+
+    bands: int
+    meshes: list
+    materials: list
+    sets: dict
+    light: np.ndarray
+    images: list = dataclasses.field(default_factory=list)
+    image_keys: list = dataclasses.field(default_factory=list)
+    use_bounces: bool = True
+    normal_maps: bool = True
+
+
+# --- packing for the GPU ------------------------------------------------------------
+
+def layers(n_coeffs: int) -> int:
+    return (n_coeffs + 3) // 4
+
+
+def pack_layers(tex: np.ndarray) -> np.ndarray:
+    """(H, W, K) -> (ceil(K/4), H, W, 4) float32, zero padded."""
+    H, W, K = tex.shape
+    L = layers(K)
+    out = np.zeros((H, W, 4 * L), np.float32)
+    out[..., :K] = tex
+    return np.ascontiguousarray(out.reshape(H, W, L, 4).transpose(2, 0, 1, 3))
+
+
+def pack_bounce(bounce: np.ndarray) -> np.ndarray:
+    """(H, W, 3, K) -> (3 ceil(K/4), H, W, 4): channel-major layer blocks."""
+    H, W, C, K = bounce.shape
+    return np.concatenate([pack_layers(bounce[:, :, c, :]) for c in range(C)], axis=0)
+
+
+def pack_vertex_transfer(coeffs: np.ndarray, width: int = VERTEX_TEXTURE_WIDTH) -> np.ndarray:
+    """(V, K) -> (ceil(K/4), rows, width, 4): texel i at (i % width, i // width)."""
+    V, K = coeffs.shape
+    w = max(1, min(width, V))
+    rows = max(1, math.ceil(V / w))
+    grid = np.zeros((rows * w, K), np.float32)
+    grid[:V] = coeffs
+    return pack_layers(grid.reshape(rows, w, K))
+
+
+def half_exact(a: np.ndarray) -> bool:
+    """Can ``a`` go to a half-float texture without changing a single value?"""
+    if a.size == 0:
+        return True
+    if float(np.max(np.abs(a))) > 65504.0:
+        return False
+    return bool(np.array_equal(a.astype(np.float16).astype(np.float32), a))
+
+
+def light_block(light: np.ndarray, bands: int) -> np.ndarray:
+    """The PRTTLight uniform block for (K, 3) light: M(L_c) rows padded to
+    4-coefficient groups, then the light coefficients; flat float32."""
+    K = bands * bands
+    L = np.asarray(light, np.float64)[:K]
+    K4 = layers(K)
+    M = tpfl_matrix(L, bands)                                  # (3, K, K)
+    rows = np.zeros((3, K, 4 * K4))
+    rows[:, :, :K] = M
+    coeffs = np.zeros((K, 4))
+    coeffs[:, :3] = L
+    return np.concatenate([rows.ravel(), coeffs.ravel()]).astype(np.float32)
+
+
+def gaunt_table(bands: int, width: int) -> np.ndarray:
+    """(rows, width, 4) float32: texel e = (i, j, k, tau_ijk) of the Gaunt non-zeros."""
+    g = sparse_gaunt(bands)
+    rows = max(1, math.ceil(g.nnz / width))
+    out = np.zeros((rows * width, 4), np.float32)
+    out[:g.nnz] = np.stack([g.i, g.j, g.k, g.value], axis=1)
+    return out.reshape(rows, width, 4)
+
+
+def image_rgba(img: np.ndarray) -> np.ndarray:
+    """(H, W, C) file-order image -> (H, W, 4) float32 bottom row first, for upload.
+
+    One channel is replicated to rgb (a grey texture); alpha is 1 if absent."""
+    a = np.asarray(img, np.float32)
+    if a.ndim == 2:
+        a = a[..., None]
+    H, W, C = a.shape
+    out = np.ones((H, W, 4), np.float32)
+    if C == 1:
+        out[..., :3] = a
+    else:
+        out[..., :min(C, 4)] = a[..., :4]
+    return np.ascontiguousarray(out[::-1])
+
+
+def view_block(view_projection: np.ndarray, camera: np.ndarray, exposure: float, bands: int,
+               depth_bias: float = 0.0) -> np.ndarray:
+    """The PRTTView uniform block: mat4 (column-major, as GLSL reads it), camera,
+    params (exposure, depth bias, K = bands^2 as the TPFL loop's run-time bound)."""
+    vp = np.asarray(view_projection, np.float64)
+    return np.concatenate([vp.T.ravel(), np.asarray(camera, np.float64),
+                           [exposure, depth_bias, float(bands * bands), 0.0]]).astype(np.float32)
+
+
+# --- a PreviewScene straight from a core Scene and its bake (benchmarks, tests) ------------
+
+def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_bounces: bool = True) -> PreviewScene:
+    """Every baked object of ``sc`` as a DrawMesh (world space, identity
+    matrix), with the textures the bake wrote to ``out_dir``.
+
+    Materials come from ``sc.materials`` (default grey where none), material
+    textures from ``sc.textures``; normal maps are not carried over (the
+    Blender path handles them)."""
+    files = set(os.listdir(out_dir))
+    mats = [PreviewMaterial.from_spec({k: v for k, v in m.items() if k != "name"}) for m in sc.materials]
+    default_mat = len(mats)
+    mats.append(PreviewMaterial())
+    sets, meshes = {}, []
+    names = sc.object_names or [f"object{i}" for i in range(int(sc.object_id.max()) + 1)]
+    for s, set_name in enumerate(sc.set_names):
+        transfer = f"{set_name}.transfer.exr"
+        if transfer not in files:
+            continue
+        bounces = tuple(os.path.join(out_dir, f) for f in sorted(files)
+                        if f.startswith(f"{set_name}.bounce") and f.endswith(".exr"))
+        vfile = f"{set_name}.vertex.npz"
+        sets[set_name] = PreviewSet(set_name, os.path.join(out_dir, transfer), bounces,
+                                    os.path.join(out_dir, vfile) if vfile in files else None)
+        set_tris = sc.triangles_of_set(s)
+        corner_vertex = None
+        if vfile in files:
+            with np.load(os.path.join(out_dir, vfile)) as z:
+                corner_vertex = np.asarray(z["corner_vertex"])
+        for o in np.unique(sc.object_id[set_tris]):
+            rows = np.flatnonzero(sc.object_id[set_tris] == o)
+            tris = set_tris[rows]
+            corners = {"positions": sc.positions[tris], "normals": sc.normals[tris], "uv": sc.uvs[tris]}
+            if sc.mat_uvs is not None:
+                corners["mat_uv"] = sc.mat_uvs[tris]
+            if corner_vertex is not None:
+                corners["vidx"] = corner_vertex[rows].astype(np.float32)
+            mid = (np.where(sc.material_id[tris] >= 0, sc.material_id[tris], default_mat)
+                   if sc.material_id is not None else np.full(tris.size, default_mat))
+            meshes.append(build_mesh(names[o], set_name, corners, mid, key=f"{out_dir}|{set_name}|{o}"))
+    return PreviewScene(bands=bands, meshes=meshes, materials=mats, sets=sets, light=np.asarray(light)[:bands * bands],
+                        images=list(sc.textures), image_keys=[f"{out_dir}|tex{i}" for i in range(len(sc.textures))],
+                        use_bounces=use_bounces, normal_maps=False)

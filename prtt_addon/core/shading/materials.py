@@ -1,0 +1,169 @@
+"""Materials of the reference shading model: Lambert diffuse + normalised Phong.
+
+A material is what the Principled BSDF gives us; shading uses three derived,
+possibly textured, quantities per point (docs/shading.md):
+
+* diffuse albedo   rho_d = base_color * (1 - metallic)
+* specular weight  k_s   = (1 - metallic) * F0 + metallic * base_color,
+                   F0    = ((ior - 1) / (ior + 1))^2 * 2 * specular
+  (Blender 4.x's "Specular IOR Level" 0.5 leaves the IOR's own F0: 0.04 at 1.5)
+* Phong exponent   s     = 1 / (2 alpha^2) - 1/2, alpha = roughness^2,
+  clamped to [0, MAX_EXPONENT]: the Blinn-Phong exponent equivalent to GGX,
+  2 / alpha^2 - 2, divided by 4 for a lobe about the reflection vector.
+  Roughness 1 gives s = 0 (the lobe covers the hemisphere), 0.5 gives 7.5,
+  0.1 gives 5000.
+
+The glossy lobe is the normalised Phong lobe (s + 1) / (2 pi) cos^s about the
+reflection direction (zonal.phong_factors); the cosine factor of the rendering
+equation is already in the transfer.
+
+Textures: ``base_color_texture`` (RGB, linear) and ``roughness_texture``
+(first channel) index the scene's ``textures`` and are sampled bilinearly at
+the triangle's ``mat_uvs``; they replace the constant values (spatially varying
+albedo and roughness, as in the paper).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+#: Exponent for roughness 0 (a mirror has no finite Phong exponent).
+MAX_EXPONENT = 10000.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Material:
+    name: str = "default"
+    base_color: tuple = (0.8, 0.8, 0.8)     # linear RGB
+    metallic: float = 0.0
+    roughness: float = 0.5
+    specular: float = 0.5                   # Principled "Specular IOR Level"
+    ior: float = 1.5
+    base_color_texture: int = -1            # index into Scene.textures, -1 = none
+    roughness_texture: int = -1
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Material":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown material fields {sorted(unknown)}")
+        m = cls(**{k: (tuple(v) if k == "base_color" else v) for k, v in d.items()})
+        m.validate()
+        return m
+
+    def validate(self) -> None:
+        bc = np.asarray(self.base_color, dtype=float)
+        if bc.shape != (3,) or not np.all(np.isfinite(bc)) or bc.min() < 0:
+            raise ValueError(f"base_color must be 3 finite values >= 0, got {self.base_color}")
+        for name in ("metallic", "roughness", "specular"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+                raise ValueError(f"{name} must be in [0, 1], got {v!r}")
+        if not (isinstance(self.ior, (int, float)) and 1.0 <= self.ior <= 10.0):
+            raise ValueError(f"ior must be in [1, 10], got {self.ior!r}")
+        for name in ("base_color_texture", "roughness_texture"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < -1:
+                raise ValueError(f"{name} must be an integer >= -1, got {v!r}")
+
+    @property
+    def textured(self) -> bool:
+        return self.base_color_texture >= 0 or self.roughness_texture >= 0
+
+    def as_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["base_color"] = list(self.base_color)
+        return d
+
+
+DEFAULT = Material()
+
+
+def phong_exponent(roughness) -> np.ndarray:
+    """Phong exponent about the reflection vector for Principled roughness."""
+    r = np.clip(np.asarray(roughness, dtype=np.float64), 0.0, 1.0)
+    alpha2 = r ** 4
+    with np.errstate(divide="ignore"):
+        s = 0.5 / alpha2 - 0.5
+    return np.clip(np.where(alpha2 > 0, s, MAX_EXPONENT), 0.0, MAX_EXPONENT)
+
+
+def dielectric_f0(ior, specular) -> np.ndarray:
+    return ((np.asarray(ior) - 1.0) / (np.asarray(ior) + 1.0)) ** 2 * 2.0 * np.asarray(specular)
+
+
+@dataclasses.dataclass
+class ShadingParams:
+    """Per-point parameters: albedo (N, 3), spec (N, 3), exponent (N,)."""
+
+    albedo: np.ndarray
+    spec: np.ndarray
+    exponent: np.ndarray
+
+    @classmethod
+    def constant(cls, n: int, material: Material = DEFAULT) -> "ShadingParams":
+        return derive(np.tile(material.base_color, (n, 1)), np.full(n, material.metallic),
+                      np.full(n, material.roughness), np.full(n, material.specular), np.full(n, material.ior))
+
+    def take(self, idx) -> "ShadingParams":
+        return ShadingParams(self.albedo[idx], self.spec[idx], self.exponent[idx])
+
+
+def derive(base, metallic, roughness, specular, ior) -> ShadingParams:
+    """Principled values per point -> ShadingParams (formulas in the module doc)."""
+    return derive_from_f0(base, metallic, roughness, dielectric_f0(ior, specular))
+
+
+def derive_from_f0(base, metallic, roughness, f0) -> ShadingParams:
+    """As :func:`derive`, with the dielectric F0 (N,) already folded from ior and specular."""
+    base = np.asarray(base, dtype=np.float64)
+    m = np.asarray(metallic, dtype=np.float64)[:, None]
+    f0 = np.asarray(f0, dtype=np.float64)[:, None]
+    return ShadingParams(base * (1.0 - m), (1.0 - m) * f0 + m * base, phong_exponent(roughness))
+
+
+def sample_texture(img_top_first: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    from ..texels.gbuffer import sample_bilinear
+    return sample_bilinear(img_top_first, uv)
+
+
+def eval_materials(sc, tri: np.ndarray, bary: np.ndarray) -> ShadingParams:
+    """Shading parameters at points on triangles ``tri`` with barycentrics ``bary``."""
+    n = tri.shape[0]
+    mats = [Material.from_dict(m) for m in sc.materials]
+    mid = sc.material_id[tri] if sc.material_id is not None else np.full(n, -1)
+    base = np.tile(DEFAULT.base_color, (n, 1)).astype(np.float64)
+    metallic = np.full(n, DEFAULT.metallic)
+    rough = np.full(n, DEFAULT.roughness)
+    spec = np.full(n, DEFAULT.specular)
+    ior = np.full(n, DEFAULT.ior)
+    for i, mat in enumerate(mats):
+        sel = np.flatnonzero(mid == i)
+        if sel.size == 0:
+            continue
+        base[sel] = mat.base_color
+        metallic[sel], rough[sel], spec[sel], ior[sel] = mat.metallic, mat.roughness, mat.specular, mat.ior
+        if mat.textured:
+            uv = np.einsum("nk,nkc->nc", bary[sel], sc.mat_uvs[tri[sel]])
+            if mat.base_color_texture >= 0:
+                rgb = sample_texture(sc.textures[mat.base_color_texture], uv)
+                base[sel] = np.maximum(rgb[:, :3] if rgb.shape[1] >= 3 else np.repeat(rgb[:, :1], 3, 1), 0.0)
+            if mat.roughness_texture >= 0:
+                rough[sel] = np.clip(sample_texture(sc.textures[mat.roughness_texture], uv)[:, 0], 0.0, 1.0)
+    return derive(base, metallic, rough, spec, ior)
+
+
+def materials_hash(sc) -> str:
+    """sha256 of everything materials contribute (for stale bounce textures)."""
+    import hashlib
+    import json
+    h = hashlib.sha256(json.dumps(sc.materials, sort_keys=True).encode())
+    for a in (sc.material_id, sc.mat_uvs):
+        if a is not None:
+            h.update(np.ascontiguousarray(a).tobytes())
+    for t in sc.textures:
+        h.update(t.tobytes())
+    return h.hexdigest()
+
