@@ -38,6 +38,7 @@ import time
 import numpy as np
 
 from ..io import atomic, exr_io
+from ...version import __version__
 from . import settings_schema as _schema
 from ..io.atomic import atomic_write
 from ..texels.dilate import dilate, mip_chain
@@ -765,7 +766,6 @@ def _run(bk, sc, st, out_dir, t_all, skip_if_unchanged, light_hash, materials_ha
     totals["rays_traced"] += sum(v.get("rays_traced", 0) for v in vertex_reports)
     bk.seconds["total"] = time.perf_counter() - t_all
     trace_s = bk.seconds["trace"] + bk.seconds["vertex"]
-    from ... import __version__
     manifest = {
         "format": "prtt-bake", "format_version": BAKE_FORMAT_VERSION,
         "prtt_version": __version__, "kind": "transfer",
