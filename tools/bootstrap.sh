@@ -2,6 +2,7 @@
 # Make this checkout runnable on a fresh Debian machine with Python 3.11:
 #   1. the Debian packages in tools/apt-packages.txt (Mesa EGL/llvmpipe, X client libs),
 #   2. a virtual environment .venv with the pins of requirements.txt.
+#   3. the runtime wheels of the extension zips in build/wheels (tools/build_extension.py --fetch-only).
 # Idempotent and quick when nothing changed (a stamp holds the requirements' hash).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -48,3 +49,9 @@ if [[ ! -x .venv/bin/python ]] || [[ "$(cat "$stamp" 2>/dev/null)" != "$want" ]]
     .venv/bin/python -m pip install -q --disable-pip-version-check -r requirements.txt
     echo "$want" > "$stamp"
 fi
+
+# --- extension wheels --------------------------------------------------------
+# The runtime wheels of every platform's extension zip, fetched now so that
+# building the zip (and the tests that do) never needs the network. Cached in
+# build/wheels: nothing is downloaded when they are there.
+.venv/bin/python tools/build_extension.py --fetch-only >/dev/null

@@ -7,7 +7,9 @@
   "wheel": embreex, OpenEXR, xatlas) unmodified from PyPI, for CPython 3.11
   (Blender 4.2-5.0) and 3.13 (Blender 5.1+), for every platform asked for
   (default: all of linux-x64, windows-x64, macos-arm64, macos-x64). They are
-  cached in ``build/wheels``, so a second build needs no network;
+  cached in ``build/wheels``, so a second build needs no network
+  (``--fetch-only`` fills the cache, as tools/bootstrap.sh does; ``--offline``
+  never downloads, as the tests build);
 * stages the extension's source tree in ``build/extension``: the manifest
   (plus ``platforms`` and ``wheels``), ``LICENSE``, the package's files,
   ``shaders/`` and ``wheels/``, leaving out what the manifest's
@@ -251,12 +253,16 @@ def pip_download(pins, python: str, plat: str, cache: str) -> tuple[dict, str]:
     return got, ("" if r.returncode == 0 else "\n".join(errors) or r.stderr.strip())
 
 
-def platform_wheels(pins, plat: str, cache: str, log) -> list[str]:
-    """The wheel files of every pin for every Python on ``plat``, downloading
-    what the cache lacks; PlatformError naming what PyPI does not have."""
+def platform_wheels(pins, plat: str, cache: str, log, *, offline: bool = False) -> list[str]:
+    """The wheel files of every pin for every Python on ``plat`` (a pure-Python
+    wheel once), downloading what the cache lacks; PlatformError naming what
+    PyPI does not have, or, ``offline``, what the cache does not."""
     found = []
     for python in PYTHONS:
         missing = [p for p in pins if cached_wheel(cache, p, python, plat) is None]
+        if missing and offline:
+            raise PlatformError(f"{', '.join(missing)} for Python {python} on {plat} not in the wheel cache "
+                                f"{cache} (tools/bootstrap.sh fetches them; or build without --offline)")
         if missing:
             log(f"  downloading {', '.join(missing)} for Python {python} on {plat}")
             got, error = pip_download(missing, python, plat, cache)
@@ -266,7 +272,7 @@ def platform_wheels(pins, plat: str, cache: str, log) -> list[str]:
                 raise PlatformError(f"no {', '.join(still)} wheel for Python {python} on {plat}"
                                     + (f" ({error})" if error else ""))
         found += [cached_wheel(cache, p, python, plat) for p in pins]
-    return found
+    return list(dict.fromkeys(found))
 
 
 #: manylinux's legacy names and the glibc each stands for.
@@ -377,7 +383,8 @@ def validate(path: str) -> tuple[int, str]:
 
 # --- the build ------------------------------------------------------------------------------
 
-def build(out_dir: str, platforms, stage: str, cache: str, log=print) -> tuple[dict, dict]:
+def build(out_dir: str, platforms, stage: str, cache: str, log=print, *,
+          offline: bool = False) -> tuple[dict, dict]:
     """Build every platform's zip; ({platform: zip path}, {platform: why not built})."""
     text, manifest = read_manifest()
     files = extension_files(repository_sources(), manifest.get("build", {}).get("paths_exclude_pattern", []))
@@ -389,7 +396,7 @@ def build(out_dir: str, platforms, stage: str, cache: str, log=print) -> tuple[d
     wheels, failed = {}, {}
     for plat in platforms:
         try:
-            wheels[plat] = platform_wheels(pins, plat, cache, log)
+            wheels[plat] = platform_wheels(pins, plat, cache, log, offline=offline)
         except PlatformError as e:
             failed[plat] = str(e)
     if wheels:
@@ -455,9 +462,23 @@ def main(argv=None) -> int:
     p.add_argument("--wheels", default=os.path.join(ROOT, "build", "wheels"),
                    help="wheel cache (default: build/wheels)")
     p.add_argument("--no-validate", action="store_true", help="skip Blender's extension validator")
+    p.add_argument("--offline", action="store_true",
+                   help="never download: a wheel missing from the cache fails that platform (the tests use this)")
+    p.add_argument("--fetch-only", action="store_true",
+                   help="only fill the wheel cache for the platforms (tools/bootstrap.sh runs this)")
     args = p.parse_args(argv)
     platforms = list(dict.fromkeys(args.platform or PLATFORMS))
-    built, failed = build(args.out, platforms, args.stage, args.wheels)
+    if args.fetch_only:
+        os.makedirs(args.wheels, exist_ok=True)
+        failed = {}
+        for plat in platforms:
+            try:
+                platform_wheels(runtime_pins(), plat, args.wheels, print)
+            except PlatformError as e:
+                failed[plat] = str(e)
+                print(f"{plat}: {e}", file=sys.stderr)
+        return 1 if failed else 0
+    built, failed = build(args.out, platforms, args.stage, args.wheels, offline=args.offline)
     report(built, failed)
     ok = args.no_validate or not built or check_with_validator([args.stage, *built.values()])
     return 0 if ok and not failed else 1

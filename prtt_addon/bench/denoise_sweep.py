@@ -16,11 +16,12 @@ import time
 
 import numpy as np
 
-from ..core.bake.runner import BakeSettings, bake_scene
 from ..core.bake.denoise import edge_aware, island_labels, oidn_available, oidn_sh
+from ..core.bake.runner import BakeSettings, bake_scene
 from ..core.io.exr_io import read_sh_exr
 from ..core.texels.gbuffer import build_gbuffer
 from . import scenes
+from .texture_error import load_set_textures, texel_error
 
 REF_BOUNCE_RAYS = 2048
 
@@ -132,7 +133,6 @@ def sweep_transfer_denoise(cfg, sc, tmp: str) -> list:
     """Transfer textures (5 bands) at 32 ... 512 rays, raw and denoised, against
     a converged transfer (texel error; contact shadows are where a filter that
     blurs shows up in it)."""
-    from .sweep import load_set_textures, texel_error
     rays_list = (16, 64) if cfg.quick else (32, 64, 128, 256, 512)
     ref_rays = 1024 if cfg.quick else REF_TRANSFER_RAYS
     ref_dir = os.path.join(scenes.CACHE, f"denoise-ref-{cfg.sweep_res}-{ref_rays}")

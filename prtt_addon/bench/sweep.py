@@ -47,9 +47,10 @@ import time
 import numpy as np
 
 from ..core.bake.runner import BakeSettings, bake_scene
-from ..core.io.exr_io import read_sh_exr
 from ..core.io.scene import save_scene
 from . import scenes
+from .denoise_sweep import print_rays_needed, sweep_bounce_denoise, sweep_transfer_denoise
+from .texture_error import load_set_textures, texel_error
 
 OUT = os.path.join(scenes.ROOT, "docs", "bench")
 
@@ -80,21 +81,6 @@ class Config:
 
 
 # --- helpers -------------------------------------------------------------------------------
-
-def load_set_textures(out_dir: str, sc) -> dict:
-    return {n: read_sh_exr(os.path.join(out_dir, f"{n}.transfer.exr"))[0] for n in sc.set_names}
-
-
-def texel_error(tex: dict, ref: dict) -> float:
-    """Relative RMSE over covered texels: ||T - T_ref|| / ||T_ref|| (first K coefficients)."""
-    num = den = 0.0
-    for n, t in tex.items():
-        r = ref[n][..., :t.shape[-1]].astype(np.float64)
-        covered = np.any(r != 0, axis=-1)
-        num += float(((t[covered] - r[covered]) ** 2).sum())
-        den += float((r[covered] ** 2).sum())
-    return float(np.sqrt(num / den))
-
 
 def image_error(img: np.ndarray, ref: np.ndarray) -> float:
     """Relative RMSE over pixels covered in both."""
@@ -151,8 +137,8 @@ class Previewer:
     def __init__(self, sc, light, size):
         import bpy  # noqa: F401  (provides gpu)
 
-        from ..blender.preview.renderer import Renderer
         from ..blender.preview.render import ensure_gpu
+        from ..blender.preview.renderer import Renderer
         from ..core.preview.reference import look_at, perspective
         ensure_gpu()
         self.sc, self.light, (self.w, self.h) = sc, light, size
@@ -456,7 +442,6 @@ def main(argv=None) -> int:
             results["storage"] = sweep_storage(cfg, sc, ref, previewer, tmp)
             part_seconds["storage"] = time.perf_counter() - t
         if "bounce" in parts or "denoise" in parts:
-            from .denoise_sweep import print_rays_needed, sweep_bounce_denoise, sweep_transfer_denoise
             print("bounce rays x denoiser (room, level 1):", flush=True)
             t = time.perf_counter()
             results["denoise"] = sweep_bounce_denoise(cfg, light_fn(5), tmp, with_denoise="denoise" in parts)

@@ -31,6 +31,8 @@ import math
 
 import numpy as np
 
+from .parallel import Cancelled
+
 #: A vertex this far above a plane (normalised units) still counts as on it.
 PLANE_EPSILON = 1e-9
 #: cos(1e-3 rad): shading normal close enough to the face normal for the analytic path.
@@ -97,7 +99,6 @@ def clear_triangles(positions: np.ndarray, shaded_normals: np.ndarray, *,
         work, complete = 0.0, True
         for b in range(nb):
             if cancel is not None and cancel.is_set():
-                from .parallel import Cancelled
                 raise Cancelled()
             # Rows whose plane the block's bounding box reaches above, computed per
             # block: an (S, blocks) table was S x nb bytes (11.7 GB for a flat

@@ -11,6 +11,8 @@ import contextlib
 import functools
 import os
 
+from .transfer import SHARED_FACTOR
+
 GiB = 1024 ** 3
 
 
@@ -49,7 +51,6 @@ def set_bytes(width: int, height: int, n_coeffs: int, *, rgb: bool = False,
     * with bounces, what stays resident for every set until the last level:
       see :func:`bounce_resident_bytes`.
     """
-    from .transfer import SHARED_FACTOR
     k = n_coeffs * (3 if rgb else 1)
     texels = width * height
     return (2 * texels * k * 4 + texels * 160 + max(2, threads) * 200 * 1024 ** 2

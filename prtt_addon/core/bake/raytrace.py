@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .parallel import Cancelled
+
 #: Ray origin offset along the geometric normal, in normalised scene units.
 RAY_EPSILON = 2e-6
 #: Triangles per Embree geometry: ~0.2 s of embreex's GIL-holding copy loop.
@@ -59,7 +61,6 @@ class RayScene:
         self._meshes = []
         for a in range(0, self.n_triangles, BUILD_CHUNK):
             if cancel is not None and cancel.is_set():
-                from .parallel import Cancelled
                 raise Cancelled()
             tri = np.ascontiguousarray(self.to_local(P[a:a + BUILD_CHUNK].reshape(-1, 3)).reshape(-1, 3, 3))
             self._meshes.append(TriangleMesh(self._scene, tri))

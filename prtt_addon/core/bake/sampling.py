@@ -42,6 +42,8 @@ import threading
 import numpy as np
 
 from ..sh.basis import eval_basis
+from ..sh.zonal import clamped_cosine_factors
+from .parallel import Cancelled
 
 SAMPLERS = ("sobol", "stratified", "random")
 DISTRIBUTIONS = ("cosine", "uniform")
@@ -157,7 +159,6 @@ def to_hemisphere(u: np.ndarray, distribution: str) -> tuple[np.ndarray, np.ndar
 
 def unoccluded_local(bands: int) -> np.ndarray:
     """(K,) exact projection of max(0, cos theta) about +Z (zonal)."""
-    from ..sh.zonal import clamped_cosine_factors
     l = np.arange(bands)
     a = np.zeros(bands * bands)
     a[l * l + l] = clamped_cosine_factors(bands) * np.sqrt((2 * l + 1) / (4 * math.pi))
@@ -255,7 +256,6 @@ class _Memo:
 
 def _check(cancel) -> None:
     if cancel is not None and cancel.is_set():
-        from .parallel import Cancelled
         raise Cancelled()
 
 

@@ -57,13 +57,14 @@ import time
 
 import numpy as np
 
+from ..sh.rotation import rotate_zyz, rotation_zyz
+from ..sh.zonal import clamped_cosine_factors, zonal_to_sh
 from . import settings_schema as _schema
+from .blas import single_threaded_blas
 from .parallel import Cancelled, run_chunks
 from .raytrace import RAY_EPSILON, RayScene
-from ..sh.rotation import rotate_zyz, rotation_zyz
-from .sampling import hash_u32, hash_unit, pattern_bank
+from .sampling import exact_tables, hash_u32, hash_unit, pattern_bank, unoccluded_local
 from .settings_schema import ESTIMATORS, check_choice, check_flag, check_int  # noqa: F401  (re-exported)
-from ..sh.zonal import clamped_cosine_factors, zonal_to_sh
 
 #: Shading and geometric normals closer than this (1 - cos) need no horizon test.
 SAME_NORMAL = 1e-6
@@ -289,7 +290,6 @@ class _Stats:
 
 def _estimator_tables(st: TransferSettings, G: int, prefix: int, cancel=None):
     """(base (G, K) float64, table (G, prefix, K) float32): T = base - O @ table."""
-    from .sampling import exact_tables, unoccluded_local
     _, W, cum = pattern_bank(G, st.rays, st.bands, st.sampler, st.distribution, st.seed, cancel=cancel)
     A = unoccluded_local(st.bands)
     if st.estimator == "balanced":
@@ -475,7 +475,6 @@ def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
     """
     import sys
 
-    from .blas import single_threaded_blas
     old_interval = sys.getswitchinterval()
     sys.setswitchinterval(SWITCH_INTERVAL)
     try:

@@ -12,6 +12,8 @@ import re
 
 import numpy as np
 
+from ..bake.memory import check_fits
+
 # Environment images come from users and the web: their headers are checked
 # against these before any pixel memory is allocated.
 #: Bytes of a Radiance header before its resolution line (real ones are < 1 KB).
@@ -67,7 +69,6 @@ def check_image_size(path: str, width: int, height: int, channels: int = 3) -> N
     if not (1 <= width <= MAX_ENV_SIDE and 1 <= height <= MAX_ENV_SIDE and width * height <= MAX_ENV_PIXELS):
         raise ImageReadError(f"{path}: {width}x{height} pixels; an environment image may have 1..{MAX_ENV_SIDE} "
                              f"pixels a side and at most {MAX_ENV_PIXELS} in all")
-    from ..bake.memory import check_fits
     check_fits(width * height * max(channels, 3) * BYTES_PER_PIXEL // 3, f"reading {path} ({width}x{height})")
 
 

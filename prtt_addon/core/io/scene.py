@@ -48,6 +48,11 @@ import zlib
 
 import numpy as np
 
+from ..bake.memory import check_fits
+from ..bake.parallel import Cancelled
+from ..shading.materials import Material
+from .atomic import atomic_write
+
 FORMAT_NAME = "prtt-scene"
 FORMAT_VERSION = 1
 
@@ -375,7 +380,6 @@ def _validate_materials(sc: Scene, T: int) -> None:
     n_mat = len(sc.materials)
     sc.material_id = _as_index("material_id", sc.material_id, -1, n_mat - 1, lambda i, v: (
         f"material_id: values must be -1 or index one of {n_mat} materials; triangle {i} has {v}"))
-    from ..shading.materials import Material
     mats = []
     for i, m in enumerate(sc.materials):
         if not isinstance(m, dict):
@@ -426,7 +430,6 @@ def save_scene(sc: Scene, path, *, extra: dict | None = None) -> None:
     arrays["tex_count"] = np.array(len(sc.textures))
     for i, t in enumerate(sc.textures):
         arrays[f"tex_{i}"] = t
-    from .atomic import atomic_write
     with atomic_write(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
@@ -730,7 +733,6 @@ class JobFile:
         """Read every array (checking ``cancel`` between them) and validate the scene."""
         def get(key):
             if cancel is not None and cancel.is_set():
-                from ..bake.parallel import Cancelled
                 raise Cancelled()
             return self.array(key) if key in self.members else None
 
@@ -775,7 +777,6 @@ def load_scene(path, *, cancel=None, check_memory: bool = True) -> tuple[Scene, 
     """
     with JobFile(path) as job:
         if check_memory:
-            from ..bake.memory import check_fits
             check_fits(job.peak_bytes(), f"loading {job.path}")
         return job.load(cancel), job.extra
 

@@ -25,6 +25,7 @@ import os
 
 import numpy as np
 
+from ..io.exr_io import read_sh_exr
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..shading.materials import DEFAULT, dielectric_f0
 
@@ -223,12 +224,10 @@ class PreviewSet:
 
     def load_transfer(self) -> np.ndarray:
         """(H, W, K) float32, row 0 at the bottom."""
-        from ..io.exr_io import read_sh_exr
         return read_sh_exr(self.transfer)[0]
 
     def load_bounce(self) -> np.ndarray | None:
         """(H, W, 3, K) float32: every bounce level summed, or None."""
-        from ..io.exr_io import read_sh_exr
         total = None
         for p in self.bounces:
             b = read_sh_exr(p)[0]

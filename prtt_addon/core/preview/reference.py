@@ -24,12 +24,13 @@ import math
 
 import numpy as np
 
-from . import pack as pp
-from ..texels.gbuffer import perturb_normals, sample_bilinear
-from ..shading.materials import ShadingParams, derive_from_f0
 from ..bake.raytrace import RayScene
+from ..bake.transfer import Points, TransferSettings, bake_points
+from ..shading.materials import ShadingParams, derive_from_f0
 from ..shading.model import shade
-from ..texels.texsample import bilinear
+from ..texels.gbuffer import perturb_normals
+from ..texels.texsample import bilinear, bilinear_repeat
+from . import pack as pp
 
 
 @dataclasses.dataclass
@@ -123,9 +124,9 @@ def _params(ps: pp.PreviewScene, mid: np.ndarray, muv: np.ndarray) -> ShadingPar
         base[sel] = mat.base_color
         metal[sel], rough[sel], f0[sel] = mat.metallic, mat.roughness, mat.f0
         if mat.base_texture >= 0:
-            base[sel] = sample_bilinear(_file_order(ps, mat.base_texture), muv[sel])[:, :3]
+            base[sel] = bilinear_repeat(_file_order(ps, mat.base_texture), muv[sel])[:, :3]
         if mat.roughness_texture >= 0:
-            rough[sel] = sample_bilinear(_file_order(ps, mat.roughness_texture), muv[sel])[:, 0]
+            rough[sel] = bilinear_repeat(_file_order(ps, mat.roughness_texture), muv[sel])[:, 0]
     return derive_from_f0(np.maximum(base, 0.0), np.clip(metal, 0.0, 1.0), rough, f0)
 
 
@@ -213,7 +214,7 @@ def _shading_normals(ps, m, tri, bary, v):
             sel = mid == mi
             tan = _interp(m.world_corners("tangents"), tri[sel], bary[sel])
             nuv = _interp(m.nm_uv[m.indices].astype(np.float64), tri[sel], bary[sel])
-            rgb = sample_bilinear(_file_order(ps, mat.normal_texture), nuv)[:, :3]
+            rgb = bilinear_repeat(_file_order(ps, mat.normal_texture), nuv)[:, :3]
             n[sel], _ = perturb_normals(n[sel], tan[:, :3], tan[:, 3], rgb, mat.normal_strength)
     return n
 
@@ -249,7 +250,6 @@ def traced_reference(ps: pp.PreviewScene, view_projection, camera, width: int, h
     the transfer is ray traced (``rays`` Sobol rays, core.bake.transfer) and shaded
     with TPFL (the model is exact in T, so this is "PRT with infinitely fine
     transfer sampling"; no bounce light). Returns (H, W, 4) and the hits."""
-    from ..bake.transfer import Points, TransferSettings, bake_points
     hits = hits or trace_pixels(ps, view_projection, width, height)
     img = np.zeros((height, width, 4))
     cam = np.asarray(camera, np.float64)

@@ -40,6 +40,8 @@ from __future__ import annotations
 import dataclasses
 import os
 
+from ..sh.gaunt import sparse_gaunt
+
 MODES = ("tpfl", "tp", "diffuse", "vertex-tpfl", "vertex-tp")
 FRAGMENT_MODES = ("tpfl", "tp", "diffuse")
 VERTEX_MODES = ("vertex-tpfl", "vertex-tp")
@@ -113,7 +115,6 @@ class Variant:
 
 
 def gaunt_nnz(bands: int) -> int:
-    from ..sh.gaunt import sparse_gaunt
     return sparse_gaunt(bands).nnz
 
 

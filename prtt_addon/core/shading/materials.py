@@ -28,6 +28,8 @@ import dataclasses
 
 import numpy as np
 
+from ..texels.texsample import bilinear_repeat
+
 #: Exponent for roughness 0 (a mirror has no finite Phong exponent).
 MAX_EXPONENT = 10000.0
 
@@ -125,8 +127,7 @@ def derive_from_f0(base, metallic, roughness, f0) -> ShadingParams:
 
 
 def sample_texture(img_top_first: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    from ..texels.gbuffer import sample_bilinear
-    return sample_bilinear(img_top_first, uv)
+    return bilinear_repeat(img_top_first, uv)
 
 
 def eval_materials(sc, tri: np.ndarray, bary: np.ndarray) -> ShadingParams:

@@ -21,8 +21,9 @@ import dataclasses
 
 import numpy as np
 
-from .raster import rasterize
 from ..io.scene import Scene
+from .raster import rasterize
+from .texsample import bilinear_repeat
 
 #: Minimum cosine between a normal-mapped shading normal and the geometric normal.
 MIN_HORIZON_COS = 0.05
@@ -72,22 +73,6 @@ def _normalize(v):
     return v / np.where(ln > 0, ln, 1.0), ln[..., 0]
 
 
-def sample_bilinear(img_top_first: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup with repeat wrapping. img (H, W, C) in file order; uv (N, 2)."""
-    H, W = img_top_first.shape[:2]
-    img = img_top_first[::-1]                  # row 0 = bottom, like v
-    x = uv[:, 0] * W - 0.5
-    y = uv[:, 1] * H - 0.5
-    x0 = np.floor(x).astype(np.int64)
-    y0 = np.floor(y).astype(np.int64)
-    fx = (x - x0)[:, None]
-    fy = (y - y0)[:, None]
-    x0w, x1w = x0 % W, (x0 + 1) % W
-    y0w, y1w = y0 % H, (y0 + 1) % H
-    return ((img[y0w, x0w] * (1 - fx) + img[y0w, x1w] * fx) * (1 - fy)
-            + (img[y1w, x0w] * (1 - fx) + img[y1w, x1w] * fx) * fy)
-
-
 def perturb_normals(N, tangent, sign, encoded_rgb, strength: float) -> tuple[np.ndarray, np.ndarray]:
     """Tangent-space normal mapping (the viewport shader's normal_mapped()).
 
@@ -122,7 +107,7 @@ def apply_normal_maps(sc: Scene, tri, bary, n_interp) -> tuple[np.ndarray, np.nd
         uv = np.einsum("nk,nkc->nc", b, sc.nm_uvs[t])
         tan = np.einsum("nk,nkc->nc", b, sc.tangents[t, :, :3].astype(np.float64))
         new, good = perturb_normals(n_interp[sel], tan, sc.tangents[t, 0, 3],
-                                    sample_bilinear(nm.pixels, uv), nm.strength)
+                                    bilinear_repeat(nm.pixels, uv), nm.strength)
         out[sel[good]] = new[good]
         mapped[sel[good]] = True
     return out, mapped

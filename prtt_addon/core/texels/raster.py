@@ -27,6 +27,8 @@ import dataclasses
 
 import numpy as np
 
+from ..bake.parallel import Cancelled
+
 #: Twice the signed area (in texel units) below which a UV triangle is degenerate.
 ZERO_AREA = 1e-10
 #: Candidate (triangle, texel) pairs processed at once (bounds temporary memory).
@@ -166,7 +168,6 @@ def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | 
         if a == b:
             continue
         if cancel is not None and cancel.is_set():
-            from ..bake.parallel import Cancelled
             raise Cancelled()
         cnt = r_cnt[a:b]
         k = np.repeat(np.arange(a, b), cnt)

@@ -79,3 +79,23 @@ def bilinear(tex_pm: np.ndarray, width: int, height: int, uv: np.ndarray) -> np.
     bottom *= fy
     top += bottom
     return top
+
+
+def bilinear_repeat(img_top_first: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup with repeat wrapping, as material image textures are sampled.
+
+    img (H, W, C) in file order (row 0 at the top); uv (N, 2), v up; returns
+    (N, C). Unlike :func:`bilinear` (clamp to edge, rows bottom first), UVs
+    outside 0..1 wrap around."""
+    H, W = img_top_first.shape[:2]
+    img = img_top_first[::-1]                  # row 0 = bottom, like v
+    x = uv[:, 0] * W - 0.5
+    y = uv[:, 1] * H - 0.5
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    fx = (x - x0)[:, None]
+    fy = (y - y0)[:, None]
+    x0w, x1w = x0 % W, (x0 + 1) % W
+    y0w, y1w = y0 % H, (y0 + 1) % H
+    return ((img[y0w, x0w] * (1 - fx) + img[y0w, x1w] * fx) * (1 - fy)
+            + (img[y1w, x0w] * (1 - fx) + img[y1w, x1w] * fx) * fy)
