@@ -11,10 +11,10 @@ from .version import __version__  # noqa: F401  (the package's public version)
 
 def register():
     """Blender extension entry point (imports bpy only now)."""
-    from .blender import registration
+    from .blender import registration  # bpy-dependent: only inside Blender
     registration.register()
 
 
 def unregister():
-    from .blender import registration
+    from .blender import registration  # bpy-dependent: only inside Blender
     registration.unregister()

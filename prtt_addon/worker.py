@@ -32,6 +32,8 @@ import threading  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
 
+from .core.io import atomic  # noqa: E402  (no numpy: the environment above still applies)
+
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_CANCELLED = 0, 1, 2, 3
 
 
@@ -109,9 +111,12 @@ def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
     not fit in the available memory, from its headers alone (before loading)."""
     import numpy as np
 
-    from .core.bake.runner import bake_memory_bytes
-    from .core.bake.memory import GiB, check_fits
-    from .core.io.scene import MAX_RESOLUTION
+    # Deferred imports (start-up): the worker installs its signal handlers
+    # before numpy, Embree and the bake load, so a SIGTERM during start-up is a
+    # clean cancel (exit 3), not a kill.
+    from .core.bake.runner import bake_memory_bytes  # deferred (start-up)
+    from .core.bake.memory import GiB, check_fits  # deferred (start-up)
+    from .core.io.scene import MAX_RESOLUTION  # deferred (start-up)
     res = job.set_resolution() if resolution is None else np.full((len(job.set_resolution()), 2), resolution)
     # An out-of-range resolution fails validation with its own message; here it
     # must not fail first as an absurd memory need: such sets count as 1 texel.
@@ -131,11 +136,14 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
     The job's headers, settings and memory need are checked before any array
     is read (core.io.scene.JobFile); ``cancel`` is honoured while loading too.
     """
-    from .core.bake.runner import BakeError, BakeSettings, bake_scene
-    from .core.bake.memory import MemoryLimitError
-    from .core.io.scene import JobFile, SceneError, validate
-    from .core.bake.transfer import Cancelled
-    from .core.texels.unwrap import UnwrapError
+    # Deferred imports (start-up): the worker installs its signal handlers
+    # before numpy, Embree and the bake load, so a SIGTERM during start-up is a
+    # clean cancel (exit 3), not a kill.
+    from .core.bake.runner import BakeError, BakeSettings, bake_scene  # deferred (start-up)
+    from .core.bake.memory import MemoryLimitError  # deferred (start-up)
+    from .core.io.scene import JobFile, SceneError, validate  # deferred (start-up)
+    from .core.bake.transfer import Cancelled  # deferred (start-up)
+    from .core.texels.unwrap import UnwrapError  # deferred (start-up)
 
     try:
         with JobFile(job_path) as job:
@@ -237,7 +245,6 @@ class Watchdog:
         self.hard_exit()
 
     def hard_exit(self) -> None:
-        from .core.io import atomic
         # Never between a commit's renames and its manifest; the lock is held for
         # milliseconds (files were hashed and synced before it was taken).
         atomic.COMMIT_LOCK.acquire(timeout=30)
