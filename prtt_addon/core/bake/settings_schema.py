@@ -3,7 +3,7 @@
 Everything else is generated from :data:`SETTINGS` (tests/test_settings_schema.py
 checks that each of them still agrees with it):
 
-* ``core.bake.transfer.TransferSettings`` / ``core.bake.runner.BakeSettings``: field
+* ``core.bake.transfer.TransferSettings`` / ``core.bake.context.BakeSettings``: field
   defaults, ``validate()`` (types, ranges, choices) and the derived
   ``INT_LIMITS`` / ``BAKE_INT_LIMITS`` / ``ADAPTIVE_TOL_LIMITS``;
 * the options of ``python -m prtt_addon bake-job`` (``cli.add_bake_options``);
