@@ -25,7 +25,11 @@ import time
 
 import numpy as np
 
+from . import register
+from .bench.scenes import ROOM_MATERIALS, room_objects
 from .core.bake.settings_schema import BY_NAME as _SETTINGS
+from .core.io.image_write import srgb_encode, write_image
+from .core.sh.envmap import builtin_environment_path
 
 _BOUNCE_RAYS_DEFAULT = _SETTINGS["bounce_rays"].default
 
@@ -48,9 +52,7 @@ def floor_textures(n: int = 512, planks: int = 8, seed: int = 3):
 
 def build_scene(bpy) -> dict:
     """The demo scene in the current (empty) Blender file; returns its objects."""
-    from .bench.scenes import ROOM_MATERIALS, room_objects
-    from .bench import scene_build as sb
-    from .core.sh.envmap import builtin_environment_path
+    from .bench import scene_build as sb  # needs bpy: this module loads without it (the CLI's parser)
     base, rough = floor_textures()
     mats = {}
     for name, spec in ROOM_MATERIALS.items():
@@ -77,7 +79,6 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, expo
                  title: str = "") -> str:
     """Two (H, W, 4) linear renders, row 0 at the bottom, as one labelled PNG
     (a label over each half, ``title`` over both)."""
-    from .core.io.image_write import srgb_encode, write_image
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -103,9 +104,10 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         size=(960, 540), log=print) -> dict:
     import bpy
 
-    from . import register
-    from .blender.preview.render import exposure_of, render_scene
-    from .blender.ui.properties import UV_MAP
+    # The Blender side needs bpy: this module loads without it (the CLI's parser).
+    from .blender.bake.run import bake_blocking  # needs bpy (see above)
+    from .blender.preview.render import exposure_of, render_scene  # needs bpy (see above)
+    from .blender.ui.properties import UV_MAP  # needs bpy (see above)
     t_all = time.perf_counter()
     times = {}
     os.makedirs(out_dir, exist_ok=True)
@@ -146,7 +148,6 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         if e.get("type") == "progress" and e.get("fraction") == 1.0:
             log(f"      {e.get('stage')} {e.get('set', '')} done")
 
-    from .blender.bake.run import bake_blocking
     outcome = bake_blocking(bpy.context, force=True, on_event=progress)
     if outcome.status != "done":
         raise RuntimeError(outcome.message)
@@ -172,7 +173,6 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         for level, text in status.messages:
             if level != "INFO":
                 log(f"      {level.lower()}: {text}")
-    from .core.io.image_write import write_image
     exposure = exposure_of(bpy.context.scene)
     files = [write_image(os.path.join(out_dir, f"demo_{mode}.png"), px, exposure=exposure)
              for mode, px in shots.items()]

@@ -1,21 +1,29 @@
 """``blender -c prtt <command> ...`` and the shared headless entry points.
 
-``render`` (preview_render.render_file) draws the viewport preview of a baked
-.blend offscreen into a PNG/EXR.
+``render`` (preview/render.py render_file) draws the viewport preview of a
+baked .blend offscreen into a PNG/EXR.
 
 ``blender -c prtt bake scene.blend [--out DIR] [options]`` and
 ``python -m prtt_addon bake scene.blend [...]`` (Blender as a Python module)
 both call :func:`bake_file`, which opens the .blend and runs the same
-``bake_run.bake_blocking`` the operator uses in background mode.
+``bake.run.bake_blocking`` the operator uses in background mode.
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
+import signal
 import sys
+import threading
 
 import bpy
+
+from ..cli_options import ConsoleProgress, add_output_options, add_setting_options, choice_option, given_settings
+from ..core.bake import settings_schema as schema
+from .bake.run import bake_blocking
+from .blendfile import open_scene, save_blend
+from .export.unwrap import UnwrapError, needs_user_unwrap, unwrap_objects
+from .preview.render import render_file
 
 _CLI_HANDLE = None
 
@@ -29,8 +37,6 @@ def bake_parser(prog: str) -> argparse.ArgumentParser:
     The bake settings are generated from core/bake/settings_schema.py: those the
     scene holds (scene.prtt) are set on it and saved with the .blend; the
     others apply to this bake only."""
-    from ..cli import add_output_options, add_setting_options, choice_option
-    from ..core.bake import settings_schema as schema
     p = argparse.ArgumentParser(
         prog=prog, description="Bake PRTT transfer textures of a .blend file (paths are relative to where "
                                "you run the command).",
@@ -65,7 +71,6 @@ def unwrap_todo(scene, view_layer):
     sources in excluded collections, linked data, geometry-nodes output, curves)
     gets UVs generated at export. Returns (by edit-mode operators, by xatlas):
     objects the viewport hides cannot enter edit mode, so xatlas unwraps them."""
-    from .export.unwrap import needs_user_unwrap
     editable, hidden = [], []
     for o in view_layer.objects:
         if not (o.prtt.bake and needs_user_unwrap(o)):
@@ -78,8 +83,6 @@ def _cancel_on_sigterm() -> None:
     """SIGTERM to a headless bake cancels it like Ctrl+C does (bake_blocking
     turns KeyboardInterrupt into a cancel of its worker, which runs in its own
     session and so does not get the signal itself)."""
-    import signal
-    import threading
     if threading.current_thread() is not threading.main_thread():
         return
 
@@ -87,63 +90,6 @@ def _cancel_on_sigterm() -> None:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, interrupt)
-
-
-def save_blend(path: str | None, *, quiet: bool = False) -> str:
-    """Save the open .blend (over itself, or as ``path``); returns where. Raises OSError.
-    ``quiet``: without Blender's "Info: Saved" line."""
-    target = os.path.abspath(path) if path else bpy.data.filepath
-    try:
-        with blender_log_muted(quiet):
-            if path:
-                bpy.ops.wm.save_as_mainfile(filepath=target, copy=False)
-            else:
-                bpy.ops.wm.save_mainfile()
-    except RuntimeError as exc:
-        raise OSError(f"cannot save {target}: {str(exc).strip()}") from exc
-    return target
-
-
-@contextlib.contextmanager
-def blender_log_muted(mute: bool = True):
-    """Keep Blender's own stdout lines ("Read blend: ...", "Info: Saved ...",
-    written by C code) out of a ``--quiet`` command's output: file descriptor 1
-    goes to /dev/null meanwhile. Python's own prints are flushed first."""
-    if not mute:
-        yield
-        return
-    sys.stdout.flush()
-    try:
-        saved = os.dup(1)
-    except OSError:
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 1)
-        yield
-    finally:
-        try:
-            sys.stdout.flush()
-        except (OSError, ValueError):
-            pass
-        os.dup2(saved, 1)
-        os.close(saved)
-
-
-def open_scene(blend: str, scene_name: str | None, *, quiet: bool = False):
-    """Open a .blend and return its scene (the named one, else the active one),
-    or None after printing why not. ``quiet``: without Blender's "Read blend" line."""
-    try:
-        with blender_log_muted(quiet):
-            bpy.ops.wm.open_mainfile(filepath=blend, load_ui=False)
-    except RuntimeError as exc:
-        print(f"prtt: error: cannot open {blend}: {exc}", file=sys.stderr)
-        return None
-    scene = bpy.data.scenes.get(scene_name) if scene_name else bpy.context.scene
-    if scene is None:
-        print(f"prtt: error: no scene {scene_name!r} in {blend}", file=sys.stderr)
-    return scene
 
 
 def bake_file(argv, prog="prtt bake") -> int:
@@ -165,8 +111,6 @@ def _bake_file(args) -> int:
         return 1
     if bpy.context.window is not None:
         bpy.context.window.scene = scene
-    from ..cli import ConsoleProgress, given_settings
-    from ..core.bake import settings_schema as schema
     st = scene.prtt
     if args.out:
         st.output_dir = os.path.abspath(args.out)
@@ -179,7 +123,6 @@ def _bake_file(args) -> int:
     with bpy.context.temp_override(scene=scene):
         ctx = bpy.context
         if args.unwrap:
-            from .export.unwrap import UnwrapError, unwrap_objects
             editable, hidden = unwrap_todo(scene, ctx.view_layer)
             try:
                 for objects, method in ((editable, args.unwrap), (hidden, "XATLAS")):
@@ -193,8 +136,6 @@ def _bake_file(args) -> int:
             if hidden and not args.quiet:
                 print(f"prtt: note: {len(hidden)} object(s) hidden in the viewport unwrapped with xatlas: "
                       f"{', '.join(o.name for o in hidden[:8])}", flush=True)
-        from .bake.run import bake_blocking
-
         progress = ConsoleProgress(quiet=args.quiet, final=False)
         try:
             outcome = bake_blocking(ctx, overrides=overrides, force=args.force, on_event=progress)
@@ -233,7 +174,6 @@ def _cli(argv) -> int:
         if cmd == "bake":
             return bake_file(rest, prog="blender -c prtt bake")
         if cmd == "render":
-            from .preview.render import render_file
             return render_file(rest, prog="blender -c prtt render")
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)

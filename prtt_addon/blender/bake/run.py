@@ -1,10 +1,11 @@
 """One bake code path for the UI, background mode and both command lines.
 
 ``prepare`` exports the evaluated scene into a job file in the output folder,
-``finish`` turns the worker's result into images and metadata on the scene,
-and ``bake_blocking`` runs the worker to the end (background mode,
-``blender -c prtt bake``, ``python -m prtt_addon bake``). The modal operator
-uses prepare/finish with its own polling.
+:class:`BakeWatch` runs the worker and handles its events (one loop for the
+modal operator, a step per timer tick, and for ``bake_blocking``), ``finish``
+turns the worker's result into images and metadata on the scene.
+``bake_blocking`` runs a bake to the end (background mode, ``blender -c prtt
+bake``, ``python -m prtt_addon bake``).
 """
 from __future__ import annotations
 
@@ -18,9 +19,11 @@ import bpy
 import numpy as np
 
 from ...core.bake.runner import BakeError, BakeSettings, check_out_dir
-from ...core.io.scene import save_scene
 from ...core.bake.settings_schema import core_from_ui
-from ..export.scene import GENERATED_UVS, ExportError, export_scene
+from ...core.io.atomic import atomic_write, temp_prefix
+from ...core.io.exr_io import read_sh_exr
+from ...core.io.scene import save_scene
+from ..export.scene import GENERATED_UVS, ExportError, export_scene, output_folder
 from ..preview.scene import materials_signature
 from ..ui.properties import redraw_viewports
 from .worker_job import WorkerJob
@@ -36,7 +39,6 @@ def job_path(out_dir: str) -> str:
     one of them run). It is a temporary of this (Blender's) process: a later
     bake removes it only once this process is gone (atomic.remove_stale_temporaries).
     """
-    from ...core.io.atomic import temp_prefix
     return os.path.join(out_dir, f"{temp_prefix('job')}{uuid.uuid4().hex[:12]}.npz")
 
 
@@ -55,18 +57,6 @@ class Outcome:
     message: str
     manifest: dict | None = None
     warnings: list = dataclasses.field(default_factory=list)   # the export's (the worker reports its own)
-
-
-def output_folder(scene) -> str:
-    """The absolute output folder; a relative one needs a saved .blend."""
-    raw = scene.prtt.output_dir or "//prtt/"
-    if raw.startswith("//") and not bpy.data.filepath:
-        raise ExportError("the .blend file is not saved, so '//' has no folder: save the file, "
-                          "or set an absolute Output Folder in PRTT > Bake")
-    path = os.path.abspath(bpy.path.abspath(raw))
-    if os.path.exists(path) and not os.path.isdir(path):
-        raise ExportError(f"the output folder {path} is a file")
-    return path
 
 
 def bake_settings(scene) -> dict:
@@ -150,7 +140,6 @@ def write_generated_uvs(out_dir: str, generated: dict) -> None:
     """The UVs the export generated (export.GENERATED_UVS), written atomically
     after a successful bake so that they always match the textures beside them.
     Removed when the bake generated none."""
-    from ...core.io.atomic import atomic_write
     path = os.path.join(out_dir, GENERATED_UVS)
     if not generated:
         if os.path.exists(path):
@@ -175,7 +164,6 @@ def keep_image(img) -> None:
 def load_preview_images(out_dir: str, manifest: dict) -> list:
     """Per set an image "PRTT AO <set>": the transfer's DC term normalised so
     open sky is 1 (what Blender can show of a 25-channel EXR)."""
-    from ...core.io.exr_io import read_sh_exr
     made = []
     for name in manifest.get("transfer_files", manifest["files"]):
         if not name.endswith(".transfer.exr"):
@@ -199,34 +187,97 @@ def load_preview_images(out_dir: str, manifest: dict) -> list:
     return made
 
 
+#: Seconds a worker that has exited may stay silent before its output counts
+#: as complete (the end of its output normally says so first).
+EXIT_GRACE = 0.5
+
+
+class BakeWatch:
+    """A running bake: the worker, and the one loop over its events.
+
+    The modal operator calls :meth:`poll` on every timer tick; headless bakes
+    call :meth:`run` (``poll`` with a timeout until the end). Per event: a
+    progress event sets the scene's progress bar and status line
+    (``scene.prtt.progress``, ``.status``, display only); every event then
+    goes to ``on_event`` (the operator reports warnings and infos, the
+    command lines print progress). When the worker's output ends (or it
+    has exited and stayed silent for :data:`EXIT_GRACE` s) its exit status and
+    last event become the Outcome (done, skipped, cancelled, failed), which
+    :func:`finish` records on the scene. :meth:`cancel` (Esc, the Cancel
+    button, Ctrl+C, SIGTERM) asks the worker to stop.
+    """
+
+    def __init__(self, prepared: Prepared, job: WorkerJob, on_event=None):
+        self.prepared = prepared
+        self.job = job
+        self.on_event = on_event
+        self._silent_since: float | None = None
+
+    @classmethod
+    def start(cls, context, prepared: Prepared, *, force: bool = False, on_event=None) -> "BakeWatch":
+        """Start the worker on a prepared job."""
+        job = WorkerJob(prepared.job, prepared.out_dir, force=force).start()
+        st = context.scene.prtt
+        st.baking, st.progress, st.status = True, 0.0, "starting"
+        return cls(prepared, job, on_event)
+
+    @property
+    def cancelled(self) -> bool:
+        return self.job.cancelled
+
+    def poll(self, context, timeout: float | None = None) -> Outcome | None:
+        """Handle the events so far (waiting up to ``timeout`` s for the first
+        one). Returns the Outcome, recorded on the scene, once the bake has
+        ended; None while it runs."""
+        st = context.scene.prtt
+        asked = time.monotonic()
+        events = self.job.events(timeout=timeout)
+        ended = None in events
+        for e in events:
+            if e is None:
+                continue
+            if e.get("type") == "progress":
+                st.progress = float(e.get("fraction", 0.0))
+                st.status = f"{e.get('stage')} {e.get('set', '')}".strip()
+            if self.on_event is not None:
+                self.on_event(e)
+        if events or self.job.returncode is None:
+            self._silent_since = None
+        elif not ended:
+            if self._silent_since is None:
+                self._silent_since = asked
+            ended = time.monotonic() - self._silent_since >= EXIT_GRACE
+        return self._finish(context, self.job.wait()) if ended else None
+
+    def cancel(self, context) -> None:
+        """Ask the worker to stop (it leaves the previous textures as they were)."""
+        self.job.cancel()
+        context.scene.prtt.status = "cancelling"
+
+    def run(self, context) -> Outcome:
+        """Handle events until the bake ends; Ctrl+C (KeyboardInterrupt) cancels it."""
+        try:
+            while True:
+                outcome = self.poll(context, timeout=0.5)
+                if outcome is not None:
+                    return outcome
+        except KeyboardInterrupt:
+            self.cancel(context)
+            return self._finish(context, self.job.wait())
+
+    def _finish(self, context, code: int) -> Outcome:
+        outcome = interpret(self.job, code)
+        outcome.warnings = list(self.prepared.export.warnings)
+        finish(context, self.prepared, outcome)
+        return outcome
+
+
 def bake_blocking(context, *, overrides=None, force=False, on_event=None) -> Outcome:
     """Export, run the worker to the end, finish. Never raises for bad input:
     the Outcome says what happened."""
-    st = context.scene.prtt
     try:
         prepared = prepare(context, overrides)
     except (ExportError, ValueError, OSError) as exc:
-        st.status = str(exc)
+        context.scene.prtt.status = str(exc)
         return Outcome("failed", f"PRTT: {exc}")
-    job = WorkerJob(prepared.job, prepared.out_dir, force=force).start()
-    st.baking = True
-    try:
-        while True:
-            evs = job.events(timeout=0.5)
-            for e in evs:
-                if e is None:
-                    break
-                if on_event is not None:
-                    on_event(e)
-            if None in evs:
-                break
-            if job.returncode is not None and not evs:
-                break
-        code = job.wait()
-    except KeyboardInterrupt:
-        job.cancel()
-        code = job.wait()
-    outcome = interpret(job, code)
-    outcome.warnings = list(prepared.export.warnings)
-    finish(context, prepared, outcome)
-    return outcome
+    return BakeWatch.start(context, prepared, force=force, on_event=on_event).run(context)

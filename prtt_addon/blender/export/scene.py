@@ -27,21 +27,29 @@ What goes in (scene_objects.py decides what the scene shows):
   from Blender's MikkTSpace ``calc_tangents``);
 * the light: the World (world.py) or a studio HDRI, as RGB SH.
 
-Nothing in the .blend is modified: evaluated meshes are temporary.
+The parts become one core Scene through core.io.assembly (``assemble_parts``,
+as meshgen's meshes do). Nothing in the .blend is modified: evaluated meshes
+are temporary.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 
+import bpy
 import numpy as np
 
+from ...core.io.assembly import MeshPart, assemble_parts, default_tangents
 from ...core.io.scene import MAX_RESOLUTION, NormalMap, Scene, SceneError
+from ...core.texels.raster import rasterize
+from ...core.texels.unwrap import UnwrapError, unwrap
 from .materials import image_array, parse_material
 from ..ui.properties import UV_MAP
 from .scene_objects import reported_without_faces, scene_geometry
 from .unwrap import margin_texels, needs_user_unwrap
+from .world import world_light
 
 #: Texels left empty on each side of an instance tile, so that bilinear lookups
 #: and dilation of one instance never reach its neighbour's texels.
@@ -54,6 +62,18 @@ GENERATED_UVS = "generated_uvs.npz"
 
 class ExportError(ValueError):
     """The scene cannot be baked as it is; the message says what to change."""
+
+
+def output_folder(scene) -> str:
+    """The absolute output folder; a relative one needs a saved .blend."""
+    raw = scene.prtt.output_dir or "//prtt/"
+    if raw.startswith("//") and not bpy.data.filepath:
+        raise ExportError("the .blend file is not saved, so '//' has no folder: save the file, "
+                          "or set an absolute Output Folder in PRTT > Bake")
+    path = os.path.abspath(bpy.path.abspath(raw))
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ExportError(f"the output folder {path} is a file")
+    return path
 
 
 @dataclasses.dataclass
@@ -70,7 +90,8 @@ class ExportResult:
 
 @dataclasses.dataclass
 class Part:
-    """One object or instance's triangles in world space, and where they go."""
+    """One object or instance's triangles in world space, and where they go:
+    the Blender side of a core.io.assembly.MeshPart (:func:`_mesh_parts`)."""
 
     key: str
     kind: str                    # "object" | "instance"
@@ -81,8 +102,10 @@ class Part:
     positions: np.ndarray        # (T, 3, 3) float64 world
     normals: np.ndarray          # (T, 3, 3) float32 world
     material: np.ndarray         # (T,) int32 index into the export's materials
-    render_uv: str | None
-    mesh_uvs: dict               # UV map name -> ((T, 3, 2) uv, (T, 3, 4) tangents | None)
+    mat_uvs: np.ndarray | None   # (T, 3, 2) float64 UVs of each triangle's material textures (None: none)
+    normal_mapped: np.ndarray    # (T,) bool: its material's normal map has UVs and tangents here
+    nm_uvs: np.ndarray | None    # (T, 3, 2) float64 UVs of the normal map where normal_mapped, else 0
+    tangents: np.ndarray | None  # (T, 3, 4) float32 world tangent + sign where normal_mapped, else (1, 0, 0, 1)
     local: tuple                 # (object-space corner positions (L, 3), triangle corner ids (T, 3)) for xatlas
     data_name: str               # the evaluated mesh's data name (instances of one mesh share it)
     baked: bool = False
@@ -269,6 +292,7 @@ def _mesh_part(found, mesh, mats, mat_index, warnings) -> Part | None:
                 warnings.append(f"object {who!r}: tangents for {name!r} failed ({exc}); "
                                 f"its normal map is ignored")
         mesh_uvs[name] = (tuv, tangents)
+    mat_uvs, normal_mapped, nm_uvs, tangents = _sampling_uvs(ids, mats, render_uv, mesh_uvs)
     data = getattr(ob, "data", None)
     # xatlas gets a vertex per corner (loop): it welds equal positions itself but
     # keeps the mesh's UV seams, and charts indexed vertices far worse (330
@@ -279,10 +303,38 @@ def _mesh_part(found, mesh, mats, mat_index, warnings) -> Part | None:
               and len(mesh.polygons) != len(owner.data.polygons))
     return Part(key=found.key, kind=found.kind, owner=owner, source=found.source,
                 source_name=found.source_name, matrix=M, positions=world[verts],
-                normals=nw[loops].astype(np.float32), material=ids, render_uv=render_uv,
-                mesh_uvs=mesh_uvs, local=(co[loop_vert], loops), uv=uv,
+                normals=nw[loops].astype(np.float32), material=ids, mat_uvs=mat_uvs,
+                normal_mapped=normal_mapped, nm_uvs=nm_uvs, tangents=tangents,
+                local=(co[loop_vert], loops), uv=uv,
                 data_name=data.name_full if data is not None else found.source_name,
                 copies_faces=copies)
+
+
+def _sampling_uvs(ids, mats, render_uv, mesh_uvs):
+    """Per triangle, the UVs its material's textures and normal map are
+    sampled with: (mat_uvs or None, normal_mapped, nm_uvs or None, tangents
+    or None). ``mesh_uvs``: {UV map name: ((T, 3, 2) UVs, (T, 3, 4) tangents
+    or None)} of the maps the materials use."""
+    T = ids.shape[0]
+    mat_uvs = nm_uvs = tangents = None
+    normal_mapped = np.zeros(T, bool)
+    for k in np.unique(ids):
+        sel = ids == k
+        ex = mats[k]
+        got = mesh_uvs.get(ex.texture_uv or render_uv)
+        if got is not None:
+            if mat_uvs is None:
+                mat_uvs = np.zeros((T, 3, 2))
+            mat_uvs[sel] = got[0][sel]
+        got = mesh_uvs.get(ex.normal_uv or render_uv) if ex.normal_image is not None else None
+        if got is not None and got[1] is not None:
+            if nm_uvs is None:
+                nm_uvs = np.zeros((T, 3, 2))
+                tangents = default_tangents(T)
+            normal_mapped[sel] = True
+            nm_uvs[sel] = got[0][sel]
+            tangents[sel] = got[1][sel]
+    return mat_uvs, normal_mapped, nm_uvs, tangents
 
 
 def apply_tile(uv: np.ndarray, tile) -> np.ndarray:
@@ -303,7 +355,6 @@ def apply_tile(uv: np.ndarray, tile) -> np.ndarray:
 def _generate_uvs(part: Part, resolution: int, padding: int) -> np.ndarray:
     """xatlas UVs (T, 3, 2) for a part's object-space mesh, in memory, with
     ``padding`` texels between charts (unwrap.margin_texels, as Unwrap uses)."""
-    from ...core.texels.unwrap import UnwrapError, unwrap
     co, tris = part.local
     try:
         return unwrap([(co, tris)], max(8, int(resolution)), padding=padding)[0]
@@ -313,7 +364,6 @@ def _generate_uvs(part: Part, resolution: int, padding: int) -> np.ndarray:
 
 def _overlaps(uv: np.ndarray, resolution: int) -> bool:
     """Do the (T, 3, 2) UVs overlap at this resolution (a texel centre in two triangles)?"""
-    from ...core.texels.raster import rasterize
     return rasterize(np.clip(uv, 0.0, 1.0), resolution, resolution).overlap_texels > 0
 
 
@@ -400,7 +450,8 @@ def _assemble(context, parts, mats, warnings, st, with_light) -> ExportResult:
         if s >= 0:
             set_objects[set_names[s]].append(p.name)
     # Textures and normal maps, each image once.
-    textures, tex_index, nmaps, nm_of_mat = [], {}, [], {}
+    textures, tex_index, nmaps = [], {}, []
+    nm_of_mat = np.full(len(mats), -1, np.int32)          # material -> normal map, -1 none
 
     def tex(img, linear):
         key = (img.name_full, linear)
@@ -420,53 +471,32 @@ def _assemble(context, parts, mats, warnings, st, with_light) -> ExportResult:
             nm_of_mat[k] = len(nmaps)
             nmaps.append(NormalMap(image_array(ex.normal_image, linearise=False)[..., :3], ex.normal_strength))
         spec.append(d)
-    T = sum(p.triangles for p in parts)
-    uvs = np.concatenate([apply_tile(p.uv, p.tile) if p.baked else np.zeros((p.triangles, 3, 2))
-                          for p in parts])
-    set_id = np.concatenate([np.full(p.triangles, s, np.int32) for p, s in zip(parts, set_of_part)])
-    object_names = [p.name for p in parts]
-    object_id = np.concatenate([np.full(p.triangles, i, np.int32) for i, p in enumerate(parts)])
-    material_id = np.concatenate([p.material for p in parts])
-    mat_uvs = np.zeros((T, 3, 2))
-    nm_index = np.full(T, -1, np.int32)
-    nm_uvs = np.zeros((T, 3, 2))
-    tangents = np.zeros((T, 3, 4), np.float32)
-    tangents[..., 0] = 1.0
-    tangents[..., 3] = 1.0
-    off = 0
-    for p in parts:
-        for k in np.unique(p.material):
-            sel = np.flatnonzero(p.material == k) + off
-            ex = mats[k]
-            tex_uv = ex.texture_uv or p.render_uv
-            if tex_uv in p.mesh_uvs:
-                mat_uvs[sel] = p.mesh_uvs[tex_uv][0][sel - off]
-            if k in nm_of_mat:
-                got = p.mesh_uvs.get(ex.normal_uv or p.render_uv)
-                if got is not None and got[1] is not None:
-                    nm_index[sel] = nm_of_mat[k]
-                    nm_uvs[sel] = got[0][sel - off]
-                    tangents[sel] = got[1][sel - off]
-        off += p.triangles
-    occluders = int((set_id < 0).sum())
     try:
-        sc = Scene(positions=np.concatenate([p.positions for p in parts]),
-                   normals=np.concatenate([p.normals for p in parts]), uvs=uvs,
-                   set_id=set_id, set_names=set_names, set_resolution=np.array(set_res),
-                   object_id=object_id, object_names=object_names,
-                   nm_index=nm_index if nmaps else None, nm_uvs=nm_uvs if nmaps else None,
-                   tangents=tangents if nmaps else None, normal_maps=nmaps,
-                   material_id=material_id, materials=spec, mat_uvs=mat_uvs, textures=textures)
+        sc = assemble_parts(_mesh_parts(parts, set_of_part, nm_of_mat), set_names, set_res,
+                            materials=spec, textures=textures, normal_maps=nmaps)
     except SceneError as exc:
         raise ExportError(_explain(exc, parts, set_of_part)) from exc
+    occluders = int((sc.set_id < 0).sum())
     res = ExportResult(sc, set_objects, warnings, occluders, generated_uvs=generated)
     res.objects = _records(parts, set_of_part, set_names)
     if with_light:
-        from .world import world_light
         res.light, res.light_description = world_light(context.scene, max(st.bands, 1),
                                                        source=st.light_source,
                                                        builtin=st.builtin_environment or "forest")
     return res
+
+
+def _mesh_parts(parts, set_of_part, nm_of_mat) -> list[MeshPart]:
+    """The core's view of the parts: world-space triangles laid out in their
+    sets (instance tiles applied), materials, normal maps by index
+    (``nm_of_mat``: material -> normal map, -1 none)."""
+    out = []
+    for p, s in zip(parts, set_of_part):
+        nm_index = np.where(p.normal_mapped, nm_of_mat[p.material], -1).astype(np.int32)
+        out.append(MeshPart(p.name, p.positions, p.normals, apply_tile(p.uv, p.tile) if p.baked else None, s,
+                            material=p.material, mat_uvs=p.mat_uvs, nm_index=nm_index, nm_uvs=p.nm_uvs,
+                            tangents=p.tangents))
+    return out
 
 
 def _records(parts, set_of_part, set_names) -> dict:

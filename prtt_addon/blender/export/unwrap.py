@@ -2,9 +2,10 @@
 
 Methods: copy an existing map, Blender's Smart UV Project or Lightmap Pack
 (on the PRTT map, made active only while the operator runs), or xatlas
-in-process. Afterwards the user's active and render UV maps, the mesh's
-selection flags, the active object, the selection and the mode are put back;
-the PRTT map is checked for overlapping islands at the object's resolution.
+in-process (core.texels.unwrap.unwrap_loops lays the loops out). Afterwards
+the user's active and render UV maps, the mesh's selection flags, the active
+object, the selection and the mode are put back; the PRTT map is checked for
+overlapping islands at the object's resolution.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import bpy
 import numpy as np
 
 from ...core.texels.raster import rasterize
+from ...core.texels.unwrap import LoopMesh, unwrap_loops
 from ..ui.properties import UV_MAP
 
 
@@ -125,102 +127,35 @@ def _run_edit_mode_op(context, objects, op):
     bpy.ops.object.mode_set(mode="OBJECT")
 
 
-def _xatlas(objects, resolution, padding, atlas):
-    from ...core.texels.unwrap import pack_uv_charts, unwrap
-    groups = [objects] if atlas else [[o] for o in objects]
-    for group in groups:
-        meshes = []
-        for ob in group:
-            me = ob.data
-            me.calc_loop_triangles()
-            T = len(me.loop_triangles)
-            loops = np.empty(T * 3, np.int32)
-            me.loop_triangles.foreach_get("loops", loops)
-            verts = np.empty(len(me.loops), np.int32)
-            me.loops.foreach_get("vertex_index", verts)
-            co = np.empty(len(me.vertices) * 3, np.float32)
-            me.vertices.foreach_get("co", co)
-            M = np.array(ob.matrix_world, dtype=np.float64)
-            world = co.reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
-            # A vertex per loop: xatlas charts them like welded vertices (it
-            # finds coincident positions) but never across a UV seam of ours.
-            meshes.append((world[verts], loops.reshape(-1, 3)))
-        uvs = unwrap(meshes, resolution, padding=padding)
-        layouts = [_loop_uvs(ob.data, v, f, uv) for ob, (v, f), uv in zip(group, meshes, uvs)]
-        if any(alone.any() for _, alone, _ in layouts):
-            # Polygons split across charts became charts of their own: pack
-            # every chart of the group again, together (one atlas).
-            keys, faces, base = [], [], 0
-            for i, ((per_loop, alone, verts), (_, f)) in enumerate(zip(layouts, meshes)):
-                key = np.concatenate([np.full((len(verts), 1), i, np.float64), verts[:, None].astype(np.float64),
-                                      np.round(per_loop, 7)], axis=1)
-                key[alone, 1] = -1 - np.flatnonzero(alone)
-                keys.append(key)
-                faces.append(f + base)
-                base += len(verts)
-            _, first, ids = np.unique(np.concatenate(keys), axis=0, return_index=True, return_inverse=True)
-            flat = np.concatenate([pl for pl, _, _ in layouts])
-            packed = pack_uv_charts(flat[first], ids.reshape(-1)[np.concatenate(faces)], resolution,
-                                    padding=padding).reshape(-1, 2)
-            corner = np.concatenate(faces).reshape(-1)
-            flat[corner] = packed
-            base = 0
-            for k, (per_loop, _, verts) in enumerate(layouts):
-                layouts[k] = (flat[base:base + len(verts)], None, verts)
-                base += len(verts)
-        for ob, (per_loop, _, _) in zip(group, layouts):
-            prtt_layer(ob.data).uv.foreach_set("vector", np.clip(per_loop, 0.0, 1.0).astype(np.float32).ravel())
-            ob.data.update()
-
-
-def _loop_uvs(me, loop_pos, tris, tri_uv):
-    """Per-loop UVs from xatlas's per-triangle-corner UVs: (per-loop UVs (L, 2)
-    float64, loops of polygons that must become charts of their own (L,) bool,
-    loop vertex ids (L,)).
-
-    Blender stores one UV per loop, shared by all triangles of a polygon; xatlas
-    works on triangles and may put two triangles of a non-planar quad in
-    different charts. Such a polygon is mapped as a whole through the affine
-    3D -> UV map of its largest triangle and marked to be a chart of its own
-    (where it is, it would overlap its neighbours); the caller packs again.
-    """
-    n_loops = len(me.loops)
-    verts = np.empty(n_loops, np.int32)
+def _loop_mesh(ob) -> LoopMesh:
+    """An object's mesh as core.texels.unwrap wants it, in world space."""
+    me = ob.data
+    me.calc_loop_triangles()
+    T = len(me.loop_triangles)
+    loops = np.empty(T * 3, np.int32)
+    me.loop_triangles.foreach_get("loops", loops)
+    verts = np.empty(len(me.loops), np.int32)
     me.loops.foreach_get("vertex_index", verts)
-    per_loop = np.zeros((n_loops, 2), np.float64)
-    per_loop[tris.reshape(-1)] = tri_uv.reshape(-1, 2)
-    alone = np.zeros(n_loops, bool)
-    conflict = np.abs(per_loop[tris] - tri_uv).max(axis=(1, 2)) > 1e-7      # per triangle
-    if not conflict.any():
-        return per_loop, alone, verts
-    poly = np.empty(len(me.loop_triangles), np.int32)
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    poly = np.empty(T, np.int32)
     me.loop_triangles.foreach_get("polygon_index", poly)
     start = np.empty(len(me.polygons), np.int32)
     me.polygons.foreach_get("loop_start", start)
     total = np.empty(len(me.polygons), np.int32)
     me.polygons.foreach_get("loop_total", total)
-    for p in np.unique(poly[conflict]):
-        ts = np.flatnonzero(poly == p)
-        loops = np.arange(start[p], start[p] + total[p])
-        Q = loop_pos[loops]
-        # Project along the polygon's Newell normal (the plane that folds it
-        # least: a largest-triangle plane can turn a warped quad into a bow
-        # tie whose triangles overlap), at the texel density xatlas gave its
-        # triangles (UV area over 3D area).
-        nrm = np.cross(Q, np.roll(Q, -1, axis=0)).sum(axis=0)
-        nrm /= max(np.linalg.norm(nrm), 1e-300)
-        e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(nrm, e1)
-        P = loop_pos[tris[ts]]
-        area3 = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
-        U = tri_uv[ts]
-        area2 = 0.5 * np.abs(np.cross(U[:, 1] - U[:, 0], U[:, 2] - U[:, 0])).sum()
-        scale = np.sqrt(area2 / area3) if area3 > 0 and area2 > 0 else 1.0
-        d = Q - Q.mean(axis=0)
-        per_loop[loops] = scale * np.stack([d @ e1, d @ e2], axis=1)
-        alone[loops] = True
-    return per_loop, alone, verts
+    M = np.array(ob.matrix_world, dtype=np.float64)
+    world = co.reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
+    return LoopMesh(world[verts], loops.reshape(-1, 3), verts, poly, start, total)
+
+
+def _xatlas(objects, resolution, padding, atlas):
+    groups = [objects] if atlas else [[o] for o in objects]
+    for group in groups:
+        layouts = unwrap_loops([_loop_mesh(ob) for ob in group], resolution, padding=padding)
+        for ob, per_loop in zip(group, layouts):
+            prtt_layer(ob.data).uv.foreach_set("vector", np.clip(per_loop, 0.0, 1.0).astype(np.float32).ravel())
+            ob.data.update()
 
 
 #: Smart UV Project angle limits, tried in turn until the layout has no

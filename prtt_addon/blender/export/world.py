@@ -12,22 +12,23 @@ node, or to the panel's studio HDRI):
   (byte sRGB images are linearised).
 * Background strength multiplies the light.
 * The Mapping node's rotation (Euler XYZ, types Point and Texture) turns the
-  light by an SH rotation: with Point mapping the lookup direction is
-  R w, so L(w) = img(R w) and the image's coefficients are rotated by R^T
-  (Texture mapping applies the inverse, so by R). Location and scale do not
-  change a direction lookup's result for rotation-only use and are ignored
-  (scale must be uniform).
+  light by an SH rotation (core.sh.envmap.compose_light states the
+  conventions: lookups turn by R, so the image's SH rotates by R^T).
+  Location and scale do not change a direction lookup's result for
+  rotation-only use and are ignored (scale must be uniform).
+
+The numbers (projection, strength, rotation, a constant colour's SH) are
+core.sh.envmap's, shared with ``python -m prtt_addon bake-job --env``.
 """
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 
 import numpy as np
 
+from ...core.io.image_io import read_hdr_image
 from ...core.sh import envmap
-from ...core import sh
 from .materials import image_array
 
 
@@ -46,22 +47,12 @@ def _image_pixels(image) -> np.ndarray:
         import bpy
         path = bpy.path.abspath(image.filepath, library=image.library)
     if path and os.path.isfile(path) and path.lower().endswith((".exr", ".hdr")):
-        from ...core.io.image_io import read_hdr_image
         return read_hdr_image(path)
     px = image_array(image, linearise=True)          # reloads an image without data
     if px.size == 0:
         raise WorldLightError(f"World image {image.name!r} has no pixels (missing file {image.filepath!r}?)")
     rgb = px[..., :3] if image.channels >= 3 else np.repeat(px[..., :1], 3, axis=-1)
     return np.ascontiguousarray(rgb, dtype=np.float32)
-
-
-def euler_xyz_matrix(rx, ry, rz) -> np.ndarray:
-    """Blender's Euler XYZ: R = Rz @ Ry @ Rx."""
-    cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
-    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
 
 
 def mapping_rotation(node) -> np.ndarray:
@@ -72,9 +63,7 @@ def mapping_rotation(node) -> np.ndarray:
     for name in ("Rotation", "Scale"):
         if node.inputs[name].is_linked:
             raise WorldLightError(f"Mapping node {node.name!r}: a linked {name} is not supported")
-    rot = node.inputs["Rotation"].default_value
-    R = euler_xyz_matrix(*rot)
-    return R if node.vector_type == "POINT" else R.T
+    return envmap.mapping_rotation(node.inputs["Rotation"].default_value, node.vector_type)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,26 +134,11 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
 def project_setup(setup: WorldSetup, bands: int) -> np.ndarray:
     """(K, 3) SH of the unrotated environment at strength 1 (the expensive part)."""
     if isinstance(setup.source, np.ndarray):
-        return _constant(setup.source, bands)
+        return envmap.constant_light(setup.source, bands)
     return envmap.project_equirect(setup.source(), bands)
-
-
-def compose_light(setup: WorldSetup, projection: np.ndarray) -> np.ndarray:
-    """The world-frame light: projection x strength, turned by the Mapping rotation."""
-    L = projection * setup.strength
-    if setup.rotation is not None:
-        # L(w) = img(R w)  ->  the image's coefficients rotated by R^T.
-        L = sh.rotate(L, setup.rotation.T)
-    return L
 
 
 def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "forest") -> tuple[np.ndarray, str]:
     """(K, 3) SH light and a one-line description, from the scene's World or a studio HDRI."""
     setup = world_setup(scene, source=source, builtin=builtin)
-    return compose_light(setup, project_setup(setup, bands)), setup.description
-
-
-def _constant(c, bands) -> np.ndarray:
-    L = np.zeros((bands * bands, 3))
-    L[0] = np.asarray(c) * math.sqrt(4.0 * math.pi)
-    return L
+    return envmap.compose_light(project_setup(setup, bands), setup.strength, setup.rotation), setup.description

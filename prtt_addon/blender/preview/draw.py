@@ -1,9 +1,9 @@
 """The viewport preview: a POST_VIEW draw handler on every 3D viewport.
 
 Registered with the add-on, except in background mode (there are no
-viewports; offscreen renders use preview_render.py). Draw handlers belong to
+viewports; offscreen renders use render.py). Draw handlers belong to
 the space type, not to a file, so they survive file loads and undo; the
-caches of preview_scene are cleared on both (object pointers change) and the
+caches of scene.py are cleared on both (object pointers change) and the
 GPU resources no longer used are freed a few frames later.
 
 The handler draws nothing unless Scene > PRTT > Preview is on. Errors are
@@ -17,6 +17,8 @@ import bpy
 from bpy.app.handlers import persistent
 
 from ..ui.properties import PREVIEW_MODES
+from . import renderer as gpu_preview, scene as preview_scene
+from .render import exposure_of, region_view
 
 #: NDC depth bias towards the eye: our copy of a surface must win against
 #: Blender's own depth of the same surface (24-bit depth: ~80 steps).
@@ -35,8 +37,6 @@ def draw_view(context, region_data, visible=None):
     perspective and view matrices) into the bound framebuffer. Returns the
     FrameStats, or None when there is nothing to draw."""
     global _RENDERER
-    from . import renderer as gpu_preview, scene as preview_scene
-    from .render import exposure_of, region_view
     scene = context.scene
     st = scene.prtt
     ps, status = preview_scene.collect(context, visible=visible, use_bounces=st.preview_bounces)
@@ -79,13 +79,11 @@ atexit.register(free_gpu)
 
 @persistent
 def _on_depsgraph(scene, depsgraph):
-    from . import scene as preview_scene
     preview_scene.note_depsgraph_updates(depsgraph)
 
 
 @persistent
 def _on_reset(*_args):
-    from . import scene as preview_scene
     preview_scene.clear_caches()
 
 

@@ -27,8 +27,14 @@ import time
 import bpy
 import numpy as np
 
+from ...cli_options import choice_option
 from ...core.bake.memory import GiB, available_bytes
+from ...core.io.atomic import TMP_PREFIX
+from ...core.io.image_write import WRITE_BYTES_PER_PIXEL, ImageWriteError, write_image
 from ...core.preview.shader_source import MODES
+from ..blendfile import open_scene
+from . import renderer as gpu_preview, scene as preview_scene
+from .shaders import ShaderError
 
 #: Peak bytes per pixel while a frame renders, measured on llvmpipe at 2048^2
 #: and 4096^2 (VmHWM, 56.1): the RGBA32F colour target (16), its depth buffer
@@ -116,7 +122,6 @@ def frame_bytes(width: int, height: int, ext: str | None = None) -> int:
     ``ext`` (.png/.exr; None: kept as a Blender image). On llvmpipe the GPU
     buffers are host memory too; on a GPU this overestimates, erring on the
     safe side."""
-    from ...core.io.image_write import WRITE_BYTES_PER_PIXEL
     return width * height * (RENDER_BYTES_PER_PIXEL + WRITE_BYTES_PER_PIXEL.get(ext, KEEP_BYTES_PER_PIXEL))
 
 
@@ -197,7 +202,6 @@ def render_scene(context, *, mode: str = "tpfl", camera: str | None = None, size
     unreadable texture); the frame is checked against the GPU's and the
     memory's limits first (``out_ext``: the file it will be written to, for the
     estimate). The exposure is not applied to the pixels (write_image applies it)."""
-    from . import renderer as gpu_preview, scene as preview_scene
     if mode not in MODES:
         raise RenderError(f"unknown mode {mode!r}; use one of {', '.join(MODES)}")
     scene = context.scene
@@ -235,7 +239,6 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def render_parser(prog: str) -> argparse.ArgumentParser:
-    from ...cli import choice_option
     p = argparse.ArgumentParser(
         prog=prog, description="Render the PRTT preview of a baked .blend offscreen "
         "(the viewport's shaders; Mesa llvmpipe where there is no GPU).",
@@ -263,7 +266,6 @@ def check_out(out: str) -> None:
     The folder is probed by creating (and removing) a temporary file there,
     the very thing the atomic write will do: permission bits alone mislead
     (root, ACLs, read-only mounts)."""
-    from ...core.io.atomic import TMP_PREFIX
     ext = os.path.splitext(out)[1].lower()
     if ext not in IMAGE_EXTENSIONS:
         raise RenderError(f"--out must end in .png or .exr, got {out!r}")
@@ -292,9 +294,6 @@ def _fail(message) -> int:
 def render_file(argv, prog="prtt render") -> int:
     """Open a .blend and render its preview. Exit status 0 ok, 1 failed (no
     file written), 2 bad options (argparse exits)."""
-    from ...core.io.image_write import ImageWriteError, write_image
-    from ..cli import open_scene
-    from .shaders import ShaderError
     args = render_parser(prog).parse_args(argv)
     try:
         check_out(args.out)

@@ -28,12 +28,14 @@ import bpy
 import numpy as np
 
 from ...core.preview import pack as pp
+from ...core.preview.shader_source import MAX_PREVIEW_BANDS
+from ...core.sh.envmap import compose_light
 from ...core.shading.model import light_hash
 from ..export.materials import image_array, parse_material
-from ..export.scene import GENERATED_UVS, apply_tile
+from ..export.scene import GENERATED_UVS, apply_tile, output_folder
 from ..ui.properties import UV_MAP
 from ..export.scene_objects import scene_geometry
-from ..export.world import WorldLightError, compose_light, project_setup, world_setup
+from ..export.world import WorldLightError, project_setup, world_setup
 
 _MESHES: dict = {}          # object name -> (signature, DrawMesh)
 _IMAGES: dict = {}          # image key -> array
@@ -92,8 +94,7 @@ def bake_folder(scene, info: dict) -> str:
     d = info.get("out_dir", "")
     if d and os.path.isdir(d):
         return d
-    from ..bake.run import output_folder  # the .blend moved: its relative folder
-    return output_folder(scene)
+    return output_folder(scene)            # the .blend moved: its relative folder
 
 
 # --- light ----------------------------------------------------------------------------
@@ -108,7 +109,7 @@ def current_light(scene, bands: int) -> tuple[np.ndarray, str]:
         if len(_PROJECTIONS) > 8:
             _PROJECTIONS.clear()
         proj = _PROJECTIONS[key] = project_setup(setup, bands)
-    return compose_light(setup, proj), setup.description
+    return compose_light(proj, setup.strength, setup.rotation), setup.description
 
 
 # --- materials ------------------------------------------------------------------------
@@ -374,7 +375,6 @@ def collect(context, *, visible=None, use_bounces: bool = True,
         status.add("INFO", "nothing baked yet: Bake Transfer first")
         return None, status
     bands = int(info["settings"]["bands"])
-    from ...core.preview.shader_source import MAX_PREVIEW_BANDS
     if bands > MAX_PREVIEW_BANDS:
         status.add("ERROR", f"this bake has {bands} SH bands; the preview draws up to {MAX_PREVIEW_BANDS}: "
                             f"bake with {MAX_PREVIEW_BANDS} or fewer bands to preview it (the textures "

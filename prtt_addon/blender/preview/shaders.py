@@ -1,11 +1,25 @@
 """Compile the preview's shader variants with Blender's ``gpu`` module (cached)."""
 from __future__ import annotations
 
+import atexit
+
 import gpu
 
 from ...core.preview.shader_source import Variant, depth_variant, variant
 
 _CACHE: dict = {}
+
+
+def free_shaders() -> None:
+    """Let the compiled shaders go (they are compiled again when next needed)."""
+    _CACHE.clear()
+
+
+# Shaders still held when Blender shuts its GPU module down crash the
+# interpreter's exit (a segfault in its last garbage collection, seen after
+# ``python -m prtt_addon render``): let them go first. atexit runs this before
+# bpy's own exit handler, registered earlier.
+atexit.register(free_shaders)
 
 
 class ShaderError(RuntimeError):

@@ -1,10 +1,13 @@
 """PRTT's operators: Unwrap, Bake Transfer (modal in the UI, blocking headless), Cancel."""
 import bpy
+import numpy as np
 
 from ..bake import run as bake_run
 from ..export.scene import ExportError
 from ..export.unwrap import UnwrapError, unwrap_objects
-from ..bake.worker_job import WorkerJob
+from ..preview.render import RenderError, exposure_of, render_scene
+from .panels import draw_progress
+from .properties import PREVIEW_MODES
 
 
 #: Scenes whose running bake the Cancel button asked to stop (read by the modal operator).
@@ -68,8 +71,7 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
                                   description="Bake even if the inputs did not change", options={"SKIP_SAVE"})
 
     _timer = None
-    _job = None
-    _prepared = None
+    _watch = None           # bake_run.BakeWatch of the running bake
 
     @classmethod
     def poll(cls, context):
@@ -99,15 +101,14 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
             return self.execute(context)
         st = context.scene.prtt
         try:
-            self._prepared = bake_run.prepare(context)
+            prepared = bake_run.prepare(context)
         except (ExportError, ValueError, OSError) as exc:
             st.status = str(exc)
             self.report({"ERROR"}, f"PRTT: {exc}")
             return {"CANCELLED"}
-        for w in self._prepared.export.warnings:
+        for w in prepared.export.warnings:
             self.report({"WARNING"}, f"PRTT: {w}")
-        self._job = WorkerJob(self._prepared.job, self._prepared.out_dir, force=self.force).start()
-        st.baking, st.progress, st.status = True, 0.0, "starting"
+        self._watch = bake_run.BakeWatch.start(context, prepared, force=self.force, on_event=self._on_event)
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
         wm.modal_handler_add(self)
@@ -116,38 +117,27 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
             context.workspace.status_text_set(_status_bar)
         return {"RUNNING_MODAL"}
 
+    def _on_event(self, e):
+        if e.get("type") == "warning":
+            self.report({"WARNING"}, f"PRTT: {e['message']}")
+        elif e.get("type") == "info":
+            self.report({"INFO"}, f"PRTT: {e['message']}")
+
     def modal(self, context, event):
-        st = context.scene.prtt
-        if event.type == "ESC" or (context.scene.name in _CANCEL_REQUESTS and not self._job.cancelled):
+        if event.type == "ESC" or (context.scene.name in _CANCEL_REQUESTS and not self._watch.cancelled):
             _CANCEL_REQUESTS.discard(context.scene.name)
-            self._job.cancel()
-            st.status = "cancelling"
+            self._watch.cancel(context)
             return {"RUNNING_MODAL"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        ended = False
-        for e in self._job.events():
-            if e is None:
-                ended = True
-                continue
-            if e.get("type") == "progress":
-                st.progress = float(e.get("fraction", 0.0))
-                st.status = f"{e.get('stage')} {e.get('set', '')}".strip()
-            elif e.get("type") == "warning":
-                self.report({"WARNING"}, f"PRTT: {e['message']}")
-            elif e.get("type") == "info":
-                self.report({"INFO"}, f"PRTT: {e['message']}")
-        if not ended and self._job.returncode is None:
+        outcome = self._watch.poll(context)
+        if outcome is None:
             for area in context.screen.areas if context.screen else []:
                 if area.type in {"VIEW_3D", "STATUSBAR"}:
                     area.tag_redraw()
             return {"RUNNING_MODAL"}
-        code = self._job.wait()
         self._cleanup(context)
-        outcome = bake_run.interpret(self._job, code)
-        bake_run.finish(context, self._prepared, outcome)
-        self._report(outcome)
-        return {"FINISHED"} if outcome.status in ("done", "skipped") else {"CANCELLED"}
+        return self._report(outcome)
 
     def _cleanup(self, context):
         wm = context.window_manager
@@ -164,7 +154,6 @@ class PRTT_OT_bake_transfer(bpy.types.Operator):
 
 def _status_bar(header, context):
     """Status bar while baking: a progress bar, what runs, how to stop it."""
-    from .panels import draw_progress
     st = context.scene.prtt
     row = header.layout.row(align=True)
     row.label(text="PRTT")
@@ -208,10 +197,6 @@ class PRTT_OT_render_preview(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        import numpy as np
-
-        from ..preview.render import RenderError, exposure_of, render_scene
-        from .properties import PREVIEW_MODES
         st = context.scene.prtt
         mode = PREVIEW_MODES[st.preview_mode]
         try:

@@ -4,6 +4,8 @@ import json
 import bpy
 from bpy.app.handlers import persistent
 
+from ..preview import draw as preview_draw, scene as preview_scene
+
 
 class _PRTTPanel:
     bl_space_type = "VIEW_3D"
@@ -112,6 +114,7 @@ class PRTT_PT_bake_quality(_PRTTPanel, bpy.types.Panel):
         sub.active = st.bounces > 0
         sub.prop(st, "bounce_rays")
         sub.prop(st, "bounce_tolerance")
+        sub.prop(st, "bounce_downscale")
 
 
 class _SettingsList:
@@ -143,7 +146,6 @@ class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
     bl_order = 2
 
     def draw(self, context):
-        from ..preview import draw as preview_draw, scene as preview_scene
         st = context.scene.prtt
         col = _split(self.layout).column()
         row = col.row(align=True)

@@ -4,6 +4,7 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, P
                        StringProperty)
 
 from ...core.bake import settings_schema
+from ...core.sh.envmap import builtin_environments
 
 #: Name of the UV map PRTT bakes into; unwrapping writes only this map.
 UV_MAP = "PRTT"
@@ -17,7 +18,6 @@ def _builtin_env_items(self, context):
     Blender needs the returned strings to stay referenced from Python (a fresh
     list each time would also scan the datafiles folder each time)."""
     if not _ENV_ITEMS:
-        from ...core.sh.envmap import builtin_environments
         names = sorted(builtin_environments()) or ["forest"]
         _ENV_ITEMS.extend((n, n.capitalize(), f"Blender's studio light '{n}'") for n in names)
     return _ENV_ITEMS

@@ -14,6 +14,8 @@ import os
 
 import numpy as np
 
+from ..texels.unwrap import unwrap
+from .assembly import MeshPart, assemble_parts
 from .scene import Scene
 
 
@@ -271,19 +273,17 @@ def asset_path(name: str) -> str:
 
 def assemble(objects: list[tuple[str, Mesh]], *, resolution: int = 1024, atlas: bool = False,
              padding: int = 4, keep_uvs: bool = False, resolutions: dict | None = None) -> Scene:
-    """A bake Scene from named meshes, unwrapped with xatlas.
+    """A bake Scene from named meshes, unwrapped with xatlas (core.io.assembly
+    joins them, as it does the Blender export's objects).
 
     atlas=False: one texture set per object (each with its own unwrap);
     atlas=True: one shared set "atlas" holding every object.
     keep_uvs: use a mesh's own UVs (must lie in [0, 1] without overlaps).
     resolutions: per-object resolution overrides (per-object sets only).
     """
-    from ..texels.unwrap import unwrap
-
     names = [n for n, _ in objects]
     if len(set(names)) != len(names):
         raise ValueError(f"object names must be unique: {names}")
-    pos, nrm, uv, set_id, obj_id = [], [], [], [], []
     if atlas:
         todo = [(m.vertices, m.faces) for _, m in objects]
         uvs = unwrap(todo, resolution, padding=padding)
@@ -298,13 +298,6 @@ def assemble(objects: list[tuple[str, Mesh]], *, resolution: int = 1024, atlas: 
                 uvs.append(unwrap([(m.vertices, m.faces)], r, padding=padding)[0])
         set_names = names
         set_res = [[(resolutions or {}).get(n, resolution)] * 2 for n in names]
-    for i, (n, m) in enumerate(objects):
-        pos.append(m.corner_positions())
-        nrm.append(m.corner_normals())
-        uv.append(uvs[i])
-        set_id.append(np.full(m.n_faces, 0 if atlas else i))
-        obj_id.append(np.full(m.n_faces, i))
-    return Scene(positions=np.concatenate(pos), normals=np.concatenate(nrm), uvs=np.concatenate(uv),
-                 set_id=np.concatenate(set_id), set_names=set_names,
-                 set_resolution=np.array(set_res), object_id=np.concatenate(obj_id),
-                 object_names=names)
+    parts = [MeshPart(n, m.corner_positions(), m.corner_normals(), uvs[i], 0 if atlas else i)
+             for i, (n, m) in enumerate(objects)]
+    return assemble_parts(parts, set_names, set_res)

@@ -23,6 +23,10 @@ Projection methods (``method=``):
 
 Negative pixels (lossy-compression artefacts, e.g. -0.002 in Blender's
 forest.exr) are clamped to 0; NaN/Inf pixels are an error.
+
+The light a bake and the preview shade with (:func:`compose_light`,
+:func:`environment_light`, used by both command lines and the World export):
+the projection times a strength, turned as a World's Mapping node turns it.
 """
 from __future__ import annotations
 
@@ -36,6 +40,7 @@ import sys
 import numpy as np
 
 from .basis import bands_of, check_bands, eval_basis, lm_of
+from .rotation import rotate
 from ..io.image_io import ImageReadError, read_hdr_image
 
 #: Environment variable naming a folder of equirect EXRs to use as built-ins.
@@ -223,6 +228,62 @@ def reconstruct_equirect(coeffs, height: int, width: int | None = None) -> np.nd
     np.add.at(per_m, (slice(None), mcol), prof[:, :, None] * c2[None, :, :])
     out = np.einsum("hmc,wm->hwc", per_m, phi_prof)
     return out[..., 0] if squeeze else out
+
+
+# --- the light: an environment scaled and turned as a World does it -------------------
+
+def euler_xyz_matrix(rx: float, ry: float, rz: float) -> np.ndarray:
+    """Blender's Euler XYZ rotation (radians): R = Rz @ Ry @ Rx."""
+    cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def mapping_rotation(rotation_xyz, vector_type: str = "POINT") -> np.ndarray:
+    """The rotation R a World's Mapping node applies to lookup directions
+    (the image is read at R w): its Euler XYZ rotation for type Point, the
+    inverse (transpose) for type Texture."""
+    R = euler_xyz_matrix(*rotation_xyz)
+    return R if vector_type == "POINT" else R.T
+
+
+def compose_light(projection: np.ndarray, strength: float = 1.0,
+                  lookup_rotation: np.ndarray | None = None) -> np.ndarray:
+    """The world-frame (K, 3) SH light from the unrotated, unscaled projection
+    of an environment (:func:`project_equirect`, or :func:`constant_light`).
+
+    Conventions: world space is Z up, the image in the orientation of the
+    module docstring. ``strength`` multiplies the light (the Background
+    node's Strength). ``lookup_rotation`` is R of a Mapping node
+    (:func:`mapping_rotation`): lookups turn by R, so the light seen in
+    direction w is L(w) = img(R w), and its coefficients are the image's
+    rotated by R^T (``sh.rotate(c, Q)`` turns a function by Q: it returns the
+    coefficients of w -> f(Q^T w)). The environment therefore appears turned
+    the other way from the Mapping's angles. None: no Mapping node.
+    """
+    L = projection * strength
+    if lookup_rotation is not None:
+        L = rotate(L, np.asarray(lookup_rotation).T)
+    return L
+
+
+def constant_light(rgb, bands: int) -> np.ndarray:
+    """(K, 3) SH of a constant environment of colour ``rgb`` (the DC term only)."""
+    L = np.zeros((bands * bands, 3))
+    L[0] = np.asarray(rgb) * math.sqrt(4.0 * math.pi)
+    return L
+
+
+def environment_light(source, bands: int, strength: float = 1.0, rotation_z_deg: float = 0.0) -> np.ndarray:
+    """(K, 3) SH light from an environment (an .exr/.hdr path, pixels or a
+    built-in name: :func:`as_environment_image`), its strength and the Z
+    rotation of a Point-type Mapping node in degrees (0: no rotation)
+    (:func:`compose_light` gives the conventions)."""
+    L = project_equirect(source, bands)
+    R = mapping_rotation((0.0, 0.0, math.radians(rotation_z_deg))) if rotation_z_deg else None
+    return compose_light(L, strength, R)
 
 
 # --- built-in environments ----------------------------------------------------------

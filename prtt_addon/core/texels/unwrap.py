@@ -7,8 +7,14 @@ re-packed with a lower texel density until it fits ``resolution`` exactly
 (a bounded number of tries), keeping ``padding`` texels between charts; a
 small texture that cannot hold the charts with that padding is retried with
 half the padding, down to 0, before giving up.
+
+``unwrap_loops`` does the same for polygon meshes stored as Blender stores
+them (:class:`LoopMesh`): one UV per loop (polygon corner), shared by every
+triangle of the polygon.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -51,6 +57,95 @@ def pack_uv_charts(uvs: np.ndarray, faces: np.ndarray, resolution: int, *, paddi
             if pad == 0 or "could not fit" not in str(exc):
                 raise
             pad //= 2
+
+
+@dataclasses.dataclass
+class LoopMesh:
+    """A polygon mesh as Blender stores it: polygons of loops (corners), each
+    loop a vertex, and the triangles the polygons are cut into."""
+
+    positions: np.ndarray           # (L, 3) float: each loop's vertex position
+    triangles: np.ndarray           # (T, 3) int: loop ids of each triangle
+    loop_vertex: np.ndarray         # (L,) int: each loop's vertex
+    triangle_polygon: np.ndarray    # (T,) int: the polygon of each triangle
+    polygon_start: np.ndarray       # (P,) int: each polygon's first loop
+    polygon_total: np.ndarray       # (P,) int: each polygon's loop count
+
+
+def unwrap_loops(meshes: list[LoopMesh], resolution: int, *, padding: int = 4) -> list[np.ndarray]:
+    """Lay ``meshes`` out in one atlas (xatlas, as :func:`unwrap`): per mesh,
+    per-loop UVs (L, 2) float64 in [0, 1].
+
+    xatlas gets a vertex per loop: it charts them like welded vertices (it
+    finds coincident positions) but never across a UV seam of the mesh. It
+    works on triangles, so a polygon whose triangles land in different charts
+    is laid out on its own (:func:`loop_uvs`) and every chart of the meshes is
+    packed again, together.
+    """
+    uvs = unwrap([(m.positions, m.triangles) for m in meshes], resolution, padding=padding)
+    layouts = [loop_uvs(m, uv) for m, uv in zip(meshes, uvs)]
+    if not any(alone.any() for _, alone in layouts):
+        return [per_loop for per_loop, _ in layouts]
+    # A chart is the loops that share a mesh, a vertex and a UV; a polygon laid
+    # out on its own is a chart of its own (its loops get keys nothing shares).
+    keys, faces, base = [], [], 0
+    for i, ((per_loop, alone), m) in enumerate(zip(layouts, meshes)):
+        n = len(m.loop_vertex)
+        key = np.concatenate([np.full((n, 1), i, np.float64), m.loop_vertex[:, None].astype(np.float64),
+                              np.round(per_loop, 7)], axis=1)
+        key[alone, 1] = -1 - np.flatnonzero(alone)
+        keys.append(key)
+        faces.append(m.triangles + base)
+        base += n
+    _, first, ids = np.unique(np.concatenate(keys), axis=0, return_index=True, return_inverse=True)
+    flat = np.concatenate([per_loop for per_loop, _ in layouts])
+    packed = pack_uv_charts(flat[first], ids.reshape(-1)[np.concatenate(faces)], resolution,
+                            padding=padding).reshape(-1, 2)
+    flat[np.concatenate(faces).reshape(-1)] = packed
+    out, base = [], 0
+    for m in meshes:
+        out.append(flat[base:base + len(m.loop_vertex)])
+        base += len(m.loop_vertex)
+    return out
+
+
+def loop_uvs(mesh: LoopMesh, tri_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-loop UVs from per-triangle-corner UVs (T, 3, 2): (per-loop UVs
+    (L, 2) float64, loops of polygons that must become charts of their own
+    (L,) bool).
+
+    One UV per loop is shared by all triangles of a polygon; a layout of
+    triangles may put two triangles of a non-planar quad in different charts.
+    Such a polygon is projected along its Newell normal (the plane that folds
+    it least: a largest-triangle plane can turn a warped quad into a bow tie
+    whose triangles overlap), at the texel density its triangles got (UV area
+    over 3D area), and marked to be a chart of its own: where it is, it would
+    overlap its neighbours, so the caller packs again.
+    """
+    tris = mesh.triangles
+    per_loop = np.zeros((len(mesh.loop_vertex), 2), np.float64)
+    per_loop[tris.reshape(-1)] = tri_uv.reshape(-1, 2)
+    alone = np.zeros(len(mesh.loop_vertex), bool)
+    conflict = np.abs(per_loop[tris] - tri_uv).max(axis=(1, 2)) > 1e-7      # per triangle
+    poly = mesh.triangle_polygon
+    for p in np.unique(poly[conflict]):
+        ts = np.flatnonzero(poly == p)
+        loops = np.arange(mesh.polygon_start[p], mesh.polygon_start[p] + mesh.polygon_total[p])
+        Q = mesh.positions[loops]
+        nrm = np.cross(Q, np.roll(Q, -1, axis=0)).sum(axis=0)
+        nrm /= max(np.linalg.norm(nrm), 1e-300)
+        e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(nrm, e1)
+        P = mesh.positions[tris[ts]]
+        area3 = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
+        U = tri_uv[ts]
+        area2 = 0.5 * np.abs(np.cross(U[:, 1] - U[:, 0], U[:, 2] - U[:, 0])).sum()
+        scale = np.sqrt(area2 / area3) if area3 > 0 and area2 > 0 else 1.0
+        d = Q - Q.mean(axis=0)
+        per_loop[loops] = scale * np.stack([d @ e1, d @ e2], axis=1)
+        alone[loops] = True
+    return per_loop, alone
 
 
 def _unwrap(meshes, resolution, padding, max_tries, uv_mesh=False):
