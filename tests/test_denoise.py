@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from prtt_addon.core.bake.denoise import edge_aware, island_labels, oidn_available, oidn_sh
+from prtt_addon.core.bake.denoise import edge_aware, oidn_available, oidn_sh
+from prtt_addon.core.texels.islands import island_labels
 
 
 def test_island_labels_match_scipy():
@@ -93,8 +94,8 @@ def test_oidn_sh_restores_normalisation_and_keeps_empty_texels():
 
 
 def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
-    from prtt_addon.core.io import exr_io
     from prtt_addon.core.bake.runner import BakeError, BakeSettings, bake_scene
+    from prtt_addon.core.io import exr_io
     from tests.test_bounce import corner_scene, sky
     sc = corner_scene({"name": "w", "base_color": [0.6, 0.5, 0.4], "specular": 0.0}, res=24)
     st = dict(rays=64, bounces=1, bounce_rays=16, half=False)

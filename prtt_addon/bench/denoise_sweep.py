@@ -16,10 +16,11 @@ import time
 
 import numpy as np
 
-from ..core.bake.denoise import edge_aware, island_labels, oidn_available, oidn_sh
+from ..core.bake.denoise import edge_aware, oidn_available, oidn_sh
 from ..core.bake.runner import BakeSettings, bake_scene
 from ..core.io.exr_io import read_sh_exr
 from ..core.texels.gbuffer import build_gbuffer
+from ..core.texels.islands import island_labels
 from . import scenes
 from .texture_error import load_set_textures, texel_error
 

@@ -22,10 +22,12 @@ import time
 import numpy as np
 
 from ..texels.dilate import dilate
+from ..texels.gbuffer import GBuffer, build_gbuffer
+from ..texels.islands import coarse_grid_conflicts, island_labels
 from . import denoise
-from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, SurfaceTexels, bake_bounce_set,
-                     bounce_settings, exit_textures, glossy_triangles, incident_at, level_energy, open_texels,
-                     surface_texels)
+from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, IncidentSet, SurfaceTexels,
+                     bake_bounce_set, bounce_settings, exit_textures, glossy_triangles, incident_at,
+                     level_energy, open_texels, surface_texels)
 from .context import BakeContext, BakeSettings
 from .memory import numpy_hugepage_advice
 from .plan import BakePlan
@@ -42,6 +44,8 @@ class BounceInputs:
     surface: dict[int, SurfaceTexels]   # materials and normals at the M valid texels
     direct: float                       # level_energy of the level-1 incident radiance, all sets
     glossy_tri: np.ndarray              # (T,) bool: triangles with a glossy material
+    grids: dict[int, BounceGrid]        # the grid each set's bounce textures are baked on
+    sources: list[BounceSource]         # the sets as the levels bake them (on their grids)
 
 
 @dataclasses.dataclass
@@ -71,13 +75,88 @@ class BounceResult:
                 "hits_shaded": sum(r["hits_shaded"] for r in self.reports)}
 
 
-def bounce_inputs(ctx: BakeContext, sources: list[BounceSource]) -> tuple[BounceInputs, dict[int, np.ndarray]]:
+@dataclasses.dataclass(frozen=True)
+class BounceGrid:
+    """The texel grid one set's bounce textures are baked and stored on."""
+
+    downscale: int                      # 1/downscale of the transfer resolution per side (1 = the same grid)
+    width: int
+    height: int
+    why: str                            # why this grid (the manifest's bounce_grid.why)
+
+    def report(self) -> dict:
+        return {"downscale": self.downscale, "resolution": [self.width, self.height], "why": self.why}
+
+
+#: Coarse grids narrower than this get no texels for small islands at all.
+MIN_BOUNCE_SIDE = 16
+
+
+def choose_grid(gb: GBuffer, asked: int) -> BounceGrid:
+    """The coarsest grid of 1/asked, 1/(asked/2) ... 1/1 of ``gb``'s resolution
+    per side that divides it, keeps at least MIN_BOUNCE_SIDE texels a side and
+    never mixes UV islands (islands.coarse_grid_conflicts is 0)."""
+    W, H = gb.width, gb.height
+    if asked <= 1:
+        return BounceGrid(1, W, H, "bounce_downscale 1: the transfer's grid")
+    mask = np.zeros(H * W, bool)
+    mask[gb.texel] = True
+    mask = mask.reshape(H, W)
+    labels = None
+    why = []
+    f = asked
+    while f > 1:
+        if W % f or H % f:
+            why.append(f"1/{f}: {W}x{H} is not a multiple of {f}")
+        elif min(W, H) // f < MIN_BOUNCE_SIDE:
+            why.append(f"1/{f}: fewer than {MIN_BOUNCE_SIDE} texels a side")
+        else:
+            if labels is None:
+                labels = island_labels(mask)
+            bad = coarse_grid_conflicts(mask, f, labels)
+            if bad == 0:
+                why.append(f"1/{f}: no coarse texel sees two UV islands")
+                return BounceGrid(f, W // f, H // f, "; ".join(why))
+            why.append(f"1/{f}: {bad} coarse texels would mix UV islands")
+        f //= 2
+    return BounceGrid(1, W, H, "; ".join(why) + "; the transfer's grid")
+
+
+def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: BounceGrid,
+                  skip_full: np.ndarray) -> tuple[BounceSource, np.ndarray]:
+    """``src`` on the coarse ``grid``: its G-buffer and kernel points there, the
+    transfer texture box-averaged over each f x f block (the level-1 light
+    leaving the surface, a prefilter for the coarser lookups) and the skip mask
+    (a coarse texel traces nothing when every covered texel of its block was
+    skipped at full resolution; one without covered texels there is traced)."""
+    f, st = grid.downscale, ctx.settings
+    gb = src.gbuffer
+    coarse = build_gbuffer(ctx.scene, src.index, normal_maps=st.normal_maps, executor=ctx.helpers,
+                           bands=max(2, st.n_threads), cancel=ctx.stop, resolution=(grid.width, grid.height))
+    pts = geo.points(ctx.scene, src.index, coarse)
+    block = (gb.texel // gb.width // f) * grid.width + (gb.texel % gb.width) // f
+    covered = np.bincount(block, minlength=grid.width * grid.height)
+    traced = np.bincount(block, weights=(~skip_full).astype(np.float64), minlength=grid.width * grid.height)
+    skip = ((covered > 0) & (traced == 0))[coarse.texel]
+    skip |= pts.analytic
+    pm = src.incident.pm
+    C = pm.shape[1]
+    with numpy_hugepage_advice(True):          # looked up at random by bounce rays
+        mean = pm.reshape(grid.height, f, grid.width, f, C).mean(axis=(1, 3), dtype=np.float64)
+        incident = IncidentSet(np.ascontiguousarray(mean.reshape(-1, C), np.float32), grid.width, grid.height)
+    return dataclasses.replace(src, gbuffer=coarse, points=pts, rows=None, incident=incident), skip
+
+
+def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
+                  geo: Geometry | None = None) -> tuple[BounceInputs, dict[int, np.ndarray]]:
     """Skip masks and surface texels of every set, and level 1's incident
     radiance {set index: Lp (M, 3, K) float32} (ctx.light through each
     transfer texture). Drops each source's ``incident`` texture once used
-    (the exit textures replace it)."""
+    (the exit textures replace it). With settings.bounce_downscale > 1 (and
+    ``geo``), sources move to their coarse grid (choose_grid): the returned
+    inputs' ``sources`` are what the levels bake."""
     st, sc = ctx.settings, ctx.scene
-    skip, surf = {}, {}
+    skip, surf, grids, baked = {}, {}, {}, []
     t = time.perf_counter()
     for r in sources:
         ctx.check_cancel()
@@ -85,7 +164,12 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource]) -> tuple[Bounce
         # from (tested against half-float rounding when read back from disk).
         tol = HALF_OPEN_TOLERANCE if r.storage == "half" else OPEN_TOLERANCE
         skip[r.index] = r.points.analytic | open_texels(r.rows, r.gbuffer.normal, st.bands, tol)
+        grids[r.index] = grid = choose_grid(r.gbuffer, st.bounce_downscale if geo is not None else 1)
+        if grid.downscale > 1:
+            r, skip[r.index] = coarse_source(ctx, geo, r, grid, skip[r.index])
+        baked.append(r)
         surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
+    sources = baked
     glossy_tri = glossy_triangles(sc)
     # Level 1 leaves each surface with the fixed light times its transfer.
     Lp = {r.index: incident_at(surf[r.index], r.incident, ctx.light, st.bands) for r in sources}
@@ -93,7 +177,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource]) -> tuple[Bounce
         r.incident = None                  # the exit textures replace it
     direct = sum(level_energy(v) for v in Lp.values())
     ctx.seconds["bounce_exit"] = time.perf_counter() - t
-    return BounceInputs(skip, surf, direct, glossy_tri), Lp
+    return BounceInputs(skip, surf, direct, glossy_tri, grids, sources), Lp
 
 
 def level_shader(ctx: BakeContext, inputs: BounceInputs, incident: dict[int, np.ndarray]) -> ExitShader:
@@ -142,6 +226,9 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
     if level < st.bounces:
         nxt = tex.reshape(3 * K, -1)[:, inputs.surface[src.index].valid].T.reshape(-1, 3, K)
     stats.update(name=name, level=level, file=fname, storage="half" if half else "float")
+    grid = inputs.grids.get(src.index)
+    if grid is not None and ctx.settings.bounce_downscale != 1:
+        stats["grid"] = grid.report()
     ctx.seconds["bounce_write"] += time.perf_counter() - t
     return BounceSetLevel(stats, fname, nxt, energy)
 
@@ -154,13 +241,13 @@ def bounce_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list
     bst = bounce_settings(st, st.bounce_rays)
     filt = denoise.resolve_filter(st.bounce_denoise, st.bounce_rays)
     reports, files = [], []
-    inputs, Lp = bounce_inputs(ctx, sources)
+    inputs, Lp = bounce_inputs(ctx, sources, geo)
     stopped = None
     for level in range(1, st.bounces + 1):
         ctx.check_cancel()
         shader = level_shader(ctx, inputs, Lp)
         nxt, energy = {}, 0.0
-        for src in sources:
+        for src in inputs.sources:
             ctx.check_cancel()
             out = bounce_set_level(ctx, geo, plan, src, inputs, shader, level, bst=bst, filt=filt)
             reports.append(out.report)

@@ -6,7 +6,7 @@ curves that decided it):
 * :func:`edge_aware`: a joint (cross) bilateral filter guided by the
   G-buffer: within a (2r+1)^2 window, a texel's neighbours are weighted by
   texel distance, world-space distance and normal agreement, and only texels
-  of the **same UV island** (:func:`island_labels`) ever mix. Linear in the
+  of the **same UV island** (:func:`core.texels.islands.island_labels`) ever mix. Linear in the
   coefficients, so it is applied to every SH channel alike.
 * :func:`oidn_sh`: Intel Open Image Denoise (``pyoidn``, CPU) with the
   RTLightmap filter, on SH normalised the way production lightmappers do:
@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 from ..sh.basis import band_of_coeffs
+from ..texels.islands import island_labels
 
 #: The ``bounce_denoise`` setting's values (settings_schema declares their help).
 FILTERS = ("auto", "none", "edge-aware", "oidn")
@@ -45,43 +46,6 @@ def resolve_filter(filt: str, bounce_rays: int) -> str:
     if filt == "auto":
         return "edge-aware" if bounce_rays < AUTO_MAX_RAYS else "none"
     return filt
-
-
-_OFFSETS8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
-
-
-def island_labels(mask: np.ndarray) -> np.ndarray:
-    """(H, W) int64: the label of each covered texel's 8-connected island (the
-    smallest flat index in it), -1 for empty texels.
-
-    Min-label propagation with pointer jumping: each round every texel takes
-    the smallest label among its covered neighbours, then follows labels to
-    their own label; rounds repeat until nothing changes (a few dozen for
-    islands hundreds of texels long)."""
-    H, W = mask.shape
-    flat = np.where(mask.reshape(-1), np.arange(H * W), -1).reshape(H, W)
-    big = np.int64(H * W)
-    lab = np.where(flat >= 0, flat, big)
-    while True:
-        pad = np.pad(lab, 1, constant_values=big)
-        new = lab.copy()
-        for dy, dx in _OFFSETS8:
-            np.minimum(new, pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W], out=new)
-        new = np.where(mask, new, big)
-        # Pointer jumping: a label is a texel index; follow it to that texel's label.
-        nf = new.reshape(-1)
-        covered = nf < big
-        while True:
-            nxt = nf.copy()
-            nxt[covered] = nf[nf[covered]]
-            if np.array_equal(nxt, nf):
-                break
-            nf = nxt
-        new = nf.reshape(H, W)
-        if np.array_equal(new, lab):
-            break
-        lab = new
-    return np.where(mask, lab, -1)
 
 
 def edge_aware(planes: np.ndarray, mask: np.ndarray, position: np.ndarray, normal: np.ndarray, *,

@@ -65,7 +65,8 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
     """Identity of the bounce textures: transfer, light, materials, bounce settings."""
     h = hashlib.sha256("|".join([in_hash, set_hash, light_hash(light) if light is not None else "-",
                                  mat_hash, str(st.bounces), str(st.bounce_rays),
-                                 repr(float(st.bounce_tolerance)), st.bounce_denoise]).encode())
+                                 repr(float(st.bounce_tolerance)), st.bounce_denoise]
+                                + ([f"downscale={st.bounce_downscale}"] if st.bounce_downscale != 1 else [])).encode())
     return h.hexdigest()
 
 

@@ -254,6 +254,15 @@ SETTINGS: tuple[Setting, ...] = (
                 "edge-aware": ("Edge-Aware", "joint bilateral within UV islands, guided by positions and normals"),
                 "oidn": ("OIDN", "Intel Open Image Denoise on normalised SH (needs the optional pyoidn)")}),
             option="--bounce-denoise"),
+    Setting("bounce_downscale", "bake", "int", 1, "bake and store the bounce textures at 1/N of each set's "
+            "resolution per side (indirect light varies slowly; N x N fewer rays and bytes); a set whose "
+            "resolution N does not divide, or whose UV islands would share texels at 1/N, keeps a finer grid "
+            "(the manifest says which and why); 1 = the transfer's resolution", unit="per side", lo=1, hi=8,
+            option="--bounce-downscale", metavar="N",
+            note="UV margins are laid out in the transfer's texels: at 1/8 a 4-texel margin is half a texel",
+            ui=Ui("bounce_downscale", "Bounce Downscale", soft_hi=4,
+                  why_soft="the default 4-texel margins keep islands apart down to 1/2 (1/4 where islands "
+                           "lie farther apart)")),
     # --- job (both command lines; not a BakeSettings field) -----------------------------
     Setting("resolution", "job", "int", 1024, "texels per side of each texture set", unit="texels",
             lo=1, hi=MAX_RESOLUTION, option="--resolution", metavar="N",

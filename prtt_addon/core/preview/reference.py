@@ -188,7 +188,8 @@ def _fragment_colors(ps, m, method, cam, transfer, bounce, tri, bary):
     T = bilinear(_texture_pm(transfer), W, H, uv).astype(np.float64)
     bounces = []
     if bounce is not None:
-        B = bilinear(_texture_pm(bounce), W, H, uv).astype(np.float64).reshape(-1, 3, K)
+        Hb, Wb = bounce.shape[:2]           # the bounce grid may be coarser than the transfer's
+        B = bilinear(_texture_pm(bounce), Wb, Hb, uv).astype(np.float64).reshape(-1, 3, K)
         bounces = [B]
     return shade(T, n, v, ps.light, params, bounces=bounces, method=method)
 

@@ -114,19 +114,21 @@ def apply_normal_maps(sc: Scene, tri, bary, n_interp) -> tuple[np.ndarray, np.nd
 
 
 def build_gbuffer(sc: Scene, set_index: int, *, normal_maps: bool = True, executor=None,
-                  bands: int = 2, cancel=None) -> GBuffer:
+                  bands: int = 2, cancel=None, resolution: tuple[int, int] | None = None) -> GBuffer:
     """Rasterise set ``set_index`` of ``sc`` and fill its G-buffer.
 
-    With an ``executor`` (a thread pool), ``bands`` row bands are built in
-    parallel (numpy releases the GIL) and merged; the result is the same.
-    ``cancel`` (has is_set()) is checked as the rasteriser goes: parallel.Cancelled.
+    ``resolution`` (width, height) replaces the set's own (the bounce textures'
+    coarser grid over the same UV layout). With an ``executor`` (a thread
+    pool), ``bands`` row bands are built in parallel (numpy releases the GIL)
+    and merged; the result is the same. ``cancel`` (has is_set()) is checked
+    as the rasteriser goes: parallel.Cancelled.
     """
-    w, h = (int(v) for v in sc.set_resolution[set_index])
+    w, h = (int(v) for v in (resolution if resolution is not None else sc.set_resolution[set_index]))
     if executor is None or bands < 2 or h < 2 * bands:
-        return _build_gbuffer(sc, set_index, normal_maps, None, cancel)
+        return _build_gbuffer(sc, set_index, normal_maps, None, cancel, (w, h))
     cuts = np.linspace(0, h, bands + 1).astype(int)
     parts = list(executor.map(lambda k: _build_gbuffer(sc, set_index, normal_maps, (cuts[k], cuts[k + 1]),
-                                                       cancel), range(bands)))
+                                                       cancel, (w, h)), range(bands)))
     return merge_gbuffers(parts)
 
 
@@ -147,9 +149,9 @@ def merge_gbuffers(parts: list[GBuffer]) -> GBuffer:
                    cat("normal_mapped"), stats)
 
 
-def _build_gbuffer(sc: Scene, set_index: int, normal_maps: bool, rows, cancel=None) -> GBuffer:
+def _build_gbuffer(sc: Scene, set_index: int, normal_maps: bool, rows, cancel, size) -> GBuffer:
     tris = sc.triangles_of_set(set_index)
-    w, h = (int(v) for v in sc.set_resolution[set_index])
+    w, h = size
     r = rasterize(sc.uvs[tris], w, h, rows, cancel)
     tri = tris[r.tri]
     bary = r.bary

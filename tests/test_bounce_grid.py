@@ -1,0 +1,115 @@
+"""Bounce textures on a coarser grid than the transfer (settings.bounce_downscale):
+the island check, the grid choice, and bakes on it."""
+import numpy as np
+import pytest
+
+from prtt_addon.core.bake import bounce_stage
+from prtt_addon.core.bake.runner import BakeSettings, bake_scene
+from prtt_addon.core.io import exr_io
+from prtt_addon.core.texels.islands import block_labels, coarse_grid_conflicts, island_labels
+from tests.test_bounce import corner_scene, sky
+
+
+def _two_islands(gap: int, size=64):
+    """Two square islands on a size x size grid, ``gap`` empty columns apart."""
+    m = np.zeros((size, size), bool)
+    m[8:40, 4:20] = True
+    m[8:40, 20 + gap:36 + gap] = True
+    return m
+
+
+@pytest.mark.parametrize("gap,f,expect", [
+    (8, 2, 0), (4, 2, 0),      # 4 fine texels = 2 coarse: no coarse texel within 1 of both
+    (2, 2, 1),                 # 1 coarse texel apart: the texel between sees both
+    (0, 2, 0),                 # touching: one 8-connected island already at full resolution
+    (8, 4, 0), (4, 4, 1),
+])
+def test_conflicts_follow_the_gap_in_coarse_texels(gap, f, expect):
+    m = _two_islands(gap)
+    n = coarse_grid_conflicts(m, f)
+    assert (n > 0) == bool(expect), (gap, f, n)
+
+
+def test_conflicts_brute_force():
+    """Against a direct reading of the rule on random layouts: a coarse texel
+    conflicts when its 3 x 3 neighbourhood of f x f blocks holds covered fine
+    texels of two islands."""
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        m = rng.random((32, 32)) < 0.08
+        m[rng.integers(0, 32), :] = True               # a long island too
+        lab = island_labels(m)
+        for f in (2, 4):
+            h = 32 // f
+            want = 0
+            for y in range(h):
+                for x in range(h):
+                    ys = slice(max(0, (y - 1) * f), min(32, (y + 2) * f))
+                    xs = slice(max(0, (x - 1) * f), min(32, (x + 2) * f))
+                    want += len(set(lab[ys, xs][lab[ys, xs] >= 0].tolist())) > 1
+            assert coarse_grid_conflicts(m, f, lab) == want
+
+
+def test_block_labels_needs_a_multiple():
+    with pytest.raises(ValueError, match="not a multiple of 4"):
+        block_labels(np.full((10, 12), -1), 4)
+
+
+class _GB:
+    def __init__(self, mask):
+        self.height, self.width = mask.shape
+        self.texel = np.flatnonzero(mask.reshape(-1))
+
+
+def test_choose_grid_steps_down_and_says_why():
+    g = bounce_stage.choose_grid(_GB(_two_islands(8)), 4)
+    assert (g.downscale, g.width, g.height) == (4, 16, 16)
+    g = bounce_stage.choose_grid(_GB(_two_islands(4)), 4)
+    assert g.downscale == 2 and "1/4:" in g.why and "would mix UV islands" in g.why
+    g = bounce_stage.choose_grid(_GB(_two_islands(1)), 4)
+    assert g.downscale == 1 and g.width == 64 and "the transfer's grid" in g.why
+    g = bounce_stage.choose_grid(_GB(np.ones((48, 44), bool)), 2)
+    assert g.downscale == 2
+    g = bounce_stage.choose_grid(_GB(np.ones((48, 44), bool)), 8)       # 44 is not a multiple of 8
+    assert g.downscale == 2 and "not a multiple of 8" in g.why and "fewer than 16" in g.why
+
+
+def _corner(res):
+    return corner_scene({"name": "wall", "base_color": [0.9, 0.2, 0.1], "roughness": 0.3}, res)
+
+
+def _light():
+    return sky(5)
+
+
+def test_half_grid_bake_matches_the_full_grid_block_means(tmp_path):
+    """Baked at 1/2, the bounce texture is the full-grid bake averaged over 2 x 2
+    blocks, to within the Monte Carlo noise of both (same rays per texel)."""
+    sc = _corner(64)
+    st = dict(bounces=1, bounce_rays=512, rays=256, half=False, dilate=0)
+    full = bake_scene(sc, tmp_path / "full", BakeSettings(**st), light=_light())
+    half = bake_scene(sc, tmp_path / "half", BakeSettings(**st, bounce_downscale=2), light=_light())
+    assert full["bounce"]["sets"][0].get("grid") is None
+    assert [r["grid"]["downscale"] for r in half["bounce"]["sets"]] == [2, 2]
+    assert half["bounce"]["rays_traced"] < 0.3 * full["bounce"]["rays_traced"]
+    for name in sc.set_names:
+        a, _ = exr_io.read_sh_exr(tmp_path / "full" / f"{name}.bounce1.exr")      # (64, 64, 3, 25)
+        b, _ = exr_io.read_sh_exr(tmp_path / "half" / f"{name}.bounce1.exr")      # (32, 32, 3, 25)
+        assert a.shape[:2] == (64, 64) and b.shape[:2] == (32, 32)
+        mean = a.reshape(32, 2, 32, 2, 3, 25).mean(axis=(1, 3))
+        dc_a, dc_b = mean[..., 0], b[..., 0]
+        rel = np.sqrt(np.mean((dc_a - dc_b) ** 2) / np.mean(dc_a ** 2))
+        assert dc_a.mean() > 0 and rel < 0.05, (name, rel)
+
+
+def test_downscale_one_is_todays_bake(tmp_path):
+    """bounce_downscale 1 gives the same textures and bounce key as before the
+    setting existed (no grid entry, the key's inputs unchanged)."""
+    sc = _corner(32)
+    a = bake_scene(sc, tmp_path / "a", BakeSettings(bounces=1, bounce_rays=16, rays=32), light=_light())
+    b = bake_scene(sc, tmp_path / "b", BakeSettings(bounces=1, bounce_rays=16, rays=32, bounce_downscale=2),
+                   light=_light())
+    assert a["bounce"]["key"] != b["bounce"]["key"]
+    assert "grid" not in a["bounce"]["sets"][0]
+    for f in a["bounce"]["files"]:
+        assert (tmp_path / "a" / f).read_bytes() != (tmp_path / "b" / f).read_bytes()
