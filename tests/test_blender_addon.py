@@ -238,3 +238,37 @@ def test_missing_normal_map_image_warns_and_bakes(tmp_path):
     exp = export_scene(bpy.context, with_light=False)
     assert any("normal map image" in w and "baking without it" in w for w in exp.warnings)
     assert bpy.ops.prtt.bake_transfer() == {"FINISHED"}
+
+
+def test_auto_tuning_sizes_object_sets_by_texel_density(tmp_path):
+    """Tuning Auto with Texel Density 0: each object's set from its surface area
+    at AUTO_TEXEL_DENSITY (a power of two, up to the scene resolution); an
+    object's Resolution Override still wins; Fixed keeps the scene resolution."""
+    bpy = addon_bpy()
+    from prtt_addon.blender.export.scene import AUTO_TEXEL_DENSITY, export_scene
+    bpy.ops.mesh.primitive_plane_add(size=6.0)                  # 36 m²
+    floor = bpy.context.active_object
+    bpy.ops.mesh.primitive_cube_add(size=0.2, location=(0, 0, 1))  # 0.24 m²
+    small = bpy.context.active_object
+    bpy.ops.mesh.primitive_cube_add(size=0.2, location=(1, 0, 1))
+    pinned = bpy.context.active_object
+    pinned.prtt.resolution = 512
+    select_only(bpy, [floor, small, pinned])
+    bpy.context.scene.prtt.unwrap_method = "XATLAS"
+    bpy.ops.prtt.unwrap()
+    st = bpy.context.scene.prtt
+    st.resolution, st.texel_density, st.texture_sets, st.bounces = 1024, 0.0, "OBJECT", 0
+    st.output_dir = str(tmp_path / "out")
+
+    def sizes():
+        sc = export_scene(bpy.context, with_light=False).scene
+        return {n: int(r[0]) for n, r in zip(sc.set_names, sc.set_resolution)}
+
+    assert sizes() == {floor.name: 1024, small.name: 1024, pinned.name: 512}
+    st.tuning = "AUTO"
+    want_small = 1 << int(np.ceil(np.log2(AUTO_TEXEL_DENSITY * 0.24 ** 0.5)))
+    got = sizes()
+    assert got == {floor.name: 1024, small.name: want_small, pinned.name: 512}, got
+    assert want_small == 64
+    st.texel_density = 1024.0                                    # an explicit density wins over auto's
+    assert sizes()[small.name] == 512

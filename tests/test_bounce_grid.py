@@ -6,6 +6,7 @@ import pytest
 from prtt_addon.core.bake import bounce_stage
 from prtt_addon.core.bake.runner import BakeSettings, bake_scene
 from prtt_addon.core.io import exr_io
+from prtt_addon.core.preview.pack import PreviewSet
 from prtt_addon.core.texels.islands import block_labels, coarse_grid_conflicts, island_labels
 from tests.test_bounce import corner_scene, sky
 
@@ -113,3 +114,40 @@ def test_downscale_one_is_todays_bake(tmp_path):
     assert "grid" not in a["bounce"]["sets"][0]
     for f in a["bounce"]["files"]:
         assert (tmp_path / "a" / f).read_bytes() != (tmp_path / "b" / f).read_bytes()
+
+
+def test_auto_tuning_stores_the_bands_each_set_reads(tmp_path):
+    """tuning auto: the diffuse floor keeps 1 band (its DC equals the full-band
+    bake's on the same grid, bit for bit), the glossy wall 3; the preview's
+    loader pads them back with zeros; the manifest says what and why."""
+    sc = _corner(64)
+    sc.materials[0]["specular"] = 0.0          # a purely diffuse floor (the default has a Phong lobe)
+    st = dict(bounces=1, bounce_rays=32, rays=64, half=False)
+    full = bake_scene(sc, tmp_path / "full", BakeSettings(**st, bounce_downscale=2), light=_light())
+    auto = bake_scene(sc, tmp_path / "auto", BakeSettings(**st, tuning="auto"), light=_light())
+    grids = {r["name"]: r["grid"] for r in auto["bounce"]["sets"]}
+    assert grids["floor"]["bands"] == 1 and "DC term" in grids["floor"]["bands_why"]
+    assert grids["wall"]["bands"] == 3 and "glossy" in grids["wall"]["bands_why"]
+    assert {g["downscale"] for g in grids.values()} == {2}
+    assert full["bounce"]["key"] != auto["bounce"]["key"] and full["settings_hash"] == auto["settings_hash"]
+    for name, kb in (("floor", 1), ("wall", 9)):
+        a, _ = exr_io.read_sh_exr(tmp_path / "full" / f"{name}.bounce1.exr")
+        b, attrs = exr_io.read_sh_exr(tmp_path / "auto" / f"{name}.bounce1.exr")
+        assert b.shape == a.shape[:3] + (kb,) and attrs["band_limited"] == 1 and attrs["shading_bands"] == 5
+        np.testing.assert_array_equal(b, a[..., :kb])
+        ps = PreviewSet(name, str(tmp_path / "auto" / f"{name}.transfer.exr"),
+                        (str(tmp_path / "auto" / f"{name}.bounce1.exr"),))
+        padded = ps.load_bounce(25)
+        assert padded.shape == a.shape and not padded[..., kb:].any()
+        np.testing.assert_array_equal(padded[..., :kb], a[..., :kb])
+    bytes_of = lambda m, d: sum((d / f).stat().st_size for f in m["bounce"]["files"])  # noqa: E731
+    assert bytes_of(auto, tmp_path / "auto") < 0.5 * bytes_of(full, tmp_path / "full")
+
+
+def test_band_limited_levels_are_padded_only_when_marked(tmp_path):
+    """A bounce file with too few coefficients and no band_limited mark (an
+    older or foreign bake) is not silently padded."""
+    planes = np.ones((3 * 9, 4, 4), np.float32)
+    exr_io.write_sh_planes(tmp_path / "x.bounce1.exr", planes, kind="bounce", rgb=True, half=False)
+    ps = PreviewSet("x", "", (str(tmp_path / "x.bounce1.exr"),))
+    assert ps.load_bounce(25).shape[-1] == 9

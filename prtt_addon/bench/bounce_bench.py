@@ -26,6 +26,9 @@ def main(argv=None) -> int:
     p.add_argument("--bounces", type=int, default=1)
     p.add_argument("--bounce-rays", type=int, default=BakeSettings().bounce_rays)
     p.add_argument("--bounce-denoise", default=BakeSettings().bounce_denoise)
+    p.add_argument("--tuning", default=BakeSettings().tuning, choices=("fixed", "auto"),
+                   help="per-set tuning of the bounce textures (auto: coarser grid, fewer bands where they "
+                        "are not read)")
     p.add_argument("--env", default="forest")
     p.add_argument("--no-combined", dest="combined", action="store_false",
                    help="skip the third bake (transfer and bounces in one run)")
@@ -33,10 +36,11 @@ def main(argv=None) -> int:
     sc = scenes.room_scene(args.resolution, atlas=True, materials=True)
     light = env_light(args.env, 5)
     st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_rays=args.bounce_rays,
-                      bounce_denoise=args.bounce_denoise)
+                      bounce_denoise=args.bounce_denoise, tuning=args.tuning)
     print(f"room-class scene: {sc.n_triangles} triangles, {args.resolution}^2 atlas, "
           f"{len(sc.materials)} materials, light '{args.env}'; transfer {args.rays} rays, "
-          f"{args.bounces} bounce(s) x {args.bounce_rays} rays, denoise {args.bounce_denoise}")
+          f"{args.bounces} bounce(s) x {args.bounce_rays} rays, denoise {args.bounce_denoise}, "
+          f"tuning {args.tuning}")
     with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
         t = time.perf_counter()
         bake_scene(sc, d, BakeSettings(rays=args.rays, bounces=0), light=light)

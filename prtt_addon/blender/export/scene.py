@@ -141,12 +141,22 @@ def _foreach(coll, attr, n, width, dtype=np.float32):
     return a.reshape(n, width) if width > 1 else a
 
 
+#: Texels per metre an object's own texture set gets under Tuning "Auto" when
+#: Texel Density is 0 (an 8 mm texel: the demo room's floor keeps 1024², a vase
+#: gets 128²; per-object Resolution Override still wins).
+AUTO_TEXEL_DENSITY = 128.0
+
+
 def resolution_for(obj, mesh_area: float, st) -> int:
-    """Texels per side for an object: its override, else texel density, else the scene's."""
+    """Texels per side for an object: its override, else texel density (Tuning
+    Auto: AUTO_TEXEL_DENSITY when none is set), else the scene's."""
     if obj is not None and obj.prtt.resolution > 0:
         return int(obj.prtt.resolution)
-    if st.texel_density > 0 and mesh_area > 0:
-        side = st.texel_density * mesh_area ** 0.5
+    density = st.texel_density
+    if density <= 0 and st.tuning == "AUTO":
+        density = AUTO_TEXEL_DENSITY
+    if density > 0 and mesh_area > 0:
+        side = density * mesh_area ** 0.5
         p2 = 1 << max(3, int(np.ceil(np.log2(max(side, 8.0)))))
         return int(min(p2, st.resolution))
     return int(st.resolution)

@@ -126,7 +126,7 @@ class Renderer:
 
         def bounce():
             where = ", ".join(s.bounces)
-            data = _load(s.load_bounce, where)
+            data = _load(lambda: s.load_bounce(K), where)
             _check_coeffs(data, 4, K, where)
             return self._array_texture(pp.pack_bounce(data), where)
 

@@ -77,15 +77,42 @@ class BounceResult:
 
 @dataclasses.dataclass(frozen=True)
 class BounceGrid:
-    """The texel grid one set's bounce textures are baked and stored on."""
+    """The texel grid one set's bounce textures are baked and stored on, and
+    the bands they keep."""
 
     downscale: int                      # 1/downscale of the transfer resolution per side (1 = the same grid)
     width: int
     height: int
-    why: str                            # why this grid (the manifest's bounce_grid.why)
+    why: str                            # why this grid (the manifest's "grid" entry)
+    bands: int = 0                      # SH bands stored (0: all the bake's)
+    bands_why: str = ""
 
     def report(self) -> dict:
-        return {"downscale": self.downscale, "resolution": [self.width, self.height], "why": self.why}
+        out = {"downscale": self.downscale, "resolution": [self.width, self.height], "why": self.why}
+        if self.bands:
+            out.update(bands=self.bands, bands_why=self.bands_why)
+        return out
+
+
+#: tuning "auto": the bounce grid it asks for (1/2 per side: 4x fewer rays and
+#: bytes; measured in ``bench auto``), and the bands it keeps for sets with a
+#: glossy material (indirect light above band 3 measured below the default
+#: bake's noise, docs/benchmarks.md).
+AUTO_DOWNSCALE = 2
+AUTO_GLOSSY_BANDS = 3
+
+
+def choose_bounce_bands(sc, set_index: int, glossy_tri: np.ndarray, bands: int) -> tuple[int, str]:
+    """(bands to store, why) for one set's bounce textures under tuning "auto".
+    Without a glossy triangle every reader of the texture (diffuse shading, the
+    next level's diffuse exit radiance) takes only its DC term, so 1 band is
+    exact."""
+    if not glossy_tri[sc.triangles_of_set(set_index)].any():
+        return 1, "no glossy material: diffuse shading and the next level read only the DC term (exact)"
+    if bands <= AUTO_GLOSSY_BANDS:
+        return bands, f"glossy materials: all {bands} bands"
+    return AUTO_GLOSSY_BANDS, (f"glossy materials: {AUTO_GLOSSY_BANDS} bands (indirect light above them is "
+                               f"below the Monte Carlo noise, bench auto)")
 
 
 #: Coarse grids narrower than this get no texels for small islands at all.
@@ -158,19 +185,25 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
     st, sc = ctx.settings, ctx.scene
     skip, surf, grids, baked = {}, {}, {}, []
     t = time.perf_counter()
+    glossy_tri = glossy_triangles(sc)
     for r in sources:
         ctx.check_cancel()
         # Zero without rays: analytic texels, and texels no transfer ray saw geometry
         # from (tested against half-float rounding when read back from disk).
         tol = HALF_OPEN_TOLERANCE if r.storage == "half" else OPEN_TOLERANCE
         skip[r.index] = r.points.analytic | open_texels(r.rows, r.gbuffer.normal, st.bands, tol)
-        grids[r.index] = grid = choose_grid(r.gbuffer, st.bounce_downscale if geo is not None else 1)
+        auto = st.tuning == "auto"
+        asked = max(st.bounce_downscale, AUTO_DOWNSCALE) if auto else st.bounce_downscale
+        grid = choose_grid(r.gbuffer, asked if geo is not None else 1)
+        if auto:
+            grid = dataclasses.replace(grid, **dict(zip(("bands", "bands_why"),
+                                                        choose_bounce_bands(sc, r.index, glossy_tri, st.bands))))
+        grids[r.index] = grid
         if grid.downscale > 1:
             r, skip[r.index] = coarse_source(ctx, geo, r, grid, skip[r.index])
         baked.append(r)
         surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
     sources = baked
-    glossy_tri = glossy_triangles(sc)
     # Level 1 leaves each surface with the fixed light times its transfer.
     Lp = {r.index: incident_at(surf[r.index], r.incident, ctx.light, st.bands) for r in sources}
     for r in sources:
@@ -219,15 +252,23 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
     fname = f"{name}.bounce{level}.exr"
     attrs = dict(plan.exr_attrs(st), level=level, rays=st.bounce_rays, light_hash=plan.light_hash,
                  materials_hash=plan.materials_hash, texels=int(gb.n))
+    grid = inputs.grids.get(src.index)
+    Kb = grid.bands ** 2 if grid is not None and grid.bands else K
+    if Kb < K:
+        # Only the bands this set's shading reads: the rest of the projection is dropped
+        # (readers pad it with zeros, core/preview/pack.py), here and for the next level.
+        tex = np.ascontiguousarray(tex.reshape(3, K, gb.height, gb.width)[:, :Kb]).reshape(3 * Kb, gb.height,
+                                                                                           gb.width)
+        attrs.update(band_limited=1, shading_bands=st.bands)
     with numpy_hugepage_advice(False):      # fresh arrays, streamed once
         dilate(tex, mask, st.dilate, executor=ctx.helpers)
         half = write_planes(ctx, fname, tex, "bounce", attrs, rgb=True)
     nxt = None
     if level < st.bounces:
-        nxt = tex.reshape(3 * K, -1)[:, inputs.surface[src.index].valid].T.reshape(-1, 3, K)
+        rows = tex.reshape(3 * Kb, -1)[:, inputs.surface[src.index].valid].T.reshape(-1, 3, Kb)
+        nxt = rows if Kb == K else np.concatenate([rows, np.zeros((rows.shape[0], 3, K - Kb), rows.dtype)], 2)
     stats.update(name=name, level=level, file=fname, storage="half" if half else "float")
-    grid = inputs.grids.get(src.index)
-    if grid is not None and ctx.settings.bounce_downscale != 1:
+    if grid is not None and (st.bounce_downscale != 1 or st.tuning != "fixed"):
         stats["grid"] = grid.report()
     ctx.seconds["bounce_write"] += time.perf_counter() - t
     return BounceSetLevel(stats, fname, nxt, energy)

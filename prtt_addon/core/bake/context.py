@@ -57,6 +57,7 @@ class BakeSettings(TransferSettings):
     bounce_tolerance: float = _d("bounce_tolerance")  # stop levels below this fraction of the direct energy
     bounce_denoise: str = _d("bounce_denoise")        # "auto", "none", "edge-aware", "oidn" (core/bake/denoise.py)
     bounce_downscale: int = _d("bounce_downscale")    # bounce textures at 1/N resolution per side (bounce_stage.py)
+    tuning: str = _d("tuning")                        # "fixed" | "auto": per-set choices (bounce_stage.py)
 
     def validate(self) -> "BakeSettings":
         """Check every field's type and range (ValueError "name must be ..., got ...")."""
@@ -83,7 +84,7 @@ class BakeSettings(TransferSettings):
         """Settings that change the transfer textures (not threads, chunking or bounces)."""
         d = self.as_dict()
         for k in ("threads", "chunk_rays", "bounces", "bounce_rays", "bounce_tolerance", "bounce_denoise",
-                  "bounce_downscale"):
+                  "bounce_downscale", "tuning"):
             d.pop(k)
         return d
 

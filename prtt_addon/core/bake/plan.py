@@ -66,7 +66,8 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
     h = hashlib.sha256("|".join([in_hash, set_hash, light_hash(light) if light is not None else "-",
                                  mat_hash, str(st.bounces), str(st.bounce_rays),
                                  repr(float(st.bounce_tolerance)), st.bounce_denoise]
-                                + ([f"downscale={st.bounce_downscale}"] if st.bounce_downscale != 1 else [])).encode())
+                                + ([f"downscale={st.bounce_downscale}"] if st.bounce_downscale != 1 else [])
+                                + ([f"tuning={st.tuning}"] if st.tuning != "fixed" else [])).encode())
     return h.hexdigest()
 
 

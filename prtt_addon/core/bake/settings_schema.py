@@ -161,6 +161,8 @@ def _choices(values: tuple, described: dict) -> tuple:
 
 
 ESTIMATORS = ("balanced", "control-variate", "plain")
+#: Per-set tuning (core/bake/bounce_stage.py applies "auto").
+TUNINGS = ("fixed", "auto")
 
 SETTINGS: tuple[Setting, ...] = (
     # --- transfer (TransferSettings) ----------------------------------------------------
@@ -263,6 +265,15 @@ SETTINGS: tuple[Setting, ...] = (
             ui=Ui("bounce_downscale", "Bounce Downscale", soft_hi=4,
                   why_soft="the default 4-texel margins keep islands apart down to 1/2 (1/4 where islands "
                            "lie farther apart)")),
+    Setting("tuning", "bake", "choice", "fixed", "what each texture set gets: the same settings for all "
+            "(fixed), or per set only what its shading needs (auto: bounce textures on a coarser grid where "
+            "no UV islands mix, and with only the bands its materials read); the manifest records every "
+            "choice and why",
+            choices=_choices(TUNINGS, {
+                "fixed": ("Fixed", "every set as the settings say (the bake before per-set tuning, byte for byte)"),
+                "auto": ("Auto", "per set: bounce grid 1/2 where UV islands allow, bounce bands from the "
+                         "materials (1 without glossy ones)")}),
+            option="--tuning", ui=Ui("tuning", "Tuning")),
     # --- job (both command lines; not a BakeSettings field) -----------------------------
     Setting("resolution", "job", "int", 1024, "texels per side of each texture set", unit="texels",
             lo=1, hi=MAX_RESOLUTION, option="--resolution", metavar="N",

@@ -226,11 +226,20 @@ class PreviewSet:
         """(H, W, K) float32, row 0 at the bottom."""
         return read_sh_exr(self.transfer)[0]
 
-    def load_bounce(self) -> np.ndarray | None:
-        """(H, W, 3, K) float32: every bounce level summed, or None."""
+    def load_bounce(self, n_coeffs: int | None = None) -> np.ndarray | None:
+        """(H, W, 3, K) float32: every bounce level summed, or None.
+
+        A level the bake stored band-limited (tuning "auto": the bands its
+        set's shading reads, header ``band_limited``) is padded with zero
+        coefficients up to ``n_coeffs``; any other level keeps what it holds
+        (a renderer refuses too few coefficients)."""
         total = None
         for p in self.bounces:
-            b = read_sh_exr(p)[0]
+            b, attrs = read_sh_exr(p)
+            if n_coeffs is not None and attrs.get("band_limited") and b.shape[-1] < n_coeffs:
+                b = np.concatenate([b, np.zeros(b.shape[:-1] + (n_coeffs - b.shape[-1],), b.dtype)], axis=-1)
+            if total is not None and total.shape != b.shape:
+                raise ValueError(f"{p}: bounce level of shape {b.shape} does not match the others' {total.shape}")
             total = b if total is None else total + b
         return total
 
