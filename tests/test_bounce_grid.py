@@ -122,14 +122,17 @@ def test_auto_tuning_stores_the_bands_each_set_reads(tmp_path):
     loader pads them back with zeros; the manifest says what and why."""
     sc = _corner(64)
     sc.materials[0]["specular"] = 0.0          # a purely diffuse floor (the default has a Phong lobe)
-    st = dict(bounces=1, bounce_rays=32, rays=64, half=False)
-    full = bake_scene(sc, tmp_path / "full", BakeSettings(**st, bounce_downscale=2), light=_light())
-    auto = bake_scene(sc, tmp_path / "auto", BakeSettings(**st, tuning="auto"), light=_light())
+    sc.materials[1]["roughness"] = 0.8         # a rough wall: Phong exponent 0.72, |A_3|, |A_4| < 0.05 A_0
+    st = dict(bounces=1, rays=64, half=False)
+    # auto traces 1.5x the bounce rays on its coarser grid: 32 -> 48
+    full = bake_scene(sc, tmp_path / "full", BakeSettings(**st, bounce_rays=48, bounce_downscale=2), light=_light())
+    auto = bake_scene(sc, tmp_path / "auto", BakeSettings(**st, bounce_rays=32, tuning="auto"), light=_light())
     grids = {r["name"]: r["grid"] for r in auto["bounce"]["sets"]}
     assert grids["floor"]["bands"] == 1 and "DC term" in grids["floor"]["bands_why"]
-    assert grids["wall"]["bands"] == 3 and "glossy" in grids["wall"]["bands_why"]
-    assert {g["downscale"] for g in grids.values()} == {2}
+    assert grids["wall"]["bands"] == 3 and "3 of 5 bands pass their Phong lobes" in grids["wall"]["bands_why"]
+    assert {g["downscale"] for g in grids.values()} == {2} and {g["rays"] for g in grids.values()} == {48}
     assert full["bounce"]["key"] != auto["bounce"]["key"] and full["settings_hash"] == auto["settings_hash"]
+    assert auto["bounce"]["rays_traced"] == full["bounce"]["rays_traced"]
     for name, kb in (("floor", 1), ("wall", 9)):
         a, _ = exr_io.read_sh_exr(tmp_path / "full" / f"{name}.bounce1.exr")
         b, attrs = exr_io.read_sh_exr(tmp_path / "auto" / f"{name}.bounce1.exr")
@@ -151,3 +154,21 @@ def test_band_limited_levels_are_padded_only_when_marked(tmp_path):
     exr_io.write_sh_planes(tmp_path / "x.bounce1.exr", planes, kind="bounce", rgb=True, half=False)
     ps = PreviewSet("x", "", (str(tmp_path / "x.bounce1.exr"),))
     assert ps.load_bounce(25).shape[-1] == 9
+
+
+@pytest.mark.parametrize("roughness,bands", [(0.3, 5), (0.6, 5), (0.7, 4), (0.8, 3), (1.0, 4)])
+def test_bounce_bands_follow_the_phong_lobe(roughness, bands):
+    """Against the lobe factors computed here independently (the normalised
+    Phong lobe's zonal coefficients by quadrature, not zonal.phong_factors)."""
+    sc = _corner(8)
+    sc.materials[1]["roughness"] = roughness
+    glossy = bounce_stage.glossy_triangles(sc)
+    got, _ = bounce_stage.choose_bounce_bands(sc, 1, glossy, 5)
+    from numpy.polynomial.legendre import leggauss, legval
+    from prtt_addon.core.shading.materials import phong_exponent
+    s = float(phong_exponent(np.array([roughness]))[0])
+    x, w = leggauss(200)
+    lobe = (s + 1) / (2 * np.pi) * np.where(x > 0, np.abs(x) ** s, 0.0)   # normalised Phong, cos = x
+    A = np.array([2 * np.pi * np.sum(w * lobe * legval(x, np.eye(5)[l])) for l in range(5)])
+    want = 1 + max(l for l in range(5) if abs(A[l] / A[0]) >= bounce_stage.AUTO_LOBE_TOLERANCE)
+    assert got == want == bands, (got, want, A / A[0])

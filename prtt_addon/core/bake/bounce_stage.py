@@ -21,13 +21,15 @@ import time
 
 import numpy as np
 
+from ..sh.zonal import phong_factors
+from ..shading.materials import Material, eval_materials
 from ..texels.dilate import dilate
 from ..texels.gbuffer import GBuffer, build_gbuffer
 from ..texels.islands import coarse_grid_conflicts, island_labels
 from . import denoise
-from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, IncidentSet, SurfaceTexels,
-                     bake_bounce_set, bounce_settings, exit_textures, glossy_triangles, incident_at,
-                     level_energy, open_texels, surface_texels)
+from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, SurfaceTexels, bake_bounce_set,
+                     bounce_settings, exit_textures, glossy_triangles, incident_at, level_energy, open_texels,
+                     surface_texels)
 from .context import BakeContext, BakeSettings
 from .memory import numpy_hugepage_advice
 from .plan import BakePlan
@@ -46,6 +48,7 @@ class BounceInputs:
     glossy_tri: np.ndarray              # (T,) bool: triangles with a glossy material
     grids: dict[int, BounceGrid]        # the grid each set's bounce textures are baked on
     sources: list[BounceSource]         # the sets as the levels bake them (on their grids)
+    level1_surface: dict[int, SurfaceTexels]   # where level 1's light leaves from: the transfer's grid
 
 
 @dataclasses.dataclass
@@ -86,33 +89,59 @@ class BounceGrid:
     why: str                            # why this grid (the manifest's "grid" entry)
     bands: int = 0                      # SH bands stored (0: all the bake's)
     bands_why: str = ""
+    rays: int = 0                       # rays per texel on this grid (0: settings.bounce_rays)
 
     def report(self) -> dict:
         out = {"downscale": self.downscale, "resolution": [self.width, self.height], "why": self.why}
         if self.bands:
             out.update(bands=self.bands, bands_why=self.bands_why)
+        if self.rays:
+            out.update(rays=self.rays)
         return out
 
 
-#: tuning "auto": the bounce grid it asks for (1/2 per side: 4x fewer rays and
-#: bytes; measured in ``bench auto``), and the bands it keeps for sets with a
-#: glossy material (indirect light above band 3 measured below the default
-#: bake's noise, docs/benchmarks.md).
+#: tuning "auto": the bounce grid it asks for (1/2 per side: 4x fewer texels and
+#: bytes), and the rays per coarse texel relative to settings.bounce_rays
+#: (x1.5: 0.375x the rays in all; without it the coarse grid's extra noise and
+#: blur cost +0.20 percentage points of preview image error on the room, with
+#: it +0.05: bench auto, docs/benchmarks.md).
 AUTO_DOWNSCALE = 2
-AUTO_GLOSSY_BANDS = 3
+AUTO_RAY_FACTOR = 1.5
+#: A glossy lobe's band l is dropped when A_l(s) / A_0(s) of the set's sharpest
+#: lobe is below this: the shaded glossy term then changes by less than 5 %
+#: of the bounce light in those bands.
+AUTO_LOBE_TOLERANCE = 0.05
 
 
 def choose_bounce_bands(sc, set_index: int, glossy_tri: np.ndarray, bands: int) -> tuple[int, str]:
     """(bands to store, why) for one set's bounce textures under tuning "auto".
+
     Without a glossy triangle every reader of the texture (diffuse shading, the
-    next level's diffuse exit radiance) takes only its DC term, so 1 band is
-    exact."""
-    if not glossy_tri[sc.triangles_of_set(set_index)].any():
+    next level's diffuse exit radiance) takes only its DC term: 1 band, exact.
+    With glossy triangles, the bands the sharpest Phong lobe among them still
+    passes (zonal.phong_factors relative to band 0 >= AUTO_LOBE_TOLERANCE);
+    textured materials count as the sharpest possible lobe."""
+    tris = sc.triangles_of_set(set_index)
+    glossy = tris[glossy_tri[tris]]
+    if glossy.size == 0:
         return 1, "no glossy material: diffuse shading and the next level read only the DC term (exact)"
-    if bands <= AUTO_GLOSSY_BANDS:
-        return bands, f"glossy materials: all {bands} bands"
-    return AUTO_GLOSSY_BANDS, (f"glossy materials: {AUTO_GLOSSY_BANDS} bands (indirect light above them is "
-                               f"below the Monte Carlo noise, bench auto)")
+    textured = False
+    if sc.material_id is not None and sc.materials:
+        mats = [Material.from_dict(m) for m in sc.materials]
+        ids = np.unique(sc.material_id[glossy])
+        textured = any(i >= 0 and mats[i].textured for i in ids)
+    if textured:
+        return bands, f"glossy, textured materials: all {bands} bands"
+    p = eval_materials(sc, glossy, np.full((glossy.size, 3), 1.0 / 3.0))
+    n = 1
+    # Every lobe, not only the sharpest: a Phong lobe's SH factors are not
+    # monotonic in the exponent (A_3 / A_0 is -0.04 at exponent 0.72, -0.125 at 0).
+    for s in np.unique(p.exponent[np.any(p.spec > 0.0, axis=1)]):
+        A = phong_factors(float(s), bands)
+        keep = np.flatnonzero(np.abs(A / A[0]) >= AUTO_LOBE_TOLERANCE)
+        n = max(n, int(keep.max()) + 1 if keep.size else 1)
+    return n, (f"glossy materials: {n} of {bands} bands pass their Phong lobes "
+               f"(|A_l / A_0| >= {AUTO_LOBE_TOLERANCE:g})")
 
 
 #: Coarse grids narrower than this get no texels for small islands at all.
@@ -151,11 +180,11 @@ def choose_grid(gb: GBuffer, asked: int) -> BounceGrid:
 
 def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: BounceGrid,
                   skip_full: np.ndarray) -> tuple[BounceSource, np.ndarray]:
-    """``src`` on the coarse ``grid``: its G-buffer and kernel points there, the
-    transfer texture box-averaged over each f x f block (the level-1 light
-    leaving the surface, a prefilter for the coarser lookups) and the skip mask
-    (a coarse texel traces nothing when every covered texel of its block was
-    skipped at full resolution; one without covered texels there is traced)."""
+    """``src`` on the coarse ``grid``: its G-buffer and kernel points there and
+    the skip mask (a coarse texel traces nothing when every covered texel of
+    its block was skipped at full resolution; one without covered texels there
+    is traced). The transfer texture stays: level 1's light leaves surfaces
+    at full resolution (contact shadows on the surfaces light bounces off)."""
     f, st = grid.downscale, ctx.settings
     gb = src.gbuffer
     coarse = build_gbuffer(ctx.scene, src.index, normal_maps=st.normal_maps, executor=ctx.helpers,
@@ -166,12 +195,7 @@ def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: Boun
     traced = np.bincount(block, weights=(~skip_full).astype(np.float64), minlength=grid.width * grid.height)
     skip = ((covered > 0) & (traced == 0))[coarse.texel]
     skip |= pts.analytic
-    pm = src.incident.pm
-    C = pm.shape[1]
-    with numpy_hugepage_advice(True):          # looked up at random by bounce rays
-        mean = pm.reshape(grid.height, f, grid.width, f, C).mean(axis=(1, 3), dtype=np.float64)
-        incident = IncidentSet(np.ascontiguousarray(mean.reshape(-1, C), np.float32), grid.width, grid.height)
-    return dataclasses.replace(src, gbuffer=coarse, points=pts, rows=None, incident=incident), skip
+    return dataclasses.replace(src, gbuffer=coarse, points=pts, rows=None, incident=None), skip
 
 
 def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
@@ -183,7 +207,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
     ``geo``), sources move to their coarse grid (choose_grid): the returned
     inputs' ``sources`` are what the levels bake."""
     st, sc = ctx.settings, ctx.scene
-    skip, surf, grids, baked = {}, {}, {}, []
+    skip, surf, exit_surf, grids, baked, Lp = {}, {}, {}, {}, [], {}
     t = time.perf_counter()
     glossy_tri = glossy_triangles(sc)
     for r in sources:
@@ -196,28 +220,34 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
         asked = max(st.bounce_downscale, AUTO_DOWNSCALE) if auto else st.bounce_downscale
         grid = choose_grid(r.gbuffer, asked if geo is not None else 1)
         if auto:
-            grid = dataclasses.replace(grid, **dict(zip(("bands", "bands_why"),
-                                                        choose_bounce_bands(sc, r.index, glossy_tri, st.bands))))
+            nb, why = choose_bounce_bands(sc, r.index, glossy_tri, st.bands)
+            rays = int(round(st.bounce_rays * AUTO_RAY_FACTOR)) if grid.downscale > 1 else st.bounce_rays
+            grid = dataclasses.replace(grid, bands=nb, bands_why=why, rays=min(rays, 1 << 14))
         grids[r.index] = grid
+        # Level 1 leaves each surface with the fixed light times its transfer, on the
+        # transfer's grid (a coarse grid only for what the bounce textures receive).
+        exit_surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
+        Lp[r.index] = incident_at(exit_surf[r.index], r.incident, ctx.light, st.bands)
+        r.incident = None                  # the exit textures replace it
         if grid.downscale > 1:
             r, skip[r.index] = coarse_source(ctx, geo, r, grid, skip[r.index])
+            surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
+        else:
+            surf[r.index] = exit_surf[r.index]
         baked.append(r)
-        surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
-    sources = baked
-    # Level 1 leaves each surface with the fixed light times its transfer.
-    Lp = {r.index: incident_at(surf[r.index], r.incident, ctx.light, st.bands) for r in sources}
-    for r in sources:
-        r.incident = None                  # the exit textures replace it
     direct = sum(level_energy(v) for v in Lp.values())
     ctx.seconds["bounce_exit"] = time.perf_counter() - t
-    return BounceInputs(skip, surf, direct, glossy_tri, grids, sources), Lp
+    return BounceInputs(skip, surf, direct, glossy_tri, grids, baked, exit_surf), Lp
 
 
-def level_shader(ctx: BakeContext, inputs: BounceInputs, incident: dict[int, np.ndarray]) -> ExitShader:
+def level_shader(ctx: BakeContext, inputs: BounceInputs, incident: dict[int, np.ndarray],
+                 level: int = 1) -> ExitShader:
     """The radiance leaving every surface at this level, from its incident
-    radiance ``incident`` {set index: Lp (M, 3, K)} (sets missing from it are dark)."""
+    radiance ``incident`` {set index: Lp (M, 3, K)} (sets missing from it are
+    dark): at level 1 on the transfer's grid, later on the bounce grid."""
     t = time.perf_counter()
-    exits = {i: exit_textures(inputs.surface[i], v, ctx.settings.bands) for i, v in incident.items()}
+    surface = inputs.level1_surface if level == 1 else inputs.surface
+    exits = {i: exit_textures(surface[i], v, ctx.settings.bands) for i, v in incident.items()}
     shader = ExitShader(ctx.scene, exits, ctx.settings.bands, inputs.glossy_tri)
     ctx.seconds["bounce_exit"] += time.perf_counter() - t
     return shader
@@ -238,6 +268,9 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
     def on_progress(done, total, rays):
         ctx.emit(type="progress", stage="bounce", set=name, level=level, fraction=done / max(total, 1), rays=rays)
 
+    grid = inputs.grids.get(src.index)
+    if grid is not None and grid.rays and grid.rays != bst.rays:
+        bst = bounce_settings(st, grid.rays)
     tex, mask, stats = bake_bounce_set(geo.rays, gb, src.points, skip, shader, bst, level,
                                        progress=on_progress, cancel=ctx.cancel)
     ctx.seconds["bounce_trace"] += time.perf_counter() - t
@@ -252,7 +285,6 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
     fname = f"{name}.bounce{level}.exr"
     attrs = dict(plan.exr_attrs(st), level=level, rays=st.bounce_rays, light_hash=plan.light_hash,
                  materials_hash=plan.materials_hash, texels=int(gb.n))
-    grid = inputs.grids.get(src.index)
     Kb = grid.bands ** 2 if grid is not None and grid.bands else K
     if Kb < K:
         # Only the bands this set's shading reads: the rest of the projection is dropped
@@ -286,7 +318,7 @@ def bounce_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list
     stopped = None
     for level in range(1, st.bounces + 1):
         ctx.check_cancel()
-        shader = level_shader(ctx, inputs, Lp)
+        shader = level_shader(ctx, inputs, Lp, level)
         nxt, energy = {}, 0.0
         for src in inputs.sources:
             ctx.check_cancel()
