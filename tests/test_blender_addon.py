@@ -241,7 +241,7 @@ def test_missing_normal_map_image_warns_and_bakes(tmp_path):
 
 
 def test_auto_tuning_sizes_object_sets_by_texel_density(tmp_path):
-    """Tuning Auto with Texel Density 0: each object's set from its surface area
+    """Tuning Auto (the default) with Texel Density 0: each object's set from its surface area
     at AUTO_TEXEL_DENSITY (a power of two, up to the scene resolution); an
     object's Resolution Override still wins; Fixed keeps the scene resolution."""
     bpy = addon_bpy()
@@ -259,6 +259,8 @@ def test_auto_tuning_sizes_object_sets_by_texel_density(tmp_path):
     st = bpy.context.scene.prtt
     st.resolution, st.texel_density, st.texture_sets, st.bounces = 1024, 0.0, "OBJECT", 0
     st.output_dir = str(tmp_path / "out")
+    assert st.tuning == "AUTO"                                   # the default
+    st.tuning = "FIXED"
 
     def sizes():
         sc = export_scene(bpy.context, with_light=False).scene

@@ -64,7 +64,7 @@ def brute_force_bounce(sc, light, p, n_dirs=4096, q_rays=1024):
 def test_one_bounce_matches_brute_force(tmp_path, wall):
     sc = corner_scene(wall, res=32)
     light = sky()
-    m = bake_scene(sc, tmp_path, BakeSettings(rays=512, bounces=1, bounce_rays=2048, half=False), light=light)
+    m = bake_scene(sc, tmp_path, BakeSettings(rays=512, bounces=1, bounce_rays=2048, half=False, tuning="fixed"), light=light)
     assert "floor.bounce1.exr" in m["files"]
     data, attrs = exr_io.read_sh_exr(tmp_path / "floor.bounce1.exr")
     assert data.shape == (32, 32, 3, 25) and attrs["kind"] == "bounce" and attrs["level"] == 1
@@ -83,7 +83,7 @@ def test_one_bounce_matches_brute_force(tmp_path, wall):
 def test_zero_albedo_gives_exact_zero(tmp_path):
     sc = corner_scene({"name": "black", "base_color": [0, 0, 0], "specular": 0.0})
     sc.materials[0] = {"name": "black", "base_color": [0, 0, 0], "specular": 0.0}
-    m = bake_scene(sc, tmp_path, BakeSettings(rays=64, bounces=2, bounce_rays=64), light=sky())
+    m = bake_scene(sc, tmp_path, BakeSettings(rays=64, bounces=2, bounce_rays=64, tuning="fixed"), light=sky())
     for f in m["bounce"]["files"]:
         data, _ = exr_io.read_sh_exr(tmp_path / f)
         assert np.all(data == 0.0), f
@@ -125,7 +125,9 @@ def test_skipping_and_stats(tmp_path):
     m = bake_scene(sc, tmp_path / "corner", BakeSettings(rays=64, bounces=1, bounce_rays=32), light=sky())
     floor_rep = [r for r in m["bounce"]["sets"] if r["name"] == "floor"][0]
     assert 0 < floor_rep["hits_shaded"] < floor_rep["rays_traced"]
-    assert floor_rep["rays_traced"] == (floor_rep["texels"] - floor_rep["skipped_texels"]) * 32
+    rays = floor_rep["grid"]["rays"] if "grid" in floor_rep else 32     # tuning auto: 1.5x on a coarser grid
+    assert rays == 48 and floor_rep["grid"]["resolution"] == [16, 16]
+    assert floor_rep["rays_traced"] == (floor_rep["texels"] - floor_rep["skipped_texels"]) * rays
 
 
 def test_light_or_material_change_rebakes_only_bounces(tmp_path):

@@ -87,7 +87,7 @@ def test_half_grid_bake_matches_the_full_grid_block_means(tmp_path):
     """Baked at 1/2, the bounce texture is the full-grid bake averaged over 2 x 2
     blocks, to within the Monte Carlo noise of both (same rays per texel)."""
     sc = _corner(64)
-    st = dict(bounces=1, bounce_rays=512, rays=256, half=False, dilate=0)
+    st = dict(bounces=1, bounce_rays=512, rays=256, half=False, dilate=0, tuning="fixed")
     full = bake_scene(sc, tmp_path / "full", BakeSettings(**st), light=_light())
     half = bake_scene(sc, tmp_path / "half", BakeSettings(**st, bounce_downscale=2), light=_light())
     assert full["bounce"]["sets"][0].get("grid") is None
@@ -104,11 +104,11 @@ def test_half_grid_bake_matches_the_full_grid_block_means(tmp_path):
 
 
 def test_downscale_one_is_todays_bake(tmp_path):
-    """bounce_downscale 1 gives the same textures and bounce key as before the
-    setting existed (no grid entry, the key's inputs unchanged)."""
+    """tuning fixed with bounce_downscale 1 is the bake before per-set tuning
+    (no grid entry); asking for 1/2 changes the key and the textures."""
     sc = _corner(32)
-    a = bake_scene(sc, tmp_path / "a", BakeSettings(bounces=1, bounce_rays=16, rays=32), light=_light())
-    b = bake_scene(sc, tmp_path / "b", BakeSettings(bounces=1, bounce_rays=16, rays=32, bounce_downscale=2),
+    a = bake_scene(sc, tmp_path / "a", BakeSettings(bounces=1, bounce_rays=16, rays=32, tuning="fixed"), light=_light())
+    b = bake_scene(sc, tmp_path / "b", BakeSettings(bounces=1, bounce_rays=16, rays=32, bounce_downscale=2, tuning="fixed"),
                    light=_light())
     assert a["bounce"]["key"] != b["bounce"]["key"]
     assert "grid" not in a["bounce"]["sets"][0]
@@ -125,7 +125,8 @@ def test_auto_tuning_stores_the_bands_each_set_reads(tmp_path):
     sc.materials[1]["roughness"] = 0.8         # a rough wall: Phong exponent 0.72, |A_3|, |A_4| < 0.05 A_0
     st = dict(bounces=1, rays=64, half=False)
     # auto traces 1.5x the bounce rays on its coarser grid: 32 -> 48
-    full = bake_scene(sc, tmp_path / "full", BakeSettings(**st, bounce_rays=48, bounce_downscale=2), light=_light())
+    full = bake_scene(sc, tmp_path / "full", BakeSettings(**st, bounce_rays=48, bounce_downscale=2, tuning="fixed"),
+                      light=_light())
     auto = bake_scene(sc, tmp_path / "auto", BakeSettings(**st, bounce_rays=32, tuning="auto"), light=_light())
     grids = {r["name"]: r["grid"] for r in auto["bounce"]["sets"]}
     assert grids["floor"]["bands"] == 1 and "DC term" in grids["floor"]["bands_why"]

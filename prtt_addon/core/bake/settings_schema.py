@@ -265,7 +265,7 @@ SETTINGS: tuple[Setting, ...] = (
             ui=Ui("bounce_downscale", "Bounce Downscale", soft_hi=4,
                   why_soft="the default 4-texel margins keep islands apart down to 1/2 (1/4 where islands "
                            "lie farther apart)")),
-    Setting("tuning", "bake", "choice", "fixed", "what each texture set gets: the same settings for all "
+    Setting("tuning", "bake", "choice", "auto", "what each texture set gets: the same settings for all "
             "(fixed), or per set only what its shading needs (auto: bounce textures on a coarser grid where "
             "no UV islands mix, and with only the bands its materials read); the manifest records every "
             "choice and why",
