@@ -47,3 +47,11 @@ def test_sweep_denoise_quick(tmp_path):
 def test_stress_bench():
     out = bench("stress")
     assert "7/7 cases hold" in out, out
+
+
+def test_auto_bench_quick(tmp_path):
+    out = bench("auto", "--quick", "--out", str(tmp_path))
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("auto vs fixed: time ÷ ") and ", bytes ÷ " in last and " % vs " in last, out
+    for name in ("fixed", "grid 1/2", "auto"):
+        assert f"  {name}" in out
