@@ -63,7 +63,7 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
     else:
         print(f"  reference bounce ({ref_rays} rays per texel) ...", flush=True)
         bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=ref_rays, half=False,
-                                                     bounce_denoise="none"), light=light)
+                                          bounce_denoise="none", tuning="fixed"), light=light)
         ref = _planes(os.path.join(work, f"{name}.bounce1.exr"))
         if not cfg.quick:
             os.makedirs(os.path.dirname(cache), exist_ok=True)
@@ -74,8 +74,9 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
     rows = []
     for rays in rays_list:
         t = time.perf_counter()
+        # The full grid: the denoisers are measured on the transfer's texels (bench auto has the coarse grid).
         m = bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=rays, half=False,
-                                               bounce_denoise="none"), light=light)
+                                               bounce_denoise="none", tuning="fixed"), light=light)
         bake_s = time.perf_counter() - t
         assert m["transfer_reused"]
         raw = _planes(os.path.join(work, f"{name}.bounce1.exr"))
