@@ -138,6 +138,7 @@ def test_auto_tuning_stores_the_bands_each_set_reads(tmp_path):
         a, _ = exr_io.read_sh_exr(tmp_path / "full" / f"{name}.bounce1.exr")
         b, attrs = exr_io.read_sh_exr(tmp_path / "auto" / f"{name}.bounce1.exr")
         assert b.shape == a.shape[:3] + (kb,) and attrs["band_limited"] == 1 and attrs["shading_bands"] == 5
+        assert attrs["rays"] == 48                                       # what each coarse texel traced
         np.testing.assert_array_equal(b, a[..., :kb])
         ps = PreviewSet(name, str(tmp_path / "auto" / f"{name}.transfer.exr"),
                         (str(tmp_path / "auto" / f"{name}.bounce1.exr"),))

@@ -22,38 +22,12 @@ import shutil
 import tempfile
 import time
 
-import numpy as np
-
 from ..cli import env_light
 from ..core.bake.runner import BakeSettings, bake_scene
 from . import scenes
-from .sweep import image_error, write_csv
+from .sweep import Previewer, image_error, write_csv
 
 DOCS_BENCH = os.path.join(scenes.ROOT, "docs", "bench")
-
-
-class BounceRenderer:
-    """TPFL preview renders with bounce light of baked room textures (offscreen)."""
-
-    def __init__(self, sc, light, size):
-        import bpy  # noqa: F401  (dev only: provides gpu)
-
-        from ..blender.preview.render import ensure_gpu
-        from ..blender.preview.renderer import Renderer
-        from ..core.preview.reference import look_at, perspective
-        ensure_gpu()
-        self.sc, self.light, (self.w, self.h) = sc, light, size
-        eye = np.array([0.0, -5.6, 2.3])
-        self.vp = perspective(62.0, self.w / self.h) @ look_at(eye, (0.0, 0.6, 0.7))
-        self.cam = np.array([*eye, 1.0])
-        self.renderer = Renderer()
-
-    def render(self, out_dir: str) -> np.ndarray:
-        from ..blender.preview.renderer import render_offscreen
-        from ..core.preview.pack import from_core_scene
-        ps = from_core_scene(self.sc, out_dir, self.light, 5, use_bounces=True)
-        img, _ = render_offscreen(self.renderer, ps, "tpfl", self.vp, self.cam, self.w, self.h)
-        return img
 
 
 def texture_bytes(out_dir: str, manifest: dict) -> int:
@@ -91,7 +65,7 @@ def main(argv=None) -> int:
     light = env_light("forest", 5)
     print(f"room-class scene: {sc.n_triangles} triangles, {res}^2 atlas, one bounce, light 'forest'", flush=True)
     ref = reference_dir(sc, light, res, ref_rays, ref_bounce)
-    view = BounceRenderer(sc, light, size)
+    view = Previewer(sc, light, size, bounces=True)
     ref_img = view.render(ref)
     rows = []
     with tempfile.TemporaryDirectory(prefix="prtt-bench-auto-") as tmp:

@@ -132,16 +132,17 @@ def write_csv(path: str, rows: list) -> None:
 
 
 class Previewer:
-    """TPFL preview images (offscreen, the viewport's shaders) of baked room textures."""
+    """TPFL preview images (offscreen, the viewport's shaders) of baked room
+    textures, with their bounce light when ``bounces`` (bench auto)."""
 
-    def __init__(self, sc, light, size):
+    def __init__(self, sc, light, size, *, bounces: bool = False):
         import bpy  # noqa: F401  (provides gpu)
 
         from ..blender.preview.render import ensure_gpu
         from ..blender.preview.renderer import Renderer
         from ..core.preview.reference import look_at, perspective
         ensure_gpu()
-        self.sc, self.light, (self.w, self.h) = sc, light, size
+        self.sc, self.light, (self.w, self.h), self.bounces = sc, light, size, bounces
         eye = np.array([0.0, -5.6, 2.3])
         self.vp = perspective(62.0, self.w / self.h) @ look_at(eye, (0.0, 0.6, 0.7))
         self.cam = np.array([*eye, 1.0])
@@ -149,7 +150,7 @@ class Previewer:
 
     def scene(self, out_dir, bands):
         from ..core.preview.pack import from_core_scene
-        return from_core_scene(self.sc, out_dir, self.light, bands, use_bounces=False)
+        return from_core_scene(self.sc, out_dir, self.light, bands, use_bounces=self.bounces)
 
     def render(self, out_dir, bands=5) -> np.ndarray:
         from ..blender.preview.renderer import render_offscreen

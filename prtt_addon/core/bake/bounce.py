@@ -217,18 +217,21 @@ def level_energy(tex_rows: np.ndarray) -> float:
     return float(np.sum(r[:, :, 0], dtype=np.float64))
 
 
+def textured_triangles(sc) -> np.ndarray:
+    """(T,) bool: the triangle's material reads a texture (its factors vary
+    over the surface, so no single value stands for them)."""
+    if sc.material_id is None or not sc.materials:
+        return np.zeros(sc.n_triangles, bool)
+    textured = [i for i, m in enumerate(sc.materials) if Material.from_dict(m).textured]
+    return np.isin(sc.material_id, textured)
+
+
 def glossy_triangles(sc) -> np.ndarray:
     """(T,) bool: the triangle's material has a specular lobe somewhere
     (textured materials count as glossy if any factor could make one)."""
     T = sc.n_triangles
     p = eval_materials(sc, np.arange(T), np.full((T, 3), 1.0 / 3.0))
-    out = np.any(p.spec > 0.0, axis=1)
-    if sc.material_id is not None and sc.materials:
-        mats = [Material.from_dict(m) for m in sc.materials]
-        textured = [i for i, m in enumerate(mats) if m.textured]
-        if textured:
-            out |= np.isin(sc.material_id, textured)
-    return out
+    return np.any(p.spec > 0.0, axis=1) | textured_triangles(sc)
 
 
 class ExitShader:

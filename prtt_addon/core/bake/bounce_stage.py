@@ -22,14 +22,14 @@ import time
 import numpy as np
 
 from ..sh.zonal import phong_factors
-from ..shading.materials import Material, eval_materials
+from ..shading.materials import eval_materials
 from ..texels.dilate import dilate
 from ..texels.gbuffer import GBuffer, build_gbuffer
 from ..texels.islands import coarse_grid_conflicts, island_labels
 from . import denoise
 from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, SurfaceTexels, bake_bounce_set,
                      bounce_settings, exit_textures, glossy_triangles, incident_at, level_energy, open_texels,
-                     surface_texels)
+                     surface_texels, textured_triangles)
 from .context import BakeContext, BakeSettings
 from .memory import numpy_hugepage_advice
 from .plan import BakePlan
@@ -107,9 +107,9 @@ class BounceGrid:
 #: it +0.05: bench auto, docs/benchmarks.md).
 AUTO_DOWNSCALE = 2
 AUTO_RAY_FACTOR = 1.5
-#: A glossy lobe's band l is dropped when A_l(s) / A_0(s) of the set's sharpest
-#: lobe is below this: the shaded glossy term then changes by less than 5 %
-#: of the bounce light in those bands.
+#: A band l is dropped when |A_l(s) / A_0(s)| is below this for every glossy
+#: lobe of the set: the shaded glossy term then changes by less than 5 % of
+#: the bounce light in those bands.
 AUTO_LOBE_TOLERANCE = 0.05
 
 
@@ -118,19 +118,14 @@ def choose_bounce_bands(sc, set_index: int, glossy_tri: np.ndarray, bands: int) 
 
     Without a glossy triangle every reader of the texture (diffuse shading, the
     next level's diffuse exit radiance) takes only its DC term: 1 band, exact.
-    With glossy triangles, the bands the sharpest Phong lobe among them still
-    passes (zonal.phong_factors relative to band 0 >= AUTO_LOBE_TOLERANCE);
-    textured materials count as the sharpest possible lobe."""
+    With glossy triangles, the bands any of their Phong lobes still passes
+    (|zonal.phong_factors / band 0| >= AUTO_LOBE_TOLERANCE); a textured
+    material keeps every band (its lobe is not one value)."""
     tris = sc.triangles_of_set(set_index)
     glossy = tris[glossy_tri[tris]]
     if glossy.size == 0:
         return 1, "no glossy material: diffuse shading and the next level read only the DC term (exact)"
-    textured = False
-    if sc.material_id is not None and sc.materials:
-        mats = [Material.from_dict(m) for m in sc.materials]
-        ids = np.unique(sc.material_id[glossy])
-        textured = any(i >= 0 and mats[i].textured for i in ids)
-    if textured:
+    if textured_triangles(sc)[glossy].any():
         return bands, f"glossy, textured materials: all {bands} bands"
     p = eval_materials(sc, glossy, np.full((glossy.size, 3), 1.0 / 3.0))
     n = 1
@@ -283,7 +278,7 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
         stats["denoise"] = {"filter": filt, "seconds": time.perf_counter() - td}
     energy = level_energy(tex.reshape(3 * K, -1)[:, gb.texel].T)
     fname = f"{name}.bounce{level}.exr"
-    attrs = dict(plan.exr_attrs(st), level=level, rays=st.bounce_rays, light_hash=plan.light_hash,
+    attrs = dict(plan.exr_attrs(st), level=level, rays=bst.rays, light_hash=plan.light_hash,
                  materials_hash=plan.materials_hash, texels=int(gb.n))
     Kb = grid.bands ** 2 if grid is not None and grid.bands else K
     if Kb < K:
