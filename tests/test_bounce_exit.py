@@ -1,5 +1,6 @@
 """The bounce bake's precomputed exit radiance against a slow per-hit reference,
 its determinism across thread counts, and the early stop of bounce levels."""
+import dataclasses
 import json
 import math
 
@@ -8,8 +9,9 @@ import pytest
 
 from prtt_addon.core.io import exr_io
 from prtt_addon.core.bake.runner import BakeSettings, bake_scene
-from prtt_addon.core.bake.bounce import (ExitShader, IncidentSet, exit_textures, glossy_triangles,
-                                         incident_at, level_energy, surface_texels)
+from prtt_addon.core.bake.bounce import (ExitShader, IncidentSet, block_mean_incident, exit_textures,
+                                         glossy_triangles, incident_at, incident_dc_at, level_energy,
+                                         surface_texels)
 from prtt_addon.core.sh.gaunt import tpfl_matrix
 from prtt_addon.core.texels.gbuffer import build_gbuffer
 from prtt_addon.core.shading.materials import ShadingParams
@@ -21,7 +23,7 @@ GLOSSY_WALL = {"name": "glossy", "base_color": [0.2, 0.3, 0.9], "roughness": 0.3
 DIFFUSE_FLOOR = {"name": "floor", "base_color": [0.5, 0.4, 0.3], "specular": 0.0}
 
 
-def _reference_radiance(sc, surf, T_pm, light, bands, tri, u, v, view):
+def _reference_radiance(sc, surf, T_pm, light, bands, tri, u, v, view, clamp=True):
     """Per hit, in float64, one hit at a time: the texel nearest to the hit's uv,
     that texel's transfer lit by the light through the triple-product matrix,
     and the reference shading model (shading.outgoing) with that texel's
@@ -44,7 +46,7 @@ def _reference_radiance(sc, surf, T_pm, light, bands, tri, u, v, view):
         Lp = np.einsum("cik,k->ci", M, T)[None]                         # (1, 3, K)
         spec = surf.spec[i:i + 1] if glossy[t] else np.zeros((1, 3))
         p = ShadingParams(surf.albedo[i:i + 1], spec, surf.exponent[i:i + 1])
-        out[h] = outgoing(Lp, surf.normal[i:i + 1], view[h:h + 1].astype(np.float64), p)[0]
+        out[h] = outgoing(Lp, surf.normal[i:i + 1], view[h:h + 1].astype(np.float64), p, clamp=clamp)[0]
     return out
 
 
@@ -92,6 +94,74 @@ def test_exit_radiance_equals_slow_per_hit_reference(wall):
         assert lobe > 0.05 * scale               # the glossy path is exercised, and matches
     else:
         assert lobe == 0.0                       # no lobe row for a diffuse set
+
+
+def test_block_mean_incident_is_the_mean_of_valid_texels():
+    rng = np.random.default_rng(5)
+    W, H, C, f = 12, 8, 4, 2
+    pm = rng.normal(size=(W * H, C)).astype(np.float32)
+    valid = np.flatnonzero(rng.random(W * H) < 0.6)
+    got = block_mean_incident(IncidentSet(pm, W, H), valid, f, 3)
+    assert (got.width, got.height) == (W // f, H // f)
+    is_valid = np.zeros(W * H, bool)
+    is_valid[valid] = True
+    for by in range(H // f):
+        for bx in range(W // f):
+            idx = [(by * f + j) * W + bx * f + i for j in range(f) for i in range(f)]
+            idx = [k for k in idx if is_valid[k]]
+            if idx:
+                np.testing.assert_allclose(got.pm[by * (W // f) + bx], pm[idx].astype(np.float64).mean(axis=0),
+                                           rtol=1e-6, atol=1e-6)
+
+
+def test_diffuse_from_the_fine_grid_glossy_from_the_coarse_one():
+    """Level 1 under tuning auto: per hit, the diffuse term of the fine grid's
+    nearest texel plus the glossy lobe of the coarse grid's nearest texel lit
+    by the block mean of the transfer (slow reference as above, per term)."""
+    sc = corner_scene(GLOSSY_WALL, res=32)
+    sc.materials[0] = DIFFUSE_FLOOR
+    bands, f = 5, 2
+    light = sky(bands)
+    rng = np.random.default_rng(4)
+    exits, parts = {}, {}
+    for s in range(len(sc.set_names)):
+        gb = build_gbuffer(sc, s)
+        coarse = build_gbuffer(sc, s, resolution=(gb.width // f, gb.height // f))
+        fine = surface_texels(sc, gb, 2, diffuse_only=True)
+        assert not fine.glossy
+        surf = surface_texels(sc, coarse, 2)
+        T_pm = np.zeros((gb.width * gb.height, bands * bands), np.float32)
+        T_pm[fine.valid] = rng.normal(0.5, 0.3, (fine.valid.size, bands * bands))
+        inc = IncidentSet(T_pm, gb.width, gb.height)
+        dc = incident_dc_at(fine, inc, light, bands)
+        np.testing.assert_allclose(dc, incident_at(fine, inc, light, bands)[:, :, 0], rtol=1e-5, atol=1e-5)
+        inc_c = block_mean_incident(inc, fine.valid, f, 2)
+        exits[s] = exit_textures(surf, incident_at(surf, inc_c, light, bands), bands, diffuse_at=(fine, dc))
+        parts[s] = (fine, T_pm, surf, inc_c.pm)
+    glossy = glossy_triangles(sc)
+    shader = ExitShader(sc, exits, bands, glossy)
+    n = 400
+    tri = rng.integers(0, sc.n_triangles, n)
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    view = rng.normal(size=(n, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    got = shader.radiance(tri.astype(np.int64), u.astype(np.float32), v.astype(np.float32), view.astype(np.float32))
+    ref = np.zeros((n, 3))
+    for s, (fine, T_pm, surf, Tc_pm) in parts.items():
+        sel = np.flatnonzero(sc.set_id[tri] == s)
+        no_spec = dataclasses.replace(fine, spec=np.zeros_like(fine.spec))
+        diffuse = _reference_radiance(sc, no_spec, T_pm, light, bands, tri[sel], u[sel], v[sel], view[sel],
+                                       clamp=False)
+        lobe_only = dataclasses.replace(surf, albedo=np.zeros_like(surf.albedo))
+        lobe = _reference_radiance(sc, lobe_only, Tc_pm, light, bands, tri[sel], u[sel], v[sel], view[sel],
+                                    clamp=False)
+        ref[sel] = np.maximum(diffuse + lobe, 0.0)
+    scale = np.abs(ref).max()
+    assert np.abs(got - ref).max() <= 2e-5 * scale, np.abs(got - ref).max() / scale
+    wall = np.flatnonzero(glossy[tri])
+    assert wall.size and np.abs(ref[wall]).max() > 0.05 * scale
 
 
 def test_bounce_textures_identical_for_any_thread_count(tmp_path):

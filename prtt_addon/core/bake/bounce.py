@@ -129,74 +129,100 @@ class SurfaceTexels:
         return bool(np.any(self.spec > 0.0))
 
 
-def surface_texels(sc, gb: GBuffer, dilate_iterations: int) -> SurfaceTexels:
+def surface_texels(sc, gb: GBuffer, dilate_iterations: int, *, diffuse_only: bool = False) -> SurfaceTexels:
     """Material and shading normal at every texel centre of ``gb``, dilated by
     ``dilate_iterations`` rings (the mean of filled neighbours, the textures'
-    rule; normals renormalised)."""
+    rule; normals renormalised). ``diffuse_only``: the albedo alone (spec,
+    exponent and normal are zeros), for a grid only the diffuse term leaves from."""
     p = eval_materials(sc, gb.tri, gb.bary)
     H, W = gb.height, gb.width
-    planes = np.zeros((10, H * W))
+    n_planes = 3 if diffuse_only else 10
+    planes = np.zeros((n_planes, H * W))
     planes[0:3, gb.texel] = p.albedo.T
-    planes[3:6, gb.texel] = p.spec.T
-    planes[6, gb.texel] = p.exponent
-    planes[7:10, gb.texel] = gb.normal.T
+    if not diffuse_only:
+        planes[3:6, gb.texel] = p.spec.T
+        planes[6, gb.texel] = p.exponent
+        planes[7:10, gb.texel] = gb.normal.T
     mask = np.zeros(H * W, bool)
     mask[gb.texel] = True
-    planes = planes.reshape(10, H, W)
+    planes = planes.reshape(n_planes, H, W)
     grown = dilate(planes, mask.reshape(H, W), dilate_iterations).reshape(-1)
     valid = np.flatnonzero(grown)
-    rows = planes.reshape(10, H * W)[:, valid].T
-    n = rows[:, 7:10]
-    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    rows = planes.reshape(n_planes, H * W)[:, valid].T
     row_of = np.full(H * W, valid.size, np.int32)
     row_of[valid] = np.arange(valid.size, dtype=np.int32)
-    return SurfaceTexels(W, H, valid, np.ascontiguousarray(rows[:, 0:3]), np.ascontiguousarray(rows[:, 3:6]),
+    albedo = np.ascontiguousarray(rows[:, 0:3])
+    if diffuse_only:
+        zeros = np.zeros((valid.size, 3))
+        return SurfaceTexels(W, H, valid, albedo, zeros, np.zeros(valid.size), zeros, row_of)
+    n = rows[:, 7:10]
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    return SurfaceTexels(W, H, valid, albedo, np.ascontiguousarray(rows[:, 3:6]),
                          np.ascontiguousarray(rows[:, 6]), np.ascontiguousarray(n), row_of)
+
+
+@dataclasses.dataclass
+class TexelRows:
+    """A texel grid's lookup into per-texel rows: ``row_of`` (H * W,) int32,
+    each texel's row (M, the last row of zeros, where the grid has no value)."""
+
+    width: int
+    height: int
+    row_of: np.ndarray
+
+    def rows_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Rows of the texels nearest to UV coordinates (x, y) in [0, 1]."""
+        ix = np.clip((x * self.width).astype(np.int64), 0, self.width - 1)
+        iy = np.clip((y * self.height).astype(np.int64), 0, self.height - 1)
+        return self.row_of[iy * self.width + ix]
 
 
 @dataclasses.dataclass
 class ExitTextures:
     """Radiance leaving one set's surface, ready for lookups (float32 rows).
 
-    One row per valid texel (``SurfaceTexels.valid`` order) and a last row of
-    zeros; ``row_of`` (H * W,) maps a texel to its row (the zero row where
-    empty), so no texture-sized array is filled for a level.
-    ``diffuse`` (M + 1, 3): D_c. ``glossy`` (M + 1, 6 + 3K) or None when the
-    set has no specular lobe: D_c again (one lookup for a glossy hit), the
-    shading normal, then G_R, G_G, G_B (K each).
+    One row per valid texel of a grid and a last row of zeros, so no
+    texture-sized array is filled for a level. ``diffuse`` (M + 1, 3): D_c on
+    the grid ``diffuse_grid``. ``glossy`` (M' + 1, 3 + 3K) or None when the
+    set has no specular lobe: the shading normal, then G_R, G_G, G_B (K each),
+    on ``glossy_grid`` (the same grid, or a coarser one: bounce level 1 under
+    tuning auto, where the diffuse term keeps the transfer's resolution).
     """
 
-    width: int
-    height: int
-    row_of: np.ndarray
+    diffuse_grid: TexelRows
     diffuse: np.ndarray
+    glossy_grid: TexelRows | None
     glossy: np.ndarray | None
 
 
-def exit_textures(surf: SurfaceTexels, Lp: np.ndarray, bands: int) -> ExitTextures:
+def exit_textures(surf: SurfaceTexels, Lp: np.ndarray, bands: int,
+                  diffuse_at: tuple[SurfaceTexels, np.ndarray] | None = None) -> ExitTextures:
     """Exit radiance textures from incident radiance ``Lp`` (M, 3, K) at the
-    valid texels (float32 or float64; computed in float32, which the lookups use)."""
+    valid texels of ``surf`` (float32 or float64; computed in float32, which the
+    lookups use). ``diffuse_at`` = (SurfaceTexels, Lp_dc (M', 3)): the diffuse
+    term from that (finer) grid instead, from the DC terms of its incident radiance."""
     K = bands * bands
     M = surf.valid.size
     if Lp.shape != (M, 3, K):
         raise ValueError(f"incident radiance must be ({M}, 3, {K}), got {Lp.shape}")
-    diffuse = np.zeros((M + 1, 3), np.float32)
-    D = diffuse[:M]
-    D[...] = (surf.albedo * (SQRT_4PI / math.pi)) * Lp[:, :, 0]
+    dsurf, dc = (surf, Lp[:, :, 0]) if diffuse_at is None else diffuse_at
+    diffuse = np.zeros((dsurf.valid.size + 1, 3), np.float32)
+    diffuse[:-1] = (dsurf.albedo * (SQRT_4PI / math.pi)) * dc
     glossy = None
     if surf.glossy:
         A = lobe_factors(surf.exponent, bands).astype(np.float32)                    # (M, K)
         spec = surf.spec.astype(np.float32)
-        glossy = np.empty((M + 1, 6 + 3 * K), np.float32)
+        glossy = np.empty((M + 1, 3 + 3 * K), np.float32)
         glossy[M] = 0.0
         rows = glossy[:M]
-        rows[:, :3] = D
-        rows[:, 3:6] = surf.normal
+        rows[:, :3] = surf.normal
         for c in range(3):
-            blk = rows[:, 6 + c * K:6 + (c + 1) * K]
+            blk = rows[:, 3 + c * K:3 + (c + 1) * K]
             np.multiply(A, spec[:, c:c + 1], out=blk)
             blk *= Lp[:, c, :]
-    return ExitTextures(surf.width, surf.height, surf.row_of, diffuse, glossy)
+    grid = TexelRows(surf.width, surf.height, surf.row_of)
+    dgrid = grid if diffuse_at is None else TexelRows(dsurf.width, dsurf.height, dsurf.row_of)
+    return ExitTextures(dgrid, diffuse, grid if glossy is not None else None, glossy)
 
 
 def incident_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray, bands: int) -> np.ndarray:
@@ -207,6 +233,32 @@ def incident_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray, b
     Mx = tpfl_matrix(np.asarray(light)[:K], bands)                               # (3, K, K)
     M2 = np.ascontiguousarray(Mx.reshape(3 * K, K).T, dtype=np.float32)
     return (rows[:, :K] @ M2).reshape(-1, 3, K)
+
+
+def incident_dc_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray, bands: int) -> np.ndarray:
+    """(M, 3) float32: the DC terms of :func:`incident_at` alone (all the
+    diffuse exit radiance reads), one (K, 3) product instead of (K, 3K)."""
+    K = bands * bands
+    Mx = tpfl_matrix(np.asarray(light)[:K], bands)                               # (3, K, K)
+    M0 = np.ascontiguousarray(Mx[:, 0, :].T, dtype=np.float32)                   # (K, 3)
+    return incident.pm[surf.valid][:, :K] @ M0
+
+
+def block_mean_incident(incident: IncidentSet, valid: np.ndarray, f: int, dilate_iterations: int) -> IncidentSet:
+    """``incident`` on the grid 1/f per side: each coarse texel the mean of the
+    f x f block's texels in ``valid`` (flat indices that hold a value), blocks
+    without one filled by ``dilate_iterations`` rings (the textures' rule)."""
+    W, H, C = incident.width, incident.height, incident.pm.shape[1]
+    w, h = W // f, H // f
+    mask = np.zeros(H * W, np.float32)
+    mask[valid] = 1.0
+    blocks = np.einsum("aibjc,aibj->abc", incident.pm.reshape(h, f, w, f, C), mask.reshape(h, f, w, f))
+    count = mask.reshape(h, f, w, f).sum(axis=(1, 3))
+    have = count > 0
+    blocks[have] /= count[have][:, None]
+    planes = np.ascontiguousarray(np.moveaxis(blocks, 2, 0))
+    dilate(planes, have, dilate_iterations)
+    return IncidentSet(np.ascontiguousarray(planes.reshape(C, -1).T), w, h)
 
 
 def level_energy(tex_rows: np.ndarray) -> float:
@@ -268,36 +320,34 @@ class ExitShader:
             us, vs = u[sel], v[sel]
             x = f[:, 0] + us * f[:, 2] + vs * f[:, 4]
             y = f[:, 1] + us * f[:, 3] + vs * f[:, 5]
-            ix = np.clip((x * ex.width).astype(np.int64), 0, ex.width - 1)
-            iy = np.clip((y * ex.height).astype(np.int64), 0, ex.height - 1)
-            near = ex.row_of[iy * ex.width + ix]
+            near = ex.diffuse_grid.rows_at(x, y)
             # Visit the hits in texel order: random lookups in a texture of
             # hundreds of MB are ~5x slower than ordered ones, and a radix sort
             # on 16-bit keys (blocks of texels) costs a fraction of that.
             shift = max(0, int(ex.diffuse.shape[0] - 1).bit_length() - 16)
             o = np.argsort((near >> shift).astype(np.uint16), kind="stable")
             sel, near = sel[o], near[o]
+            val = np.take(ex.diffuse, near, axis=0)
             gl = self.glossy_tri[tri[sel]] if ex.glossy is not None else None
-            if gl is None or not gl.any():
-                val = np.take(ex.diffuse, near, axis=0)
-            else:
-                val = np.empty((sel.size, 3), np.float32)
-                d = np.flatnonzero(~gl)
-                if d.size:
-                    val[d] = np.take(ex.diffuse, near[d], axis=0)
+            if gl is not None and gl.any():
                 g = np.flatnonzero(gl)
-                val[g] = self._glossy(ex, near[g], view[sel[g]])
+                if ex.glossy_grid is ex.diffuse_grid:
+                    gnear = near[g]
+                else:
+                    og = o[g]
+                    gnear = ex.glossy_grid.rows_at(x[og], y[og])
+                val[g] = self._glossy(ex, gnear, view[sel[g]], val[g])
             np.maximum(val, 0.0, out=val)
             out[sel] = val
         return out
 
-    def _glossy(self, ex: ExitTextures, row: np.ndarray, view: np.ndarray) -> np.ndarray:
-        """D_c + sum_lm G_c,lm y_lm(r) (m, 3) at exit rows ``row``, r the reflection of view."""
-        G = np.take(ex.glossy, row, axis=0)                                   # (m, 6 + 3K)
+    def _glossy(self, ex: ExitTextures, row: np.ndarray, view: np.ndarray, diffuse: np.ndarray) -> np.ndarray:
+        """sum_lm G_c,lm y_lm(r) + ``diffuse`` (m, 3) at glossy rows ``row``, r the reflection of view."""
+        G = np.take(ex.glossy, row, axis=0)                                   # (m, 3 + 3K)
         m, K = row.size, self.K
         # Coordinates as rows (3, m): every operation below then runs on
         # contiguous arrays (strided columns of G made this twice as slow).
-        n = np.ascontiguousarray(G[:, 3:6].T)
+        n = np.ascontiguousarray(G[:, 0:3].T)
         w = np.ascontiguousarray(view.T)
         # r = 2 (n.w) n / |n|^2 - w: the reflection about the (dilated, unnormalised) normal.
         d = 2.0 * (n * w).sum(axis=0) / np.maximum((n * n).sum(axis=0), np.float32(1e-30))
@@ -305,8 +355,8 @@ class ExitShader:
         r -= w
         r /= np.sqrt(np.maximum((r * r).sum(axis=0), np.float32(1e-30)))
         y = basis_unchecked((r[0], r[1], r[2]), self.bands, np.float32)     # (m, K)
-        out = np.einsum("nck,nk->nc", G[:, 6:].reshape(m, 3, K), y)
-        out += G[:, :3]
+        out = np.einsum("nck,nk->nc", G[:, 3:].reshape(m, 3, K), y)
+        out += diffuse
         return out
 
 
