@@ -206,21 +206,33 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
     skip, surf, level1_diffuse, grids, baked, Lp = {}, {}, {}, {}, [], {}
     t = time.perf_counter()
     glossy_tri = glossy_triangles(sc)
+    auto = st.tuning == "auto"
+    asked = max(st.bounce_downscale, AUTO_DOWNSCALE) if auto else st.bounce_downscale
+    if geo is None:
+        asked = 1
+
+    def fine_diffuse(r):
+        full = surface_texels(sc, r.gbuffer, st.dilate, diffuse_only=True)
+        return full, incident_dc_at(full, r.incident, ctx.light, st.bands)
+
     for r in sources:
         ctx.check_cancel()
         # Zero without rays: analytic texels, and texels no transfer ray saw geometry
         # from (tested against half-float rounding when read back from disk).
         tol = HALF_OPEN_TOLERANCE if r.storage == "half" else OPEN_TOLERANCE
-        skip[r.index] = r.points.analytic | open_texels(r.rows, r.gbuffer.normal, st.bands, tol)
-        auto = st.tuning == "auto"
-        asked = max(st.bounce_downscale, AUTO_DOWNSCALE) if auto else st.bounce_downscale
-        grid = choose_grid(r.gbuffer, asked if geo is not None else 1)
+        # The steps below are numpy on one core each: independent ones run on the
+        # helper threads beside the island labels (choose_grid) on this one.
+        open_job = ctx.helpers.submit(open_texels, r.rows, r.gbuffer.normal, st.bands, tol)
+        fine_job = ctx.helpers.submit(fine_diffuse, r) if asked > 1 else None
+        grid = choose_grid(r.gbuffer, asked)
+        skip[r.index] = r.points.analytic | open_job.result()
         if auto:
             nb, why = choose_bounce_bands(sc, r.index, glossy_tri, st.bands)
             rays = int(round(st.bounce_rays * AUTO_RAY_FACTOR)) if grid.downscale > 1 else st.bounce_rays
             grid = dataclasses.replace(grid, bands=nb, bands_why=why, rays=min(rays, 1 << 14))
         grids[r.index] = grid
         incident = r.incident
+        fine = fine_job.result() if fine_job is not None else None
         r.incident = None                  # the exit textures replace it
         if grid.downscale > 1:
             # Level 1's diffuse light leaves from the transfer's grid (contact shadows
@@ -228,11 +240,13 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
             # room, bench auto); its glossy lobe, a few % of the light and smooth, from
             # the coarse grid with the transfer averaged over each block (4x fewer
             # texels to light and look up).
-            full = surface_texels(sc, r.gbuffer, st.dilate, diffuse_only=True)
-            level1_diffuse[r.index] = (full, incident_dc_at(full, incident, ctx.light, st.bands))
-            incident = block_mean_incident(incident, full.valid, grid.downscale, st.dilate)
+            level1_diffuse[r.index] = fine
+            block_job = ctx.helpers.submit(block_mean_incident, incident, fine[0].valid, grid.downscale, st.dilate)
             r, skip[r.index] = coarse_source(ctx, geo, r, grid, skip[r.index])
-        surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
+            surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
+            incident = block_job.result()
+        else:
+            surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
         Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
         baked.append(r)
     # On the grids the bounce textures are baked on, like each level's energy.
