@@ -132,10 +132,11 @@ def write_csv(path: str, rows: list) -> None:
 
 
 class Previewer:
-    """TPFL preview images (offscreen, the viewport's shaders) of baked room
-    textures, with their bounce light when ``bounces`` (bench auto)."""
+    """TPFL preview images (offscreen, the viewport's shaders) of baked
+    textures, with their bounce light when ``bounces`` (bench auto). The
+    camera is the room's unless ``eye`` and ``target`` (metres, Z up) say."""
 
-    def __init__(self, sc, light, size, *, bounces: bool = False):
+    def __init__(self, sc, light, size, *, bounces: bool = False, eye=(0.0, -5.6, 2.3), target=(0.0, 0.6, 0.7)):
         import bpy  # noqa: F401  (provides gpu)
 
         from ..blender.preview.render import ensure_gpu
@@ -143,8 +144,8 @@ class Previewer:
         from ..core.preview.reference import look_at, perspective
         ensure_gpu()
         self.sc, self.light, (self.w, self.h), self.bounces = sc, light, size, bounces
-        eye = np.array([0.0, -5.6, 2.3])
-        self.vp = perspective(62.0, self.w / self.h) @ look_at(eye, (0.0, 0.6, 0.7))
+        eye = np.asarray(eye, np.float64)
+        self.vp = perspective(62.0, self.w / self.h) @ look_at(eye, tuple(target))
         self.cam = np.array([*eye, 1.0])
         self.renderer = Renderer()
 
