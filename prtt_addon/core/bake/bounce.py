@@ -383,12 +383,48 @@ def level_points(pts: Points, skip: np.ndarray, level: int) -> tuple[np.ndarray,
                         np.zeros(todo.size, bool), group)
 
 
-def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: ExitShader,
-                    st: TransferSettings, level: int, *, progress=None, cancel=None):
-    """One set's bounce level: returns ((3K, H*W) float32 texture, coverage mask
-    (H, W), stats). ``skip`` (N,) marks texels that get zero without rays."""
-    K = st.bands ** 2
-    tex = np.zeros((3 * K, gb.height * gb.width), np.float32)
+@dataclasses.dataclass
+class ChunkHits:
+    """One traced chunk of a bounce level, for the estimator that projects it.
+
+    ``cols`` (n,) the chunk's texel columns in the (C, H*W) textures; ``S``
+    rays per texel; ``D`` (n*S, 3) float32 ray directions (texel-major);
+    ``hit`` indices of the rays that hit, ``prim``/``u``/``v`` their triangle
+    and barycentrics; ``table`` (S, K) the estimator table; ``fr`` the
+    chunk's frames (``shared``: one frame for all its texels)."""
+
+    cols: np.ndarray
+    S: int
+    D: np.ndarray
+    hit: np.ndarray
+    prim: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    table: np.ndarray
+    fr: object
+
+    @property
+    def n(self) -> int:
+        return self.cols.size
+
+    def to_world(self, rows: np.ndarray, K: int, per_texel: int) -> np.ndarray:
+        """World SH (n * per_texel, K) of ray values ``rows`` (n * per_texel, S)
+        float32 (texel-major): the estimator's first K coefficients in each
+        texel's frame, turned to the world."""
+        table = self.table[:, :K]
+        if self.fr.shared:
+            # One frame: turn the estimator table to world once, not every texel's result.
+            return rows @ (table.astype(np.float64) @ shared_rotation(self.fr, K)).astype(np.float32)
+        rep = lambda a: np.repeat(a, per_texel)  # noqa: E731
+        return rotate_zyz(rows @ table, rep(self.fr.alpha), rep(self.fr.beta), rep(self.fr.gamma))
+
+
+def trace_bounce_level(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, st: TransferSettings,
+                       level: int, project, *, progress=None, cancel=None) -> dict:
+    """Trace one set's bounce level and hand every chunk's hits to
+    ``project(ChunkHits)`` (called from the bake's threads, for disjoint
+    texels). ``skip`` (N,) marks texels that get zero without rays. Returns
+    the stats (texels, skipped_texels, rays_traced, hits_shaded, seconds)."""
     todo, sub = level_points(pts, skip, level)
     stats = {"texels": int(gb.n), "skipped_texels": int(skip.sum()), "rays_traced": 0,
              "hits_shaded": 0}
@@ -412,19 +448,7 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
         O = np.repeat(fr.origins, S, axis=0)
         prim, u, v, _ = rs.intersect(O, np.ascontiguousarray(D))
         hit = np.flatnonzero(prim >= 0)
-        L = np.zeros((n * S, 3), np.float32)
-        if hit.size:
-            L[hit] = shader.radiance(prim[hit].astype(np.int64), u[hit], v[hit], -D[hit])
-        # One product for the three colours: (n*3, S) @ (S, K).
-        Lt = np.ascontiguousarray(L.reshape(n, S, 3).transpose(0, 2, 1)).reshape(n * 3, S)
-        if fr.shared:
-            # One frame: turn the estimator table to world once, not every texel's result.
-            world = Lt @ (table[g].astype(np.float64) @ shared_rotation(fr, K)).astype(np.float32)
-        else:
-            local = Lt @ table[g]
-            rep = lambda a: np.repeat(a, 3)  # noqa: E731
-            world = rotate_zyz(local, rep(fr.alpha), rep(fr.beta), rep(fr.gamma))
-        tex[:, cols[idx]] = world.reshape(n, 3 * K).T
+        project(ChunkHits(cols[idx], S, D, hit, prim[hit].astype(np.int64), u[hit], v[hit], table[g], fr))
         with lock:
             stats["rays_traced"] += n * S
             stats["hits_shaded"] += int(hit.size)
@@ -444,6 +468,26 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
     with single_threaded_blas():
         run_chunks(run, sorted(chunks, key=lambda c: -c.idx.size), st.n_threads, on_result, cancel)
     stats["seconds"] = time.perf_counter() - t0
+    return stats
+
+
+def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: ExitShader,
+                    st: TransferSettings, level: int, *, progress=None, cancel=None):
+    """One set's bounce level: returns ((3K, H*W) float32 texture, coverage mask
+    (H, W), stats). ``skip`` (N,) marks texels that get zero without rays."""
+    K = st.bands ** 2
+    tex = np.zeros((3 * K, gb.height * gb.width), np.float32)
+
+    def project(ch: ChunkHits):
+        n, S = ch.n, ch.S
+        L = np.zeros((n * S, 3), np.float32)
+        if ch.hit.size:
+            L[ch.hit] = shader.radiance(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
+        # One product for the three colours: (n*3, S) @ (S, K).
+        Lt = np.ascontiguousarray(L.reshape(n, S, 3).transpose(0, 2, 1)).reshape(n * 3, S)
+        tex[:, ch.cols] = ch.to_world(Lt, K, 3).reshape(n, 3 * K).T
+
+    stats = trace_bounce_level(rs, gb, pts, skip, st, level, project, progress=progress, cancel=cancel)
     mask = np.zeros(gb.height * gb.width, bool)
     mask[gb.texel] = True
     return tex, mask.reshape(gb.height, gb.width), stats
