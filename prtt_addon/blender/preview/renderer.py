@@ -114,9 +114,10 @@ class Renderer:
         H, W, _ = rgba_bottom_first.shape
         return gpu.types.GPUTexture((W, H), format="RGBA32F", data=_buffer(rgba_bottom_first))
 
-    def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int):
+    def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int, light):
         """The set's (transfer, bounce, vertex) textures, each (GPUTexture, bytes) or
-        None; loaded, checked against the bake's band count and uploaded once."""
+        None; loaded, checked against the bake's band count and uploaded once
+        (relightable bounces once per ``light``, (K, 3), applied on the CPU)."""
         key, K = s.key, bands * bands
 
         def transfer():
@@ -125,8 +126,13 @@ class Renderer:
             return self._array_texture(pp.pack_layers(data), s.transfer)
 
         def bounce():
-            where = ", ".join(s.bounces)
-            data = _load(lambda: s.load_bounce(K), where)
+            where = ", ".join(s.bounces) or s.relight
+            if s.relight:
+                # The operator stays in memory: a turned World re-applies it without reading the file.
+                op = self._get(("relight", key), lambda: _load(s.load_relight, where))
+                data = _load(lambda: s.relit(op, light, K), where)
+            else:
+                data = _load(lambda: s.load_bounce(K), where)
             _check_coeffs(data, 4, K, where)
             return self._array_texture(pp.pack_bounce(data), where)
 
@@ -136,7 +142,7 @@ class Renderer:
             return self._array_texture(pp.pack_vertex_transfer(data), s.vertex)
 
         return (self._get(("transfer", key), transfer),
-                self._get(("bounce", key), bounce) if want_bounce and s.bounces else None,
+                self._get(("bounce", s.bounce_key(light)), bounce) if want_bounce and s.has_bounce else None,
                 self._get(("vertex", key), vertex) if want_vertex and s.vertex else None)
 
     def _dummy(self, layered: bool):
@@ -213,7 +219,7 @@ class Renderer:
                 skipped[m.name] = STALE_VERTEX_TRANSFER
                 continue
             try:
-                tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands)
+                tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands, ps.light)
             except TextureUploadError as exc:
                 skipped[m.name] = f"cannot use its texture {exc}"
                 continue

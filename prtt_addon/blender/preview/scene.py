@@ -397,7 +397,10 @@ def collect(context, *, visible=None, use_bounces: bool = True,
                         if f.startswith(f"{set_name}.bounce") and os.path.isfile(os.path.join(out_dir, f)))
         vfile = f"{set_name}.vertex.npz"
         vertex = os.path.join(out_dir, vfile) if vfile in files and os.path.isfile(os.path.join(out_dir, vfile)) else None
-        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex)
+        rfile = f"{set_name}.relight.exr"
+        relight = os.path.join(out_dir, rfile) if rfile in bounce_files and os.path.isfile(
+            os.path.join(out_dir, rfile)) else None
+        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight)
     try:
         light, status.light_description = current_light(scene, bands)
     except (WorldLightError, OSError, ValueError) as exc:

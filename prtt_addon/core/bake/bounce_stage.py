@@ -33,6 +33,7 @@ from .bounce import (HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, ExitShader, SurfaceTex
 from .context import BakeContext, BakeSettings
 from .memory import numpy_hugepage_advice
 from .plan import BakePlan
+from .relight import uniform_energy
 from .stages import BounceSource, Geometry, write_planes
 from .transfer import TransferSettings
 
@@ -73,8 +74,10 @@ class BounceResult:
 
     def manifest_entry(self, plan: BakePlan, st: BakeSettings) -> dict:
         """The manifest's "bounce" object."""
+        relightable = st.bounce_mode == "relightable"
         return {"key": plan.bounce_key, "levels": st.bounces, "rays": st.bounce_rays,
-                "stopped_early": self.stopped, "light_hash": plan.light_hash,
+                **({"mode": "relightable"} if relightable else {}), "stopped_early": self.stopped,
+                "light_hash": None if relightable else plan.light_hash,
                 "materials_hash": plan.materials_hash, "files": self.files, "sets": self.reports,
                 "rays_traced": sum(r["rays_traced"] for r in self.reports),
                 "hits_shaded": sum(r["hits_shaded"] for r in self.reports)}
@@ -194,14 +197,17 @@ def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: Boun
     return dataclasses.replace(src, gbuffer=coarse, points=pts, rows=None, incident=None), skip
 
 
-def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
-                  geo: Geometry | None = None) -> tuple[BounceInputs, dict[int, np.ndarray]]:
+def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry | None = None, *,
+                  lit: bool = True) -> tuple[BounceInputs, dict[int, np.ndarray]]:
     """Skip masks and surface texels of every set, and level 1's incident
     radiance {set index: Lp (M, 3, K) float32} (ctx.light through each
     transfer texture). Drops each source's ``incident`` texture once used
     (the exit textures replace it). With settings.bounce_downscale > 1 (and
     ``geo``), sources move to their coarse grid (choose_grid): the returned
-    inputs' ``sources`` are what the levels bake."""
+    inputs' ``sources`` are what the levels bake. Not ``lit`` (relightable
+    bounces): the transfer rows T (M, K) instead of Lp, and in
+    ``level1_diffuse`` the fine grid's T rows; ``direct`` is then the energy
+    under a uniform unit light (relight.uniform_energy)."""
     st, sc = ctx.settings, ctx.scene
     skip, surf, level1_diffuse, grids, baked, Lp = {}, {}, {}, {}, [], {}
     t = time.perf_counter()
@@ -211,8 +217,12 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
     if geo is None:
         asked = 1
 
+    K = st.bands ** 2
+
     def fine_diffuse(r):
         full = surface_texels(sc, r.gbuffer, st.dilate, diffuse_only=True)
+        if not lit:
+            return full, np.ascontiguousarray(r.incident.pm[full.valid][:, :K])
         return full, incident_dc_at(full, r.incident, ctx.light, st.bands)
 
     for r in sources:
@@ -247,10 +257,16 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource],
             incident = block_job.result()
         else:
             surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
-        Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
+        if lit:
+            Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
+        else:
+            Lp[r.index] = np.ascontiguousarray(incident.pm[surf[r.index].valid][:, :K])
         baked.append(r)
     # On the grids the bounce textures are baked on, like each level's energy.
-    direct = sum(level_energy(v) for v in Lp.values())
+    if lit:
+        direct = sum(level_energy(v) for v in Lp.values())
+    else:
+        direct = sum(uniform_energy(v[:, None, :]) for v in Lp.values())
     ctx.seconds["bounce_exit"] = time.perf_counter() - t
     return BounceInputs(skip, surf, direct, glossy_tri, grids, baked, level1_diffuse), Lp
 

@@ -69,14 +69,15 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
 
 def commit_bake(ctx: BakeContext, plan: BakePlan, manifest: dict) -> dict:
     """Seal the staged files (fsync, size and sha256 into ``manifest["file_info"]``),
-    rename them into place, write the manifest, remove bounce levels the
-    previous bake had and this one does not; then the "done" event. Returns
+    rename them into place, write the manifest, remove bounce textures the
+    previous bake had and this one does not (levels, relightable); then the "done" event. Returns
     the manifest. A cancel before the commit lock is taken wins (Cancelled,
     nothing renamed)."""
     old = plan.old_manifest or {}
     files = manifest["files"]
     old_files = old.get("files", [])
-    stale = [f for f in (old_files if plain_names(old_files) else []) if f not in files and ".bounce" in f]
+    stale = [f for f in (old_files if plain_names(old_files) else [])
+             if f not in files and (".bounce" in f or f.endswith(".relight.exr"))]
     ctx.check_cancel()
     new_info = ctx.staging.seal()
     # The reused transfer's entries were verified by plan.reusable.

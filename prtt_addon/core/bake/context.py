@@ -58,6 +58,7 @@ class BakeSettings(TransferSettings):
     bounce_denoise: str = _d("bounce_denoise")        # "auto", "none", "edge-aware", "oidn" (core/bake/denoise.py)
     bounce_downscale: int = _d("bounce_downscale")    # bounce textures at 1/N resolution per side (bounce_stage.py)
     tuning: str = _d("tuning")                        # "fixed" | "auto": per-set choices (bounce_stage.py)
+    bounce_mode: str = _d("bounce_mode")              # "baked" | "relightable" (relight_stage.py)
 
     def validate(self) -> "BakeSettings":
         """Check every field's type and range (ValueError "name must be ..., got ...")."""
@@ -84,7 +85,7 @@ class BakeSettings(TransferSettings):
         """Settings that change the transfer textures (not threads, chunking or bounces)."""
         d = self.as_dict()
         for k in ("threads", "chunk_rays", "bounces", "bounce_rays", "bounce_tolerance", "bounce_denoise",
-                  "bounce_downscale", "tuning"):
+                  "bounce_downscale", "tuning", "bounce_mode"):
             d.pop(k)
         return d
 

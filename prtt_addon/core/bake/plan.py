@@ -62,12 +62,17 @@ def outputs_changed(m: dict, out_dir, files) -> str | None:
 
 def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: str,
                st: BakeSettings) -> str:
-    """Identity of the bounce textures: transfer, light, materials, bounce settings."""
+    """Identity of the bounce textures: transfer, light (not for relightable
+    bounces, which do not depend on it), materials, bounce settings."""
+    relightable = st.bounce_mode == "relightable"
+    if relightable:
+        light = None
     h = hashlib.sha256("|".join([in_hash, set_hash, light_hash(light) if light is not None else "-",
                                  mat_hash, str(st.bounces), str(st.bounce_rays),
                                  repr(float(st.bounce_tolerance)), st.bounce_denoise]
                                 + ([f"downscale={st.bounce_downscale}"] if st.bounce_downscale != 1 else [])
-                                + ([f"tuning={st.tuning}"] if st.tuning != "fixed" else [])).encode())
+                                + ([f"tuning={st.tuning}"] if st.tuning != "fixed" else [])
+                                + (["mode=relightable"] if relightable else [])).encode())
     return h.hexdigest()
 
 
@@ -125,9 +130,13 @@ def plan_bake(ctx: BakeContext, *, skip_if_unchanged: bool = True) -> BakePlan:
     in_hash = geometry_hash(sc)
     set_hash = settings_hash(st)
     bouncing = st.bounces > 0 and st.textures
-    if bouncing and ctx.light is None:
+    if bouncing and ctx.light is None and st.bounce_mode != "relightable":
         ctx.warn("no light given: bounce textures (which bake the light in) are skipped")
         bouncing = False
+    if bouncing and st.bounce_mode == "relightable" and denoise.resolve_filter(st.bounce_denoise,
+                                                                            st.bounce_rays) != "none":
+        raise BakeError("bounce denoising is not available for relightable bounces (bounce_mode relightable); "
+                        "use --bounce-denoise none or --bounce-mode baked")
     if bouncing and st.bounce_denoise == "oidn" and not denoise.oidn_available():
         raise BakeError("bounce denoiser 'oidn' needs the optional package pyoidn (pip install pyoidn); "
                         "or use --bounce-denoise edge-aware or none")

@@ -10,6 +10,7 @@ leaves the previous outputs untouched:
 * ``<set>.transfer.mip<k>.exr`` optional coverage-weighted mip levels
 * ``<set>.vertex.npz``          optional per-vertex transfer (vertex mode)
 * ``<set>.bounce<k>.exr``       inter-reflection levels k = 1..bounces (RGB SH)
+* ``<set>.relight.exr``         instead, with bounce_mode "relightable": all levels as a map of the light
 * ``manifest.json``             settings, per-set stats, seconds per stage, hashes
 
 The bake is a pipeline of stages over one context object
@@ -47,6 +48,7 @@ from ..io import atomic
 from ..io.outdir import FolderBusyError, FolderLock
 from ..io.scene import Scene
 from .bounce_stage import bounce_levels
+from .relight_stage import relight_levels
 from .commit import commit_bake, finish_skipped, make_manifest
 from .context import BAKE_FORMAT_VERSION, BAKE_INT_LIMITS, MANIFEST, BakeContext, BakeError, BakeSettings, emit
 from .memory import numpy_hugepage_advice
@@ -156,6 +158,7 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
     vertex = vertex_stage(ctx, geo, plan) if st.vertex_mode and not plan.transfer_reused else None
     bounce = None
     if plan.bouncing:
-        bounce = bounce_levels(ctx, geo, plan, [r.bounce for r in results if r.bounce is not None])
+        levels = relight_levels if st.bounce_mode == "relightable" else bounce_levels
+        bounce = levels(ctx, geo, plan, [r.bounce for r in results if r.bounce is not None])
     manifest = make_manifest(ctx, plan, geo, results, vertex, bounce, t_start)
     return commit_bake(ctx, plan, manifest)

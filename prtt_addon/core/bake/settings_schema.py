@@ -163,6 +163,8 @@ def _choices(values: tuple, described: dict) -> tuple:
 ESTIMATORS = ("balanced", "control-variate", "plain")
 #: Per-set tuning (core/bake/bounce_stage.py applies "auto").
 TUNINGS = ("fixed", "auto")
+#: What the bounce textures hold (core/bake/relight_stage.py bakes "relightable").
+BOUNCE_MODES = ("baked", "relightable")
 
 SETTINGS: tuple[Setting, ...] = (
     # --- transfer (TransferSettings) ----------------------------------------------------
@@ -274,6 +276,16 @@ SETTINGS: tuple[Setting, ...] = (
                 "auto": ("Auto", "per set: bounce grid 1/2 where UV islands allow, bounce bands from the "
                          "materials (1 without glossy ones)")}),
             option="--tuning", ui=Ui("tuning", "Tuning")),
+    Setting("bounce_mode", "bake", "choice", "baked", "what the bounce textures hold: the inter-reflected "
+            "light of the bake's light (baked: one texture per level, stale when the World changes), or "
+            "a linear map of the light summed over all levels (relightable: the viewport and render apply "
+            "the World as it is now; diffuse exactly, glossy lobes read bands 0-2 of the bounce light "
+            "from bands 0-2 of the light)",
+            choices=_choices(BOUNCE_MODES, {
+                "baked": ("Baked", "bounce light under the bake's light, a texture per level (the paper's)"),
+                "relightable": ("Relightable", "bounce light as a map of the light: turn or swap the World "
+                                "without a rebake")}),
+            option="--bounce-mode", ui=Ui("bounce_mode", "Bounce Mode")),
     # --- job (both command lines; not a BakeSettings field) -----------------------------
     Setting("resolution", "job", "int", 1024, "texels per side of each texture set", unit="texels",
             lo=1, hi=MAX_RESOLUTION, option="--resolution", metavar="N",

@@ -275,7 +275,7 @@ def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer) -> SetPlanes:
 
 
 def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, attrs: dict, *, rgb: bool,
-                 half: bool | None = None) -> bool:
+                 half: bool | None = None, names: list[str] | None = None, bands: int | None = None) -> bool:
     """Write ``planes`` (C, H, W) as staged output ``fname`` (progress stage
     "write"); half precision (settings.half unless given) unless values
     overflow it (a warning, then float32). Returns whether it was written as half."""
@@ -288,7 +288,7 @@ def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, at
         ctx.warn(f"{fname}: {over} values exceed the half-float range; stored as float32")
         half = False
     exr_io.write_sh_planes(ctx.staging.path(fname), planes, kind=kind, half=half, rgb=rgb,
-                           attrs=attrs, atomic=False, executor=ctx.helpers, rng=rng)
+                           attrs=attrs, atomic=False, executor=ctx.helpers, rng=rng, names=names, bands=bands)
     return half
 
 

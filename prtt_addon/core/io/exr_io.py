@@ -76,9 +76,20 @@ def check_finite(values: np.ndarray, what: str, rng: tuple[float, float] | None 
         raise ValueError(f"refusing to write non-finite values to {what}")
 
 
+def relight_channel_names(n_coeffs: int, glossy_coeffs: int = 0) -> list[str]:
+    """Channels of a relightable bounce texture (kind "relight"): per colour
+    ``c.dc.iNNN`` (the DC row over light coefficient i < K), then, with
+    ``glossy_coeffs`` Kg > 0, per colour ``c.oNNN.iNNN`` for out coefficient
+    1 <= o < Kg and light coefficient i < Kg."""
+    names = [f"{c}.dc.i{i:03d}" for c in "RGB" for i in range(n_coeffs)]
+    names += [f"{c}.o{o:03d}.i{i:03d}" for c in "RGB" for o in range(1, glossy_coeffs) for i in range(glossy_coeffs)]
+    return names
+
+
 def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
                     rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
-                    executor=None, rng: tuple[float, float] | None = None) -> str:
+                    executor=None, rng: tuple[float, float] | None = None,
+                    names: list[str] | None = None, bands: int | None = None) -> str:
     """Write an SH texture from channel-first ``planes`` (C, H, W), row 0 at the bottom.
 
     C = K for kind "transfer", 3K when ``rgb`` (bounce; R.sh000.., G.., B..).
@@ -86,6 +97,8 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     attrs : extra header attributes (str/int/float/list of str); keys get a
             ``prtt_`` prefix if they lack one.
     rng : the planes' :func:`value_range`, if the caller has it.
+    names, bands : the channel names and the header's band count, for layouts
+            other than C = K or 3K (relightable bounces: relight_channel_names).
     Returns the path written.
     """
     import OpenEXR
@@ -95,10 +108,15 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     a = np.asarray(planes)
     if a.ndim != 3:
         raise ValueError(f"SH planes must be (C, H, W), got {a.shape}")
-    K = a.shape[0] // 3 if rgb else a.shape[0]
-    if rgb and a.shape[0] != 3 * K:
-        raise ValueError(f"RGB SH planes need 3K channels, got {a.shape[0]}")
-    bands = bands_of(K)
+    if names is not None:
+        if len(names) != a.shape[0] or bands is None:
+            raise ValueError(f"{len(names)} channel names (and the bands) for {a.shape[0]} planes")
+    else:
+        K = a.shape[0] // 3 if rgb else a.shape[0]
+        if rgb and a.shape[0] != 3 * K:
+            raise ValueError(f"RGB SH planes need 3K channels, got {a.shape[0]}")
+        bands = bands_of(K)
+        names = channel_names(K, rgb)
     rng = rng if rng is not None else value_range(a, executor)
     check_finite(a, os.fspath(path), rng)
     if half and half_overflow(a, rng):
@@ -106,7 +124,6 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     dtype = np.float16 if half else np.float32
     H, W = a.shape[1:]
     # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).
-    names = channel_names(K, rgb)
     convert = lambda c: np.ascontiguousarray(a[c, ::-1], dtype=dtype)  # noqa: E731
     mapper = executor.map if executor is not None else map
     channels = dict(zip(names, mapper(convert, range(len(names)))))
@@ -157,12 +174,7 @@ def write_sh_exr(path, data: np.ndarray, *, kind: str, half: bool = True,
                            attrs=attrs, atomic=atomic)
 
 
-def read_sh_exr(path) -> tuple[np.ndarray, dict]:
-    """Read a PRTT SH texture. Returns (data float32, attrs).
-
-    data is (H, W, K) or (H, W, 3, K) for RGB textures, row 0 at the bottom.
-    attrs holds the ``prtt_*`` header entries without the prefix.
-    """
+def _read_channels(path) -> tuple[dict, dict]:
     import OpenEXR
 
     path = os.fspath(path)
@@ -178,16 +190,47 @@ def read_sh_exr(path) -> tuple[np.ndarray, dict]:
     attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
     if "bands" not in attrs or "kind" not in attrs:
         raise TextureError(f"{path}: not a PRTT texture (no prtt_bands/prtt_kind header)")
-    K = int(attrs["bands"]) ** 2
-    rgb = any(n.startswith("R.") for n in chans)
-    names = channel_names(K, rgb)
+    return chans, attrs
+
+
+def _stack(path, chans: dict, names: list[str]) -> np.ndarray:
+    """(H, W, len(names)) float32, row 0 at the bottom."""
     missing = [n for n in names if n not in chans]
     if missing:
         raise TextureError(f"{path}: missing channels {missing[:4]}{'...' if len(missing) > 4 else ''}")
-    planes = [chans[n].astype(np.float32) for n in names]
-    H, W = planes[0].shape
+    data = np.stack([chans[n].astype(np.float32) for n in names], axis=-1)
+    return np.ascontiguousarray(data[::-1])
+
+
+def read_relight_exr(path) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """Read a relightable bounce texture (kind "relight"): (dc (H, W, 3, K),
+    glossy (H, W, 3, Kg - 1, Kg) or None, attrs), float32, row 0 at the bottom."""
+    chans, attrs = _read_channels(path)
+    if attrs["kind"] != "relight":
+        raise TextureError(f"{path}: a {attrs['kind']!r} texture, not a relightable bounce texture")
+    K = int(attrs["bands"]) ** 2
+    kg = int(attrs.get("glossy_bands", 0)) ** 2
+    names = relight_channel_names(K, kg)
+    data = _stack(path, chans, names)
+    H, W = data.shape[:2]
+    dc = np.ascontiguousarray(data[..., :3 * K].reshape(H, W, 3, K))
+    glossy = None
+    if kg:
+        glossy = np.ascontiguousarray(data[..., 3 * K:].reshape(H, W, 3, kg - 1, kg))
+    return dc, glossy, attrs
+
+
+def read_sh_exr(path) -> tuple[np.ndarray, dict]:
+    """Read a PRTT SH texture. Returns (data float32, attrs).
+
+    data is (H, W, K) or (H, W, 3, K) for RGB textures, row 0 at the bottom.
+    attrs holds the ``prtt_*`` header entries without the prefix.
+    """
+    chans, attrs = _read_channels(path)
+    K = int(attrs["bands"]) ** 2
+    rgb = any(n.startswith("R.") for n in chans)
+    data = _stack(path, chans, channel_names(K, rgb))
+    H, W = data.shape[:2]
     if rgb:
-        data = np.stack(planes, axis=-1).reshape(H, W, 3, K)
-    else:
-        data = np.stack(planes, axis=-1)
-    return np.ascontiguousarray(data[::-1]), attrs
+        data = data.reshape(H, W, 3, K)
+    return data, attrs

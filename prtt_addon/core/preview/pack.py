@@ -25,9 +25,11 @@ import os
 
 import numpy as np
 
-from ..io.exr_io import read_sh_exr
+from ..io.exr_io import read_relight_exr, read_sh_exr
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..shading.materials import DEFAULT, dielectric_f0
+from ..shading.model import light_hash
+from ..shading.relight import apply_light
 
 #: Width of the per-vertex transfer texture.
 VERTEX_TEXTURE_WIDTH = 4096
@@ -202,18 +204,31 @@ class PreviewSet:
     """The baked textures of one texture set, loaded on demand.
 
     transfer: path of ``<set>.transfer.exr``; bounces: paths of its bounce
-    levels; vertex: path of ``<set>.vertex.npz`` or None.
+    levels; vertex: path of ``<set>.vertex.npz`` or None; relight: path of
+    ``<set>.relight.exr`` (relightable bounces, instead of levels) or None.
     """
 
     name: str
     transfer: str
     bounces: tuple = ()
     vertex: str | None = None
+    relight: str | None = None
+
+    @property
+    def has_bounce(self) -> bool:
+        return bool(self.bounces or self.relight)
+
+    def bounce_key(self, light) -> str:
+        """Cache key of the bounce texture shown under ``light``: relightable
+        bounce light changes with the light, baked levels do not."""
+        if self.relight:
+            return self.key + "|light:" + light_hash(np.asarray(light))
+        return self.key
 
     @property
     def key(self) -> str:
         parts = []
-        for p in (self.transfer, *self.bounces, self.vertex):
+        for p in (self.transfer, *self.bounces, self.vertex, self.relight):
             if p:
                 try:
                     st = os.stat(p)
@@ -226,13 +241,16 @@ class PreviewSet:
         """(H, W, K) float32, row 0 at the bottom."""
         return read_sh_exr(self.transfer)[0]
 
-    def load_bounce(self, n_coeffs: int | None = None) -> np.ndarray | None:
+    def load_bounce(self, n_coeffs: int | None = None, light=None) -> np.ndarray | None:
         """(H, W, 3, K) float32: every bounce level summed, or None.
 
         A level the bake stored band-limited (tuning "auto": the bands its
         set's shading reads, header ``band_limited``) is padded with zero
         coefficients up to ``n_coeffs``; any other level keeps what it holds
-        (a renderer refuses too few coefficients)."""
+        (a renderer refuses too few coefficients). Relightable bounces are
+        shown under ``light`` (K, 3), the World as it is now (needed then)."""
+        if self.relight:
+            return self.relit(self.load_relight(), light, n_coeffs)
         total = None
         for p in self.bounces:
             b, attrs = read_sh_exr(p)
@@ -242,6 +260,22 @@ class PreviewSet:
                 raise ValueError(f"{p}: bounce level of shape {b.shape} does not match the others' {total.shape}")
             total = b if total is None else total + b
         return total
+
+    def load_relight(self) -> tuple:
+        """The relightable operator (dc, glossy, attrs) of exr_io.read_relight_exr."""
+        return read_relight_exr(self.relight)
+
+    def relit(self, operator: tuple, light, n_coeffs: int | None = None) -> np.ndarray:
+        """(H, W, 3, K) float32: relightable bounce light (``operator`` from
+        :meth:`load_relight`) under ``light`` (K, 3), the World as it is now."""
+        if light is None:
+            raise ValueError(f"{self.relight}: relightable bounces need the light to show them under")
+        dc, glossy, attrs = operator
+        bands = int(attrs["bands"]) if n_coeffs is None else int(round(math.sqrt(n_coeffs)))
+        L = np.zeros((bands * bands, 3))
+        given = np.asarray(light, np.float64)[:bands * bands]
+        L[:given.shape[0]] = given
+        return apply_light(dc, glossy, L, bands)
 
     def load_vertex(self) -> np.ndarray | None:
         """(V, K) float32 per-vertex transfer, or None."""
@@ -381,8 +415,10 @@ def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_boun
         bounces = tuple(os.path.join(out_dir, f) for f in sorted(files)
                         if f.startswith(f"{set_name}.bounce") and f.endswith(".exr"))
         vfile = f"{set_name}.vertex.npz"
+        rfile = f"{set_name}.relight.exr"
         sets[set_name] = PreviewSet(set_name, os.path.join(out_dir, transfer), bounces,
-                                    os.path.join(out_dir, vfile) if vfile in files else None)
+                                    os.path.join(out_dir, vfile) if vfile in files else None,
+                                    os.path.join(out_dir, rfile) if rfile in files else None)
         set_tris = sc.triangles_of_set(s)
         corner_vertex = None
         if vfile in files:

@@ -1,0 +1,233 @@
+"""Relightable inter-reflections (``--bounce-mode relightable``): bounce light
+as a linear map of the light, so turning or swapping the World relights it
+without a rebake (docs/shading.md, "Relightable bounces").
+
+Light propagates in each colour channel alone and every bounce level is
+linear in the light L (3 colours x K coefficients, K = bands²). Per receiver
+texel p and colour c the bake stores the operator R(p)_c that maps the
+light's coefficients to the bounce light's:
+
+    B(p)_c,o = sum_i R(p)_c,o,i L_c,i
+
+summed over all levels (N bounces, one texture). Two parts:
+
+* ``dc`` (3, K): the DC row o = 0 over every light coefficient: all that
+  diffuse shading (and the next level's diffuse exit) reads, exact;
+* ``glossy`` (3, Kg - 1, Kg), Kg = glossy_bands²: rows o = 1 .. Kg - 1 over
+  the first Kg light coefficients, only for sets with a glossy material:
+  the directional bounce light glossy lobes read, band-limited in and out
+  (the stated approximation; glossy_bands = bands is exact).
+
+Exit radiance as linear forms. At a hit q the radiance leaving towards p is,
+in the light's coefficients (the baked path's exit radiance, bounce.py, with
+L left free):
+
+    level 1:  diffuse  rho_c / pi * T(q)_i          (M(L)T's DC is L.T / sqrt(4 pi))
+              glossy   k_s,c sum_o y_o(r) E(q)_o,i,  E_o,i = A_o(s) M(T(q))_o,i
+    level n:  diffuse  rho_c sqrt(4 pi) / pi * R_{n-1}(q)_c,0,i
+              glossy   k_s,c sum_o y_o(r) A_o(s) R_{n-1}(q)_c,o,i
+
+with o, i < Kg in the glossy terms (M(T) the triple-product matrix of the
+transfer, A_o the Phong lobe's factors, r the reflection of q -> p). The
+receiver projects these vectors exactly as the baked estimator projects
+radiance (same rays, seeds, tables and frames), the DC row from the
+estimator's DC weights, the glossy rows turned to the world like any SH.
+Unlike the baked path nothing is clamped at zero per hit (a clamp is not
+linear): the two agree wherever the band-limited exit radiance is not
+negative.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..sh.basis import basis_unchecked
+from ..sh.gaunt import sparse_gaunt
+from ..texels.gbuffer import GBuffer
+from ..shading.model import lobe_factors
+from .bounce import ChunkHits, SurfaceTexels, TexelRows, trace_bounce_level
+from .raytrace import RayScene
+from .transfer import Points, TransferSettings
+
+SQRT_4PI = math.sqrt(4.0 * math.pi)
+#: Default bands of the glossy part (in and out): 9 x 9 per colour.
+GLOSSY_BANDS = 3
+
+
+@dataclasses.dataclass
+class RelightRows:
+    """One receiver set's relightable bounce light at M texels (float32):
+    ``dc`` (M, 3, K), ``glossy`` (M, 3, Kg - 1, Kg) or None."""
+
+    dc: np.ndarray
+    glossy: np.ndarray | None
+
+
+@dataclasses.dataclass
+class RelightExit:
+    """Radiance leaving one source set as linear forms of the light.
+
+    Diffuse: per hit ``d_scale[row] (3,) * d_rows[row] (Cd, K)`` with Cd = 1
+    (level 1: the transfer, colour by the scale) or 3 (later levels), on
+    ``diffuse_grid``. Glossy (None without a specular lobe): per hit
+    ``g_scale[row] (3,) * sum_o y_o(r) g_rows[row] (Cg, Kg, Kg)[:, o, :]``
+    with the shading ``normal[row]``, on ``glossy_grid``. Each table has a
+    last row of zeros (empty texels)."""
+
+    diffuse_grid: TexelRows
+    d_rows: np.ndarray
+    d_scale: np.ndarray
+    glossy_grid: TexelRows | None = None
+    g_rows: np.ndarray | None = None
+    g_scale: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+
+def _with_zero_row(a: np.ndarray) -> np.ndarray:
+    out = np.zeros((a.shape[0] + 1,) + a.shape[1:], np.float32)
+    out[:-1] = a
+    return out
+
+
+def transfer_product_rows(T: np.ndarray, kg: int) -> np.ndarray:
+    """(M, Kg, Kg) float32: M(T)_o,i = sum_j tau_o,i,j T_j for o, i < Kg, per row
+    of ``T`` (M, K) (every j: the transfer keeps all its bands)."""
+    K = T.shape[1]
+    g = sparse_gaunt(int(round(math.sqrt(K))))
+    sel = (g.i < kg) & (g.j < kg)
+    out = np.zeros((T.shape[0], kg * kg), np.float64)
+    Tt = np.asarray(T, np.float64)
+    flat = g.i[sel].astype(np.int64) * kg + g.j[sel]
+    for f, k, val in zip(flat, g.k[sel], g.value[sel]):
+        out[:, f] += val * Tt[:, k]
+    return out.reshape(-1, kg, kg).astype(np.float32)
+
+
+def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
+                fine: tuple[SurfaceTexels, np.ndarray] | None = None) -> RelightExit:
+    """Level 1's exit forms from the transfer ``T_rows`` (M, K) at ``surf``'s
+    valid texels; ``fine`` = (SurfaceTexels, T rows) of a finer grid the
+    diffuse term leaves from (as bounce.exit_textures' ``diffuse_at``)."""
+    dsurf, dT = (surf, T_rows) if fine is None else fine
+    grid = TexelRows(surf.width, surf.height, surf.row_of)
+    dgrid = grid if fine is None else TexelRows(dsurf.width, dsurf.height, dsurf.row_of)
+    ex = RelightExit(dgrid, _with_zero_row(dT[:, None, :]), _with_zero_row(dsurf.albedo / math.pi))
+    if surf.glossy:
+        kg = glossy_bands * glossy_bands
+        A = lobe_factors(surf.exponent, glossy_bands)                                   # (M, Kg)
+        E = transfer_product_rows(T_rows, kg) * A[:, :, None].astype(np.float32)        # (M, Kg, Kg)
+        ex.glossy_grid = grid
+        ex.g_rows = _with_zero_row(E[:, None])
+        ex.g_scale = _with_zero_row(surf.spec)
+        ex.normal = _with_zero_row(surf.normal)
+    return ex
+
+
+def later_exit(surf: SurfaceTexels, rows: RelightRows, glossy_bands: int) -> RelightExit:
+    """Level n > 1's exit forms from level n - 1's relightable rows at ``surf``'s
+    valid texels (``rows.glossy`` None: the lobe reads the DC row alone)."""
+    grid = TexelRows(surf.width, surf.height, surf.row_of)
+    ex = RelightExit(grid, _with_zero_row(rows.dc), _with_zero_row(surf.albedo * (SQRT_4PI / math.pi)))
+    if surf.glossy:
+        kg = glossy_bands * glossy_bands
+        M = surf.valid.size
+        R = np.zeros((M, 3, kg, kg), np.float32)
+        R[:, :, 0, :] = rows.dc[:, :, :kg]
+        if rows.glossy is not None:
+            R[:, :, 1:, :] = rows.glossy[:, :, :kg - 1, :kg]
+        A = lobe_factors(surf.exponent, glossy_bands).astype(np.float32)               # (M, Kg)
+        ex.glossy_grid = grid
+        ex.g_rows = _with_zero_row(R * A[:, None, :, None])
+        ex.g_scale = _with_zero_row(surf.spec)
+        ex.normal = _with_zero_row(surf.normal)
+    return ex
+
+
+class RelightShader:
+    """The exit forms of every source set (set index -> RelightExit; sets
+    without are black), evaluated at hits like bounce.ExitShader."""
+
+    def __init__(self, sc, exits: dict, bands: int, glossy_bands: int, glossy_tri: np.ndarray):
+        self.sc, self.exits = sc, exits
+        self.K, self.glossy_bands = bands * bands, glossy_bands
+        uv = sc.uvs.astype(np.float64)
+        self.uv_frame = np.ascontiguousarray(
+            np.concatenate([uv[:, 0], uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]], axis=1), dtype=np.float32)
+        self.glossy_tri = glossy_tri
+
+    def forms(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> np.ndarray:
+        """(n, 3, K) float32: per hit and colour, the coefficients of the light
+        in the radiance leaving the hit towards the ray origin (``view`` (n, 3)
+        unit vectors from the hit)."""
+        out = np.zeros((tri.size, 3, self.K), np.float32)
+        sets = self.sc.set_id[tri]
+        kg = self.glossy_bands ** 2
+        for s, ex in self.exits.items():
+            sel = np.flatnonzero(sets == s)
+            if sel.size == 0:
+                continue
+            f = np.take(self.uv_frame, tri[sel], axis=0)
+            x = f[:, 0] + u[sel] * f[:, 2] + v[sel] * f[:, 4]
+            y = f[:, 1] + u[sel] * f[:, 3] + v[sel] * f[:, 5]
+            near = ex.diffuse_grid.rows_at(x, y)
+            val = np.take(ex.d_scale, near, axis=0)[:, :, None] * np.take(ex.d_rows, near, axis=0)
+            if ex.g_rows is not None:
+                g = np.flatnonzero(self.glossy_tri[tri[sel]])
+                if g.size:
+                    gnear = ex.glossy_grid.rows_at(x[g], y[g])
+                    n = np.take(ex.normal, gnear, axis=0)
+                    w = view[sel[g]]
+                    r = 2.0 * (n * w).sum(axis=1, keepdims=True) / np.maximum(
+                        (n * n).sum(axis=1, keepdims=True), np.float32(1e-30)) * n - w
+                    r /= np.sqrt(np.maximum((r * r).sum(axis=1, keepdims=True), np.float32(1e-30)))
+                    yb = basis_unchecked((r[:, 0], r[:, 1], r[:, 2]), self.glossy_bands, np.float32)   # (m, Kg)
+                    G = np.take(ex.g_rows, gnear, axis=0)                                   # (m, Cg, Kg, Kg)
+                    W = np.einsum("mcoi,mo->mci", G, yb)
+                    val[g, :, :kg] += np.take(ex.g_scale, gnear, axis=0)[:, :, None] * W
+            out[sel] = val
+        return out
+
+
+def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: RelightShader,
+                     st: TransferSettings, level: int, *, glossy_out: bool, progress=None, cancel=None):
+    """One set's relightable level. Returns (dc planes (3K, H*W), glossy planes
+    (3 (Kg - 1) Kg, H*W) or None when not ``glossy_out``, coverage mask (H, W),
+    stats); channel order colour, then out coefficient, then light coefficient."""
+    K, kg = shader.K, shader.glossy_bands ** 2
+    HW = gb.height * gb.width
+    dc = np.zeros((3 * K, HW), np.float32)
+    gl = np.zeros((3 * (kg - 1) * kg, HW), np.float32) if glossy_out else None
+
+    def project(ch: ChunkHits):
+        n, S = ch.n, ch.S
+        X = np.zeros((n * S, 3, K), np.float32)
+        if ch.hit.size:
+            X[ch.hit] = shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
+        X = X.reshape(n, S, 3 * K)
+        # The DC row: the estimator's DC weights (rotation leaves the DC alone).
+        dc[:, ch.cols] = (np.ascontiguousarray(ch.table[:, 0]) @ X).T
+        if gl is not None:
+            # Rows (texel, colour, light coefficient i < Kg) projected on Kg out coefficients.
+            Xg = np.ascontiguousarray(X.reshape(n, S, 3, K)[:, :, :, :kg].transpose(0, 2, 3, 1))
+            world = ch.to_world(Xg.reshape(n * 3 * kg, S), kg, 3 * kg).reshape(n, 3, kg, kg)   # (n, c, i, o)
+            gl[:, ch.cols] = np.ascontiguousarray(world[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
+
+    stats = trace_bounce_level(rs, gb, pts, skip, st, level, project, progress=progress, cancel=cancel)
+    mask = np.zeros(HW, bool)
+    mask[gb.texel] = True
+    return dc, gl, mask.reshape(gb.height, gb.width), stats
+
+
+def uniform_energy(dc: np.ndarray) -> float:
+    """bounce.level_energy of the incident light that DC rows ``dc`` (M, C, K)
+    (C = 3 colours, or 1 for the transfer T itself) give under a uniform white
+    light of unit DC coefficient, per colour: sum of dc[:, :, 0] over texels
+    and colours (x 3 for C = 1), over sqrt(4 pi) for the transfer. Relightable
+    bakes judge the early stop by it, so the stored levels do not depend on
+    the light they will be shown under."""
+    d = np.asarray(dc, np.float64)
+    if d.shape[1] == 1:                       # the transfer: M(L)T's DC is L.T / sqrt(4 pi)
+        return 3.0 * float(d[:, 0, 0].sum()) / SQRT_4PI
+    return float(d[:, :, 0].sum())

@@ -1,0 +1,117 @@
+"""The bounce stage under ``bounce_mode = "relightable"``: levels 1..bounces of
+every set as linear maps of the light (relight.py), summed into one texture
+per set, ``<set>.relight.exr`` (kind "relight": exr_io.relight_channel_names).
+
+The same inputs, grids, rays, seeds and skips as the baked levels
+(bounce_stage.bounce_inputs, bounce.trace_bounce_level); the light is not
+needed. Levels stop early by the energy under a uniform white light
+(relight.uniform_energy), so what is stored does not depend on any light.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..texels.dilate import dilate
+from ..io.exr_io import relight_channel_names
+from .bounce import bounce_settings
+from .bounce_stage import BounceResult, bounce_inputs
+from .context import BakeContext
+from .memory import numpy_hugepage_advice
+from .plan import BakePlan
+from .relight import (GLOSSY_BANDS, RelightRows, RelightShader, bake_relight_set, later_exit, level1_exit,
+                      uniform_energy)
+from .stages import BounceSource, Geometry, write_planes
+
+
+def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list[BounceSource]) -> BounceResult:
+    """Bake the relightable bounce light of every set in ``sources`` and stage
+    one ``<set>.relight.exr`` per set that any level reached."""
+    st, sc = ctx.settings, ctx.scene
+    K = st.bands ** 2
+    gbands = min(GLOSSY_BANDS, st.bands)
+    kg = gbands * gbands
+    bst = bounce_settings(st, st.bounce_rays)
+    inputs, T = bounce_inputs(ctx, sources, geo, lit=False)
+    glossy_sets = {s.index: bool(inputs.glossy_tri[sc.triangles_of_set(s.index)].any()) for s in inputs.sources}
+    sums: dict[int, list] = {}
+    reports, stopped, rows = [], None, {}
+    for level in range(1, st.bounces + 1):
+        ctx.check_cancel()
+        t = time.perf_counter()
+        if level == 1:
+            exits = {i: level1_exit(inputs.surface[i], v, gbands, fine=inputs.level1_diffuse.get(i))
+                     for i, v in T.items()}
+        else:
+            exits = {i: later_exit(inputs.surface[i], r, gbands) for i, r in rows.items()}
+        shader = RelightShader(sc, exits, st.bands, gbands, inputs.glossy_tri)
+        ctx.seconds["bounce_exit"] += time.perf_counter() - t
+        nxt, energy = {}, 0.0
+        for src in inputs.sources:
+            ctx.check_cancel()
+            gb, skip = src.gbuffer, inputs.skip[src.index]
+            if skip.all():
+                reports.append({"name": src.name, "level": level, "skipped": "sees no geometry",
+                                "texels": int(gb.n), "rays_traced": 0, "hits_shaded": 0})
+                continue
+            t = time.perf_counter()
+            grid = inputs.grids.get(src.index)
+            lbst = bounce_settings(st, grid.rays) if grid is not None and grid.rays and grid.rays != bst.rays else bst
+
+            def on_progress(done, total, rays, name=src.name):
+                ctx.emit(type="progress", stage="bounce", set=name, level=level, fraction=done / max(total, 1),
+                         rays=rays)
+
+            dc, gl, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
+                                                   glossy_out=glossy_sets[src.index], progress=on_progress,
+                                                   cancel=ctx.cancel)
+            ctx.seconds["bounce_trace"] += time.perf_counter() - t
+            t = time.perf_counter()
+            H, W = gb.height, gb.width
+            planes = dc if gl is None else np.concatenate([dc, gl])
+            planes = planes.reshape(-1, H, W)
+            with numpy_hugepage_advice(False):
+                # Dilation is linear with one mask: dilating each level equals dilating the sum.
+                dilate(planes, mask, st.dilate, executor=ctx.helpers)
+            flat = planes.reshape(planes.shape[0], -1)
+            energy += uniform_energy(flat[:3 * K, gb.texel].T.reshape(-1, 3, K))
+            if src.index in sums:
+                sums[src.index][1] += planes
+            else:
+                sums[src.index] = [src, planes]
+            if level < st.bounces:
+                valid = inputs.surface[src.index].valid
+                M = valid.size
+                g_rows = None if gl is None else flat[3 * K:, valid].T.reshape(M, 3, kg - 1, kg)
+                nxt[src.index] = RelightRows(np.ascontiguousarray(flat[:3 * K, valid].T.reshape(M, 3, K)),
+                                             None if g_rows is None else np.ascontiguousarray(g_rows))
+            stats.update(name=src.name, level=level, file=f"{src.name}.relight.exr", rays=lbst.rays)
+            if grid is not None and (st.bounce_downscale != 1 or st.tuning != "fixed"):
+                stats["grid"] = grid.report()
+            reports.append(stats)
+            ctx.seconds["bounce_write"] += time.perf_counter() - t
+        rows = nxt
+        if not rows:
+            break
+        ratio = energy / inputs.direct if inputs.direct > 0 else 0.0
+        if level < st.bounces and ratio < st.bounce_tolerance:
+            stopped = {"after_level": level, "energy_ratio": ratio, "tolerance": st.bounce_tolerance,
+                       "levels_not_baked": st.bounces - level, "judged_under": "uniform white light"}
+            ctx.emit(type="info", message=f"bounce level {level} carries {100 * ratio:.3g} % of the direct "
+                     f"light (< {100 * st.bounce_tolerance:g} %, under a uniform white light): levels "
+                     f"{level + 1}-{st.bounces} are not baked")
+            break
+    files = []
+    for i, (src, planes) in sums.items():
+        t = time.perf_counter()
+        g = glossy_sets[i]
+        fname = f"{src.name}.relight.exr"
+        attrs = dict(plan.exr_attrs(st), levels=max(r["level"] for r in reports if r["name"] == src.name),
+                     rays=bst.rays, materials_hash=plan.materials_hash, texels=int(src.gbuffer.n),
+                     glossy_bands=gbands if g else 0, bounce_mode="relightable")
+        write_planes(ctx, fname, planes, "relight", attrs, rgb=False,
+                     names=relight_channel_names(K, kg if g else 0), bands=st.bands)
+        files.append(fname)
+        ctx.seconds["bounce_write"] += time.perf_counter() - t
+    return BounceResult(reports, files, stopped)

@@ -1,0 +1,139 @@
+"""Relightable bounces (--bounce-mode relightable): the stored operator shown
+under a light equals the baked bounce texture of that light (same rays and
+seeds), sums every level into one texture, is linear in the light, and does
+not go stale (nor rebake) when only the light changes."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from prtt_addon.core.bake import relight, relight_stage
+from prtt_addon.core.bake.runner import BakeSettings, bake_scene
+from prtt_addon.core.io import exr_io
+from prtt_addon.core.preview.pack import PreviewSet
+from prtt_addon.core.sh.rotation import rotate_zyz
+from tests.test_bounce import corner_scene, sky
+
+DIFFUSE_WALL = {"name": "wall", "base_color": [0.9, 0.6, 0.3], "specular": 0.0}
+DIFFUSE_FLOOR = {"name": "floor", "base_color": [0.5, 0.45, 0.4], "specular": 0.0}
+GLOSSY_WALL = {"name": "glossy", "base_color": [0.2, 0.3, 0.9], "roughness": 0.45, "specular": 1.0}
+
+
+def _scene(wall, res=24):
+    sc = corner_scene(wall, res=res)
+    sc.materials[0] = DIFFUSE_FLOOR
+    return sc
+
+
+def _settings(**kw):
+    return BakeSettings(rays=64, bounce_rays=48, half=False, tuning="fixed", seed=7, **kw)
+
+
+def _relit(out_dir, set_name, light, K):
+    s = PreviewSet(set_name, os.path.join(out_dir, f"{set_name}.transfer.exr"),
+                   relight=os.path.join(out_dir, f"{set_name}.relight.exr"))
+    return s.load_bounce(K, light)
+
+
+def _baked(out_dir, set_name, levels):
+    return sum(exr_io.read_sh_exr(os.path.join(out_dir, f"{set_name}.bounce{k}.exr"))[0]
+               for k in range(1, levels + 1))
+
+
+@pytest.mark.parametrize("levels", [1, 2])
+def test_diffuse_relightable_under_L_equals_baked_under_L(tmp_path, levels):
+    sc = _scene(DIFFUSE_WALL)
+    light = sky()
+    K = light.shape[0]
+    bk, rl = tmp_path / "baked", tmp_path / "relight"
+    bake_scene(sc, str(bk), _settings(bounces=levels), light=light)
+    m = bake_scene(sc, str(rl), _settings(bounces=levels, bounce_mode="relightable"), light=light)
+    assert m["bounce"]["mode"] == "relightable" and m["bounce"]["light_hash"] is None
+    assert sorted(m["bounce"]["files"]) == ["floor.relight.exr", "wall.relight.exr"]
+    assert not any(".bounce" in f for f in os.listdir(rl))     # N levels, one texture per set
+    for name in ("floor", "wall"):
+        baked = _baked(str(bk), name, levels)
+        relit = _relit(str(rl), name, light, K)
+        dc = relit[..., 0]
+        assert np.abs(dc).max() > 0.01                      # light does bounce here
+        # Diffuse receivers read the DC term alone; it is exact (no glossy rows stored).
+        np.testing.assert_allclose(dc, baked[..., 0], rtol=0, atol=2e-5 * np.abs(baked[..., 0]).max())
+        assert not np.any(relit[..., 1:])
+
+
+def test_glossy_relightable_with_all_bands_equals_baked(tmp_path, monkeypatch):
+    """With the glossy part at the bake's bands (no band limit) every
+    coefficient of the glossy wall's and the floor's bounce light matches."""
+    monkeypatch.setattr(relight_stage, "GLOSSY_BANDS", 5)
+    sc = _scene(GLOSSY_WALL, res=16)
+    light = sky()
+    K = light.shape[0]
+    bake_scene(sc, str(tmp_path / "b"), _settings(bounces=2), light=light)
+    bake_scene(sc, str(tmp_path / "r"), _settings(bounces=2, bounce_mode="relightable"), light=light)
+    _, _, attrs = exr_io.read_relight_exr(str(tmp_path / "r" / "wall.relight.exr"))
+    assert attrs["glossy_bands"] == 5
+    for name in ("floor", "wall"):
+        baked = _baked(str(tmp_path / "b"), name, 2)
+        relit = _relit(str(tmp_path / "r"), name, light, K)
+        scale = np.abs(baked).max()
+        if name == "wall":
+            np.testing.assert_allclose(relit, baked, rtol=0, atol=5e-5 * scale)
+        else:                                                # a diffuse set keeps the DC row
+            np.testing.assert_allclose(relit[..., 0], baked[..., 0], rtol=0, atol=5e-5 * scale)
+
+
+def test_band_limited_glossy_rows_hold_bands_0_to_2(tmp_path):
+    sc = _scene(GLOSSY_WALL, res=16)
+    light = sky()
+    bake_scene(sc, str(tmp_path), _settings(bounces=1, bounce_mode="relightable"), light=light)
+    dc, gl, attrs = exr_io.read_relight_exr(str(tmp_path / "wall.relight.exr"))
+    assert attrs["kind"] == "relight" and attrs["glossy_bands"] == relight.GLOSSY_BANDS == 3
+    assert dc.shape[2:] == (3, 25) and gl.shape[2:] == (3, 8, 9)
+    _, gl_floor, _ = exr_io.read_relight_exr(str(tmp_path / "floor.relight.exr"))
+    assert gl_floor is None                                   # diffuse: no glossy rows
+
+
+def test_relit_bounce_is_linear_in_the_light(tmp_path):
+    sc = _scene(GLOSSY_WALL, res=16)
+    bake_scene(sc, str(tmp_path), _settings(bounces=2, bounce_mode="relightable"), light=None)
+    L1 = sky()
+    K = L1.shape[0]
+    # A second, different light: the sky turned 90 degrees about Z and tinted.
+    L2 = rotate_zyz(L1.T, np.full(3, np.pi / 2), np.zeros(3), np.zeros(3)).T * np.array([0.3, 1.0, 2.0])
+    for name in ("floor", "wall"):
+        a = _relit(str(tmp_path), name, L1, K)
+        b = _relit(str(tmp_path), name, L2, K)
+        ab = _relit(str(tmp_path), name, 0.7 * L1 - 1.9 * L2, K)
+        np.testing.assert_allclose(ab, 0.7 * a - 1.9 * b, rtol=0, atol=1e-5 * np.abs(ab).max())
+        assert np.abs(a - b).max() > 0.05 * np.abs(a).max()   # the light matters
+
+
+def test_light_change_keeps_relightable_bounces_and_rebakes_baked_ones(tmp_path):
+    sc = _scene(DIFFUSE_WALL, res=16)
+    L1 = sky()
+    L2 = 2.0 * L1
+    rl, bk = str(tmp_path / "r"), str(tmp_path / "b")
+    m1 = bake_scene(sc, rl, _settings(bounces=1, bounce_mode="relightable"), light=L1)
+    m2 = bake_scene(sc, rl, _settings(bounces=1, bounce_mode="relightable"), light=L2)
+    assert m2.get("skipped") and m2["bounce"]["key"] == m1["bounce"]["key"]
+    b1 = bake_scene(sc, bk, _settings(bounces=1), light=L1)
+    b2 = bake_scene(sc, bk, _settings(bounces=1), light=L2)
+    assert not b2.get("skipped") and b2["bounce"]["key"] != b1["bounce"]["key"]
+    # Switching mode replaces the levels by the relightable texture (and back).
+    m3 = bake_scene(sc, bk, _settings(bounces=1, bounce_mode="relightable"), light=L2)
+    assert m3["transfer_reused"] and not any(".bounce" in f for f in os.listdir(bk))
+    bake_scene(sc, bk, _settings(bounces=1), light=L2)
+    assert not any(f.endswith(".relight.exr") for f in os.listdir(bk))
+    with open(os.path.join(bk, "manifest.json"), encoding="utf-8") as f:
+        assert "mode" not in json.load(f)["bounce"]          # baked manifests as before
+
+
+def test_relightable_bakes_without_a_light_and_refuses_denoising(tmp_path):
+    sc = _scene(DIFFUSE_WALL, res=16)
+    m = bake_scene(sc, str(tmp_path / "a"), _settings(bounces=1, bounce_mode="relightable"), light=None)
+    assert m["bounce"]["files"] and not m.get("warnings")
+    from prtt_addon.core.bake.context import BakeError
+    with pytest.raises(BakeError, match="relightable"):
+        bake_scene(sc, str(tmp_path / "b"), _settings(bounces=1, bounce_mode="relightable",
+                                                      bounce_denoise="edge-aware"), light=None)
