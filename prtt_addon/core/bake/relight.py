@@ -93,16 +93,14 @@ def _with_zero_row(a: np.ndarray) -> np.ndarray:
 
 def transfer_product_rows(T: np.ndarray, kg: int) -> np.ndarray:
     """(M, Kg, Kg) float32: M(T)_o,i = sum_j tau_o,i,j T_j for o, i < Kg, per row
-    of ``T`` (M, K) (every j: the transfer keeps all its bands)."""
+    of ``T`` (M, K) (every j: the transfer keeps all its bands); one (K, Kg²)
+    product with the Gaunt tensor's slab."""
     K = T.shape[1]
     g = sparse_gaunt(int(round(math.sqrt(K))))
     sel = (g.i < kg) & (g.j < kg)
-    out = np.zeros((T.shape[0], kg * kg), np.float64)
-    Tt = np.asarray(T, np.float64)
-    flat = g.i[sel].astype(np.int64) * kg + g.j[sel]
-    for f, k, val in zip(flat, g.k[sel], g.value[sel]):
-        out[:, f] += val * Tt[:, k]
-    return out.reshape(-1, kg, kg).astype(np.float32)
+    C = np.zeros((K, kg * kg))
+    np.add.at(C, (g.k[sel], g.i[sel].astype(np.int64) * kg + g.j[sel]), g.value[sel])
+    return (np.asarray(T, np.float32) @ C.astype(np.float32)).reshape(-1, kg, kg)
 
 
 def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
@@ -145,6 +143,28 @@ def later_exit(surf: SurfaceTexels, rows: RelightRows, glossy_bands: int) -> Rel
     return ex
 
 
+@dataclasses.dataclass
+class HitForms:
+    """The light's coefficients in the radiance leaving hits, factored, one row
+    per hit that leaves any (``index`` (n,): which of the hits passed in):
+    ``d_scale`` (n, 3) * ``d_rows`` (n, Cd, K) + ``g_scale`` (n, 3) * ``g_w``
+    (n, Cg, Kg) (zeros where the hit has no lobe); Cd, Cg = 1 shares the row
+    between the colours (level 1), 3 gives one per colour."""
+
+    index: np.ndarray
+    d_scale: np.ndarray
+    d_rows: np.ndarray
+    g_scale: np.ndarray
+    g_w: np.ndarray
+
+    def full(self) -> np.ndarray:
+        """(n, 3, K) float32, the coefficients themselves."""
+        out = self.d_scale[:, :, None] * self.d_rows
+        kg = self.g_w.shape[2]
+        out[:, :, :kg] += self.g_scale[:, :, None] * self.g_w
+        return out
+
+
 class RelightShader:
     """The exit forms of every source set (set index -> RelightExit; sets
     without are black), evaluated at hits like bounce.ExitShader."""
@@ -156,38 +176,58 @@ class RelightShader:
         self.uv_frame = np.ascontiguousarray(
             np.concatenate([uv[:, 0], uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]], axis=1), dtype=np.float32)
         self.glossy_tri = glossy_tri
+        self.cd = max((ex.d_rows.shape[1] for ex in exits.values()), default=1)
+        self.cg = max((ex.g_rows.shape[1] for ex in exits.values() if ex.g_rows is not None), default=1)
 
-    def forms(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> np.ndarray:
-        """(n, 3, K) float32: per hit and colour, the coefficients of the light
-        in the radiance leaving the hit towards the ray origin (``view`` (n, 3)
-        unit vectors from the hit)."""
-        out = np.zeros((tri.size, 3, self.K), np.float32)
-        sets = self.sc.set_id[tri]
+    def forms(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> HitForms:
+        """The exit forms at hits on triangles ``tri`` at Embree's (u, v),
+        ``view`` (n, 3) unit vectors from the hit towards the ray origin; rows
+        in texel order (HitForms.index says whose)."""
         kg = self.glossy_bands ** 2
+        parts = []
+        sets = self.sc.set_id[tri]
         for s, ex in self.exits.items():
             sel = np.flatnonzero(sets == s)
             if sel.size == 0:
                 continue
-            f = np.take(self.uv_frame, tri[sel], axis=0)
-            x = f[:, 0] + u[sel] * f[:, 2] + v[sel] * f[:, 4]
-            y = f[:, 1] + u[sel] * f[:, 3] + v[sel] * f[:, 5]
+            fr = np.take(self.uv_frame, tri[sel], axis=0)
+            x = fr[:, 0] + u[sel] * fr[:, 2] + v[sel] * fr[:, 4]
+            y = fr[:, 1] + u[sel] * fr[:, 3] + v[sel] * fr[:, 5]
             near = ex.diffuse_grid.rows_at(x, y)
-            val = np.take(ex.d_scale, near, axis=0)[:, :, None] * np.take(ex.d_rows, near, axis=0)
-            if ex.g_rows is not None:
-                g = np.flatnonzero(self.glossy_tri[tri[sel]])
-                if g.size:
-                    gnear = ex.glossy_grid.rows_at(x[g], y[g])
-                    n = np.take(ex.normal, gnear, axis=0)
-                    w = view[sel[g]]
-                    r = 2.0 * (n * w).sum(axis=1, keepdims=True) / np.maximum(
-                        (n * n).sum(axis=1, keepdims=True), np.float32(1e-30)) * n - w
-                    r /= np.sqrt(np.maximum((r * r).sum(axis=1, keepdims=True), np.float32(1e-30)))
-                    yb = basis_unchecked((r[:, 0], r[:, 1], r[:, 2]), self.glossy_bands, np.float32)   # (m, Kg)
-                    G = np.take(ex.g_rows, gnear, axis=0)                                   # (m, Cg, Kg, Kg)
-                    W = np.einsum("mcoi,mo->mci", G, yb)
-                    val[g, :, :kg] += np.take(ex.g_scale, gnear, axis=0)[:, :, None] * W
-            out[sel] = val
-        return out
+            # Visit the hits in texel order (random lookups in tables of tens of MB
+            # are several times slower than ordered ones; bounce.ExitShader).
+            shift = max(0, int(ex.d_rows.shape[0] - 1).bit_length() - 16)
+            o = np.argsort((near >> shift).astype(np.uint16), kind="stable")
+            sel, near, x, y = sel[o], near[o], x[o], y[o]
+            d_rows = np.take(ex.d_rows, near, axis=0)
+            if d_rows.shape[1] < self.cd:
+                d_rows = np.repeat(d_rows, self.cd, axis=1)
+            part = HitForms(sel, np.take(ex.d_scale, near, axis=0), d_rows, np.zeros((sel.size, 3), np.float32),
+                            np.zeros((sel.size, self.cg, kg), np.float32))
+            g = np.flatnonzero(self.glossy_tri[tri[sel]]) if ex.g_rows is not None else np.zeros(0, np.int64)
+            if g.size:
+                gnear = ex.glossy_grid.rows_at(x[g], y[g])
+                nrm = np.take(ex.normal, gnear, axis=0)
+                w = view[sel[g]]
+                # r = 2 (n.w) n / |n|^2 - w: the reflection about the (dilated, unnormalised) normal.
+                r = 2.0 * (nrm * w).sum(axis=1, keepdims=True) / np.maximum(
+                    (nrm * nrm).sum(axis=1, keepdims=True), np.float32(1e-30)) * nrm - w
+                r /= np.sqrt(np.maximum((r * r).sum(axis=1, keepdims=True), np.float32(1e-30)))
+                yb = basis_unchecked((r[:, 0], r[:, 1], r[:, 2]), self.glossy_bands, np.float32)   # (m, Kg)
+                G = np.take(ex.g_rows, gnear, axis=0)                                         # (m, Cg, Kg, Kg)
+                if G.shape[1] < self.cg:
+                    G = np.repeat(G, self.cg, axis=1)
+                part.g_w[g] = np.einsum("mcoi,mo->mci", G, yb)
+                part.g_scale[g] = np.take(ex.g_scale, gnear, axis=0)
+            parts.append(part)
+        if len(parts) == 1:
+            return parts[0]
+        if not parts:
+            return HitForms(np.zeros(0, np.int64), np.zeros((0, 3), np.float32),
+                            np.zeros((0, self.cd, self.K), np.float32), np.zeros((0, 3), np.float32),
+                            np.zeros((0, self.cg, kg), np.float32))
+        return HitForms(*(np.concatenate([getattr(p, f.name) for p in parts])
+                          for f in dataclasses.fields(HitForms)))
 
 
 def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: RelightShader,
@@ -202,16 +242,44 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
 
     def project(ch: ChunkHits):
         n, S = ch.n, ch.S
-        X = np.zeros((n * S, 3, K), np.float32)
-        if ch.hit.size:
-            X[ch.hit] = shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
-        X = X.reshape(n, S, 3 * K)
-        # The DC row: the estimator's DC weights (rotation leaves the DC alone).
-        dc[:, ch.cols] = (np.ascontiguousarray(ch.table[:, 0]) @ X).T
+        f = shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
+        cd, cg = f.d_rows.shape[1], f.g_w.shape[1]
+        w0 = np.ascontiguousarray(ch.table[:, 0])
+        # Per ray (zeros where it missed): the DC weight folded into the colour scales.
+        ad = np.zeros((n * S, 3), np.float32)
+        ag = np.zeros((n * S, 3), np.float32)
+        at = ch.hit[f.index]                  # the rays the forms' rows belong to
+        ad[at] = f.d_scale
+        ag[at] = f.g_scale
+        ad = ad.reshape(n, S, 3)
+        ag = ag.reshape(n, S, 3)
+        if cd == 1 and cg == 1:
+            # Level 1: one row per hit for all colours, so the DC row is a
+            # (3, S) @ (S, K) product per texel; no (rays, 3, K) array.
+            rows = np.zeros((n * S, K), np.float32)
+            wg = np.zeros((n * S, kg), np.float32)
+            rows[at] = f.d_rows[:, 0]
+            wg[at] = f.g_w[:, 0]
+            rows = rows.reshape(n, S, K)
+            wg = wg.reshape(n, S, kg)
+            # Contiguous operands: numpy's stacked matmul takes BLAS only for those.
+            out = np.matmul(np.ascontiguousarray((ad * w0[:, None]).transpose(0, 2, 1)), rows)   # (n, 3, K)
+            out[:, :, :kg] += np.matmul(np.ascontiguousarray((ag * w0[:, None]).transpose(0, 2, 1)), wg)
+            dc[:, ch.cols] = out.reshape(n, 3 * K).T
+            if gl is not None:
+                Y = ad[:, :, :, None] * rows[:, :, None, :kg] + ag[:, :, :, None] * wg[:, :, None, :]
+        else:
+            X = np.zeros((n * S, 3, K), np.float32)
+            X[at] = f.full()
+            X = X.reshape(n, S, 3 * K)
+            # The DC row: the estimator's DC weights (rotation leaves the DC alone).
+            dc[:, ch.cols] = (w0 @ X).T
+            if gl is not None:
+                Y = X.reshape(n, S, 3, K)[:, :, :, :kg]
         if gl is not None:
             # Rows (texel, colour, light coefficient i < Kg) projected on Kg out coefficients.
-            Xg = np.ascontiguousarray(X.reshape(n, S, 3, K)[:, :, :, :kg].transpose(0, 2, 3, 1))
-            world = ch.to_world(Xg.reshape(n * 3 * kg, S), kg, 3 * kg).reshape(n, 3, kg, kg)   # (n, c, i, o)
+            Yt = np.ascontiguousarray(Y.transpose(0, 2, 3, 1)).reshape(n * 3 * kg, S)
+            world = ch.to_world(Yt, kg, 3 * kg).reshape(n, 3, kg, kg)                    # (n, c, i, o)
             gl[:, ch.cols] = np.ascontiguousarray(world[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
 
     stats = trace_bounce_level(rs, gb, pts, skip, st, level, project, progress=progress, cancel=cancel)
