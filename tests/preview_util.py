@@ -75,7 +75,7 @@ def world_forest(bpy, strength=1.5, rot_z=0.6):
     return w
 
 
-def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1):
+def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1, bounce_mode="BAKED"):
     """Create, unwrap and bake the scene (module doc). Returns the objects."""
     bpy.ops.mesh.primitive_plane_add(size=4)
     floor = bpy.context.active_object
@@ -115,6 +115,7 @@ def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1):
     st = bpy.context.scene.prtt
     st.resolution, st.rays, st.bounces, st.bounce_rays = resolution, rays, bounces, 16
     st.vertex_transfer = True
+    st.bounce_mode = bounce_mode
     st.output_dir = str(out_dir)
     select_only(bpy, [floor, ball, block])
     assert bpy.ops.prtt.unwrap() == {"FINISHED"}
@@ -122,12 +123,13 @@ def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1):
     return floor, ball, block
 
 
-def baked_blend(tmp_dir):
-    """Build and bake once; returns the saved .blend path (reopen it per test)."""
+def baked_blend(tmp_dir, **kw):
+    """Build and bake once (``kw`` to build_scene); returns the saved .blend
+    path (reopen it per test)."""
     blend = os.path.join(tmp_dir, "preview.blend")
     if not os.path.exists(blend):
         bpy = addon_bpy()
-        build_scene(bpy, os.path.join(tmp_dir, "out"))
+        build_scene(bpy, os.path.join(tmp_dir, "out"), **kw)
         bpy.ops.wm.save_as_mainfile(filepath=blend)
     return blend
 

@@ -208,3 +208,52 @@ def test_viewport_draw_path_and_resources(blend):
     keys = r.resource_keys()
     assert not any(k[0] == "mesh" and "Ball" in k[1] for k in keys)
     assert not any(k[0] == "transfer" and "Ball.transfer" in k[1] for k in keys)
+
+
+@pytest.fixture(scope="module")
+def relit_blend(tmp_path_factory):
+    return baked_blend(str(tmp_path_factory.mktemp("preview-relit")), bounce_mode="RELIGHTABLE")
+
+
+@pytest.mark.parametrize("mode", ["tpfl", "diffuse"])
+def test_relightable_bounces_follow_the_world(relit_blend, mode):
+    """Relightable bounces: a turned or brighter World is no staleness, the
+    frame follows it, and the GPU still matches the reference pixel by pixel
+    (its bounce light under the World as it is now); a material change is."""
+    from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
+    from prtt_addon.blender.preview.scene import collect
+    from prtt_addon.core.preview.reference import reference_image, relative_error
+    bpy = open_blend(relit_blend)
+    scene = bpy.context.scene
+
+    def warnings():
+        _, status = collect(bpy.context, with_meshes=False)
+        return " | ".join(t for lvl, t in status.messages if lvl == "WARNING")
+
+    ps, _, _, _ = frame(bpy)
+    assert all(s.relight and not s.bounces for s in ps.sets.values())
+    renderer = Renderer()
+    images = []
+    for turn in (0.0, math.pi / 2):
+        mapping = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
+        mapping.inputs["Rotation"].default_value[2] = 0.6 + turn
+        scene.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 1.5 + turn
+        assert warnings() == ""
+        ps, _, vp, cam = frame(bpy)
+        px, stats = render_offscreen(renderer, ps, mode, vp, cam, W, H, exposure=EXPOSURE)
+        assert sorted(stats.drawn) == ["Ball", "Block", "Floor"] and not stats.skipped
+        ref, hits = reference_image(ps, mode, vp, cam, W, H, exposure=EXPOSURE)
+        interior = hits.hit & (hits.edge_px > EDGE_MARGIN_PX)
+        floor = 1e-2 * ref[..., :3][hits.hit].mean()
+        err = relative_error(px[..., :3][interior], ref[..., :3][interior], floor)
+        assert err.max() <= 1e-3, f"{mode}: max relative error {err.max():.2e}"
+        images.append(px)
+        # Without its bounce light the frame is darker: the relit bounce is drawn.
+        ps_direct, _, _, _ = frame(bpy, bounces=False)
+        direct, _ = render_offscreen(renderer, ps_direct, mode, vp, cam, W, H, exposure=EXPOSURE)
+        assert px[..., :3][interior].mean() > 1.01 * direct[..., :3][interior].mean()
+    assert np.abs(images[1] - images[0]).max() > 0.05
+    mat = bpy.data.materials["BallMat"]
+    mat.node_tree.nodes["Principled BSDF"].inputs["Roughness"].default_value = 0.9
+    bpy.context.view_layer.update()
+    assert "materials changed" in warnings()

@@ -115,6 +115,7 @@ class PRTT_PT_bake_quality(_PRTTPanel, bpy.types.Panel):
         sub.prop(st, "bounce_rays")
         sub.prop(st, "bounce_tolerance")
         sub.prop(st, "bounce_downscale")
+        sub.prop(st, "bounce_mode")
         col.prop(st, "tuning")
 
 
