@@ -55,3 +55,10 @@ def test_auto_bench_quick(tmp_path):
     assert last.startswith("auto vs fixed: time ÷ ") and ", bytes ÷ " in last and " % vs " in last, out
     for name in ("fixed", "grid 1/2", "auto"):
         assert f"  {name}" in out
+
+
+def test_relight_bench_quick(tmp_path):
+    out = bench("relight", "--quick", "--out", str(tmp_path))
+    for scene in ("ball", "room"):
+        assert f"  {scene}: relightable bounce " in out and "relit vs rebaked at most" in out, out
+        assert f"  {scene:6s}    90 deg  relit vs rebaked" in out

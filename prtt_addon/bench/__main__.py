@@ -5,6 +5,8 @@ BENCHMARKS = {
     "bake": ("prtt_addon.bench.bake_bench", "transfer bake vs raw Embree on the room-class scene"),
     "bounce": ("prtt_addon.bench.bounce_bench", "inter-reflection bake on the room-class scene"),
     "auto": ("prtt_addon.bench.auto_bench", "per-set tuning vs the fixed bake: time, bytes, preview image error"),
+    "relight": ("prtt_addon.bench.relight_bench", "relightable bounces vs a rebake at every World rotation: "
+                "error, bake and frame time, bytes"),
     "render": ("prtt_addon.bench.render_bench", "preview frame time per mode vs triangles and resolution"),
     "sweep": ("prtt_addon.bench.sweep", "run time against error: rays, strategies, resolution, bands, storage, scenes"),
     "cycles": ("prtt_addon.bench.cycles_compare", "diffuse PRTT against Cycles under a band-limited environment"),

@@ -30,6 +30,7 @@ import zipfile
 
 import gpu
 import numpy as np
+from gpu_extras.batch import batch_for_shader
 
 from ...core.preview import pack as pp
 from ...core.io.exr_io import TextureError
@@ -126,13 +127,10 @@ class Renderer:
             return self._array_texture(pp.pack_layers(data), s.transfer)
 
         def bounce():
-            where = ", ".join(s.bounces) or s.relight
             if s.relight:
-                # The operator stays in memory: a turned World re-applies it without reading the file.
-                op = self._get(("relight", key), lambda: _load(s.load_relight, where))
-                data = _load(lambda: s.relit(op, light, K), where)
-            else:
-                data = _load(lambda: s.load_bounce(K), where)
+                return self._relit_bounce(s, light, bands)
+            where = ", ".join(s.bounces)
+            data = _load(lambda: s.load_bounce(K), where)
             _check_coeffs(data, 4, K, where)
             return self._array_texture(pp.pack_bounce(data), where)
 
@@ -144,6 +142,51 @@ class Renderer:
         return (self._get(("transfer", key), transfer),
                 self._get(("bounce", s.bounce_key(light)), bounce) if want_bounce and s.has_bounce else None,
                 self._get(("vertex", key), vertex) if want_vertex and s.vertex else None)
+
+    def _relit_bounce(self, s: pp.PreviewSet, light, bands: int):
+        """The bounce texture of relightable set ``s`` under ``light`` (K, 3), made
+        on the GPU: the operator is uploaded once, and each light costs one
+        relight pass (shaders/prtt_relight_frag.glsl, a quad per output layer),
+        no work per texel on the CPU. Returns (GPUTexture, bytes)."""
+        K, K4 = bands * bands, pp.layers(bands * bands)
+        where = s.relight
+
+        def operator():
+            dc, glossy, attrs = _load(s.load_relight, where)
+            _check_coeffs(dc, 4, K, where)
+            if dc.shape[-1] != K:
+                raise TextureUploadError(f"{where}: holds {dc.shape[-1]} light coefficients, the bake has {K}; "
+                                         f"bake again")
+            tex, nbytes = self._array_texture(pp.pack_relight_operator(dc, glossy), where)
+            gbands = int(attrs.get("glossy_bands", 0)) if glossy is not None else 0
+            return tex, nbytes, dc.shape[1], dc.shape[0], gbands
+
+        op_tex, _, W, H, gbands = self._get(("relight-op", s.key), operator)
+        out = gpu.types.GPUTexture((W, H), layers=3 * K4, format="RGBA32F")
+        sh = gpu_shaders.relight_shader(bands, gbands)
+        ubo = gpu.types.GPUUniformBuf(_buffer(pp.relight_block(light, bands)))
+        quad = batch_for_shader(sh, "TRI_STRIP", {"pos": ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))})
+        viewport = gpu.state.viewport_get()
+        old_test, old_blend = gpu.state.depth_test_get(), gpu.state.blend_get()
+        gpu.state.depth_test_set("NONE")
+        gpu.state.blend_set("NONE")
+        try:
+            for c in range(3):
+                for q in range(K4):
+                    fb = gpu.types.GPUFrameBuffer(color_slots=({"texture": out, "layer": c * K4 + q},))
+                    with fb.bind():
+                        gpu.state.viewport_set(0, 0, W, H)
+                        sh.bind()
+                        sh.uniform_block("relight", ubo)
+                        sh.uniform_sampler("relightTex", op_tex)
+                        sh.uniform_int("out_colour", c)
+                        sh.uniform_int("out_q", q)
+                        quad.draw(sh)
+        finally:
+            gpu.state.viewport_set(*viewport)
+            gpu.state.depth_test_set(old_test)
+            gpu.state.blend_set(old_blend)
+        return out, W * H * 3 * K4 * 16
 
     def _dummy(self, layered: bool):
         if layered:

@@ -5,7 +5,7 @@ import atexit
 
 import gpu
 
-from ...core.preview.shader_source import Variant, depth_variant, variant
+from ...core.preview.shader_source import Variant, depth_variant, relight_variant, variant
 
 _CACHE: dict = {}
 
@@ -68,3 +68,7 @@ def surface_shader(mode: str, bands: int, bounce: bool):
 
 def depth_shader():
     return build(depth_variant())
+
+
+def relight_shader(bands: int, glossy_bands: int):
+    return build(relight_variant(bands, glossy_bands))

@@ -359,6 +359,28 @@ def light_block(light: np.ndarray, bands: int) -> np.ndarray:
     return np.concatenate([rows.ravel(), coeffs.ravel()]).astype(np.float32)
 
 
+def pack_relight_operator(dc: np.ndarray, glossy: np.ndarray | None) -> np.ndarray:
+    """Relightable operator -> (L, H, W, 4) layers for the GPU relight pass:
+    the DC rows, colour-major (layer c * K4 + l: light coefficients 4l..4l+3),
+    then with ``glossy`` (H, W, 3, Kg - 1, Kg) per colour and out coefficient
+    o = 1 .. Kg - 1 its light coefficients (Kg4 layers each); zero padded."""
+    parts = [pack_layers(dc[:, :, c, :]) for c in range(3)]
+    if glossy is not None:
+        parts += [pack_layers(glossy[:, :, c, o, :]) for c in range(3) for o in range(glossy.shape[3])]
+    return np.concatenate(parts, axis=0)
+
+
+def relight_block(light: np.ndarray, bands: int) -> np.ndarray:
+    """The PRTTRelight uniform block: (K, 3) light per colour in 4-coefficient
+    groups (vec4 c * K4 + q: coefficients 4q..4q+3 of colour c); flat float32."""
+    K = bands * bands
+    K4 = layers(K)
+    out = np.zeros((3, 4 * K4), np.float32)
+    L = np.asarray(light, np.float64)[:K]
+    out[:, :L.shape[0]] = L.T
+    return out.ravel()
+
+
 def gaunt_table(bands: int, width: int) -> np.ndarray:
     """(rows, width, 4) float32: texel e = (i, j, k, tau_ijk) of the Gaunt non-zeros."""
     g = sparse_gaunt(bands)

@@ -1,0 +1,151 @@
+"""``python -m prtt_addon.bench relight``: relightable bounces against a full
+rebake at every World rotation, bake time, frame time and bytes, in one run.
+
+Scenes: the room-class scene (1024^2 atlas, 14 materials, nearly all glossy)
+and a floor-and-ball scene (a 4 m glossy floor, a glossy orange ball and a
+diffuse box; floor 512^2, objects 256^2), Blender's "forest" HDRI, one
+bounce, the default settings otherwise (tuning auto).
+
+Per scene: the transfer is baked once; the bounce light is baked once as
+``relightable`` and, at each World rotation about Z (0 ... 330 degrees in 30
+degree steps), rebaked as ``baked`` under the turned light (the same rays and
+seeds). Both are rendered by the viewport's shaders (offscreen, llvmpipe
+where there is no GPU) under the turned light; the error is the relative
+RMSE of the relit frame against the rebaked one over covered pixels (the
+band limit of relightable glossy bounce light, docs/shading.md). Then:
+relightable bounce seconds / baked bounce seconds, the frame time of each
+(median of 5 after the first), what a new light adds to the first frame
+under it (the GPU relight pass, what turning the World costs), and the
+bounce texture bytes of each. Writes
+docs/bench/relight.csv. ``--quick`` is a smoke test at toy sizes.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import tempfile
+import time
+
+import numpy as np
+
+from ..cli import env_light
+from ..core.bake.runner import BakeSettings, bake_scene
+from ..core.io import meshgen as mg
+from ..core.sh.rotation import rotate_zyz
+from . import scenes
+from .sweep import Previewer, image_error, write_csv
+
+DOCS_BENCH = os.path.join(scenes.ROOT, "docs", "bench")
+FLOOR = {"name": "floor", "base_color": [0.55, 0.5, 0.45], "roughness": 0.3, "specular": 0.5}
+BALL = {"name": "ball", "base_color": [0.9, 0.6, 0.2], "roughness": 0.35, "metallic": 0.4}
+BOX = {"name": "box", "base_color": [0.2, 0.7, 0.3], "specular": 0.0}
+
+
+def ball_scene(resolution: int):
+    """The floor-and-ball scene: floor at ``resolution``, ball and box at half."""
+    from ..core.io.scene import validate
+    objs = [("floor", mg.plane(4.0, 4.0)),
+            ("ball", mg.uv_sphere(0.6, 48, 24).transformed(translate=(-0.5, 0.2, 0.65))),
+            ("box", mg.box((0.7, 0.7, 0.7), (0.8, -0.4, 0.35)).transformed(rotate_z=0.5))]
+    half = max(32, resolution // 2)
+    sc = mg.assemble(objs, resolution=resolution, resolutions={"ball": half, "box": half})
+    sc.materials = [FLOOR, BALL, BOX]
+    sc.material_id = sc.object_id.copy()
+    validate(sc)
+    return sc, {"eye": (3.2, -3.4, 2.6), "target": (0.0, 0.0, 0.3)}
+
+
+def turned(light: np.ndarray, degrees: float) -> np.ndarray:
+    """(K, 3) SH light turned about Z."""
+    a = math.radians(degrees)
+    L = np.asarray(light, np.float64)
+    return rotate_zyz(L.T, np.full(3, a), np.zeros(3), np.zeros(3)).T
+
+
+def bounce_seconds(m: dict) -> float:
+    s = m["seconds"]
+    return s["bounce_exit"] + s["bounce_trace"] + s["bounce_write"]
+
+
+def frame_ms(view: Previewer, out_dir: str, frames: int = 5) -> float:
+    view.render(out_dir)                       # uploads, shader compile
+    times = []
+    for _ in range(frames):
+        t = time.perf_counter()
+        view.render(out_dir)
+        times.append(time.perf_counter() - t)
+    return 1000.0 * float(np.median(times))
+
+
+def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str) -> list:
+    rl, bk = os.path.join(tmp, f"{name}-relight"), os.path.join(tmp, f"{name}-baked")
+    bake_scene(sc, rl, BakeSettings(bounces=0), light=light)
+    m = bake_scene(sc, rl, BakeSettings(bounces=1, bounce_mode="relightable"), light=light)
+    t_rl = bounce_seconds(m)
+    rl_bytes = sum(os.path.getsize(os.path.join(rl, f)) for f in m["bounce"]["files"])
+    bake_scene(sc, bk, BakeSettings(bounces=0), light=light)
+    view = Previewer(sc, light, size, bounces=True, **camera)
+    rows = []
+    for deg in angles:
+        L = turned(light, deg)
+        view.light = L
+        mb = bake_scene(sc, bk, BakeSettings(bounces=1), light=L)
+        assert mb["transfer_reused"]
+        err = image_error(view.render(rl), view.render(bk))
+        row = {"scene": name, "degrees": deg, "relit_vs_rebaked": err, "baked_bounce_seconds": bounce_seconds(mb),
+               "baked_bounce_bytes": sum(os.path.getsize(os.path.join(bk, f)) for f in mb["bounce"]["files"])}
+        rows.append(row)
+        print(f"  {name:6s} {deg:5.0f} deg  relit vs rebaked {100 * err:6.3f} %  (rebake {row['baked_bounce_seconds']:5.1f} s)",
+              flush=True)
+    view.light = light
+    bake_scene(sc, bk, BakeSettings(bounces=1), light=light)
+    f_bk, f_rl = frame_ms(view, bk), frame_ms(view, rl)
+    # A turned World: the first frame under each new light runs the relight pass.
+    turns = []
+    for deg in (10.0, 20.0, 30.0):
+        view.light = turned(light, deg)
+        t = time.perf_counter()
+        view.render(rl)
+        turns.append(1000.0 * (time.perf_counter() - t) - f_rl)
+    view.light = light
+    apply_ms = float(np.median(turns))
+    t_bk = float(np.median([r["baked_bounce_seconds"] for r in rows]))
+    summary = {"scene": name, "relight_bounce_seconds": t_rl, "baked_bounce_seconds": t_bk,
+               "bake_ratio": t_rl / t_bk, "relight_frame_ms": f_rl, "baked_frame_ms": f_bk,
+               "frame_ratio": f_rl / f_bk, "relight_apply_ms": apply_ms, "relight_bytes": rl_bytes,
+               "baked_bytes": rows[0]["baked_bounce_bytes"],
+               "max_relit_vs_rebaked": max(r["relit_vs_rebaked"] for r in rows)}
+    for r in rows:
+        r.update({k: v for k, v in summary.items() if k not in r})
+    print(f"  {name}: relightable bounce {t_rl:.1f} s vs baked {t_bk:.1f} s (x{t_rl / t_bk:.2f}); frame "
+          f"{f_rl:.1f} ms vs {f_bk:.1f} ms (x{f_rl / f_bk:.2f}); a new light adds {apply_ms:.0f} ms to its "
+          f"first frame (the relight pass); "
+          f"bytes {rl_bytes / 1e6:.1f} MB vs {summary['baked_bytes'] / 1e6:.1f} MB; relit vs rebaked at most "
+          f"{100 * summary['max_relit_vs_rebaked']:.3f} %", flush=True)
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m prtt_addon.bench relight", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="toy sizes (a smoke test)")
+    p.add_argument("--out", default=DOCS_BENCH, help="folder for relight.csv (default docs/bench)")
+    args = p.parse_args(argv)
+    light = env_light("forest", 5)
+    if args.quick:
+        res, size, angles = 64, (160, 90), (0.0, 90.0)
+    else:
+        res, size, angles = 1024, (640, 360), tuple(float(a) for a in range(0, 360, 30))
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="prtt-bench-relight-") as tmp:
+        sc, cam = ball_scene(res // 2)
+        print(f"floor and ball: {sc.n_triangles} triangles, {sc.n_sets} sets", flush=True)
+        rows += run_scene("ball", sc, cam, light, size, angles, tmp)
+        sc = scenes.room_scene(res, atlas=True, materials=True)
+        print(f"room: {sc.n_triangles} triangles, {res}^2 atlas", flush=True)
+        rows += run_scene("room", sc, {}, light, size, angles, tmp)
+    if not args.quick:
+        os.makedirs(args.out, exist_ok=True)
+        write_csv(os.path.join(args.out, "relight.csv"), rows)
+    return 0
