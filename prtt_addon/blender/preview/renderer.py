@@ -162,6 +162,8 @@ class Renderer:
             return tex, nbytes, dc.shape[1], dc.shape[0], gbands
 
         op_tex, _, W, H, gbands = self._get(("relight-op", s.key), operator)
+        # float32: relit values are not half-exact as baked ones (read from half EXRs) are,
+        # and half rounding moved shaded pixels by 1.3e-3 (tests/test_preview_render.py).
         out = gpu.types.GPUTexture((W, H), layers=3 * K4, format="RGBA32F")
         sh = gpu_shaders.relight_shader(bands, gbands)
         ubo = gpu.types.GPUUniformBuf(_buffer(pp.relight_block(light, bands)))
