@@ -50,6 +50,17 @@ def _reference_radiance(sc, surf, T_pm, light, bands, tri, u, v, view, clamp=Tru
     return out
 
 
+def _random_hits(sc, rng, n):
+    """n hits anywhere on the scene: triangles, barycentrics (u, v) and unit view vectors."""
+    tri = rng.integers(0, sc.n_triangles, n)
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    view = rng.normal(size=(n, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    return tri, u, v, view
+
+
 @pytest.mark.parametrize("wall", [GLOSSY_WALL, {"name": "diffuse", "base_color": [0.9, 0.6, 0.3],
                                                 "specular": 0.0}])
 def test_exit_radiance_equals_slow_per_hit_reference(wall):
@@ -71,12 +82,7 @@ def test_exit_radiance_equals_slow_per_hit_reference(wall):
         surfs[s], T_pms[s] = surf, T_pm
     shader = ExitShader(sc, exits, bands, glossy_triangles(sc))
     n = 400
-    tri = rng.integers(0, sc.n_triangles, n)
-    u, v = rng.random(n), rng.random(n)
-    flip = u + v > 1.0
-    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
-    view = rng.normal(size=(n, 3))
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    tri, u, v, view = _random_hits(sc, rng, n)
     got = shader.radiance(tri.astype(np.int64), u.astype(np.float32), v.astype(np.float32),
                           view.astype(np.float32))
     ref = np.zeros((n, 3))
@@ -141,12 +147,7 @@ def test_diffuse_from_the_fine_grid_glossy_from_the_coarse_one():
     glossy = glossy_triangles(sc)
     shader = ExitShader(sc, exits, bands, glossy)
     n = 400
-    tri = rng.integers(0, sc.n_triangles, n)
-    u, v = rng.random(n), rng.random(n)
-    flip = u + v > 1.0
-    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
-    view = rng.normal(size=(n, 3))
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    tri, u, v, view = _random_hits(sc, rng, n)
     got = shader.radiance(tri.astype(np.int64), u.astype(np.float32), v.astype(np.float32), view.astype(np.float32))
     ref = np.zeros((n, 3))
     for s, (fine, T_pm, surf, Tc_pm) in parts.items():

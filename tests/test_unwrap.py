@@ -48,3 +48,34 @@ def test_assemble_sets_and_obj_loading():
     # ... and fine once re-unwrapped.
     sc = mg.assemble([("spot", spot), ("box", mg.box())], resolution=128)
     assert sc.set_names == ["spot", "box"] and sc.n_triangles == 5856 + 12
+
+
+def _flaky_python(tmp_path, first_run: str) -> str:
+    """An interpreter whose first start does ``first_run`` (shell) instead of
+    running Python: what a crashing or hanging xatlas child looks like."""
+    import sys
+    marker = tmp_path / "started-once"
+    script = tmp_path / "flaky-python"
+    script.write_text(f"#!/bin/sh\nif [ ! -e '{marker}' ]; then touch '{marker}'; {first_run}; fi\n"
+                      f"exec '{sys.executable}' \"$@\"\n")
+    script.chmod(0o755)
+    return str(script)
+
+
+@pytest.mark.parametrize("first_run", ["kill -SEGV $$", "exec sleep 600"], ids=["crash", "hang"])
+def test_a_crashed_or_hung_xatlas_child_is_started_again(tmp_path, monkeypatch, first_run):
+    from prtt_addon.core.texels import unwrap as uw
+    monkeypatch.setattr(uw, "python_executable", lambda: _flaky_python(tmp_path, first_run))
+    monkeypatch.setattr(uw, "_child_timeout", lambda meshes: 5.0)
+    m = mg.uv_sphere(1.0, 16, 8)
+    uv = uw.unwrap([(m.vertices, m.faces)], 64)[0]
+    assert (tmp_path / "started-once").exists()             # the first child did fail
+    assert uv.shape == (len(m.faces), 3, 2) and np.all((uv >= 0) & (uv <= 1))
+
+
+def test_an_xatlas_child_that_always_fails_is_reported(tmp_path, monkeypatch):
+    from prtt_addon.core.texels import unwrap as uw
+    monkeypatch.setattr(uw, "python_executable", lambda: "/bin/false")
+    m = mg.uv_sphere(1.0, 16, 8)
+    with pytest.raises(uw.UnwrapError, match="failed 3 times"):
+        uw.unwrap([(m.vertices, m.faces)], 64)

@@ -286,6 +286,29 @@ def glossy_triangles(sc) -> np.ndarray:
     return np.any(p.spec > 0.0, axis=1) | textured_triangles(sc)
 
 
+def uv_frames(sc) -> np.ndarray:
+    """(T, 6) float32 per triangle: uv of corner 0 and the two edge vectors
+    (one gather per hit, :func:`hit_uvs`)."""
+    uv = sc.uvs.astype(np.float64)
+    return np.ascontiguousarray(np.concatenate([uv[:, 0], uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]], axis=1),
+                                dtype=np.float32)
+
+
+def hit_uvs(frames: np.ndarray, tri: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) texture coordinates of hits on triangles ``tri`` at Embree's (u, v)."""
+    f = np.take(frames, tri, axis=0)
+    return f[:, 0] + u * f[:, 2] + v * f[:, 4], f[:, 1] + u * f[:, 3] + v * f[:, 5]
+
+
+def texel_order(near: np.ndarray, n_rows: int) -> np.ndarray:
+    """A permutation visiting ``near`` (rows of a table of ``n_rows``) in
+    ascending blocks. Random lookups in a texture of hundreds of MB are ~5x
+    slower than ordered ones, and a radix sort on 16-bit keys (blocks of
+    texels) costs a fraction of that."""
+    shift = max(0, int(n_rows - 1).bit_length() - 16)
+    return np.argsort((near >> shift).astype(np.uint16), kind="stable")
+
+
 class ExitShader:
     """Radiance leaving hit points towards the ray origins, from per-set
     :class:`ExitTextures` (set index -> textures; sets without are black).
@@ -301,10 +324,7 @@ class ExitShader:
     def __init__(self, sc, exits: dict, bands: int, glossy_tri: np.ndarray):
         self.sc, self.exits, self.bands = sc, exits, bands
         self.K = bands * bands
-        uv = sc.uvs.astype(np.float64)
-        # Per triangle: uv of corner 0 and the two edge vectors, one gather per hit.
-        self.uv_frame = np.ascontiguousarray(
-            np.concatenate([uv[:, 0], uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]], axis=1), dtype=np.float32)
+        self.uv_frame = uv_frames(sc)
         self.glossy_tri = glossy_tri
 
     def radiance(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> np.ndarray:
@@ -316,16 +336,9 @@ class ExitShader:
             sel = np.flatnonzero(sets == s)
             if sel.size == 0:
                 continue
-            f = np.take(self.uv_frame, tri[sel], axis=0)
-            us, vs = u[sel], v[sel]
-            x = f[:, 0] + us * f[:, 2] + vs * f[:, 4]
-            y = f[:, 1] + us * f[:, 3] + vs * f[:, 5]
+            x, y = hit_uvs(self.uv_frame, tri[sel], u[sel], v[sel])
             near = ex.diffuse_grid.rows_at(x, y)
-            # Visit the hits in texel order: random lookups in a texture of
-            # hundreds of MB are ~5x slower than ordered ones, and a radix sort
-            # on 16-bit keys (blocks of texels) costs a fraction of that.
-            shift = max(0, int(ex.diffuse.shape[0] - 1).bit_length() - 16)
-            o = np.argsort((near >> shift).astype(np.uint16), kind="stable")
+            o = texel_order(near, ex.diffuse.shape[0])
             sel, near = sel[o], near[o]
             val = np.take(ex.diffuse, near, axis=0)
             gl = self.glossy_tri[tri[sel]] if ex.glossy is not None else None

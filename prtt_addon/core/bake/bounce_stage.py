@@ -339,6 +339,25 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
     return BounceSetLevel(stats, fname, nxt, energy)
 
 
+def early_stop(ctx: BakeContext, level: int, energy: float, direct: float, judged_under: str = "") -> dict | None:
+    """The manifest's ``stopped_early`` (and an "info" event) when level
+    ``level`` carries less than settings.bounce_tolerance of the direct
+    light's energy and levels remain; else None. ``judged_under``: the light
+    the energies were measured under, when not the bake's."""
+    st = ctx.settings
+    ratio = energy / direct if direct > 0 else 0.0
+    if level >= st.bounces or ratio >= st.bounce_tolerance:
+        return None
+    stopped = {"after_level": level, "energy_ratio": ratio, "tolerance": st.bounce_tolerance,
+               "levels_not_baked": st.bounces - level}
+    if judged_under:
+        stopped["judged_under"] = judged_under
+    ctx.emit(type="info", message=f"bounce level {level} carries {100 * ratio:.3g} % of the direct "
+             f"light (< {100 * st.bounce_tolerance:g} %{', under a ' + judged_under if judged_under else ''}): "
+             f"levels {level + 1}-{st.bounces} are not baked")
+    return stopped
+
+
 def bounce_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list[BounceSource]) -> BounceResult:
     """Bake levels 1..settings.bounces of every set in ``sources`` (the sets
     with texels, in bake order), stopping early below settings.bounce_tolerance
@@ -366,12 +385,7 @@ def bounce_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list
         Lp = nxt
         if not Lp:
             break
-        ratio = energy / inputs.direct if inputs.direct > 0 else 0.0
-        if level < st.bounces and ratio < st.bounce_tolerance:
-            stopped = {"after_level": level, "energy_ratio": ratio, "tolerance": st.bounce_tolerance,
-                       "levels_not_baked": st.bounces - level}
-            ctx.emit(type="info", message=f"bounce level {level} carries {100 * ratio:.3g} % of the direct "
-                     f"light (< {100 * st.bounce_tolerance:g} %): levels {level + 1}-{st.bounces} "
-                     f"are not baked")
+        stopped = early_stop(ctx, level, energy, inputs.direct)
+        if stopped:
             break
     return BounceResult(reports, files, stopped)

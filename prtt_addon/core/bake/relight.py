@@ -47,7 +47,7 @@ from ..sh.basis import basis_unchecked
 from ..sh.gaunt import sparse_gaunt
 from ..texels.gbuffer import GBuffer
 from ..shading.model import lobe_factors
-from .bounce import ChunkHits, SurfaceTexels, TexelRows, trace_bounce_level
+from .bounce import ChunkHits, SurfaceTexels, TexelRows, hit_uvs, texel_order, trace_bounce_level, uv_frames
 from .raytrace import RayScene
 from .transfer import Points, TransferSettings
 
@@ -172,9 +172,7 @@ class RelightShader:
     def __init__(self, sc, exits: dict, bands: int, glossy_bands: int, glossy_tri: np.ndarray):
         self.sc, self.exits = sc, exits
         self.K, self.glossy_bands = bands * bands, glossy_bands
-        uv = sc.uvs.astype(np.float64)
-        self.uv_frame = np.ascontiguousarray(
-            np.concatenate([uv[:, 0], uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]], axis=1), dtype=np.float32)
+        self.uv_frame = uv_frames(sc)
         self.glossy_tri = glossy_tri
         self.cd = max((ex.d_rows.shape[1] for ex in exits.values()), default=1)
         self.cg = max((ex.g_rows.shape[1] for ex in exits.values() if ex.g_rows is not None), default=1)
@@ -190,14 +188,9 @@ class RelightShader:
             sel = np.flatnonzero(sets == s)
             if sel.size == 0:
                 continue
-            fr = np.take(self.uv_frame, tri[sel], axis=0)
-            x = fr[:, 0] + u[sel] * fr[:, 2] + v[sel] * fr[:, 4]
-            y = fr[:, 1] + u[sel] * fr[:, 3] + v[sel] * fr[:, 5]
+            x, y = hit_uvs(self.uv_frame, tri[sel], u[sel], v[sel])
             near = ex.diffuse_grid.rows_at(x, y)
-            # Visit the hits in texel order (random lookups in tables of tens of MB
-            # are several times slower than ordered ones; bounce.ExitShader).
-            shift = max(0, int(ex.d_rows.shape[0] - 1).bit_length() - 16)
-            o = np.argsort((near >> shift).astype(np.uint16), kind="stable")
+            o = texel_order(near, ex.d_rows.shape[0])
             sel, near, x, y = sel[o], near[o], x[o], y[o]
             d_rows = np.take(ex.d_rows, near, axis=0)
             if d_rows.shape[1] < self.cd:

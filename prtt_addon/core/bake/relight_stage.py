@@ -16,7 +16,7 @@ import numpy as np
 from ..texels.dilate import dilate
 from ..io.exr_io import relight_channel_names
 from .bounce import bounce_settings
-from .bounce_stage import BounceResult, bounce_inputs
+from .bounce_stage import BounceResult, bounce_inputs, early_stop
 from .context import BakeContext
 from .memory import numpy_hugepage_advice
 from .plan import BakePlan
@@ -94,13 +94,8 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         rows = nxt
         if not rows:
             break
-        ratio = energy / inputs.direct if inputs.direct > 0 else 0.0
-        if level < st.bounces and ratio < st.bounce_tolerance:
-            stopped = {"after_level": level, "energy_ratio": ratio, "tolerance": st.bounce_tolerance,
-                       "levels_not_baked": st.bounces - level, "judged_under": "uniform white light"}
-            ctx.emit(type="info", message=f"bounce level {level} carries {100 * ratio:.3g} % of the direct "
-                     f"light (< {100 * st.bounce_tolerance:g} %, under a uniform white light): levels "
-                     f"{level + 1}-{st.bounces} are not baked")
+        stopped = early_stop(ctx, level, energy, inputs.direct, "uniform white light")
+        if stopped:
             break
     files = []
     for i, (src, planes) in sums.items():

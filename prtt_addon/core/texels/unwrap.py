@@ -1,4 +1,4 @@
-"""UV unwrapping with xatlas (in-process, no Blender needed).
+"""UV unwrapping with xatlas (in a child process, no Blender needed).
 
 ``unwrap(meshes, resolution, padding)`` lays out one or several indexed meshes
 in a single non-overlapping atlas (one texture set) and returns per-triangle
@@ -15,8 +15,13 @@ triangle of the polygon.
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
+import tempfile
 
 import numpy as np
+
+from ..child import child_env, python_executable
 
 
 class UnwrapError(RuntimeError):
@@ -148,19 +153,65 @@ def loop_uvs(mesh: LoopMesh, tri_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return per_loop, alone
 
 
+#: Tries of the xatlas child before an unwrap fails (a child that crashes or
+#: hangs is started again; xatlas is deterministic, its thread pool is not).
+CHILD_TRIES = 3
+
+
+def _child_timeout(meshes) -> float:
+    """Seconds an xatlas child may take: ~10x a measured 0.2 ms per face, and a minute."""
+    return 60.0 + 2e-3 * sum(int(np.asarray(f).shape[0]) for _, f in meshes)
+
+
 def _unwrap(meshes, resolution, padding, max_tries, uv_mesh=False):
-    """Atlas several meshes together.
+    """:func:`unwrap_here` in a child process (``python -m
+    prtt_addon.core.texels.xatlas_child``). xatlas's thread pool has crashed
+    (a segfault) and deadlocked (joining its threads as an Atlas is
+    destroyed) in this process, which in Blender is Blender itself: a child
+    that dies or outlives its time is started again, up to CHILD_TRIES."""
+    with tempfile.TemporaryDirectory(prefix="prtt-xatlas-") as d:
+        inp, out = os.path.join(d, "in.npz"), os.path.join(d, "out.npz")
+        arrays = {f"v{i}": np.asarray(v) for i, (v, _) in enumerate(meshes)}
+        arrays.update({f"f{i}": np.asarray(f) for i, (_, f) in enumerate(meshes)})
+        np.savez(inp, n=len(meshes), resolution=int(resolution), padding=int(padding), max_tries=int(max_tries),
+                 uv_mesh=bool(uv_mesh), **arrays)
+        why = ""
+        for _ in range(CHILD_TRIES):
+            try:
+                r = subprocess.run([python_executable(), "-m", "prtt_addon.core.texels.xatlas_child", inp, out],
+                                   env=child_env(), capture_output=True, text=True, timeout=_child_timeout(meshes))
+            except subprocess.TimeoutExpired:
+                why = f"xatlas did not finish in {_child_timeout(meshes):.0f} s"
+                continue
+            if r.returncode == 0:
+                with np.load(out) as z:
+                    return [np.array(z[f"uv{i}"]) for i in range(len(meshes))]
+            if r.returncode == UNWRAP_ERROR_EXIT:
+                raise UnwrapError(r.stderr.strip().splitlines()[-1] if r.stderr.strip() else "xatlas failed")
+            why = f"xatlas exited with {r.returncode}: {r.stderr.strip()[-300:]}"
+    raise UnwrapError(f"the unwrap failed {CHILD_TRIES} times ({why})")
+
+
+#: The child's exit status for an UnwrapError (its message is its last stderr line).
+UNWRAP_ERROR_EXIT = 3
+
+
+def unwrap_here(meshes, resolution, padding, max_tries, uv_mesh=False, keep: list | None = None):
+    """Atlas several meshes together, in this process.
 
     meshes : list of (vertices (V, 3) float, faces (F, 3) int), or with
     ``uv_mesh`` of (uvs (V, 2), faces): existing charts, only packed.
     Returns for each mesh its corner UVs (F, 3, 2) float64 in [0, 1], in the
-    order of its faces.
+    order of its faces. ``keep``: a list that holds every xatlas Atlas made,
+    so none is destroyed here (the child exits without destroying them).
     """
     import xatlas
 
     tpu = 0.0
     for _ in range(max_tries):
         atlas = xatlas.Atlas()
+        if keep is not None:
+            keep.append(atlas)
         for v, f in meshes:
             v = np.ascontiguousarray(v, dtype=np.float32)
             f = np.ascontiguousarray(f, dtype=np.uint32)
