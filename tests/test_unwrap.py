@@ -1,4 +1,4 @@
-"""xatlas unwrapping (in-process) and scene assembly."""
+"""xatlas unwrapping (in a child process: crashes and hangs retried) and scene assembly."""
 import numpy as np
 import pytest
 

@@ -2,7 +2,7 @@
 
 Methods: copy an existing map, Blender's Smart UV Project or Lightmap Pack
 (on the PRTT map, made active only while the operator runs), or xatlas
-in-process (core.texels.unwrap.unwrap_loops lays the loops out). Afterwards
+in a child process (core.texels.unwrap.unwrap_loops lays the loops out). Afterwards
 the user's active and render UV maps, the mesh's selection flags, the active
 object, the selection and the mode are put back; the PRTT map is checked for
 overlapping islands at the object's resolution.

@@ -70,7 +70,7 @@ def _scene_annotations() -> dict:
             items=[("EXISTING", "Existing UV Map", "Copy an existing UV map into the PRTT map"),
                    ("SMART", "Smart UV Project", "Blender's Smart UV Project, packed per object"),
                    ("LIGHTMAP", "Lightmap Pack", "Blender's Lightmap Pack: one island per face"),
-                   ("XATLAS", "xatlas", "xatlas charts and packing, in-process")]),
+                   ("XATLAS", "xatlas", "xatlas charts and packing, in a child process")]),
         "existing_uv_map": StringProperty(
             name="Source UV Map", default="",
             description="UV map copied by 'Existing UV Map' (empty: the active render map)"),
