@@ -137,3 +137,14 @@ def test_relightable_bakes_without_a_light_and_refuses_denoising(tmp_path):
     with pytest.raises(BakeError, match="relightable"):
         bake_scene(sc, str(tmp_path / "b"), _settings(bounces=1, bounce_mode="relightable",
                                                       bounce_denoise="edge-aware"), light=None)
+
+
+def test_memory_estimate_counts_the_relightable_operator():
+    from prtt_addon.core.bake.memory import bounce_resident_bytes, relight_resident_bytes
+    from prtt_addon.core.bake.plan import bake_memory_bytes
+    res = np.array([[1024, 1024]])
+    baked = bake_memory_bytes(res, BakeSettings(bounces=1), n_triangles=10, bouncing=True)
+    relit = bake_memory_bytes(res, BakeSettings(bounces=1, bounce_mode="relightable"), n_triangles=10, bouncing=True)
+    # 291 operator channels held three times against 75 bounce channels.
+    assert relit - baked == relight_resident_bytes(1024, 1024, 25, 9) - bounce_resident_bytes(1024, 1024, 25)
+    assert relight_resident_bytes(1024, 1024, 25, 9) > 4 * bounce_resident_bytes(1024, 1024, 25)

@@ -22,7 +22,8 @@ from ..shading.materials import materials_hash
 from ..shading.model import light_hash
 from . import denoise
 from .context import MANIFEST, BakeContext, BakeError, BakeSettings
-from .memory import bounce_resident_bytes, bvh_bytes, check_fits, set_bytes
+from .memory import bounce_resident_bytes, bvh_bytes, check_fits, relight_resident_bytes, set_bytes
+from .relight import GLOSSY_BANDS
 
 
 def settings_hash(settings: BakeSettings) -> str:
@@ -85,7 +86,11 @@ def bake_memory_bytes(set_resolution, st: BakeSettings, *, n_triangles: int, bou
     for w, h in np.asarray(set_resolution).reshape(-1, 2).tolist():
         per_set = max(per_set, set_bytes(int(w), int(h), K, threads=st.n_threads, chunk_rays=st.chunk_rays,
                                          rays=st.rays))
-        resident += bounce_resident_bytes(int(w), int(h), K) if bouncing else 0
+        if bouncing and st.bounce_mode == "relightable":
+            kg = min(GLOSSY_BANDS, st.bands) ** 2
+            resident += relight_resident_bytes(int(w), int(h), K, kg)
+        elif bouncing:
+            resident += bounce_resident_bytes(int(w), int(h), K)
     return bvh_bytes(n_triangles) + per_set + resident
 
 
