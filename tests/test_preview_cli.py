@@ -75,3 +75,47 @@ def test_render_preview_operator(blend):
     px = np.empty(40 * 30 * 4, np.float32)
     img.pixels.foreach_get(px)
     assert np.isfinite(px).all() and px.reshape(30, 40, 4)[..., 3].max() == 1.0
+
+
+def test_relightable_chain_bake_render_turn_the_world_render_bake(blend, tmp_path):
+    """The chain a user runs headless: bake relightable bounces, render, brighten
+    and turn the World, render again (the bounce light follows, no stale
+    warning, no rebake), bake again (nothing to do)."""
+    import shutil
+    from prtt_addon.core.io.image_write import read_exr_rgba
+    scene = str(tmp_path / "scene.blend")
+    shutil.copy(blend, scene)
+    out_dir = str(tmp_path / "out")
+    r = run(["-m", "prtt_addon", "bake", scene, "--out", out_dir, "--bounce-mode", "relightable"])
+    assert r.returncode == 0, r.stdout + r.stderr
+    relit = [f for f in os.listdir(out_dir) if f.endswith(".relight.exr")]
+    assert len(relit) == 3 and not any(".bounce" in f for f in os.listdir(out_dir))
+    stamp = {f: os.stat(os.path.join(out_dir, f)).st_mtime_ns for f in relit}
+    def render(name, *extra):
+        path = str(tmp_path / f"{name}.exr")
+        r = run(["-m", "prtt_addon", "render", scene, "--out", path, "--size", "64x48", *extra])
+        assert r.returncode == 0 and "stale" not in (r.stdout + r.stderr), r.stdout + r.stderr
+        return read_exr_rgba(path)[..., :3]
+
+    bounce_a = render("a") - render("a-direct", "--no-bounces")
+    assert bounce_a.max() > 0.01 * render("a").max()             # the relit bounce light is drawn
+    images = [render("a")]
+    for change in ("brighter", "turned"):
+        bpy = open_blend(scene)
+        world = bpy.context.scene.world.node_tree.nodes
+        if change == "brighter":
+            world["Background"].inputs["Strength"].default_value *= 2.0
+        else:
+            next(n for n in world if n.bl_idname == "ShaderNodeMapping").inputs["Rotation"].default_value[2] += 1.2
+        bpy.ops.wm.save_as_mainfile(filepath=scene)
+        images.append(render(change))
+        if change == "brighter":
+            # The bounce light doubles with the World, with no rebake.
+            bounce_b = images[-1] - render("brighter-direct", "--no-bounces")
+            np.testing.assert_allclose(bounce_b, 2.0 * bounce_a, rtol=0, atol=2e-3 * bounce_a.max())
+    a, brighter, turned = images
+    np.testing.assert_allclose(brighter, 2.0 * a, rtol=0, atol=2e-3 * a.max())
+    assert np.abs(turned - brighter).max() > 0.05 * brighter.max()
+    r = run(["-m", "prtt_addon", "bake", scene, "--out", out_dir, "--bounce-mode", "relightable"])
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert {f: os.stat(os.path.join(out_dir, f)).st_mtime_ns for f in relit} == stamp
