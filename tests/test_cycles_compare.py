@@ -12,10 +12,15 @@ import math
 import pytest
 
 
-def test_diffuse_prtt_matches_cycles_under_band_limited_light(tmp_path):
+@pytest.mark.parametrize("bounces, mode, turn", [(0, "baked", 0.0), (1, "relightable", 120.0)],
+                         ids=["direct", "relit-bounce-world-turned"])
+def test_diffuse_prtt_matches_cycles_under_band_limited_light(tmp_path, bounces, mode, turn):
+    """Direct light; and one bounce baked relightable, the World turned by 120
+    degrees after the bake (Cycles renders the turned World, PRTT relights)."""
     pytest.importorskip("bpy")
     from prtt_addon.bench.cycles_compare import compare
-    r = compare((160, 90), samples=32, resolution=256, rays=128, bounces=0, work_dir=str(tmp_path))
+    r = compare((160, 90), samples=32, resolution=256, rays=128, bounces=bounces, work_dir=str(tmp_path),
+                bounce_mode=mode, turn=turn)
     assert r["pixels_compared"] > 5000
     assert abs(r["mean_ratio_minus_1"]) < 0.01, r["mean_ratio_minus_1"]
     assert r["per_object_mean_ratio_minus_1"], "no object had enough pixels"

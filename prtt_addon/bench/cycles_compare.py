@@ -54,7 +54,8 @@ def band_limited_environment(path: str, bands: int = 5, source: str = "city", he
     return L
 
 
-def build(bpy, env_path: str, out_dir: str, *, resolution: int, rays: int, bounces: int):
+def build(bpy, env_path: str, out_dir: str, *, resolution: int, rays: int, bounces: int,
+          bounce_mode: str = "baked"):
     """The diffuse room in the current (empty) file, unwrapped and baked with the add-on."""
     from . import scene_build as sb
     for name, mesh in scenes.room_objects():
@@ -68,6 +69,7 @@ def build(bpy, env_path: str, out_dir: str, *, resolution: int, rays: int, bounc
     st = scene.prtt
     st.output_dir, st.resolution, st.rays = out_dir, resolution, rays
     st.texture_sets, st.unwrap_method, st.bounces, st.bounce_rays = "ATLAS", "SMART", bounces, max(16, rays // 4)
+    st.bounce_mode = bounce_mode.upper()
     for ob in bpy.context.view_layer.objects:
         ob.select_set(ob.type == "MESH")
     if bpy.ops.prtt.unwrap() != {"FINISHED"}:
@@ -104,8 +106,17 @@ def render_cycles(bpy, path: str, size, samples: int, bounces: int, seed: int) -
     return read_exr_rgba(path)
 
 
+def turn_world(bpy, degrees: float) -> None:
+    """Turn the World's environment about Z (its Mapping node), as a user would."""
+    import math
+    nodes = bpy.context.scene.world.node_tree.nodes
+    next(n for n in nodes if n.bl_idname == "ShaderNodeMapping").inputs["Rotation"].default_value[2] = \
+        math.radians(degrees)
+    bpy.context.view_layer.update()
+
+
 def compare(size=(320, 180), *, samples: int = 1024, resolution: int = 1024, rays: int = 1024,
-            bounces: int = 0, work_dir: str | None = None) -> dict:
+            bounces: int = 0, work_dir: str | None = None, bounce_mode: str = "baked", turn: float = 0.0) -> dict:
     import bpy
 
     from .. import register
@@ -121,8 +132,12 @@ def compare(size=(320, 180), *, samples: int = 1024, resolution: int = 1024, ray
         env = os.path.join(d, "band_limited_city.exr")
         L = band_limited_environment(env)
         t = time.perf_counter()
-        manifest = build(bpy, env, os.path.join(d, "textures"), resolution=resolution, rays=rays, bounces=bounces)
+        manifest = build(bpy, env, os.path.join(d, "textures"), resolution=resolution, rays=rays, bounces=bounces,
+                         bounce_mode=bounce_mode)
         t_bake = time.perf_counter() - t
+        if turn:
+            # After the bake: relightable bounces follow the World, baked ones would be stale.
+            turn_world(bpy, turn)
         t = time.perf_counter()
         prtt, _, _, _ = render_scene(bpy.context, mode="diffuse", size=size, bounces=bounces > 0)
         t_prtt = time.perf_counter() - t
@@ -149,6 +164,7 @@ def compare(size=(320, 180), *, samples: int = 1024, resolution: int = 1024, ray
             per_object[name] = float(np.mean(prtt[..., :3][mk]) / np.mean(ref[..., :3][mk]) - 1.0)
     return {
         "size": list(size), "samples": samples, "resolution": resolution, "rays": rays, "bounces": bounces,
+        "bounce_mode": bounce_mode, "world_turned_after_bake_degrees": turn,
         "pixels_compared": int(mask.sum()),
         "mean_ratio_minus_1": float(a.mean() / b.mean() - 1.0),
         "rel_rmse": float(np.sqrt(np.mean((a - b) ** 2)) / b.mean()),
@@ -199,17 +215,25 @@ def main(argv=None) -> int:
     p.add_argument("--resolution", type=int, default=1024)
     p.add_argument("--rays", type=int, default=1024)
     p.add_argument("--bounces", type=int, default=0, choices=[0, 1])
+    p.add_argument("--bounce-mode", default="baked", choices=("baked", "relightable"))
+    p.add_argument("--turn", type=float, default=0.0, metavar="DEG",
+                   help="turn the World about Z by DEG after the bake, before both renders (relightable bounces)")
     p.add_argument("--out", default=DOCS_BENCH)
     args = p.parse_args(argv)
+    if args.turn and args.bounces and args.bounce_mode != "relightable":
+        p.error("--turn with baked bounces compares stale bounce light; use --bounce-mode relightable")
     w, h = (int(v) for v in args.size.split("x"))
-    res = compare((w, h), samples=args.samples, resolution=args.resolution, rays=args.rays, bounces=args.bounces)
+    res = compare((w, h), samples=args.samples, resolution=args.resolution, rays=args.rays, bounces=args.bounces,
+                  bounce_mode=args.bounce_mode, turn=args.turn)
     os.makedirs(args.out, exist_ok=True)
-    tag = f"cycles_b{args.bounces}"
+    tag = f"cycles_b{args.bounces}" + ("_relight" if args.bounce_mode == "relightable" else "") + \
+        (f"_turn{args.turn:g}" if args.turn else "")
     fig = save_figure(res, os.path.join(args.out, f"{tag}.png"))
     res.pop("images")
     with open(os.path.join(args.out, f"{tag}.json"), "w", encoding="utf-8") as f:
         json.dump(res, f, indent=1)
-    print(f"room, diffuse, band-limited 'city' (5 bands, Hann), {w}x{h}, bounces {args.bounces}: "
+    print(f"room, diffuse, band-limited 'city' (5 bands, Hann), {w}x{h}, bounces {args.bounces} "
+          f"({args.bounce_mode}, World turned {args.turn:g} deg after the bake): "
           f"{res['pixels_compared']} pixels compared")
     print(f"  PRTT mean / Cycles mean - 1:  {100 * res['mean_ratio_minus_1']:+.2f} %")
     print(f"  relative RMSE per pixel:       {100 * res['rel_rmse']:.2f} % (median |rel| "
