@@ -17,7 +17,8 @@ relightable bounce seconds / baked bounce seconds, the frame time of each
 (median of 5 after the first), what a new light adds to the first frame
 under it (the GPU relight pass, what turning the World costs), and the
 bounce texture bytes of each. Writes
-docs/bench/relight.csv. ``--quick`` is a smoke test at toy sizes.
+docs/bench/relight.csv and docs/images/relight_room_90.png (the room at 90°:
+the baking angle, relit, rebaked). ``--quick`` is a smoke test at toy sizes.
 """
 from __future__ import annotations
 
@@ -78,7 +79,34 @@ def frame_ms(view: Previewer, out_dir: str, frames: int = 5) -> float:
     return 1000.0 * float(np.median(times))
 
 
-def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str) -> list:
+#: Display exposure of the figure (the forest HDRI through the room's camera).
+FIGURE_EXPOSURE = 1.0
+
+
+def save_figure(path: str, images: dict, degrees: float, err: float) -> str:
+    """The room at the turned World: the frame at the baking angle, relit, and rebaked."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..core.io.image_write import srgb_encode
+    titles = {"baked": "World at the baking angle (0°)", "relit": f"World turned {degrees:g}°: relit, no rebake",
+              "rebaked": f"World turned {degrees:g}°: full rebake"}
+    fig, axes = plt.subplots(1, 3, figsize=(15, 3.3))
+    for ax, key in zip(axes, ("baked", "relit", "rebaked")):
+        img = images[key]
+        rgb = srgb_encode(FIGURE_EXPOSURE * img[::-1, :, :3]) * img[::-1, :, 3:] + (1 - img[::-1, :, 3:])
+        ax.imshow(np.clip(rgb, 0, 1))
+        ax.set_axis_off()
+        ax.set_title(titles[key] + (f"\nrelit vs rebaked {100 * err:.2f} %" if key == "relit" else ""), fontsize=9)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str, figure: str | None = None) -> list:
     rl, bk = os.path.join(tmp, f"{name}-relight"), os.path.join(tmp, f"{name}-baked")
     bake_scene(sc, rl, BakeSettings(bounces=0), light=light)
     m = bake_scene(sc, rl, BakeSettings(bounces=1, bounce_mode="relightable"), light=light)
@@ -92,7 +120,13 @@ def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str) -> lis
         view.light = L
         mb = bake_scene(sc, bk, BakeSettings(bounces=1), light=L)
         assert mb["transfer_reused"]
-        err = image_error(view.render(rl), view.render(bk))
+        img_rl, img_bk = view.render(rl), view.render(bk)
+        err = image_error(img_rl, img_bk)
+        if figure and deg == 90.0:
+            view.light = light
+            base = view.render(rl)
+            view.light = L
+            save_figure(figure, {"baked": base, "relit": img_rl, "rebaked": img_bk}, deg, err)
         row = {"scene": name, "degrees": deg, "relit_vs_rebaked": err, "baked_bounce_seconds": bounce_seconds(mb),
                "baked_bounce_bytes": sum(os.path.getsize(os.path.join(bk, f)) for f in mb["bounce"]["files"])}
         rows.append(row)
@@ -131,6 +165,8 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="toy sizes (a smoke test)")
     p.add_argument("--out", default=DOCS_BENCH, help="folder for relight.csv (default docs/bench)")
+    p.add_argument("--figure", default=os.path.join(scenes.ROOT, "docs", "images", "relight_room_90.png"),
+                   help="the room at 90 deg: relit beside rebaked (with --quick: not written)")
     args = p.parse_args(argv)
     light = env_light("forest", 5)
     if args.quick:
@@ -144,7 +180,7 @@ def main(argv=None) -> int:
         rows += run_scene("ball", sc, cam, light, size, angles, tmp)
         sc = scenes.room_scene(res, atlas=True, materials=True)
         print(f"room: {sc.n_triangles} triangles, {res}^2 atlas", flush=True)
-        rows += run_scene("room", sc, {}, light, size, angles, tmp)
+        rows += run_scene("room", sc, {}, light, size, angles, tmp, figure=None if args.quick else args.figure)
     if not args.quick:
         os.makedirs(args.out, exist_ok=True)
         write_csv(os.path.join(args.out, "relight.csv"), rows)
