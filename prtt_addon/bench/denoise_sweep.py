@@ -36,12 +36,10 @@ def _planes(path: str) -> np.ndarray:
 def _guides(sc, set_index: int):
     gb = build_gbuffer(sc, set_index)
     H, W = gb.height, gb.width
-    mask = np.zeros(H * W, bool)
-    mask[gb.texel] = True
     pos = np.zeros((H * W, 3))
     nrm = np.zeros((H * W, 3))
     pos[gb.texel], nrm[gb.texel] = gb.position, gb.normal
-    return mask.reshape(H, W), pos.reshape(H, W, 3), nrm.reshape(H, W, 3)
+    return gb.mask(), pos.reshape(H, W, 3), nrm.reshape(H, W, 3)
 
 
 def _error(planes: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:

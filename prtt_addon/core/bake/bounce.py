@@ -143,10 +143,8 @@ def surface_texels(sc, gb: GBuffer, dilate_iterations: int, *, diffuse_only: boo
         planes[3:6, gb.texel] = p.spec.T
         planes[6, gb.texel] = p.exponent
         planes[7:10, gb.texel] = gb.normal.T
-    mask = np.zeros(H * W, bool)
-    mask[gb.texel] = True
     planes = planes.reshape(n_planes, H, W)
-    grown = dilate(planes, mask.reshape(H, W), dilate_iterations).reshape(-1)
+    grown = dilate(planes, gb.mask(), dilate_iterations).reshape(-1)
     valid = np.flatnonzero(grown)
     rows = planes.reshape(n_planes, H * W)[:, valid].T
     row_of = np.full(H * W, valid.size, np.int32)
@@ -169,6 +167,11 @@ class TexelRows:
     width: int
     height: int
     row_of: np.ndarray
+    n_rows: int                          # M + 1: the valid texels' rows and the zero row
+
+    @classmethod
+    def of(cls, surf: "SurfaceTexels") -> "TexelRows":
+        return cls(surf.width, surf.height, surf.row_of, surf.valid.size + 1)
 
     def rows_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Rows of the texels nearest to UV coordinates (x, y) in [0, 1]."""
@@ -220,8 +223,8 @@ def exit_textures(surf: SurfaceTexels, Lp: np.ndarray, bands: int,
             blk = rows[:, 3 + c * K:3 + (c + 1) * K]
             np.multiply(A, spec[:, c:c + 1], out=blk)
             blk *= Lp[:, c, :]
-    grid = TexelRows(surf.width, surf.height, surf.row_of)
-    dgrid = grid if diffuse_at is None else TexelRows(dsurf.width, dsurf.height, dsurf.row_of)
+    grid = TexelRows.of(surf)
+    dgrid = grid if diffuse_at is None else TexelRows.of(dsurf)
     return ExitTextures(dgrid, diffuse, grid if glossy is not None else None, glossy)
 
 
@@ -309,6 +312,34 @@ def texel_order(near: np.ndarray, n_rows: int) -> np.ndarray:
     return np.argsort((near >> shift).astype(np.uint16), kind="stable")
 
 
+def hits_by_set(sc, frames: np.ndarray, exits: dict, tri: np.ndarray, u: np.ndarray, v: np.ndarray):
+    """For each set of ``exits`` (set index -> an exit whose ``diffuse_grid`` is
+    a TexelRows) that hits land on: (exit, sel, near, x, y), ``sel`` the hits'
+    indices in texel order (:func:`texel_order`), ``near`` their rows on the
+    exit's diffuse grid and (x, y) their texture coordinates."""
+    sets = sc.set_id[tri]
+    for s, ex in exits.items():
+        sel = np.flatnonzero(sets == s)
+        if sel.size == 0:
+            continue
+        x, y = hit_uvs(frames, tri[sel], u[sel], v[sel])
+        near = ex.diffuse_grid.rows_at(x, y)
+        o = texel_order(near, ex.diffuse_grid.n_rows)
+        yield ex, sel[o], near[o], x[o], y[o]
+
+
+def reflect_rows(n: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(3, m) unit reflections of the view vectors ``w`` (3, m) about the normals
+    ``n`` (3, m) (dilated, so not unit): r = 2 (n.w) n / |n|^2 - w. Coordinates
+    as rows: every operation runs on contiguous arrays (strided columns of a
+    gathered table made this twice as slow)."""
+    d = 2.0 * (n * w).sum(axis=0) / np.maximum((n * n).sum(axis=0), np.float32(1e-30))
+    r = d * n
+    r -= w
+    r /= np.sqrt(np.maximum((r * r).sum(axis=0), np.float32(1e-30)))
+    return r
+
+
 class ExitShader:
     """Radiance leaving hit points towards the ray origins, from per-set
     :class:`ExitTextures` (set index -> textures; sets without are black).
@@ -331,24 +362,12 @@ class ExitShader:
         """(n, 3) float32 for hits on triangles ``tri`` at Embree's (u, v),
         ``view`` (n, 3) float32 unit vectors from the hit towards the ray origin."""
         out = np.zeros((tri.size, 3), np.float32)
-        sets = self.sc.set_id[tri]
-        for s, ex in self.exits.items():
-            sel = np.flatnonzero(sets == s)
-            if sel.size == 0:
-                continue
-            x, y = hit_uvs(self.uv_frame, tri[sel], u[sel], v[sel])
-            near = ex.diffuse_grid.rows_at(x, y)
-            o = texel_order(near, ex.diffuse.shape[0])
-            sel, near = sel[o], near[o]
+        for ex, sel, near, x, y in hits_by_set(self.sc, self.uv_frame, self.exits, tri, u, v):
             val = np.take(ex.diffuse, near, axis=0)
             gl = self.glossy_tri[tri[sel]] if ex.glossy is not None else None
             if gl is not None and gl.any():
                 g = np.flatnonzero(gl)
-                if ex.glossy_grid is ex.diffuse_grid:
-                    gnear = near[g]
-                else:
-                    og = o[g]
-                    gnear = ex.glossy_grid.rows_at(x[og], y[og])
+                gnear = near[g] if ex.glossy_grid is ex.diffuse_grid else ex.glossy_grid.rows_at(x[g], y[g])
                 val[g] = self._glossy(ex, gnear, view[sel[g]], val[g])
             np.maximum(val, 0.0, out=val)
             out[sel] = val
@@ -358,15 +377,7 @@ class ExitShader:
         """sum_lm G_c,lm y_lm(r) + ``diffuse`` (m, 3) at glossy rows ``row``, r the reflection of view."""
         G = np.take(ex.glossy, row, axis=0)                                   # (m, 3 + 3K)
         m, K = row.size, self.K
-        # Coordinates as rows (3, m): every operation below then runs on
-        # contiguous arrays (strided columns of G made this twice as slow).
-        n = np.ascontiguousarray(G[:, 0:3].T)
-        w = np.ascontiguousarray(view.T)
-        # r = 2 (n.w) n / |n|^2 - w: the reflection about the (dilated, unnormalised) normal.
-        d = 2.0 * (n * w).sum(axis=0) / np.maximum((n * n).sum(axis=0), np.float32(1e-30))
-        r = d * n
-        r -= w
-        r /= np.sqrt(np.maximum((r * r).sum(axis=0), np.float32(1e-30)))
+        r = reflect_rows(np.ascontiguousarray(G[:, 0:3].T), np.ascontiguousarray(view.T))
         y = basis_unchecked((r[0], r[1], r[2]), self.bands, np.float32)     # (m, K)
         out = np.einsum("nck,nk->nc", G[:, 3:].reshape(m, 3, K), y)
         out += diffuse
@@ -501,9 +512,7 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
         tex[:, ch.cols] = ch.to_world(Lt, K, 3).reshape(n, 3 * K).T
 
     stats = trace_bounce_level(rs, gb, pts, skip, st, level, project, progress=progress, cancel=cancel)
-    mask = np.zeros(gb.height * gb.width, bool)
-    mask[gb.texel] = True
-    return tex, mask.reshape(gb.height, gb.width), stats
+    return tex, gb.mask(), stats
 
 
 def bounce_settings(st: TransferSettings, bounce_rays: int) -> TransferSettings:

@@ -155,9 +155,7 @@ def choose_grid(gb: GBuffer, asked: int) -> BounceGrid:
     W, H = gb.width, gb.height
     if asked <= 1:
         return BounceGrid(1, W, H, "bounce_downscale 1: the transfer's grid")
-    mask = np.zeros(H * W, bool)
-    mask[gb.texel] = True
-    mask = mask.reshape(H, W)
+    mask = gb.mask()
     labels = None
     why = []
     f = asked

@@ -124,9 +124,7 @@ def denoise_bounce(planes: np.ndarray, gb, filt: str, bands: int) -> np.ndarray:
     if filt == "none":
         return planes
     H, W = gb.height, gb.width
-    mask = np.zeros(H * W, bool)
-    mask[gb.texel] = True
-    mask = mask.reshape(H, W)
+    mask = gb.mask()
     if filt == "oidn":
         return oidn_sh(planes, mask, bands)
     if filt != "edge-aware":

@@ -47,7 +47,7 @@ from ..sh.basis import basis_unchecked
 from ..sh.gaunt import sparse_gaunt
 from ..texels.gbuffer import GBuffer
 from ..shading.model import lobe_factors
-from .bounce import ChunkHits, SurfaceTexels, TexelRows, hit_uvs, texel_order, trace_bounce_level, uv_frames
+from .bounce import ChunkHits, SurfaceTexels, TexelRows, hits_by_set, reflect_rows, trace_bounce_level, uv_frames
 from .raytrace import RayScene
 from .transfer import Points, TransferSettings
 
@@ -109,8 +109,8 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
     valid texels; ``fine`` = (SurfaceTexels, T rows) of a finer grid the
     diffuse term leaves from (as bounce.exit_textures' ``diffuse_at``)."""
     dsurf, dT = (surf, T_rows) if fine is None else fine
-    grid = TexelRows(surf.width, surf.height, surf.row_of)
-    dgrid = grid if fine is None else TexelRows(dsurf.width, dsurf.height, dsurf.row_of)
+    grid = TexelRows.of(surf)
+    dgrid = grid if fine is None else TexelRows.of(dsurf)
     ex = RelightExit(dgrid, _with_zero_row(dT[:, None, :]), _with_zero_row(dsurf.albedo / math.pi))
     if surf.glossy:
         kg = glossy_bands * glossy_bands
@@ -126,7 +126,7 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
 def later_exit(surf: SurfaceTexels, rows: RelightRows, glossy_bands: int) -> RelightExit:
     """Level n > 1's exit forms from level n - 1's relightable rows at ``surf``'s
     valid texels (``rows.glossy`` None: the lobe reads the DC row alone)."""
-    grid = TexelRows(surf.width, surf.height, surf.row_of)
+    grid = TexelRows.of(surf)
     ex = RelightExit(grid, _with_zero_row(rows.dc), _with_zero_row(surf.albedo * (SQRT_4PI / math.pi)))
     if surf.glossy:
         kg = glossy_bands * glossy_bands
@@ -183,15 +183,7 @@ class RelightShader:
         in texel order (HitForms.index says whose)."""
         kg = self.glossy_bands ** 2
         parts = []
-        sets = self.sc.set_id[tri]
-        for s, ex in self.exits.items():
-            sel = np.flatnonzero(sets == s)
-            if sel.size == 0:
-                continue
-            x, y = hit_uvs(self.uv_frame, tri[sel], u[sel], v[sel])
-            near = ex.diffuse_grid.rows_at(x, y)
-            o = texel_order(near, ex.d_rows.shape[0])
-            sel, near, x, y = sel[o], near[o], x[o], y[o]
+        for ex, sel, near, x, y in hits_by_set(self.sc, self.uv_frame, self.exits, tri, u, v):
             d_rows = np.take(ex.d_rows, near, axis=0)
             if d_rows.shape[1] < self.cd:
                 d_rows = np.repeat(d_rows, self.cd, axis=1)
@@ -200,13 +192,9 @@ class RelightShader:
             g = np.flatnonzero(self.glossy_tri[tri[sel]]) if ex.g_rows is not None else np.zeros(0, np.int64)
             if g.size:
                 gnear = ex.glossy_grid.rows_at(x[g], y[g])
-                nrm = np.take(ex.normal, gnear, axis=0)
-                w = view[sel[g]]
-                # r = 2 (n.w) n / |n|^2 - w: the reflection about the (dilated, unnormalised) normal.
-                r = 2.0 * (nrm * w).sum(axis=1, keepdims=True) / np.maximum(
-                    (nrm * nrm).sum(axis=1, keepdims=True), np.float32(1e-30)) * nrm - w
-                r /= np.sqrt(np.maximum((r * r).sum(axis=1, keepdims=True), np.float32(1e-30)))
-                yb = basis_unchecked((r[:, 0], r[:, 1], r[:, 2]), self.glossy_bands, np.float32)   # (m, Kg)
+                r = reflect_rows(np.ascontiguousarray(np.take(ex.normal, gnear, axis=0).T),
+                                 np.ascontiguousarray(view[sel[g]].T))
+                yb = basis_unchecked((r[0], r[1], r[2]), self.glossy_bands, np.float32)        # (m, Kg)
                 G = np.take(ex.g_rows, gnear, axis=0)                                         # (m, Cg, Kg, Kg)
                 if G.shape[1] < self.cg:
                     G = np.repeat(G, self.cg, axis=1)
@@ -276,9 +264,7 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
             gl[:, ch.cols] = np.ascontiguousarray(world[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
 
     stats = trace_bounce_level(rs, gb, pts, skip, st, level, project, progress=progress, cancel=cancel)
-    mask = np.zeros(HW, bool)
-    mask[gb.texel] = True
-    return dc, gl, mask.reshape(gb.height, gb.width), stats
+    return dc, gl, gb.mask(), stats
 
 
 def uniform_energy(dc: np.ndarray) -> float:

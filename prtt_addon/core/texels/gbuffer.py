@@ -48,6 +48,12 @@ class GBuffer:
     def n(self) -> int:
         return int(self.texel.shape[0])
 
+    def mask(self) -> np.ndarray:
+        """(H, W) bool: the covered texels, row 0 = bottom."""
+        m = np.zeros(self.width * self.height, bool)
+        m[self.texel] = True
+        return m.reshape(self.height, self.width)
+
     def release_surface(self) -> None:
         """Drop the per-texel surface arrays (~110 B a texel), keeping the layout
         (texel, coverage, size, stats): what a set needs once its rays are traced.
