@@ -60,6 +60,10 @@ class _GB:
     def __init__(self, mask):
         self.height, self.width = mask.shape
         self.texel = np.flatnonzero(mask.reshape(-1))
+        self._mask = mask
+
+    def mask(self):
+        return self._mask
 
 
 def test_choose_grid_steps_down_and_says_why():
