@@ -94,6 +94,18 @@ def test_band_limited_glossy_rows_hold_bands_0_to_2(tmp_path):
     assert gl_floor is None                                   # diffuse: no glossy rows
 
 
+def test_relight_texture_records_the_rays_it_traced(tmp_path):
+    """Under tuning auto a coarse bounce grid traces 1.5x the bounce rays per
+    texel: the header says what was traced, as the baked levels' do."""
+    sc = _scene(GLOSSY_WALL, res=32)
+    m = bake_scene(sc, str(tmp_path), BakeSettings(rays=64, bounce_rays=48, half=False, seed=7, bounces=1,
+                                                   tuning="auto", bounce_mode="relightable"), light=sky())
+    for r in m["bounce"]["sets"]:
+        _, _, attrs = exr_io.read_relight_exr(str(tmp_path / f"{r['name']}.relight.exr"))
+        assert attrs["rays"] == r["rays"] == r.get("grid", {}).get("rays", 48)
+    assert any(r["rays"] == 72 for r in m["bounce"]["sets"])
+
+
 def test_relit_bounce_is_linear_in_the_light(tmp_path):
     sc = _scene(GLOSSY_WALL, res=16)
     bake_scene(sc, str(tmp_path), _settings(bounces=2, bounce_mode="relightable"), light=None)

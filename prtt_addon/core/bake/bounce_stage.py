@@ -284,6 +284,30 @@ def level_shader(ctx: BakeContext, inputs: BounceInputs, incident: dict[int, np.
     return shader
 
 
+def skipped_set(src: BounceSource, level: int) -> dict:
+    """The bounce "sets" entry of a set none of whose texels sees geometry."""
+    return {"name": src.name, "level": level, "skipped": "sees no geometry", "texels": int(src.gbuffer.n),
+            "rays_traced": 0, "hits_shaded": 0}
+
+
+def set_level_plan(ctx: BakeContext, inputs: BounceInputs, src: BounceSource, level: int,
+                   bst: TransferSettings) -> tuple[TransferSettings, dict, object]:
+    """What one set's level traces with, in either bounce mode: its settings
+    (``bst`` with the set's grid's ray count), the extra entries of its report
+    (the grid, when tuning or a downscale chose it) and its progress callback."""
+    st = ctx.settings
+    grid = inputs.grids.get(src.index)
+    if grid is not None and grid.rays and grid.rays != bst.rays:
+        bst = bounce_settings(st, grid.rays)
+    extra = {"grid": grid.report()} if grid is not None and (st.bounce_downscale != 1 or st.tuning != "fixed") else {}
+
+    def on_progress(done, total, rays):
+        ctx.emit(type="progress", stage="bounce", set=src.name, level=level, fraction=done / max(total, 1),
+                 rays=rays)
+
+    return bst, extra, on_progress
+
+
 def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: BounceSource, inputs: BounceInputs,
                      shader: ExitShader, level: int, *, bst: TransferSettings, filt: str) -> BounceSetLevel:
     """Trace, denoise, dilate and stage one set's level (progress stage
@@ -293,15 +317,9 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
     name, gb, skip = src.name, src.gbuffer, inputs.skip[src.index]
     t = time.perf_counter()
     if skip.all():
-        return BounceSetLevel({"name": name, "level": level, "skipped": "sees no geometry",
-                               "texels": int(gb.n), "rays_traced": 0, "hits_shaded": 0}, None, None, 0.0)
-
-    def on_progress(done, total, rays):
-        ctx.emit(type="progress", stage="bounce", set=name, level=level, fraction=done / max(total, 1), rays=rays)
-
+        return BounceSetLevel(skipped_set(src, level), None, None, 0.0)
     grid = inputs.grids.get(src.index)
-    if grid is not None and grid.rays and grid.rays != bst.rays:
-        bst = bounce_settings(st, grid.rays)
+    bst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
     tex, mask, stats = bake_bounce_set(geo.rays, gb, src.points, skip, shader, bst, level,
                                        progress=on_progress, cancel=ctx.cancel)
     ctx.seconds["bounce_trace"] += time.perf_counter() - t
@@ -330,9 +348,7 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
     if level < st.bounces:
         rows = tex.reshape(3 * Kb, -1)[:, inputs.surface[src.index].valid].T.reshape(-1, 3, Kb)
         nxt = rows if Kb == K else np.concatenate([rows, np.zeros((rows.shape[0], 3, K - Kb), rows.dtype)], 2)
-    stats.update(name=name, level=level, file=fname, storage="half" if half else "float")
-    if grid is not None and (st.bounce_downscale != 1 or st.tuning != "fixed"):
-        stats["grid"] = grid.report()
+    stats.update(name=name, level=level, file=fname, storage="half" if half else "float", **extra)
     ctx.seconds["bounce_write"] += time.perf_counter() - t
     return BounceSetLevel(stats, fname, nxt, energy)
 

@@ -16,7 +16,7 @@ import numpy as np
 from ..texels.dilate import dilate
 from ..io.exr_io import relight_channel_names
 from .bounce import bounce_settings
-from .bounce_stage import BounceResult, bounce_inputs, early_stop
+from .bounce_stage import BounceResult, bounce_inputs, early_stop, set_level_plan, skipped_set
 from .context import BakeContext
 from .memory import numpy_hugepage_advice
 from .plan import BakePlan
@@ -52,17 +52,10 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
             ctx.check_cancel()
             gb, skip = src.gbuffer, inputs.skip[src.index]
             if skip.all():
-                reports.append({"name": src.name, "level": level, "skipped": "sees no geometry",
-                                "texels": int(gb.n), "rays_traced": 0, "hits_shaded": 0})
+                reports.append(skipped_set(src, level))
                 continue
             t = time.perf_counter()
-            grid = inputs.grids.get(src.index)
-            lbst = bounce_settings(st, grid.rays) if grid is not None and grid.rays and grid.rays != bst.rays else bst
-
-            def on_progress(done, total, rays, name=src.name):
-                ctx.emit(type="progress", stage="bounce", set=name, level=level, fraction=done / max(total, 1),
-                         rays=rays)
-
+            lbst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
             dc, gl, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
                                                    glossy_out=glossy_sets[src.index], progress=on_progress,
                                                    cancel=ctx.cancel)
@@ -79,16 +72,14 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
             if src.index in sums:
                 sums[src.index][1] += planes
             else:
-                sums[src.index] = [src, planes]
+                sums[src.index] = [src, planes, lbst.rays]
             if level < st.bounces:
                 valid = inputs.surface[src.index].valid
                 M = valid.size
                 g_rows = None if gl is None else flat[3 * K:, valid].T.reshape(M, 3, kg - 1, kg)
                 nxt[src.index] = RelightRows(np.ascontiguousarray(flat[:3 * K, valid].T.reshape(M, 3, K)),
                                              None if g_rows is None else np.ascontiguousarray(g_rows))
-            stats.update(name=src.name, level=level, file=f"{src.name}.relight.exr", rays=lbst.rays)
-            if grid is not None and (st.bounce_downscale != 1 or st.tuning != "fixed"):
-                stats["grid"] = grid.report()
+            stats.update(name=src.name, level=level, file=f"{src.name}.relight.exr", rays=lbst.rays, **extra)
             reports.append(stats)
             ctx.seconds["bounce_write"] += time.perf_counter() - t
         rows = nxt
@@ -98,12 +89,12 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         if stopped:
             break
     files = []
-    for i, (src, planes) in sums.items():
+    for i, (src, planes, rays) in sums.items():
         t = time.perf_counter()
         g = glossy_sets[i]
         fname = f"{src.name}.relight.exr"
         attrs = dict(plan.exr_attrs(st), levels=max(r["level"] for r in reports if r["name"] == src.name),
-                     rays=bst.rays, materials_hash=plan.materials_hash, texels=int(src.gbuffer.n),
+                     rays=rays, materials_hash=plan.materials_hash, texels=int(src.gbuffer.n),
                      glossy_bands=gbands if g else 0, bounce_mode="relightable")
         write_planes(ctx, fname, planes, "relight", attrs, rgb=False,
                      names=relight_channel_names(K, kg if g else 0), bands=st.bands)
