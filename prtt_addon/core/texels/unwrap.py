@@ -175,13 +175,13 @@ def _unwrap(meshes, resolution, padding, max_tries, uv_mesh=False):
         arrays.update({f"f{i}": np.asarray(f) for i, (_, f) in enumerate(meshes)})
         np.savez(inp, n=len(meshes), resolution=int(resolution), padding=int(padding), max_tries=int(max_tries),
                  uv_mesh=bool(uv_mesh), **arrays)
-        why = ""
+        why, timeout = "", _child_timeout(meshes)
         for _ in range(CHILD_TRIES):
             try:
                 r = subprocess.run([python_executable(), "-m", "prtt_addon.core.texels.xatlas_child", inp, out],
-                                   env=child_env(), capture_output=True, text=True, timeout=_child_timeout(meshes))
+                                   env=child_env(), capture_output=True, text=True, timeout=timeout)
             except subprocess.TimeoutExpired:
-                why = f"xatlas did not finish in {_child_timeout(meshes):.0f} s"
+                why = f"xatlas did not finish in {timeout:.0f} s"
                 continue
             if r.returncode == 0:
                 with np.load(out) as z:
