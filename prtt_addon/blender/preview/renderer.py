@@ -118,7 +118,7 @@ class Renderer:
     def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int, light):
         """The set's (transfer, bounce, vertex) textures, each (GPUTexture, bytes) or
         None; loaded, checked against the bake's band count and uploaded once
-        (relightable bounces once per ``light``, (K, 3), applied on the CPU)."""
+        (relightable bounces once per ``light``, (K, 3): :meth:`_relit_bounce`)."""
         key, K = s.key, bands * bands
 
         def transfer():
@@ -153,8 +153,7 @@ class Renderer:
 
         def operator():
             dc, glossy, attrs = _load(s.load_relight, where)
-            _check_coeffs(dc, 4, K, where)
-            if dc.shape[-1] != K:
+            if dc.shape[-1] != K:          # the pass reads exactly the bake's K4 layers per colour
                 raise TextureUploadError(f"{where}: holds {dc.shape[-1]} light coefficients, the bake has {K}; "
                                          f"bake again")
             tex, nbytes = self._array_texture(pp.pack_relight_operator(dc, glossy), where)
