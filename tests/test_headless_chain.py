@@ -52,13 +52,16 @@ def blend(tmp_path_factory):
 BAKE = ["--resolution", "32", "--rays", "16", "--bounces", "0"]
 
 
-def test_bake_render_bake_render(blend, tmp_path):
+@pytest.mark.parametrize("bounces", [(), ("--bounces", "1", "--bounce-rays", "8", "--bounce-mode", "relightable")],
+                         ids=["direct", "relightable-bounce"])
+def test_bake_render_bake_render(blend, tmp_path, bounces):
+    bake = BAKE + list(bounces)
     work = tmp_path / "work"
     work.mkdir()
     scene = work / "scene.blend"
     scene.write_bytes(blend.read_bytes())
     # relative paths resolve against the caller's folder
-    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=work)
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *bake, cwd=work)
     assert r.returncode == 0, r.stderr + r.stdout
     assert "saved" in r.stdout and (work / "textures" / "manifest.json").is_file()
     assert "nothing to bake (no faces): Edges" in r.stdout + r.stderr
@@ -68,7 +71,9 @@ def test_bake_render_bake_render(blend, tmp_path):
     assert (work / "first.png").is_file()
     textures = {n: digest(work / "textures" / n) for n in os.listdir(work / "textures")}
     # the second bake finds the saved UV maps and bake record: nothing to do
-    r = run("bake", "scene.blend", "--out", "textures", *BAKE, cwd=work)
+    if bounces:
+        assert any(n.endswith(".relight.exr") for n in textures), sorted(textures)
+    r = run("bake", "scene.blend", "--out", "textures", *bake, cwd=work)
     assert r.returncode == 0, r.stderr + r.stdout
     assert "unchanged" in r.stdout or "up to date" in r.stdout, r.stdout
     assert {n: digest(work / "textures" / n) for n in os.listdir(work / "textures")} == textures
