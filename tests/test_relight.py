@@ -160,3 +160,25 @@ def test_memory_estimate_counts_the_relightable_operator():
     # 291 operator channels held three times against 75 bounce channels.
     assert relit - baked == relight_resident_bytes(1024, 1024, 25, 9) - bounce_resident_bytes(1024, 1024, 25)
     assert relight_resident_bytes(1024, 1024, 25, 9) > 4 * bounce_resident_bytes(1024, 1024, 25)
+
+
+@pytest.mark.parametrize("header", [{"glossy_bands": 100000}, {"bands": 10**6}, {"bands": "five"}])
+def test_forged_band_counts_are_refused_before_listing_channels(tmp_path, header):
+    """A texture's header is untrusted: a band count beyond the bake's limit is
+    a clear error, not a list of 10^10 channel names."""
+    import OpenEXR
+    path = str(tmp_path / "forged.relight.exr")
+    attrs = {"kind": "relight", "bands": 5, "glossy_bands": 0, **header}
+    exr_io.write_sh_planes(path, np.zeros((75, 4, 4), np.float32), kind="relight", rgb=False,
+                           names=exr_io.relight_channel_names(25), bands=5)
+    with OpenEXR.File(path) as f:
+        h = dict(f.header())
+        chans = {n: np.array(c.pixels) for n, c in f.channels().items()}
+    h.update({f"prtt_{k}": v for k, v in attrs.items()})
+    with OpenEXR.File(h, chans) as f:
+        f.write(path)
+    with pytest.raises(exr_io.TextureError, match="is not a band count"):
+        exr_io.read_relight_exr(path)
+    if "bands" in header:
+        with pytest.raises(exr_io.TextureError, match="is not a band count"):
+            exr_io.read_sh_exr(path)

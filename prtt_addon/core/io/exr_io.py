@@ -193,6 +193,23 @@ def _read_channels(path) -> tuple[dict, dict]:
     return chans, attrs
 
 
+#: The most SH bands a texture file may declare (the bake's own limit): a
+#: header is untrusted input, and channel names are listed from it.
+MAX_FILE_BANDS = 16
+
+
+def _bands(path, attrs: dict, key: str, lo: int, hi: int = MAX_FILE_BANDS) -> int:
+    """The header's band count ``key`` as an int in [lo, hi], or TextureError."""
+    try:
+        n = int(attrs.get(key, 0))
+    except (TypeError, ValueError):
+        n = -1
+    if not lo <= n <= hi:
+        raise TextureError(f"{path}: header prtt_{key} = {attrs.get(key)!r} is not a band count "
+                           f"from {lo} to {hi}")
+    return n
+
+
 def _stack(path, chans: dict, names: list[str]) -> np.ndarray:
     """(H, W, len(names)) float32, row 0 at the bottom."""
     missing = [n for n in names if n not in chans]
@@ -208,8 +225,8 @@ def read_relight_exr(path) -> tuple[np.ndarray, np.ndarray | None, dict]:
     chans, attrs = _read_channels(path)
     if attrs["kind"] != "relight":
         raise TextureError(f"{path}: a {attrs['kind']!r} texture, not a relightable bounce texture")
-    K = int(attrs["bands"]) ** 2
-    kg = int(attrs.get("glossy_bands", 0)) ** 2
+    bands = _bands(path, attrs, "bands", 1)
+    K, kg = bands * bands, _bands(path, attrs, "glossy_bands", 0, bands) ** 2
     names = relight_channel_names(K, kg)
     data = _stack(path, chans, names)
     H, W = data.shape[:2]
@@ -227,7 +244,7 @@ def read_sh_exr(path) -> tuple[np.ndarray, dict]:
     attrs holds the ``prtt_*`` header entries without the prefix.
     """
     chans, attrs = _read_channels(path)
-    K = int(attrs["bands"]) ** 2
+    K = _bands(path, attrs, "bands", 1) ** 2
     rgb = any(n.startswith("R.") for n in chans)
     data = _stack(path, chans, channel_names(K, rgb))
     H, W = data.shape[:2]
