@@ -443,75 +443,130 @@ class ChunkHits:
         return rotate_zyz(rows @ table, rep(self.fr.alpha), rep(self.fr.beta), rep(self.fr.gamma))
 
 
-def trace_bounce_level(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, st: TransferSettings,
-                       level: int, project, *, progress=None, cancel=None) -> dict:
-    """Trace one set's bounce level and hand every chunk's hits to
-    ``project(ChunkHits)`` (called from the bake's threads, for disjoint
-    texels). ``skip`` (N,) marks texels that get zero without rays. Returns
-    the stats (texels, skipped_texels, rays_traced, hits_shaded, seconds)."""
+@dataclasses.dataclass(eq=False)
+class LevelRays:
+    """What every chunk of one set's bounce level traces from (level_rays):
+    the texels' Points ``sub`` (ids tagged by the level), their texture
+    columns ``cols`` and the settings. Picklable: a Dask worker receives it
+    once per level (core/bake/distributed.py) and traces chunks from it
+    exactly as the local threads do."""
+
+    sub: Points
+    cols: np.ndarray
+    st: TransferSettings
+    G: int                             # ray patterns (transfer.chunk_plan)
+
+    def tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """(directions (G, S, 3), estimator table (G, S, K)) of the level's patterns (cached)."""
+        st = self.st
+        dirs_bank, _, _ = pattern_bank(self.G, st.rays, st.bands, st.sampler, st.distribution, st.seed)
+        _, table = _estimator_tables(st, self.G, st.rays)
+        return dirs_bank, table
+
+
+def level_rays(gb: GBuffer, pts: Points, skip: np.ndarray, st: TransferSettings, level: int):
+    """(LevelRays, chunks) of one set's level: the texels not skipped, planned
+    by transfer.chunk_plan (biggest chunks first)."""
     todo, sub = level_points(pts, skip, level)
+    chunks, G = chunk_plan(sub, st)
+    return LevelRays(sub, gb.texel[todo], st, G), sorted(chunks, key=lambda c: -c.idx.size)
+
+
+def trace_chunk(rs: RayScene, lr: LevelRays, tables, chunk) -> ChunkHits:
+    """Trace one chunk of a level (tables = lr.tables()): its rays and hits."""
+    st, (dirs_bank, table) = lr.st, tables
+    g, idx = chunk.g, chunk.idx
+    fr = chunk_frames(rs, lr.sub, idx, st.seed, shared=chunk.shared)
+    n, S = idx.size, st.rays
+    if fr.shared:
+        # Texels of one flat face group share the frame (as in the transfer bake).
+        D = np.tile(dirs_bank[g] @ np.asarray(fr.R[0]).T, (n, 1))
+    else:
+        D = np.matmul(dirs_bank[g][None], fr.R.transpose(0, 2, 1)).reshape(-1, 3)
+    O = np.repeat(fr.origins, S, axis=0)
+    prim, u, v, _ = rs.intersect(O, np.ascontiguousarray(D))
+    hit = np.flatnonzero(prim >= 0)
+    return ChunkHits(lr.cols[idx], S, D, hit, prim[hit].astype(np.int64), u[hit], v[hit], table[g], fr)
+
+
+def trace_bounce_level(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, st: TransferSettings,
+                       level: int, project, store, *, progress=None, cancel=None, remote=None) -> dict:
+    """Trace one set's bounce level: every chunk's hits go to ``project(ChunkHits)``
+    (a pure function of the chunk: BakedProjection, relight.RelightProjection),
+    whose result ``store(cols, result)`` writes for the chunk's texel columns
+    (called for disjoint texels; from the bake's threads, or from the calling
+    thread when ``remote`` (distributed.DaskBake) runs the chunks on a
+    cluster). ``skip`` (N,) marks texels that get zero without rays. Returns
+    the stats (texels, skipped_texels, rays_traced, hits_shaded, seconds)."""
+    lr, chunks = level_rays(gb, pts, skip, st, level)
     stats = {"texels": int(gb.n), "skipped_texels": int(skip.sum()), "rays_traced": 0,
              "hits_shaded": 0}
     lock = threading.Lock()
-    chunks, G = chunk_plan(sub, st)
-    dirs_bank, _, _ = pattern_bank(G, st.rays, st.bands, st.sampler, st.distribution, st.seed)
-    _, table = _estimator_tables(st, G, st.rays)
-    cols = gb.texel[todo]
-
-    def run(chunk):
-        g, idx = chunk.g, chunk.idx
-        if cancel is not None and cancel.is_set():
-            raise Cancelled()
-        fr = chunk_frames(rs, sub, idx, st.seed, shared=chunk.shared)
-        n, S = idx.size, st.rays
-        if fr.shared:
-            # Texels of one flat face group share the frame (as in the transfer bake).
-            D = np.tile(dirs_bank[g] @ np.asarray(fr.R[0]).T, (n, 1))
-        else:
-            D = np.matmul(dirs_bank[g][None], fr.R.transpose(0, 2, 1)).reshape(-1, 3)
-        O = np.repeat(fr.origins, S, axis=0)
-        prim, u, v, _ = rs.intersect(O, np.ascontiguousarray(D))
-        hit = np.flatnonzero(prim >= 0)
-        project(ChunkHits(cols[idx], S, D, hit, prim[hit].astype(np.int64), u[hit], v[hit], table[g], fr))
-        with lock:
-            stats["rays_traced"] += n * S
-            stats["hits_shaded"] += int(hit.size)
-        return n
-
     t0 = time.perf_counter()
     done = 0
 
-    def on_result(n):
+    def sink(n, cols, result, hits):
         nonlocal done
-        done += n
-        if progress:
-            progress(done, todo.size, stats["rays_traced"])
+        store(cols, result)
+        with lock:
+            stats["rays_traced"] += n * st.rays
+            stats["hits_shaded"] += hits
+            done += n
 
-    # The chunks' products are small and run one per core: OpenBLAS's own
-    # threads would only spin against them (a third of the time, measured).
-    with single_threaded_blas():
-        run_chunks(run, sorted(chunks, key=lambda c: -c.idx.size), st.n_threads, on_result, cancel)
+    def on_result(_):
+        if progress:
+            progress(done, lr.cols.size, stats["rays_traced"])
+
+    if remote is not None:
+        remote.trace_level(lr, chunks, project, sink, on_result, cancel)
+    else:
+        tables = lr.tables()
+
+        def run(chunk):
+            if cancel is not None and cancel.is_set():
+                raise Cancelled()
+            ch = trace_chunk(rs, lr, tables, chunk)
+            sink(ch.n, ch.cols, project(ch), int(ch.hit.size))
+
+        # The chunks' products are small and run one per core: OpenBLAS's own
+        # threads would only spin against them (a third of the time, measured).
+        with single_threaded_blas():
+            run_chunks(run, chunks, st.n_threads, on_result, cancel)
     stats["seconds"] = time.perf_counter() - t0
     return stats
 
 
+@dataclasses.dataclass(eq=False)
+class BakedProjection:
+    """A baked level's projection of one chunk: (3K, n) float32, the world SH
+    of the radiance its rays bring (``shader`` at the hits), colour-major
+    rows (R.sh000.., G.., B..) for the chunk's texel columns."""
+
+    shader: ExitShader
+    K: int
+
+    def __call__(self, ch: ChunkHits) -> np.ndarray:
+        n, S, K = ch.n, ch.S, self.K
+        L = np.zeros((n * S, 3), np.float32)
+        if ch.hit.size:
+            L[ch.hit] = self.shader.radiance(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
+        # One product for the three colours: (n*3, S) @ (S, K).
+        Lt = np.ascontiguousarray(L.reshape(n, S, 3).transpose(0, 2, 1)).reshape(n * 3, S)
+        return ch.to_world(Lt, K, 3).reshape(n, 3 * K).T
+
+
 def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: ExitShader,
-                    st: TransferSettings, level: int, *, progress=None, cancel=None):
+                    st: TransferSettings, level: int, *, progress=None, cancel=None, remote=None):
     """One set's bounce level: returns ((3K, H*W) float32 texture, coverage mask
     (H, W), stats). ``skip`` (N,) marks texels that get zero without rays."""
     K = st.bands ** 2
     tex = np.zeros((3 * K, gb.height * gb.width), np.float32)
 
-    def project(ch: ChunkHits):
-        n, S = ch.n, ch.S
-        L = np.zeros((n * S, 3), np.float32)
-        if ch.hit.size:
-            L[ch.hit] = shader.radiance(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
-        # One product for the three colours: (n*3, S) @ (S, K).
-        Lt = np.ascontiguousarray(L.reshape(n, S, 3).transpose(0, 2, 1)).reshape(n * 3, S)
-        tex[:, ch.cols] = ch.to_world(Lt, K, 3).reshape(n, 3 * K).T
+    def store(cols, planes):
+        tex[:, cols] = planes
 
-    stats = trace_bounce_level(rs, gb, pts, skip, st, level, project, progress=progress, cancel=cancel)
+    stats = trace_bounce_level(rs, gb, pts, skip, st, level, BakedProjection(shader, K), store,
+                               progress=progress, cancel=cancel, remote=remote)
     return tex, gb.mask(), stats
 
 

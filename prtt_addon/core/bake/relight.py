@@ -211,19 +211,22 @@ class RelightShader:
                           for f in dataclasses.fields(HitForms)))
 
 
-def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: RelightShader,
-                     st: TransferSettings, level: int, *, glossy_out: bool, progress=None, cancel=None):
-    """One set's relightable level. Returns (dc planes (3K, H*W), glossy planes
-    (3 (Kg - 1) Kg, H*W) or None when not ``glossy_out``, coverage mask (H, W),
-    stats); channel order colour, then out coefficient, then light coefficient."""
-    K, kg = shader.K, shader.glossy_bands ** 2
-    HW = gb.height * gb.width
-    dc = np.zeros((3 * K, HW), np.float32)
-    gl = np.zeros((3 * (kg - 1) * kg, HW), np.float32) if glossy_out else None
+@dataclasses.dataclass(eq=False)
+class RelightProjection:
+    """A relightable level's projection of one chunk (bounce.trace_bounce_level):
+    (DC rows (3K, n), glossy rows (3 (Kg - 1) Kg, n) or None unless
+    ``glossy_out``) for the chunk's texel columns; channel order colour, then
+    out coefficient, then light coefficient."""
 
-    def project(ch: ChunkHits):
+    shader: RelightShader
+    K: int
+    kg: int
+    glossy_out: bool
+
+    def __call__(self, ch: ChunkHits):
+        K, kg = self.K, self.kg
         n, S = ch.n, ch.S
-        f = shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
+        f = self.shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
         cd, cg = f.d_rows.shape[1], f.g_w.shape[1]
         w0 = np.ascontiguousarray(ch.table[:, 0])
         # Per ray (zeros where it missed): the DC weight folded into the colour scales.
@@ -234,6 +237,7 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
         ag[at] = f.g_scale
         ad = ad.reshape(n, S, 3)
         ag = ag.reshape(n, S, 3)
+        Y = gl = None
         if cd == 1 and cg == 1:
             # Level 1: one row per hit for all colours, so the DC row is a
             # (3, S) @ (S, K) product per texel; no (rays, 3, K) array.
@@ -246,24 +250,43 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
             # Contiguous operands: numpy's stacked matmul takes BLAS only for those.
             out = np.matmul(np.ascontiguousarray((ad * w0[:, None]).transpose(0, 2, 1)), rows)   # (n, 3, K)
             out[:, :, :kg] += np.matmul(np.ascontiguousarray((ag * w0[:, None]).transpose(0, 2, 1)), wg)
-            dc[:, ch.cols] = out.reshape(n, 3 * K).T
-            if gl is not None:
+            dc = out.reshape(n, 3 * K).T
+            if self.glossy_out:
                 Y = ad[:, :, :, None] * rows[:, :, None, :kg] + ag[:, :, :, None] * wg[:, :, None, :]
         else:
             X = np.zeros((n * S, 3, K), np.float32)
             X[at] = f.full()
             X = X.reshape(n, S, 3 * K)
             # The DC row: the estimator's DC weights (rotation leaves the DC alone).
-            dc[:, ch.cols] = (w0 @ X).T
-            if gl is not None:
+            dc = (w0 @ X).T
+            if self.glossy_out:
                 Y = X.reshape(n, S, 3, K)[:, :, :, :kg]
-        if gl is not None:
+        if Y is not None:
             # Rows (texel, colour, light coefficient i < Kg) projected on Kg out coefficients.
             Yt = np.ascontiguousarray(Y.transpose(0, 2, 3, 1)).reshape(n * 3 * kg, S)
             world = ch.to_world(Yt, kg, 3 * kg).reshape(n, 3, kg, kg)                    # (n, c, i, o)
-            gl[:, ch.cols] = np.ascontiguousarray(world[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
+            gl = np.ascontiguousarray(world[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
+        return dc, gl
 
-    stats = trace_bounce_level(rs, gb, pts, skip, st, level, project, progress=progress, cancel=cancel)
+
+def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: RelightShader,
+                     st: TransferSettings, level: int, *, glossy_out: bool, progress=None, cancel=None,
+                     remote=None):
+    """One set's relightable level. Returns (dc planes (3K, H*W), glossy planes
+    (3 (Kg - 1) Kg, H*W) or None when not ``glossy_out``, coverage mask (H, W),
+    stats); channel order colour, then out coefficient, then light coefficient."""
+    K, kg = shader.K, shader.glossy_bands ** 2
+    HW = gb.height * gb.width
+    dc = np.zeros((3 * K, HW), np.float32)
+    gl = np.zeros((3 * (kg - 1) * kg, HW), np.float32) if glossy_out else None
+
+    def store(cols, result):
+        dc[:, cols] = result[0]
+        if gl is not None:
+            gl[:, cols] = result[1]
+
+    stats = trace_bounce_level(rs, gb, pts, skip, st, level, RelightProjection(shader, K, kg, glossy_out), store,
+                               progress=progress, cancel=cancel, remote=remote)
     return dc, gl, gb.mask(), stats
 
 

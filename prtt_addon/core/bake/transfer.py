@@ -278,14 +278,15 @@ class _Stats:
         self.early_stopped = 0
         self.threads_used = set()
 
-    def add(self, traced, below, planned, points, early):
+    def add(self, traced, below, planned, points, early, thread=None):
+        """Count one chunk; ``thread``: who traced it (default: this thread)."""
         with self.lock:
             self.rays_traced += traced
             self.rays_below_horizon += below
             self.rays_planned += planned
             self.points_done += points
             self.early_stopped += early
-            self.threads_used.add(threading.get_ident())
+            self.threads_used.add(threading.get_ident() if thread is None else thread)
 
 
 def _estimator_tables(st: TransferSettings, G: int, prefix: int, cancel=None):
@@ -464,14 +465,16 @@ SWITCH_INTERVAL = 0.0005
 
 
 def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
-                progress=None, cancel: threading.Event | None = None):
+                progress=None, cancel: threading.Event | None = None, remote=None):
     """Transfer vectors of ``pts``: returns ((N, K) float32, stats dict).
 
     Chunks run on ``settings.n_threads`` threads with single-threaded BLAS and
     write their rows of the result (disjoint, whole rows: see bake.py for why
     rows, not texture planes). progress(done_points, total_points,
     rays_traced) is called from the calling thread as chunks finish.
-    ``cancel`` set -> :class:`Cancelled`.
+    ``cancel`` set -> :class:`Cancelled`. ``remote`` (distributed.DaskBake):
+    the same chunks run on a Dask cluster instead of local threads (the same
+    results, bit for bit).
     """
     import sys
 
@@ -479,12 +482,12 @@ def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
     sys.setswitchinterval(SWITCH_INTERVAL)
     try:
         with single_threaded_blas():
-            return _bake_points(rs, pts, settings, progress, cancel)
+            return _bake_points(rs, pts, settings, progress, cancel, remote)
     finally:
         sys.setswitchinterval(old_interval)
 
 
-def _bake_points(rs, pts, settings, progress, cancel):
+def _bake_points(rs, pts, settings, progress, cancel, remote=None):
     st = settings.validate()
     K = st.bands ** 2
     N = pts.n
@@ -502,15 +505,10 @@ def _bake_points(rs, pts, settings, progress, cancel):
     if progress:
         progress(done, N, 0)
     if chunks:
-        kernel = ChunkKernel(rs, pts, st, G, cancel)
-
-        def run_chunk(chunk):
-            if cancel is not None and cancel.is_set():
-                raise Cancelled()
-            res, (t_r, b_r, early) = kernel.run(chunk, cancel)
+        def sink(chunk, res, counts, thread=None):
             out[chunk.idx] = res
             n = chunk.idx.size
-            stats.add(t_r, b_r, n * st.rays, n, early)
+            stats.add(*counts[:2], n * st.rays, n, counts[2], thread)
             return n
 
         def on_result(n):
@@ -520,7 +518,19 @@ def _bake_points(rs, pts, settings, progress, cancel):
                 progress(done, N, stats.rays_traced)
 
         # Biggest chunks first, so the threads finish together.
-        run_chunks(run_chunk, sorted(chunks, key=lambda c: -c.idx.size), st.n_threads, on_result, cancel)
+        chunks = sorted(chunks, key=lambda c: -c.idx.size)
+        if remote is not None:
+            remote.trace_points(pts, st, chunks, G, sink, on_result, cancel)
+        else:
+            kernel = ChunkKernel(rs, pts, st, G, cancel)
+
+            def run_chunk(chunk):
+                if cancel is not None and cancel.is_set():
+                    raise Cancelled()
+                res, counts = kernel.run(chunk, cancel)
+                return sink(chunk, res, counts)
+
+            run_chunks(run_chunk, chunks, st.n_threads, on_result, cancel)
     seconds = time.perf_counter() - t0
     info = {
         "points": N,
