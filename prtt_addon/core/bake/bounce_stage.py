@@ -321,7 +321,7 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
     grid = inputs.grids.get(src.index)
     bst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
     tex, mask, stats = bake_bounce_set(geo.rays, gb, src.points, skip, shader, bst, level,
-                                       progress=on_progress, cancel=ctx.cancel)
+                                       progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
     ctx.seconds["bounce_trace"] += time.perf_counter() - t
     t = time.perf_counter()
     tex = tex.reshape(3 * K, gb.height, gb.width)

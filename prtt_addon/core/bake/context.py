@@ -179,6 +179,8 @@ class BakeContext:
     seconds: dict[str, float] = dataclasses.field(init=False)   # seconds per stage (the manifest's)
     warnings: list[str] = dataclasses.field(init=False)         # every warning emitted, in order
     tables: cf.Future | None = dataclasses.field(init=False)    # warm_tables on a helper (stages.start_tables)
+    dask: object | None = None                  # distributed.DaskSpec: trace on a Dask cluster (runner opens it)
+    remote: object | None = dataclasses.field(init=False)       # the open distributed.DaskBake, else None
 
     def __post_init__(self):
         self.failed = threading.Event()
@@ -187,16 +189,18 @@ class BakeContext:
         self.seconds = dict.fromkeys(STAGE_SECONDS, 0.0)
         self.warnings = []
         self.tables = None
+        self.remote = None
 
     @classmethod
     def create(cls, scene: Scene, out_dir: str, settings: BakeSettings, *, light=None,
                progress: Callable[[dict], None] | None = None, cancel: threading.Event | None = None,
-               sets: list[str] | None = None) -> "BakeContext":
+               sets: list[str] | None = None, dask=None) -> "BakeContext":
         """The context of one bake of ``scene`` into ``out_dir``.
 
         light : (K', 3) RGB SH, K' >= bands² (truncated to bands²), or None.
         sets : names of the texture sets to bake (default: all, in scene order);
                BakeError for a name the scene does not have.
+        dask : a distributed.DaskSpec: the ray chunks run on that Dask cluster.
         """
         set_ids = list(range(scene.n_sets))
         if sets is not None:
@@ -209,7 +213,7 @@ class BakeContext:
         # helper that then waits for its row bands on this same pool.
         helpers = cf.ThreadPoolExecutor(max_workers=max(2, settings.n_threads) + 1)
         return cls(scene=scene, out_dir=out_dir, settings=settings, light=prepared, progress=progress,
-                   cancel=cancel, set_ids=set_ids, helpers=helpers)
+                   cancel=cancel, set_ids=set_ids, helpers=helpers, dask=dask)
 
     @property
     def n_coeffs(self) -> int:
@@ -253,4 +257,7 @@ class BakeContext:
         if failed:
             self.failed.set()
         cancelled = self.cancel is not None and self.cancel.is_set()
+        if self.remote is not None:
+            self.remote.close()
+            self.remote = None
         self.helpers.shutdown(wait=not cancelled, cancel_futures=True)

@@ -58,7 +58,7 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
             lbst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
             dc, gl, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
                                                    glossy_out=glossy_sets[src.index], progress=on_progress,
-                                                   cancel=ctx.cancel)
+                                                   cancel=ctx.cancel, remote=ctx.remote)
             ctx.seconds["bounce_trace"] += time.perf_counter() - t
             t = time.perf_counter()
             H, W = gb.height, gb.width

@@ -50,6 +50,7 @@ from ..io.scene import Scene
 from .bounce_stage import bounce_levels
 from .relight_stage import relight_levels
 from .commit import commit_bake, finish_skipped, make_manifest
+from .distributed import DaskBake, parse_spec
 from .context import BAKE_FORMAT_VERSION, BAKE_INT_LIMITS, MANIFEST, BakeContext, BakeError, BakeSettings, emit
 from .memory import numpy_hugepage_advice
 from .plan import (bake_memory_bytes, bounce_key, check_memory, manifest_dicts, outputs_changed, plan_bake,
@@ -88,7 +89,7 @@ def lock_out_dir(out_dir, job=None, source=None) -> FolderLock:
 def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, light=None,
                progress=None, cancel: threading.Event | None = None,
                skip_if_unchanged: bool = True, sets: list[str] | None = None,
-               job: str | None = None, source: str | None = None) -> dict:
+               job: str | None = None, source: str | None = None, dask: str | None = None) -> dict:
     """Bake every texture set of ``sc`` into ``out_dir``.
 
     light : (K', 3) RGB SH of the environment in world coordinates, K' >= bands^2;
@@ -96,12 +97,16 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
     job, source : the job file this scene came from and what that was made from
           (e.g. the .blend), recorded in the folder's lock so that a second
           bake into the folder can say which bake holds it.
+    dask : run the ray chunks on a Dask cluster: "local[:N]", a scheduler
+          address (tcp://HOST:PORT) or "env" ($DASK_SCHEDULER_ADDRESS);
+          the outputs are the local bake's, bit for bit (distributed.py).
     Returns the manifest dict (``manifest["skipped"]`` is True when an identical
     bake was already there). Raises BakeError (also when another bake holds the
     folder) / SceneError / MemoryLimitError for bad input and transfer.Cancelled
     when ``cancel`` is set. The folder lock is released on every exit path.
     """
     st = (settings or BakeSettings()).validate()
+    spec = parse_spec(dask) if dask is not None else None
     out_dir = check_out_dir(out_dir)
     t_start = time.perf_counter()
     lock = lock_out_dir(out_dir, job, source)
@@ -110,7 +115,8 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
             emit(progress, type="warning", message=f"took over the lock of a bake that is gone "
                                                    f"(pid {lock.taken_over.get('pid')})")
         removed = atomic.remove_stale_temporaries(out_dir)
-        ctx = BakeContext.create(sc, out_dir, st, light=light, progress=progress, cancel=cancel, sets=sets)
+        ctx = BakeContext.create(sc, out_dir, st, light=light, progress=progress, cancel=cancel, sets=sets,
+                                 dask=spec)
         if removed:
             ctx.warn(f"removed {len(removed)} temporary file(s) left by an interrupted bake")
         failed = True
@@ -137,6 +143,8 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
     if plan.skipped:
         return finish_skipped(ctx, plan)
     check_memory(ctx, plan)
+    if ctx.dask is not None:
+        ctx.remote = DaskBake(ctx.dask, emit=ctx.emit).open(ctx.scene, f"{plan.input_hash}-{plan.materials_hash}")
     todo = ctx.set_ids if st.textures else []
     old_reports = {r.get("name"): r for r in manifest_dicts((plan.old_manifest or {}).get("sets"))}
     results = []

@@ -218,7 +218,8 @@ def trace_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, *, position: int = 0
 
     # Chunks write whole rows (N, K) (a chunk's texels are scattered over the
     # atlas; K separate plane writes per texel cost more than the trace glue).
-    rows, info = bake_points(geo.rays, pts, ctx.settings, progress=on_progress, cancel=ctx.cancel)
+    rows, info = bake_points(geo.rays, pts, ctx.settings, progress=on_progress, cancel=ctx.cancel,
+                             remote=ctx.remote)
     ctx.seconds["trace"] += time.perf_counter() - t
     return SetRows(gb, pts, rows, info)
 
@@ -418,7 +419,8 @@ def bake_vertex_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, set_index: 
     ctx.wait_tables()
     pts = Points(vp, vn, vn, np.arange(vp.shape[0], dtype=np.int64) + (np.int64(set_index) << 40)
                  + (np.int64(1) << 62), np.zeros(vp.shape[0], bool))
-    vc, info = bake_points(geo.rays, pts, dataclasses.replace(st, analytic=False), cancel=ctx.cancel)
+    vc, info = bake_points(geo.rays, pts, dataclasses.replace(st, analytic=False), cancel=ctx.cancel,
+                           remote=ctx.remote)
     vname = f"{name}.vertex.npz"
     ctx.check_cancel()
     with open(ctx.staging.path(vname), "wb") as f:

@@ -1,0 +1,506 @@
+"""Running a bake's ray chunks on a Dask cluster (``--dask``; docs/distributed.md).
+
+The bake is already a deterministic plan of independent chunks: a chunk's
+result depends only on the chunk (its points, pattern, seed), never on the
+thread or machine that traces it. So a cluster can run the very chunks the
+local thread pool runs, and the outputs are the same bits. What goes where:
+
+* The *client* (the process that runs bake_scene) does everything but the
+  ray work: planning, G-buffers, exit radiance, planes, dilation, EXR writes,
+  the manifest. It plans the chunks exactly as a local bake does.
+* The *workers* trace chunks: transfer and vertex passes
+  (transfer.ChunkKernel.run) and bounce levels (bounce.trace_chunk plus the
+  level's projection, bounce.BakedProjection / relight.RelightProjection).
+* **Work units.** Consecutive chunks (biggest first, the local order) are
+  grouped into one task of up to :data:`UNIT_RAYS` rays, but each pass is cut
+  into at least :data:`UNITS_PER_THREAD` tasks per worker thread so the last
+  ones finish together. A task costs the scheduler ~1 ms; a unit is
+  ~0.3-1 s of a core (bench bake --dask prints the measured overhead).
+* **Shipped once.** What every task of a pass reads is scattered to every
+  worker once (``broadcast``), not sent with each task: the scene (once per
+  bake), a set's points (once per pass), a level's exit radiance (once per
+  level). Each worker builds the Embree BVH once per scene and keeps it
+  (:class:`WorkerState`, keyed by the scene's hashes), so a second bake of
+  the same scene on the same cluster reuses it.
+* **Streaming.** Results (the rows of a unit's texels) are written into the
+  client's arrays as units finish, and their futures released at once: the
+  client never holds more than the finished units' rows in flight.
+* **Faults.** A worker that dies takes only its running units with it: Dask
+  runs them again elsewhere (up to its ``allowed-failures``), and since a
+  chunk's result is a function of the chunk, the outputs are still the same
+  bits. A scheduler that is gone for :data:`SCHEDULER_LOST_AFTER` seconds ends
+  the bake with a BakeError; nothing is written (the bake's staging keeps the
+  previous outputs). Cancellation (SIGTERM, Esc in Blender) cancels the
+  cluster's pending tasks and closes a local cluster.
+* **Same code.** Every task first checks that the worker runs the client's
+  PRTT core, numpy and embreex (:func:`code_identity`); a worker that does not
+  fails the bake with a clear error instead of different bits.
+
+Bit-identity also needs the same CPU kernels on every machine (OpenBLAS picks
+its kernels by CPU; set ``OPENBLAS_CORETYPE`` alike on a mixed farm).
+
+dask and distributed are optional: without ``--dask`` nothing imports them.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import logging
+import os
+import socket
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+from .context import BakeError
+from .parallel import Cancelled
+
+#: The environment variable ``--dask`` without an address reads (Dask's own name).
+ENV_ADDRESS = "DASK_SCHEDULER_ADDRESS"
+#: local:N: at most this many worker processes.
+MAX_LOCAL_WORKERS = 256
+#: Rays of one task (a unit of chunks): ~0.3-1 s of one core at 10-30 Mrays/s.
+UNIT_RAYS = 1 << 23
+#: Tasks per worker thread a pass is cut into at least (the tail's balance).
+UNITS_PER_THREAD = 4
+#: Seconds without a scheduler connection before the bake fails.
+SCHEDULER_LOST_AFTER = 10.0
+#: Seconds to reach a scheduler, and to wait for its first worker.
+CONNECT_TIMEOUT = 20.0
+WORKERS_TIMEOUT = 60.0
+
+
+class WorkerMismatch(RuntimeError):
+    """A Dask worker runs other PRTT code (or numpy/embreex) than the client."""
+
+
+@dataclasses.dataclass(frozen=True)
+class DaskSpec:
+    """A parsed ``--dask`` value: ``local`` with ``workers`` processes, or a
+    scheduler ``address`` (tcp://host:port, tls://...)."""
+
+    kind: str                  # "local" | "address"
+    workers: int = 0
+    address: str = ""
+
+    def describe(self) -> str:
+        return f"a local cluster of {self.workers} worker processes" if self.kind == "local" \
+            else f"the Dask scheduler at {self.address}"
+
+
+def parse_spec(spec: str, environ=None) -> DaskSpec:
+    """``local``, ``local:N``, ``tcp://HOST:PORT`` (any ``scheme://``), or
+    ``env`` / empty: the address in $DASK_SCHEDULER_ADDRESS. BakeError naming
+    the value otherwise."""
+    environ = os.environ if environ is None else environ
+    s = (spec or "").strip()
+    if s in ("", "env"):
+        s = (environ.get(ENV_ADDRESS) or "").strip()
+        if not s:
+            raise BakeError(f"--dask without an address reads ${ENV_ADDRESS}, which is not set; "
+                            f"give local[:N] or tcp://HOST:PORT")
+        if s.startswith("local"):
+            raise BakeError(f"${ENV_ADDRESS} must be a scheduler address (tcp://HOST:PORT), got {s!r}")
+    if s == "local":
+        return DaskSpec("local", max(1, os.cpu_count() or 1))
+    if s.startswith("local:"):
+        n = s[len("local:"):]
+        if not n.isdigit() or not 1 <= int(n) <= MAX_LOCAL_WORKERS:
+            raise BakeError(f"--dask local:N needs N = 1..{MAX_LOCAL_WORKERS} worker processes, got {spec!r}")
+        return DaskSpec("local", int(n))
+    scheme, sep, rest = s.partition("://")
+    if not sep or not scheme.isalnum() or not rest or any(c.isspace() for c in rest):
+        raise BakeError(f"--dask must be local, local:N or a scheduler address like tcp://HOST:PORT, got {spec!r}")
+    return DaskSpec("address", address=s)
+
+
+# --- the worker side ---------------------------------------------------------------------
+
+_IDENTITY: str | None = None
+
+
+def code_identity() -> str:
+    """sha256 of the PRTT core's source files, numpy's and embreex's versions:
+    equal on client and worker or the bits may differ."""
+    global _IDENTITY
+    if _IDENTITY is None:
+        import numpy as np
+        try:
+            from importlib.metadata import version
+            embree = version("embreex")
+        except Exception:               # no metadata (a vendored wheel): the module's own
+            embree = "?"
+        h = hashlib.sha256(f"numpy {np.__version__} embreex {embree}".encode())
+        core = Path(__file__).resolve().parents[1]
+        for p in sorted(core.rglob("*.py")):
+            h.update(p.relative_to(core).as_posix().encode())
+            h.update(p.read_bytes())
+        _IDENTITY = h.hexdigest()
+    return _IDENTITY
+
+
+class WorkerState:
+    """What one worker process keeps between tasks: the scene and its BVH (one
+    scene at a time, by token), and one object per slot (a pass's kernel, a
+    level's shader), rebuilt when the token changes. Thread-safe (a worker may
+    run several tasks at once)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.scene_token = None
+        self.scene = None
+        self.rays = None
+        self.slots: dict[str, tuple] = {}       # slot -> (token, object)
+        self.ready = False
+
+    def setup(self, identity: str) -> None:
+        """Check the code and, once, set BLAS to one thread and the GIL switch
+        interval the local bake traces with."""
+        if identity != code_identity():
+            raise WorkerMismatch(f"Dask worker {worker_name()} runs other PRTT code or numpy/embreex versions "
+                                 f"than the client (identity {code_identity()[:12]} vs {identity[:12]}); "
+                                 f"install the same PRTT on every worker")
+        if not self.ready:
+            with self.lock:
+                if not self.ready:
+                    from threadpoolctl import threadpool_limits
+                    from .transfer import SWITCH_INTERVAL
+                    # A worker process does nothing else: one BLAS thread per task
+                    # thread, as the local bake's single_threaded_blas.
+                    self._blas = threadpool_limits(limits=1, user_api="blas")
+                    sys.setswitchinterval(SWITCH_INTERVAL)
+                    self.ready = True
+
+    def ray_scene(self, scene, token: str):
+        """The BVH of ``scene`` (built on the first task of a new scene)."""
+        with self.lock:
+            if self.scene_token != token:
+                from .raytrace import RayScene
+                self.rays = self.scene = None
+                self.slots.clear()
+                self.rays = RayScene(scene.positions)
+                self.scene, self.scene_token = scene, token
+            return self.rays
+
+    def slot(self, name: str, token: str, build):
+        """The object in ``name`` built for ``token`` (``build()`` when the slot
+        holds another token's)."""
+        with self.lock:
+            held = self.slots.get(name)
+            if held is None or held[0] != token:
+                self.slots.pop(name, None)          # drop the old one before building
+                held = (token, build())
+                self.slots[name] = held
+            return held[1]
+
+
+STATE = WorkerState()
+
+
+def worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+@dataclasses.dataclass
+class UnitResult:
+    """What a task returns: one entry per chunk, the seconds it computed, who ran it."""
+
+    items: list
+    seconds: float
+    worker: str
+
+
+def transfer_task(identity: str, scene, scene_token: str, pts, pts_token: str, st, G: int, chunks) -> UnitResult:
+    """A unit of a transfer (or vertex) pass: [(rows (n, K), counts)] per chunk."""
+    t0 = time.perf_counter()
+    STATE.setup(identity)
+    rs = STATE.ray_scene(scene, scene_token)
+    from .transfer import ChunkKernel
+    kernel = STATE.slot("points", pts_token, lambda: ChunkKernel(rs, pts, st, G))
+    items = [kernel.run(c) for c in chunks]
+    return UnitResult(items, time.perf_counter() - t0, f"{worker_name()}:{threading.get_ident()}")
+
+
+def level_task(identity: str, scene, scene_token: str, shader, shader_token: str, lr, lr_token: str,
+               project, chunks) -> UnitResult:
+    """A unit of a bounce level: [(texels, columns, projection, hits)] per chunk.
+    ``project`` arrives without its shader (the level's, scattered once)."""
+    t0 = time.perf_counter()
+    STATE.setup(identity)
+    rs = STATE.ray_scene(scene, scene_token)
+    from .bounce import trace_chunk
+
+    def with_scene():
+        sh = copy.copy(shader)
+        sh.sc = STATE.scene
+        return sh
+
+    sh = STATE.slot("shader", shader_token, with_scene)
+    tables = STATE.slot("tables", lr_token, lr.tables)
+    proj = copy.copy(project)
+    proj.shader = sh
+    items = []
+    for c in chunks:
+        ch = trace_chunk(rs, lr, tables, c)
+        items.append((ch.n, ch.cols, proj(ch), int(ch.hit.size)))
+    return UnitResult(items, time.perf_counter() - t0, f"{worker_name()}:{threading.get_ident()}")
+
+
+# --- the client side ---------------------------------------------------------------------
+
+def units_of(chunks: list, rays_per_point: int, threads: int, unit_rays: int = UNIT_RAYS) -> list[list]:
+    """Consecutive ``chunks`` grouped into tasks of up to ``unit_rays`` rays,
+    at least UNITS_PER_THREAD tasks per worker thread (where there are chunks enough)."""
+    if not chunks:
+        return []
+    total = sum(c.idx.size for c in chunks) * rays_per_point
+    cap = max(1, min(unit_rays, total // max(1, UNITS_PER_THREAD * threads)))
+    units, cur, cur_rays = [], [], 0
+    for c in chunks:
+        r = c.idx.size * rays_per_point
+        if cur and cur_rays + r > cap:
+            units.append(cur)
+            cur, cur_rays = [], 0
+        cur.append(c)
+        cur_rays += r
+    units.append(cur)
+    return units
+
+
+@dataclasses.dataclass
+class PassStats:
+    """One pass on the cluster (DaskBake.passes): tasks, summed task seconds,
+    wall seconds and the worker threads it had."""
+
+    what: str
+    tasks: int
+    task_seconds: float
+    wall_seconds: float
+    threads: int
+
+    @property
+    def overhead(self) -> float:
+        """Share of the cluster's thread time not spent in tasks (scheduling,
+        transfers, the client's assembly, idle threads at the tail)."""
+        avail = self.wall_seconds * max(self.threads, 1)
+        return max(0.0, 1.0 - self.task_seconds / avail) if avail > 0 else 0.0
+
+
+class DaskBake:
+    """A bake's connection to a Dask cluster (runner.bake_scene opens it after
+    planning; BakeContext.close closes it). Passed as ``remote`` to
+    transfer.bake_points and bounce.trace_bounce_level."""
+
+    def __init__(self, spec: DaskSpec, *, emit=None, unit_rays: int = UNIT_RAYS):
+        self.spec = spec
+        self.emit = emit or (lambda **e: None)
+        self.unit_rays = unit_rays
+        self.client = self.cluster = None
+        self.identity = code_identity()
+        self.run_id = uuid.uuid4().hex[:12]
+        self.scene_f = None
+        self.scene_token = ""
+        self.passes: list[PassStats] = []
+        self._shader = None                  # (shader object, its scattered future, token)
+        self._n = 0
+
+    # -- connection --
+
+    def open(self, scene, scene_token: str) -> "DaskBake":
+        """Start the local cluster or connect to the scheduler, wait for a
+        worker, and ship the scene. BakeError when any of it fails."""
+        try:
+            import distributed
+        except ImportError:
+            raise BakeError("--dask needs the optional packages dask and distributed "
+                            "(pip install dask distributed)") from None
+        t = time.perf_counter()
+        try:
+            if self.spec.kind == "local":
+                self.emit(type="progress", stage="dask", fraction=0.0)
+                # Workers without a memory limit: the bake checked its memory need
+                # itself, and Dask's limit would kill a worker holding a large scene.
+                self.cluster = distributed.LocalCluster(
+                    n_workers=self.spec.workers, threads_per_worker=1, processes=True, memory_limit=0,
+                    dashboard_address=None, silence_logs=logging.ERROR)
+                self.client = distributed.Client(self.cluster, set_as_default=False)
+            else:
+                self.client = distributed.Client(self.spec.address, timeout=CONNECT_TIMEOUT, set_as_default=False)
+            self.client.wait_for_workers(1, timeout=WORKERS_TIMEOUT)
+        except BaseException as exc:
+            self.close()
+            if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                raise
+            raise BakeError(f"cannot use {self.spec.describe()}: {type(exc).__name__}: {exc}") from None
+        self.scene_token = scene_token
+        self.scene_f = self._scatter(scene)
+        info = self.client.scheduler_info()
+        workers = info.get("workers", {})
+        threads = sum(int(w.get("nthreads", 1)) for w in workers.values())
+        self.emit(type="info", message=f"Dask: {len(workers)} workers, {threads} threads "
+                                       f"({self.spec.describe()}), ready in {time.perf_counter() - t:.1f} s")
+        return self
+
+    def close(self) -> None:
+        """Cancel what is still pending and disconnect (a local cluster is shut down)."""
+        client, cluster = self.client, self.cluster
+        self.client = self.cluster = None
+        self.scene_f = self._shader = None
+        for obj in (client, cluster):
+            if obj is None:
+                continue
+            try:
+                obj.close(timeout=5)
+            except Exception:
+                pass
+
+    def threads(self) -> int:
+        """Worker threads the scheduler knows now (at least 1)."""
+        try:
+            workers = self.client.scheduler_info().get("workers", {})
+        except Exception:
+            return 1
+        return max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
+
+    def _scatter(self, obj):
+        try:
+            return self.client.scatter([obj], broadcast=True, hash=False)[0]
+        except Exception as exc:
+            raise BakeError(f"cannot send the bake's data to {self.spec.describe()}: "
+                            f"{type(exc).__name__}: {exc}") from None
+
+    # -- passes --
+
+    def trace_points(self, pts, st, chunks, G, sink, on_result, cancel) -> None:
+        """A transfer/vertex pass (transfer.bake_points' chunks): ``sink(chunk,
+        rows, counts, thread)`` per chunk, then ``on_result(points)`` per unit."""
+        pts_f = self._scatter(pts)
+        token = f"{self.run_id}-p{self._next()}"
+        units = units_of(chunks, st.rays, self.threads(), self.unit_rays)
+
+        def handle(unit, res: UnitResult):
+            n = 0
+            for chunk, (rows, counts) in zip(unit, res.items):
+                n += sink(chunk, rows, counts, res.worker)
+            on_result(n)
+
+        try:
+            self._run("transfer", transfer_task, (self.scene_f, self.scene_token, pts_f, token, st, G), units,
+                      handle, cancel)
+        finally:
+            pts_f.release()
+
+    def trace_level(self, lr, chunks, project, sink, on_result, cancel) -> None:
+        """A bounce level of one set (bounce.trace_bounce_level):
+        ``sink(texels, cols, result, hits)`` per chunk, ``on_result`` per unit."""
+        shader_f, shader_token = self._level_shader(project.shader)
+        lr_f = self._scatter(lr)
+        tpl = copy.copy(project)
+        tpl.shader = None
+        units = units_of(chunks, lr.st.rays, self.threads(), self.unit_rays)
+
+        def handle(unit, res: UnitResult):
+            for n, cols, result, hits in res.items:
+                sink(n, cols, result, hits)
+            on_result(None)
+
+        try:
+            self._run("bounce", level_task, (self.scene_f, self.scene_token, shader_f, shader_token, lr_f,
+                                             f"{self.run_id}-t{self._next()}", tpl), units, handle, cancel)
+        finally:
+            lr_f.release()
+
+    def _next(self) -> int:
+        self._n += 1
+        return self._n
+
+    def _level_shader(self, shader):
+        """The level's shader scattered once (without the scene, which the
+        workers have): every set of a level shares it."""
+        if self._shader is not None and self._shader[0] is shader:
+            return self._shader[1], self._shader[2]
+        if self._shader is not None:
+            self._shader[1].release()
+        shipped = copy.copy(shader)
+        shipped.sc = None
+        fut = self._scatter(shipped)
+        self._shader = (shader, fut, f"{self.run_id}-s{self._next()}")
+        return fut, self._shader[2]
+
+    def _run(self, what: str, fn, args: tuple, units: list, handle, cancel) -> None:
+        """Submit one task per unit, hand results to ``handle(unit, result)`` in
+        the calling thread as they finish; Cancelled / BakeError as promised."""
+        import distributed
+        from distributed.client import FuturesCancelledError
+
+        client = self.client
+        t0 = time.perf_counter()
+        threads = self.threads()
+        futures = {client.submit(fn, self.identity, *args, unit, pure=False,
+                                 key=f"prtt-{what}-{self.run_id}-{self._next()}"): unit for unit in units}
+        pending = set(futures)
+        task_s = 0.0
+        lost_since = None
+        try:
+            while pending:
+                if cancel is not None and cancel.is_set():
+                    raise Cancelled()
+                try:
+                    with client.as_current():
+                        done, pending = distributed.wait(pending, timeout=0.25, return_when="FIRST_COMPLETED")
+                except TimeoutError:
+                    lost_since = self._check_scheduler(lost_since)
+                    continue
+                lost_since = None
+                for f in done:
+                    try:
+                        res = f.result()
+                    except WorkerMismatch as exc:
+                        raise BakeError(str(exc)) from None
+                    except distributed.KilledWorker as exc:
+                        raise BakeError(f"a {what} task was on {exc.args[1] if len(exc.args) > 1 else 'a'} "
+                                        f"worker that died, too often ({exc}); the cluster's workers keep "
+                                        f"dying (memory? a crash in native code?)") from None
+                    except (FuturesCancelledError, distributed.CancelledError, OSError) as exc:
+                        if cancel is not None and cancel.is_set():
+                            raise Cancelled() from None
+                        raise BakeError(f"lost {self.spec.describe()} during the {what} pass: "
+                                        f"{type(exc).__name__}: {exc}") from None
+                    task_s += res.seconds
+                    handle(futures.pop(f), res)
+                    f.release()
+        except BaseException:
+            try:
+                client.cancel(list(pending), force=True)
+            except Exception:
+                pass
+            raise
+        self.passes.append(PassStats(what, len(units), task_s, time.perf_counter() - t0, threads))
+
+    def _check_scheduler(self, lost_since):
+        """None while connected; else since when not; BakeError once that is
+        longer than SCHEDULER_LOST_AFTER."""
+        if self.client.status == "running":
+            return None
+        now = time.perf_counter()
+        if lost_since is None:
+            self.emit(type="warning", message=f"lost the connection to {self.spec.describe()}; waiting "
+                                              f"{SCHEDULER_LOST_AFTER:.0f} s for it")
+            return now
+        if now - lost_since > SCHEDULER_LOST_AFTER:
+            raise BakeError(f"lost {self.spec.describe()} (no connection for {SCHEDULER_LOST_AFTER:.0f} s); "
+                            f"nothing was written, the previous outputs are intact")
+        return lost_since
+
+    def summary(self) -> dict:
+        """The passes as numbers (the bench prints them)."""
+        tasks = sum(p.tasks for p in self.passes)
+        task_s = sum(p.task_seconds for p in self.passes)
+        wall = sum(p.wall_seconds for p in self.passes)
+        avail = sum(p.wall_seconds * p.threads for p in self.passes)
+        return {"tasks": tasks, "task_seconds": task_s, "wall_seconds": wall,
+                "overhead": max(0.0, 1.0 - task_s / avail) if avail > 0 else 0.0,
+                "passes": [dataclasses.asdict(p) | {"overhead": p.overhead} for p in self.passes]}
