@@ -13,7 +13,7 @@ import threading
 
 from . import register
 from .cli_options import (  # noqa: F401  (CheckedValue ... given_settings: importable from here too)
-    CheckedValue, ConsoleProgress, add_output_options, add_setting_options, choice_option, given_settings,
+    CheckedValue, ConsoleProgress, add_dask_option, add_output_options, add_setting_options, choice_option, given_settings,
     int_range, number_range, one_of)
 from .core.bake import settings_schema as schema
 from .core.bake.memory import MemoryLimitError
@@ -41,6 +41,7 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
     add_setting_options(g, schema.of_scope("job") + schema.core_settings(),
                         defaults={"resolution": "default: each set's own"})
     g.add_argument("--force", action="store_true", help="bake even if the outputs are up to date")
+    add_dask_option(g)
     lt = p.add_argument_group("light for bounces (overrides the job's)")
     lt.add_argument("--env", help="an .exr/.hdr file or a built-in name (forest, sunset, city, ...)")
     lt.add_argument("--env-strength", action=CheckedValue, convert=number_range(0.0, ENV_STRENGTH_MAX, above=True),
@@ -68,7 +69,7 @@ def _cmd_bake_job(args) -> int:
             progress({"type": "cancelled"})
             return finish(EXIT_CANCELLED, watchdog)
     code = run_job(args.job, args.out, progress, cancel, overrides=given_settings(args, schema.core_settings()),
-                   resolution=args.resolution, force=args.force, light_override=light)
+                   resolution=args.resolution, force=args.force, light_override=light, dask=args.dask)
     progress.end()
     return finish(code, watchdog)
 

@@ -277,3 +277,22 @@ def given_settings(args, settings) -> dict:
 def add_output_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true",
                    help="print only warnings, errors and the final line (no progress)")
+
+
+def dask_spec(value: str) -> str:
+    """``--dask``'s value, checked (argparse type: a bad one is a usage error naming it)."""
+    from .core.bake.context import BakeError       # deferred: the option module loads before numpy
+    from .core.bake.distributed import parse_spec
+    try:
+        parse_spec(value)
+    except BakeError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return value
+
+
+def add_dask_option(g) -> None:
+    """``--dask [ADDR]`` (bake-job, the worker, Blender's bake): docs/distributed.md."""
+    g.add_argument("--dask", nargs="?", const="env", type=dask_spec, metavar="local[:N]|tcp://HOST:PORT",
+                   help="trace on a Dask cluster: local[:N] starts N worker processes here, an address uses a "
+                        "running scheduler, no value reads $DASK_SCHEDULER_ADDRESS (needs the optional "
+                        "packages dask and distributed; the outputs are the local bake's, bit for bit)")

@@ -130,11 +130,12 @@ def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
 
 def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
             overrides: dict | None = None, resolution=None, force: bool = False,
-            light_override=None) -> int:
+            light_override=None, dask: str | None = None) -> int:
     """Load a job and bake it, reporting through ``emit``. Returns an exit status.
 
     The job's headers, settings and memory need are checked before any array
     is read (core.io.scene.JobFile); ``cancel`` is honoured while loading too.
+    ``dask``: bake_scene's (trace on a Dask cluster).
     """
     # Deferred imports (start-up): the worker installs its signal handlers
     # before numpy, Embree and the bake load, so a SIGTERM during start-up is a
@@ -166,7 +167,7 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
               "light": None if light is None else (extra.get("light") or {}).get("description", "given")})
         source = extra.get("blend") if isinstance(extra.get("blend"), str) and extra.get("blend") else None
         bake_scene(sc, out_dir, st, light=light, progress=emit, cancel=cancel, skip_if_unchanged=not force,
-                   job=os.path.abspath(job_path), source=source)
+                   job=os.path.abspath(job_path), source=source, dask=dask)
     except Cancelled:
         emit({"type": "cancelled"})
         return EXIT_CANCELLED
@@ -303,6 +304,8 @@ def main(argv=None) -> int:
     p.add_argument("job", help="job file (.npz, see docs/format.md)")
     p.add_argument("out_dir", help="folder for the textures and manifest.json")
     p.add_argument("--force", action="store_true", help="bake even if the outputs are up to date")
+    p.add_argument("--dask", metavar="local[:N]|tcp://HOST:PORT|env",
+                   help="trace on a Dask cluster (docs/distributed.md)")
     cancel = threading.Event()
     emit = JsonLines(cancel=cancel)
     watchdog = install_cancel_handlers(cancel, emit)       # first: a signal may come at once
@@ -310,7 +313,7 @@ def main(argv=None) -> int:
         args = p.parse_args(argv)
     except SystemExit as exc:
         return EXIT_USAGE if exc.code else EXIT_OK
-    return finish(run_job(args.job, args.out_dir, emit, cancel, force=args.force), watchdog)
+    return finish(run_job(args.job, args.out_dir, emit, cancel, force=args.force, dask=args.dask), watchdog)
 
 
 if __name__ == "__main__":

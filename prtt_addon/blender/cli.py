@@ -18,7 +18,8 @@ import threading
 
 import bpy
 
-from ..cli_options import ConsoleProgress, add_output_options, add_setting_options, choice_option, given_settings
+from ..cli_options import (ConsoleProgress, add_dask_option, add_output_options, add_setting_options, choice_option,
+                           given_settings)
 from ..core.bake import settings_schema as schema
 from .bake.run import bake_blocking
 from .blendfile import open_scene, save_blend
@@ -52,6 +53,7 @@ def bake_parser(prog: str) -> argparse.ArgumentParser:
     g.add_argument("--atlas", action="store_true", help="one texture set for all objects (Texture Sets: One Atlas)")
     o = p.add_argument_group("bake settings for this bake only (not stored in the .blend)")
     add_setting_options(o, once)
+    add_dask_option(o)
     choice_option(p, "--unwrap", values=UNWRAP_METHODS,
                   help="unwrap baked objects without a PRTT UV map first (case-insensitive)")
     p.add_argument("--force", action="store_true", help="bake even if nothing changed")
@@ -138,7 +140,7 @@ def _bake_file(args) -> int:
                       f"{', '.join(o.name for o in hidden[:8])}", flush=True)
         progress = ConsoleProgress(quiet=args.quiet, final=False)
         try:
-            outcome = bake_blocking(ctx, overrides=overrides, force=args.force, on_event=progress)
+            outcome = bake_blocking(ctx, overrides=overrides, force=args.force, on_event=progress, dask=args.dask)
         finally:
             progress.end()
     for w in (outcome.warnings or []):

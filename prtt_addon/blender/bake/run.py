@@ -214,10 +214,13 @@ class BakeWatch:
         self._silent_since: float | None = None
 
     @classmethod
-    def start(cls, context, prepared: Prepared, *, force: bool = False, on_event=None) -> "BakeWatch":
-        """Start the worker on a prepared job."""
-        job = WorkerJob(prepared.job, prepared.out_dir, force=force).start()
+    def start(cls, context, prepared: Prepared, *, force: bool = False, on_event=None,
+              dask: str | None = None) -> "BakeWatch":
+        """Start the worker on a prepared job; ``dask`` (a --dask value) for
+        this bake, else the scene's Dask Scheduler (empty: this machine)."""
         st = context.scene.prtt
+        dask = dask if dask is not None else (st.dask_scheduler.strip() or None)
+        job = WorkerJob(prepared.job, prepared.out_dir, force=force, dask=dask).start()
         st.baking, st.progress, st.status = True, 0.0, "starting"
         return cls(prepared, job, on_event)
 
@@ -272,7 +275,7 @@ class BakeWatch:
         return outcome
 
 
-def bake_blocking(context, *, overrides=None, force=False, on_event=None) -> Outcome:
+def bake_blocking(context, *, overrides=None, force=False, on_event=None, dask: str | None = None) -> Outcome:
     """Export, run the worker to the end, finish. Never raises for bad input:
     the Outcome says what happened."""
     try:
@@ -280,4 +283,4 @@ def bake_blocking(context, *, overrides=None, force=False, on_event=None) -> Out
     except (ExportError, ValueError, OSError) as exc:
         context.scene.prtt.status = str(exc)
         return Outcome("failed", f"PRTT: {exc}")
-    return BakeWatch.start(context, prepared, force=force, on_event=on_event).run(context)
+    return BakeWatch.start(context, prepared, force=force, on_event=on_event, dask=dask).run(context)

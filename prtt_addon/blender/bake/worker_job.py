@@ -18,10 +18,12 @@ from ...core.child import child_env, python_executable
 
 
 class WorkerJob:
-    def __init__(self, job_path: str, out_dir: str, *, force: bool = False):
+    def __init__(self, job_path: str, out_dir: str, *, force: bool = False, dask: str | None = None):
         self.cmd = [python_executable(), "-m", "prtt_addon.worker", job_path, out_dir]
         if force:
             self.cmd.append("--force")
+        if dask:
+            self.cmd += ["--dask", dask]
         self.proc = None
         self._events: queue.Queue = queue.Queue()
         self._stderr: list[str] = []

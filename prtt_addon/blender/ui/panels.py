@@ -139,7 +139,7 @@ class PRTT_PT_bake_output(_SettingsList, _PRTTPanel, bpy.types.Panel):
 
 class PRTT_PT_bake_advanced(_SettingsList, _PRTTPanel, bpy.types.Panel):
     bl_label = "Advanced"
-    props = ("normal_maps", "selection_only")
+    props = ("normal_maps", "selection_only", "dask_scheduler")
 
 
 class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):

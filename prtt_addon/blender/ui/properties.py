@@ -85,6 +85,11 @@ def _scene_annotations() -> dict:
                    ("ATLAS", "One Atlas", "Every object in one shared texture")]),
         "output_dir": StringProperty(name="Output Folder", default="//prtt/", subtype="DIR_PATH",
                                      description="Where the textures go ('//' = next to the .blend)"),
+        "dask_scheduler": StringProperty(
+            name="Dask Scheduler", default="",
+            description="Run the bake's ray work on a Dask cluster: local or local:N (worker processes on this "
+                        "machine), or tcp://HOST:PORT of a running scheduler; empty = this machine's cores. "
+                        "Needs the optional packages dask and distributed; the textures are the same bits"),
         "selection_only": BoolProperty(name="Selected Only", default=False,
                                        description="Bake only selected objects (the others still cast shadows)"),
         "light_source": EnumProperty(

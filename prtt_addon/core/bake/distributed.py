@@ -251,6 +251,17 @@ def level_task(identity: str, scene, scene_token: str, shader, shader_token: str
 
 # --- the client side ---------------------------------------------------------------------
 
+def quiet_loggers(prefix: str) -> dict:
+    """Set ``prefix`` and every logger under it to CRITICAL; returns {logger: old level}."""
+    names = [prefix] + [n for n in list(logging.Logger.manager.loggerDict) if n.startswith(prefix + ".")]
+    old = {}
+    for n in names:
+        lg = logging.getLogger(n)
+        old[lg] = lg.level
+        lg.setLevel(logging.CRITICAL)
+    return old
+
+
 def units_of(chunks: list, rays_per_point: int, threads: int, unit_rays: int = UNIT_RAYS) -> list[list]:
     """Consecutive ``chunks`` grouped into tasks of up to ``unit_rays`` rays,
     at least UNITS_PER_THREAD tasks per worker thread (where there are chunks enough)."""
@@ -294,10 +305,10 @@ class DaskBake:
     planning; BakeContext.close closes it). Passed as ``remote`` to
     transfer.bake_points and bounce.trace_bounce_level."""
 
-    def __init__(self, spec: DaskSpec, *, emit=None, unit_rays: int = UNIT_RAYS):
+    def __init__(self, spec: DaskSpec, *, emit=None, unit_rays: int | None = None):
         self.spec = spec
         self.emit = emit or (lambda **e: None)
-        self.unit_rays = unit_rays
+        self.unit_rays = unit_rays or UNIT_RAYS
         self.client = self.cluster = None
         self.identity = code_identity()
         self.run_id = uuid.uuid4().hex[:12]
@@ -306,6 +317,7 @@ class DaskBake:
         self.passes: list[PassStats] = []
         self._shader = None                  # (shader object, its scattered future, token)
         self._n = 0
+        self._log_levels = None
 
     # -- connection --
 
@@ -318,6 +330,9 @@ class DaskBake:
             raise BakeError("--dask needs the optional packages dask and distributed "
                             "(pip install dask distributed)") from None
         t = time.perf_counter()
+        # Dask logs a lost connection or a restarted worker as tracebacks on
+        # stderr; the bake reports what matters itself (warnings, BakeError).
+        self._log_levels = quiet_loggers("distributed")
         try:
             if self.spec.kind == "local":
                 self.emit(type="progress", stage="dask", fraction=0.0)
@@ -356,6 +371,9 @@ class DaskBake:
                 obj.close(timeout=5)
             except Exception:
                 pass
+        for lg, level in (self._log_levels or {}).items():
+            lg.setLevel(level)
+        self._log_levels = None
 
     def threads(self) -> int:
         """Worker threads the scheduler knows now (at least 1)."""
@@ -434,7 +452,6 @@ class DaskBake:
         """Submit one task per unit, hand results to ``handle(unit, result)`` in
         the calling thread as they finish; Cancelled / BakeError as promised."""
         import distributed
-        from distributed.client import FuturesCancelledError
 
         client = self.client
         t0 = time.perf_counter()
@@ -454,21 +471,14 @@ class DaskBake:
                 except TimeoutError:
                     lost_since = self._check_scheduler(lost_since)
                     continue
+                except Exception as exc:
+                    raise self._failure(what, exc, cancel) from None
                 lost_since = None
                 for f in done:
                     try:
                         res = f.result()
-                    except WorkerMismatch as exc:
-                        raise BakeError(str(exc)) from None
-                    except distributed.KilledWorker as exc:
-                        raise BakeError(f"a {what} task was on {exc.args[1] if len(exc.args) > 1 else 'a'} "
-                                        f"worker that died, too often ({exc}); the cluster's workers keep "
-                                        f"dying (memory? a crash in native code?)") from None
-                    except (FuturesCancelledError, distributed.CancelledError, OSError) as exc:
-                        if cancel is not None and cancel.is_set():
-                            raise Cancelled() from None
-                        raise BakeError(f"lost {self.spec.describe()} during the {what} pass: "
-                                        f"{type(exc).__name__}: {exc}") from None
+                    except Exception as exc:
+                        raise self._failure(what, exc, cancel) from None
                     task_s += res.seconds
                     handle(futures.pop(f), res)
                     f.release()
@@ -479,6 +489,27 @@ class DaskBake:
                 pass
             raise
         self.passes.append(PassStats(what, len(units), task_s, time.perf_counter() - t0, threads))
+
+    def _failure(self, what: str, exc: Exception, cancel) -> Exception:
+        """What a failed wait or task means for the bake: Cancelled when the bake
+        was cancelled meanwhile, else a BakeError saying what went wrong."""
+        import distributed
+        if cancel is not None and cancel.is_set():
+            return Cancelled()
+        if isinstance(exc, WorkerMismatch):
+            return BakeError(str(exc))
+        if isinstance(exc, distributed.KilledWorker):
+            return BakeError(f"a {what} task was on workers that died {exc.args[1] if len(exc.args) > 1 else ''}, "
+                             f"too often (Dask's allowed-failures); the cluster's workers keep dying (memory? a "
+                             f"crash in native code?); nothing was written, the previous outputs are intact")
+        text = str(exc).strip()
+        why = text.splitlines()[0][:200] if text else ""
+        if "connection" in text.lower() or isinstance(exc, OSError) or self.client is None \
+                or self.client.status != "running":
+            return BakeError(f"lost {self.spec.describe()} during the {what} pass ({type(exc).__name__}: {why}); "
+                             f"nothing was written, the previous outputs are intact")
+        return BakeError(f"a {what} task failed on the Dask cluster ({type(exc).__name__}: {why}); nothing was "
+                         f"written, the previous outputs are intact")
 
     def _check_scheduler(self, lost_since):
         """None while connected; else since when not; BakeError once that is

@@ -1,0 +1,286 @@
+"""The bake on a Dask cluster (core/bake/distributed.py, issue #17): the same
+bits as the local bake, a lost worker costs only its chunks, a lost
+scheduler is a clear error, cancellation stops the cluster, and every entry
+point passes ``--dask`` through.
+
+Clusters here are real: LocalCluster worker processes, and for the lost
+scheduler a `dask scheduler` and `dask worker` started as separate
+processes. Units are made small (UNIT_RAYS) so that a bake is dozens of
+tasks and a fault lands in the middle of a pass.
+"""
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import psutil
+import pytest
+
+from prtt_addon.bench import scenes
+from prtt_addon.cli import env_light
+from prtt_addon.core.bake import distributed as dd
+from prtt_addon.core.bake.context import BakeError, BakeSettings
+from prtt_addon.core.bake.runner import bake_scene
+from prtt_addon.core.bake.transfer import Cancelled, Chunk
+from prtt_addon.core.io.scene import save_scene
+from tests.scenes_util import floor_and_box
+
+pytest.importorskip("distributed")
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ENV = dict(os.environ, PYTHONPATH=ROOT, PYTHONUNBUFFERED="1")
+#: Manifest entries that record how long things took (they differ run to run).
+TIMING_KEYS = ("seconds", "created", "rays_per_second")
+
+
+def files(folder) -> dict:
+    """{name: sha256} of a bake's outputs (textures, vertex transfer, manifest aside)."""
+    return {n: hashlib.sha256((folder / n).read_bytes()).hexdigest() for n in sorted(os.listdir(folder))
+            if n.endswith((".exr", ".npz"))}
+
+
+def without(x, keys=TIMING_KEYS):
+    """The manifest without fields whose names contain one of ``keys`` (recursively)."""
+    if isinstance(x, dict):
+        return {k: without(v, keys) for k, v in x.items() if not any(t in k for t in keys)}
+    if isinstance(x, list):
+        return [without(v, keys) for v in x]
+    return x
+
+
+def manifest(folder, keys=TIMING_KEYS) -> dict:
+    return without(json.loads((folder / "manifest.json").read_text()), keys)
+
+
+def spawned_workers() -> list:
+    """This process's LocalCluster worker processes (multiprocessing spawn children)."""
+    out = []
+    for c in psutil.Process().children(recursive=True):
+        try:
+            if "spawn_main" in " ".join(c.cmdline()):
+                out.append(c)
+        except psutil.Error:
+            pass
+    return out
+
+
+def no_workers_left(timeout=10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if not spawned_workers():
+            return True
+        time.sleep(0.2)
+    return False
+
+
+@pytest.fixture(scope="module")
+def room():
+    return scenes.room_scene(64, atlas=False, materials=True), env_light("forest", 5, 1.0, 0.0)
+
+
+@pytest.fixture
+def small_units(monkeypatch):
+    monkeypatch.setattr(dd, "UNIT_RAYS", 1 << 15)
+
+
+# --- parsing and planning (no cluster) -------------------------------------------------
+
+def test_spec_parsing_and_clear_errors(monkeypatch):
+    assert dd.parse_spec("local:3") == dd.DaskSpec("local", 3)
+    assert dd.parse_spec("local").workers == max(1, os.cpu_count() or 1)
+    assert dd.parse_spec("tcp://farm:8786") == dd.DaskSpec("address", address="tcp://farm:8786")
+    assert dd.parse_spec("env", {"DASK_SCHEDULER_ADDRESS": "tls://10.0.0.1:8786"}).address == "tls://10.0.0.1:8786"
+    for bad, words in [("local:0", "1..256"), ("local:x", "local:N"), ("farm:8786", "tcp://HOST:PORT"),
+                       ("tcp://", "tcp://HOST:PORT"), ("local:300", "1..256")]:
+        with pytest.raises(BakeError, match=words):
+            dd.parse_spec(bad, {})
+    with pytest.raises(BakeError, match="DASK_SCHEDULER_ADDRESS, which is not set"):
+        dd.parse_spec("env", {})
+
+
+def test_units_cover_every_chunk_once_in_order():
+    rng = np.random.default_rng(1)
+    chunks = [Chunk(0, np.arange(int(n)), False) for n in rng.integers(1, 2048, 300)]
+    for threads, cap in [(2, 1 << 23), (64, 1 << 23), (2, 1 << 12)]:
+        units = dd.units_of(chunks, 256, threads, cap)
+        flat = [c for u in units for c in u]
+        assert len(flat) == len(chunks) and all(a is b for a, b in zip(flat, chunks))
+        total = sum(c.idx.size for c in chunks) * 256
+        limit = max(1, min(cap, total // (dd.UNITS_PER_THREAD * threads)))
+        # A unit holds more than the limit only when it is one chunk.
+        assert all(len(u) == 1 or sum(c.idx.size for c in u) * 256 <= limit for u in units)
+        assert len(units) >= min(len(chunks), dd.UNITS_PER_THREAD * threads)
+    assert dd.units_of([], 256, 2) == []
+
+
+# --- real clusters ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("mode", ["baked", "relightable"])
+def test_cluster_bake_is_bit_identical(tmp_path, room, small_units, mode):
+    """Transfer with mips, vertex transfer and 2 bounce levels (baked or
+    relightable) on a local cluster of 2 worker processes: the same files,
+    byte for byte, and the same manifest but for its timing fields."""
+    sc, light = room
+    st = BakeSettings(rays=64, bounces=2, bounce_rays=32, bounce_tolerance=0.0, vertex_mode=True, mips=True,
+                      bounce_mode=mode)
+    bake_scene(sc, tmp_path / "local", st, light=light)
+    events = []
+    bake_scene(sc, tmp_path / "dask", st, light=light, dask="local:2", progress=events.append)
+    a, b = files(tmp_path / "local"), files(tmp_path / "dask")
+    assert len(a) >= 3 * 5 and a == b
+    assert manifest(tmp_path / "local") == manifest(tmp_path / "dask")
+    assert any(e.get("type") == "info" and e["message"].startswith("Dask: 2 workers") for e in events)
+    assert {e.get("stage") for e in events if e.get("type") == "progress"} >= {"trace", "vertex", "bounce"}
+    assert no_workers_left()
+
+
+def test_killed_worker_costs_only_its_chunks(tmp_path, room, small_units):
+    """SIGKILL one of the two workers mid-transfer: Dask reruns its units on
+    the other (and the restarted) worker; the outputs are still identical.
+    The manifest too, but for timing and the count of threads that traced
+    (the restarted worker's thread is a third one)."""
+    sc, light = room
+    st = BakeSettings(rays=128, bounces=2, bounce_rays=32, bounce_tolerance=0.0, vertex_mode=True)
+    bake_scene(sc, tmp_path / "local", st, light=light)
+    killed = []
+
+    def kill_one(e):
+        if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0.2 and not killed:
+            w = spawned_workers()
+            assert len(w) == 2
+            w[0].send_signal(signal.SIGKILL)
+            killed.append(w[0].pid)
+
+    bake_scene(sc, tmp_path / "dask", st, light=light, dask="local:2", progress=kill_one)
+    assert killed
+    assert files(tmp_path / "local") == files(tmp_path / "dask")
+    a, b = (manifest(tmp_path / d, TIMING_KEYS + ("threads",)) for d in ("local", "dask"))
+    assert a == b
+    threads = [s["threads"] for s in json.loads((tmp_path / "dask" / "manifest.json").read_text())["sets"]]
+    assert max(threads) >= 2
+
+
+def test_cancel_stops_the_cluster_and_keeps_previous_outputs(tmp_path, room, small_units):
+    sc, light = room
+    out = tmp_path / "out"
+    bake_scene(sc, out, BakeSettings(rays=32, bounces=1, bounce_rays=16), light=light)
+    before = files(out)
+    cancel = threading.Event()
+    seen = {}
+
+    def cancel_mid_trace(e):
+        if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0 and not seen:
+            seen["t"] = time.monotonic()
+            cancel.set()
+
+    with pytest.raises(Cancelled):
+        bake_scene(sc, out, BakeSettings(rays=512, seed=7), light=light, dask="local:2", cancel=cancel,
+                   progress=cancel_mid_trace)
+    assert time.monotonic() - seen["t"] < 5.0
+    assert files(out) == before
+    assert not [n for n in os.listdir(out) if n.startswith(".prtt-tmp-")]
+    assert no_workers_left()
+
+
+def test_lost_scheduler_is_a_clear_error(tmp_path, monkeypatch):
+    """A scheduler process killed mid-bake: BakeError naming it, within
+    seconds, previous outputs intact."""
+    monkeypatch.setattr(dd, "UNIT_RAYS", 1 << 15)
+    sc = floor_and_box(res=128)
+    out = tmp_path / "out"
+    bake_scene(sc, out, BakeSettings(rays=16))
+    before = files(out)
+    sfile = tmp_path / "scheduler.json"
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                              "--port", "0", "--scheduler-file", str(sfile), "--no-dashboard"],
+                             env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    worker = None
+    try:
+        deadline = time.monotonic() + 60
+        while not (sfile.exists() and sfile.stat().st_size) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(0.3)
+        addr = json.loads(sfile.read_text())["address"]
+        worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
+                                   "--nworkers", "2", "--no-dashboard"], env=ENV, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)
+        killed = {}
+
+        def kill_scheduler(e):
+            if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0 \
+                    and not killed:
+                killed["t"] = time.monotonic()
+                sched.kill()
+
+        with pytest.raises(BakeError, match=f"lost the Dask scheduler at {addr}.*previous outputs are intact"):
+            bake_scene(sc, out, BakeSettings(rays=2048, seed=3), dask=addr, progress=kill_scheduler)
+        assert killed and time.monotonic() - killed["t"] < dd.SCHEDULER_LOST_AFTER + 5
+        assert files(out) == before
+    finally:
+        for p in (sched, worker):
+            if p is not None:
+                p.kill()
+                p.wait(30)
+
+
+def test_bad_cluster_inputs_are_clear_errors(tmp_path, monkeypatch):
+    sc = floor_and_box(res=16)
+    st = BakeSettings(rays=8, bounces=0)
+    monkeypatch.setattr(dd, "CONNECT_TIMEOUT", 1.0)
+    t = time.monotonic()
+    with pytest.raises(BakeError, match="cannot use the Dask scheduler at tcp://127.0.0.1:9"):
+        bake_scene(sc, tmp_path / "a", st, dask="tcp://127.0.0.1:9")
+    assert time.monotonic() - t < 30
+    # A worker running other code than the client fails the bake, not its bits.
+    monkeypatch.setattr(dd, "_IDENTITY", "0" * 64)
+    with pytest.raises(BakeError, match="runs other PRTT code"):
+        bake_scene(sc, tmp_path / "b", st, dask="local:1")
+    monkeypatch.setattr(dd, "_IDENTITY", None)
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    with pytest.raises(BakeError, match="optional packages dask and distributed"):
+        bake_scene(sc, tmp_path / "c", st, dask="local:1")
+    assert not (tmp_path / "c" / "manifest.json").exists()
+    assert no_workers_left()
+
+
+# --- the command lines -----------------------------------------------------------------
+
+def test_bake_job_dask_option_end_to_end(tmp_path):
+    """``bake-job --dask local:2`` equals ``bake-job``; a bad value is a usage
+    error; SIGTERM mid-trace exits 3 within 2 s and leaves no worker process."""
+    job = tmp_path / "job.npz"
+    save_scene(floor_and_box(res=64), job, extra={"settings": {"rays": 64, "bounces": 0}})
+    cmd = [sys.executable, "-m", "prtt_addon", "bake-job", str(job), "-q"]
+    r1 = subprocess.run(cmd + ["--out", str(tmp_path / "local")], capture_output=True, text=True, env=ENV,
+                        cwd=ROOT, timeout=300)
+    r2 = subprocess.run(cmd + ["--out", str(tmp_path / "dask"), "--dask", "local:2"], capture_output=True,
+                        text=True, env=ENV, cwd=ROOT, timeout=300)
+    assert r1.returncode == 0 and r2.returncode == 0, r1.stderr + r2.stderr
+    assert files(tmp_path / "local") == files(tmp_path / "dask")
+    assert "Traceback" not in r2.stderr
+    bad = subprocess.run(cmd + ["--out", str(tmp_path / "x"), "--dask", "local:0"], capture_output=True,
+                         text=True, env=ENV, cwd=ROOT, timeout=120)
+    assert bad.returncode == 2 and "--dask local:N needs N = 1..256" in bad.stderr
+    save_scene(floor_and_box(res=256), job, extra={"settings": {"rays": 4096, "bounces": 0}})
+    p = subprocess.Popen([sys.executable, "-m", "prtt_addon.worker", str(job), str(tmp_path / "local"), "--force",
+                          "--dask", "local:2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=ENV, cwd=ROOT)
+    kids, t0 = [], None
+    for line in p.stdout:
+        e = json.loads(line)
+        if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0:
+            kids = [c for c in psutil.Process(p.pid).children(recursive=True)]
+            t0 = time.monotonic()
+            p.send_signal(signal.SIGTERM)
+            break
+    p.communicate(timeout=60)
+    assert t0 is not None and p.returncode == 3 and time.monotonic() - t0 < 2.0
+    assert len(kids) >= 2
+    time.sleep(1.0)
+    assert not [k for k in kids if k.is_running() and k.status() != psutil.STATUS_ZOMBIE]
+    assert files(tmp_path / "local") == files(tmp_path / "dask")
