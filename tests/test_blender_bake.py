@@ -150,3 +150,35 @@ def test_three_headless_entry_points_agree(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "prtt_addon", "bake", str(tmp_path / "missing.blend")],
                          capture_output=True, text=True, env=env, timeout=120)
     assert bad.returncode == 1 and "cannot open" in bad.stderr
+
+
+def test_dask_scheduler_from_the_panel_and_the_cli(tmp_path):
+    """The panel's Dask Scheduler (saved with the scene) and ``bake --dask``
+    (this bake only) run the worker on a local cluster: the textures are the
+    local bake's, byte for byte; a bad value fails the bake with its reason."""
+    pytest.importorskip("distributed")
+    bpy = addon_bpy()
+    ready_scene(bpy, tmp_path)
+    st = bpy.context.scene.prtt
+    st.output_dir = str(tmp_path / "local")
+    assert bpy.ops.prtt.bake_transfer() == {"FINISHED"}
+    local = snapshot_files(tmp_path / "local")
+    st.output_dir, st.dask_scheduler = str(tmp_path / "panel"), "local:2"
+    assert bpy.ops.prtt.bake_transfer() == {"FINISHED"}
+    panel = snapshot_files(tmp_path / "panel")
+    exrs = [n for n in local if n.endswith(".exr")]
+    assert len(exrs) >= 2 and all(panel[n] == local[n] for n in exrs)
+    st.dask_scheduler = ""
+    blend = str(tmp_path / "scene.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=blend)
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    r = subprocess.run([sys.executable, "-m", "prtt_addon", "bake", blend, "--out", str(tmp_path / "cli"),
+                        "--dask", "local:2", "--no-save", "-q"], capture_output=True, text=True, env=env,
+                       timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    cli = snapshot_files(tmp_path / "cli")
+    assert all(cli[n] == local[n] for n in exrs)
+    st.output_dir, st.dask_scheduler = str(tmp_path / "bad"), "farm:8786"
+    with pytest.raises(RuntimeError, match="tcp://HOST:PORT, got 'farm:8786'"):
+        bpy.ops.prtt.bake_transfer()          # the operator's error report (background mode raises it)
+    assert not (tmp_path / "bad" / "manifest.json").exists()
