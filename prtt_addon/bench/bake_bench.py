@@ -3,7 +3,8 @@
 Bakes the room-class scene (1024^2 atlas, 5 bands, 256 rays per texel by
 default) through the real pipeline (``core.bake.runner.bake_scene``: G-buffer,
 analytic test, rays, projection, dilation, EXR writing) and prints seconds per
-stage and rays/s end to end. Then, in the same run, it regenerates the *same
+stage and rays/s end to end (``--dask``: the bake on a Dask cluster against
+the local one instead, bench/dask_bench.py). Then, in the same run, it regenerates the *same
 rays* for a sample of the bake's chunks and traces them with bare embreex
 ``run(..., query='OCCLUDED')`` calls on the same number of threads: the raw
 Embree throughput the pipeline is compared with (target >= 0.8).
@@ -33,7 +34,7 @@ from ..core.texels.gbuffer import build_gbuffer
 from ..core.bake.raytrace import RayScene
 from ..core.bake.sampling import pattern_bank
 from ..core.bake.transfer import chunk_frames, chunk_plan
-from . import scenes
+from . import dask_bench, scenes
 
 #: Reference: an open C++ SH-lightmap baker on Embree 4, per core (issue 3).
 CPP_REFERENCE_TEXEL_SAMPLES_PER_CORE = 1.5e6
@@ -103,11 +104,17 @@ def main(argv=None) -> int:
     p.add_argument("--per-object", action="store_true", help="one texture set per object instead of an atlas")
     p.add_argument("--raw-fraction", type=float, default=0.125,
                    help="share of the bake's chunks re-traced for the raw Embree baseline")
-    p.add_argument("--repeat", type=int, default=5,
-                   help="bake / raw Embree pairs, interleaved; each side's fastest run is compared")
+    p.add_argument("--repeat", type=int, default=None,
+                   help="bake / raw Embree pairs, interleaved; each side's fastest run is compared (default 5; "
+                        "with --dask: local / cluster pairs, default 2)")
     p.add_argument("--scaling", action="store_true",
                    help="also print the 21K -> 1.3M triangles and 256^2 -> 2048^2 tables")
+    dask_bench.add_arguments(p)
     args = p.parse_args(argv)
+    if args.dask:
+        args.repeat = 2 if args.repeat is None else args.repeat
+        return dask_bench.run(args)
+    args.repeat = 5 if args.repeat is None else args.repeat
     st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads)
     cores = st.n_threads
 

@@ -281,16 +281,38 @@ def units_of(chunks: list, rays_per_point: int, threads: int, unit_rays: int = U
     return units
 
 
+def payload_bytes(obj, _depth: int = 0) -> int:
+    """Bytes of the numpy arrays in ``obj`` (dataclasses, objects, dicts, lists,
+    tuples; what pickling it ships, to within its small fields)."""
+    import numpy as np
+    if isinstance(obj, np.ndarray):
+        return int(obj.nbytes)
+    if _depth > 6 or obj is None or isinstance(obj, (str, bytes, int, float, bool)):
+        return 0
+    if isinstance(obj, dict):
+        return sum(payload_bytes(v, _depth + 1) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(payload_bytes(v, _depth + 1) for v in obj)
+    fields = getattr(obj, "__dict__", None)
+    if fields is None and hasattr(obj, "__slots__"):
+        fields = {k: getattr(obj, k, None) for k in obj.__slots__}
+    return payload_bytes(fields, _depth + 1) if fields else 0
+
+
 @dataclasses.dataclass
 class PassStats:
     """One pass on the cluster (DaskBake.passes): tasks, summed task seconds,
-    wall seconds and the worker threads it had."""
+    wall seconds, the worker threads it had, the rays it traced, the bytes
+    scattered to each worker for it and the bytes of results sent back."""
 
     what: str
     tasks: int
     task_seconds: float
     wall_seconds: float
     threads: int
+    rays: int = 0
+    sent_bytes: int = 0
+    result_bytes: int = 0
 
     @property
     def overhead(self) -> float:
@@ -318,6 +340,10 @@ class DaskBake:
         self._shader = None                  # (shader object, its scattered future, token)
         self._n = 0
         self._log_levels = None
+        self.start_seconds = 0.0            # cluster start or connection, until the first worker
+        self.scene_bytes = 0                # the scene as scattered to every worker
+        self.workers = 0
+        self._sent = 0                      # bytes scattered for the current pass
 
     # -- connection --
 
@@ -350,17 +376,29 @@ class DaskBake:
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             raise BakeError(f"cannot use {self.spec.describe()}: {type(exc).__name__}: {exc}") from None
+        self.start_seconds = time.perf_counter() - t
         self.scene_token = scene_token
         self.scene_f = self._scatter(scene)
+        self.scene_bytes, self._sent = self._sent, 0
         info = self.client.scheduler_info()
         workers = info.get("workers", {})
+        self.workers = len(workers)
         threads = sum(int(w.get("nthreads", 1)) for w in workers.values())
         self.emit(type="info", message=f"Dask: {len(workers)} workers, {threads} threads "
                                        f"({self.spec.describe()}), ready in {time.perf_counter() - t:.1f} s")
         return self
 
     def close(self) -> None:
-        """Cancel what is still pending and disconnect (a local cluster is shut down)."""
+        """Cancel what is still pending and disconnect (a local cluster is shut
+        down). After passes, says what they cost (an "info" event with the
+        numbers as ``dask``)."""
+        if self.passes:
+            sm = self.summary()
+            self.emit(type="info", dask=sm,
+                      message=f"Dask: {sm['tasks']} tasks, {sm['task_seconds']:.1f} s of work in "
+                              f"{sm['wall_seconds']:.1f} s on {max(p.threads for p in self.passes)} threads "
+                              f"(overhead {100 * sm['overhead']:.1f} %)")
+            self.passes = []
         client, cluster = self.client, self.cluster
         self.client = self.cluster = None
         self.scene_f = self._shader = None
@@ -384,6 +422,7 @@ class DaskBake:
         return max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
 
     def _scatter(self, obj):
+        self._sent += payload_bytes(obj)
         try:
             return self.client.scatter([obj], broadcast=True, hash=False)[0]
         except Exception as exc:
@@ -407,7 +446,7 @@ class DaskBake:
 
         try:
             self._run("transfer", transfer_task, (self.scene_f, self.scene_token, pts_f, token, st, G), units,
-                      handle, cancel)
+                      handle, cancel, st.rays)
         finally:
             pts_f.release()
 
@@ -427,7 +466,8 @@ class DaskBake:
 
         try:
             self._run("bounce", level_task, (self.scene_f, self.scene_token, shader_f, shader_token, lr_f,
-                                             f"{self.run_id}-t{self._next()}", tpl), units, handle, cancel)
+                                             f"{self.run_id}-t{self._next()}", tpl), units, handle, cancel,
+                      lr.st.rays)
         finally:
             lr_f.release()
 
@@ -448,7 +488,7 @@ class DaskBake:
         self._shader = (shader, fut, f"{self.run_id}-s{self._next()}")
         return fut, self._shader[2]
 
-    def _run(self, what: str, fn, args: tuple, units: list, handle, cancel) -> None:
+    def _run(self, what: str, fn, args: tuple, units: list, handle, cancel, rays_per_point: int) -> None:
         """Submit one task per unit, hand results to ``handle(unit, result)`` in
         the calling thread as they finish; Cancelled / BakeError as promised."""
         import distributed
@@ -459,7 +499,7 @@ class DaskBake:
         futures = {client.submit(fn, self.identity, *args, unit, pure=False,
                                  key=f"prtt-{what}-{self.run_id}-{self._next()}"): unit for unit in units}
         pending = set(futures)
-        task_s = 0.0
+        task_s, result_bytes = 0.0, 0
         lost_since = None
         try:
             while pending:
@@ -480,6 +520,7 @@ class DaskBake:
                     except Exception as exc:
                         raise self._failure(what, exc, cancel) from None
                     task_s += res.seconds
+                    result_bytes += payload_bytes(res.items)
                     handle(futures.pop(f), res)
                     f.release()
         except BaseException:
@@ -488,7 +529,10 @@ class DaskBake:
             except Exception:
                 pass
             raise
-        self.passes.append(PassStats(what, len(units), task_s, time.perf_counter() - t0, threads))
+        rays = sum(c.idx.size for u in units for c in u) * rays_per_point
+        self.passes.append(PassStats(what, len(units), task_s, time.perf_counter() - t0, threads, rays,
+                                     self._sent, result_bytes))
+        self._sent = 0
 
     def _failure(self, what: str, exc: Exception, cancel) -> Exception:
         """What a failed wait or task means for the bake: Cancelled when the bake
@@ -532,6 +576,10 @@ class DaskBake:
         task_s = sum(p.task_seconds for p in self.passes)
         wall = sum(p.wall_seconds for p in self.passes)
         avail = sum(p.wall_seconds * p.threads for p in self.passes)
-        return {"tasks": tasks, "task_seconds": task_s, "wall_seconds": wall,
+        return {"workers": self.workers, "start_seconds": self.start_seconds, "scene_bytes": self.scene_bytes,
+                "tasks": tasks, "task_seconds": task_s, "wall_seconds": wall,
+                "rays": sum(p.rays for p in self.passes),
+                "sent_bytes": sum(p.sent_bytes for p in self.passes),
+                "result_bytes": sum(p.result_bytes for p in self.passes),
                 "overhead": max(0.0, 1.0 - task_s / avail) if avail > 0 else 0.0,
                 "passes": [dataclasses.asdict(p) | {"overhead": p.overhead} for p in self.passes]}

@@ -1,0 +1,136 @@
+"""``python -m prtt_addon.bench bake --dask local:2``: the bake on a Dask cluster
+against the local bake, and a model of the bake on a farm (docs/distributed.md).
+
+Per scene (the room-class scene, and with ``--big`` the same room with
+occluder bunnies up to 1.3M triangles), the default bake (transfer + one
+bounce under the forest HDRI) runs locally on all cores and on the cluster,
+interleaved ``--repeat`` times; the fastest of each is compared. Every run
+checks the cluster's textures against the local ones, byte for byte.
+
+Printed: the speed-up (local seconds / cluster seconds), the cluster's
+overhead (the share of the workers' thread time not spent in tasks:
+scheduling, transfers, assembly on the client, idle at the tail), per pass
+the tasks, rays, core-ns per ray and bytes, and the model
+
+    T(W) = start + client + bvh + R / W + tasks * tau + (scene + sent) * W / B + results / B
+
+with W one-thread workers, R the measured core-seconds of ray work, ``client``
+the client's own serial work (G-buffers, exit radiance, writes), ``bvh`` one
+BVH build (each worker builds it once, in parallel), ``tau`` the measured
+overhead per task, ``scene``/``sent`` the bytes scattered to every worker
+and ``results`` the bytes sent back, over a client link of B bytes/s
+(``--bandwidth``; on one machine the copies are already in the measured
+times, so B is infinite there). The model is fitted on the local:1 run and
+checked against the 2-worker run, then extrapolated to 8 and 64 workers.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+import time
+
+from ..cli import env_light
+from ..core.bake.distributed import parse_spec
+from ..core.bake.runner import BakeSettings, bake_scene
+from . import scenes
+
+#: A farm's client link: 10 GbE.
+DEFAULT_BANDWIDTH = 1.25e9
+
+
+def _bake(sc, st, light, dask):
+    """(wall seconds, manifest, {file: sha256}, the cluster's summary or None)."""
+    events = []
+    with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
+        t = time.perf_counter()
+        m = bake_scene(sc, d, st, light=light, skip_if_unchanged=False, dask=dask, progress=events.append)
+        wall = time.perf_counter() - t
+        files = {f: hashlib.sha256(open(os.path.join(d, f), "rb").read()).hexdigest()
+                 for f in sorted(os.listdir(d)) if f.endswith(".exr")}
+    summary = next((e["dask"] for e in events if e.get("type") == "info" and "dask" in e), None)
+    return wall, m, files, summary
+
+
+def model(fit: dict, workers: int, bandwidth: float) -> float:
+    """Predicted bake seconds on ``workers`` one-thread workers (module docstring)."""
+    link = (fit["scene_bytes"] + fit["sent_bytes"]) * workers / bandwidth + fit["result_bytes"] / bandwidth \
+        if bandwidth != float("inf") else 0.0
+    return (fit["start"] + fit["client"] + fit["bvh"] + fit["work"] / workers + fit["tasks"] * fit["tau"]
+            + link)
+
+
+def fit_of(wall: float, m: dict, sm: dict) -> dict:
+    """The model's terms from one cluster bake (its wall seconds, manifest, summary)."""
+    passes = sm["passes"]
+    pass_wall = sum(p["wall_seconds"] for p in passes)
+    idle = sum(p["wall_seconds"] * p["threads"] - p["task_seconds"] for p in passes)
+    return {"start": sm["start_seconds"], "client": max(0.0, wall - sm["start_seconds"] - pass_wall),
+            "bvh": m["seconds"]["bvh"], "work": sm["task_seconds"], "tasks": sm["tasks"],
+            "tau": max(0.0, idle) / max(sm["tasks"], 1), "scene_bytes": sm["scene_bytes"],
+            "sent_bytes": sm["sent_bytes"], "result_bytes": sm["result_bytes"]}
+
+
+def run(args) -> int:
+    spec = parse_spec(args.dask)
+    light = env_light("forest", 5)
+    st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads)
+    todo = [("room", lambda: scenes.room_scene(args.resolution, atlas=True, materials=True))]
+    if args.big:
+        todo.append(("room + bunnies (1.3M triangles)",
+                     lambda: scenes.with_room_materials(scenes.triangle_scaling_scene(1_300_000, args.resolution))))
+    for name, make in todo:
+        sc = make()
+        print(f"\n{name}: {sc.n_triangles:,} triangles, {args.resolution}^2 atlas, transfer {st.rays} rays + "
+              f"1 bounce x {st.bounce_rays} rays (tuning {st.tuning}), forest HDRI; local: {st.n_threads} threads; "
+              f"cluster: {spec.describe()}")
+        locals_, clusters = [], []
+        for i in range(max(1, args.repeat)):
+            wl, ml, fl, _ = _bake(sc, st, light, None)
+            wd, md, fd, sm = _bake(sc, st, light, args.dask)
+            same = fl == fd
+            locals_.append(wl)
+            clusters.append((wd, md, sm))
+            print(f"  pair {i + 1}: local {wl:6.2f} s, cluster {wd:6.2f} s (start {sm['start_seconds']:.2f} s, "
+                  f"overhead {100 * sm['overhead']:.1f} %), textures identical: {same}", flush=True)
+            if not same:
+                print("  ERROR: the cluster's textures differ from the local bake's")
+                return 1
+        wl = min(locals_)
+        wd, md, sm = min(clusters, key=lambda c: c[0])
+        print(f"  speed-up over the local bake: {wl / wd:.2f} (local {wl:.2f} s / cluster {wd:.2f} s, fastest of "
+              f"{len(locals_)}); cluster overhead {100 * sm['overhead']:.1f} % of its thread time")
+        print(f"  {'pass':9s} {'tasks':>5} {'rays':>12} {'task s':>7} {'wall s':>7} {'core ns/ray':>11} "
+              f"{'sent MB':>8} {'result B/ray':>12} {'overhead':>8}")
+        for p in sm["passes"]:
+            print(f"  {p['what']:9s} {p['tasks']:5d} {p['rays']:12,d} {p['task_seconds']:7.2f} {p['wall_seconds']:7.2f} "
+                  f"{1e9 * p['task_seconds'] / max(p['rays'], 1):11.1f} {p['sent_bytes'] / 1e6:8.1f} "
+                  f"{p['result_bytes'] / max(p['rays'], 1):12.2f} {100 * p['overhead']:7.1f}%")
+        print(f"  scene scattered to every worker: {sm['scene_bytes'] / 1e6:.1f} MB; per unit: "
+              f"{sm['rays'] / max(sm['tasks'], 1):,.0f} rays, {sm['task_seconds'] / max(sm['tasks'], 1):.3f} s, "
+              f"{sm['result_bytes'] / max(sm['tasks'], 1) / 1e3:.0f} kB of results")
+        if args.model:
+            w1, m1, _, s1 = _bake(sc, st, light, "local:1")
+            fit = fit_of(w1, m1, s1)
+            print(f"  model fitted on local:1 ({w1:.2f} s): start {fit['start']:.2f} s, client {fit['client']:.2f} s, "
+                  f"bvh {fit['bvh']:.2f} s, ray work {fit['work']:.2f} core-s, {fit['tasks']} tasks x "
+                  f"{1e3 * fit['tau']:.1f} ms, {(fit['scene_bytes'] + fit['sent_bytes']) / 1e6:.1f} MB to each "
+                  f"worker, {fit['result_bytes'] / 1e6:.1f} MB back")
+            if spec.kind == "local":
+                pred = model(fit, spec.workers, float("inf"))
+                print(f"  check: {spec.workers} local workers predicted {pred:.2f} s, measured {wd:.2f} s "
+                      f"({100 * (pred / wd - 1):+.0f} %)")
+            for w in (1, 8, 64):
+                print(f"  farm, {w:2d} workers, {args.bandwidth / 1e9:.2f} GB/s client link: "
+                      f"{model(fit, w, args.bandwidth):7.2f} s")
+    return 0
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--dask", metavar="local[:N]|tcp://HOST:PORT",
+                   help="compare the bake on this Dask cluster with the local one (and model a farm)")
+    p.add_argument("--big", action="store_true", help="with --dask: also the 1.3M-triangle scene")
+    p.add_argument("--no-model", dest="model", action="store_false",
+                   help="with --dask: skip the local:1 run that fits the farm model")
+    p.add_argument("--bandwidth", type=float, default=DEFAULT_BANDWIDTH,
+                   help="with --dask: the farm's client link in bytes/s for the model (default 10 GbE)")
