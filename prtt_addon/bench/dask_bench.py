@@ -12,20 +12,28 @@ overhead (the share of the workers' thread time not spent in tasks:
 scheduling, transfers, assembly on the client, idle at the tail), per pass
 the tasks, rays, core-ns per ray and bytes, and the model
 
-    T(W) = start + client + bvh + R / W + tasks * tau + (scene + sent) * W / B + results / B
+    T(W) = start + client + bvh + R / W + tasks(W) * tau / W
+           + (scene + sent) * (1 + 2 * ceil(log3 W)) / B + results / B
 
 with W one-thread workers, R the measured core-seconds of ray work, ``client``
-the client's own serial work (G-buffers, exit radiance, writes), ``bvh`` one
-BVH build (each worker builds it once, in parallel), ``tau`` the measured
-overhead per task, ``scene``/``sent`` the bytes scattered to every worker
-and ``results`` the bytes sent back, over a client link of B bytes/s
-(``--bandwidth``; on one machine the copies are already in the measured
-times, so B is infinite there). The model is fitted on the local:1 run and
-checked against the 2-worker run, then extrapolated to 8 and 64 workers.
+the client's own serial work (G-buffers, exit radiance, dilation, writes,
+serialising), ``bvh`` one BVH build (each worker builds its own, at the same
+time), ``tau`` the measured worker-thread time lost per task (scheduling,
+transfers, idle at the tail), tasks(W) = max(the measured count, 4 W per
+pass) as distributed.units_of cuts them, ``scene``/``sent`` the bytes
+scattered to every worker and ``results`` the bytes sent back. Dask
+scatters with ``broadcast`` as one copy over the client's link and then a
+tree copy between workers (branching factor 2: the holders triple each round,
+each sending two copies), so the link term grows with log W, not W; every
+link is taken as B bytes/s (``--bandwidth``; on one machine the copies are
+in the measured times already, so B is infinite there). The model is fitted
+on the local:1 run and checked against the cluster run, then extrapolated
+to 8 and 64 workers.
 """
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import tempfile
 import time
@@ -54,10 +62,15 @@ def _bake(sc, st, light, dask):
 
 def model(fit: dict, workers: int, bandwidth: float) -> float:
     """Predicted bake seconds on ``workers`` one-thread workers (module docstring)."""
-    link = (fit["scene_bytes"] + fit["sent_bytes"]) * workers / bandwidth + fit["result_bytes"] / bandwidth \
-        if bandwidth != float("inf") else 0.0
-    return (fit["start"] + fit["client"] + fit["bvh"] + fit["work"] / workers + fit["tasks"] * fit["tau"]
-            + link)
+    rounds = math.ceil(math.log(workers, 3) - 1e-9) if workers > 1 else 0
+    link = ((fit["scene_bytes"] + fit["sent_bytes"]) * (1 + 2 * rounds) + fit["result_bytes"]) / bandwidth
+    tasks = max(fit["tasks"], dask_units_per_thread() * workers * fit["passes"])
+    return fit["start"] + fit["client"] + fit["bvh"] + fit["work"] / workers + tasks * fit["tau"] / workers + link
+
+
+def dask_units_per_thread() -> int:
+    from ..core.bake.distributed import UNITS_PER_THREAD
+    return UNITS_PER_THREAD
 
 
 def fit_of(wall: float, m: dict, sm: dict) -> dict:
@@ -67,7 +80,7 @@ def fit_of(wall: float, m: dict, sm: dict) -> dict:
     idle = sum(p["wall_seconds"] * p["threads"] - p["task_seconds"] for p in passes)
     return {"start": sm["start_seconds"], "client": max(0.0, wall - sm["start_seconds"] - pass_wall),
             "bvh": m["seconds"]["bvh"], "work": sm["task_seconds"], "tasks": sm["tasks"],
-            "tau": max(0.0, idle) / max(sm["tasks"], 1), "scene_bytes": sm["scene_bytes"],
+            "tau": max(0.0, idle) / max(sm["tasks"], 1), "passes": len(passes), "scene_bytes": sm["scene_bytes"],
             "sent_bytes": sm["sent_bytes"], "result_bytes": sm["result_bytes"]}
 
 
@@ -113,9 +126,10 @@ def run(args) -> int:
             w1, m1, _, s1 = _bake(sc, st, light, "local:1")
             fit = fit_of(w1, m1, s1)
             print(f"  model fitted on local:1 ({w1:.2f} s): start {fit['start']:.2f} s, client {fit['client']:.2f} s, "
-                  f"bvh {fit['bvh']:.2f} s, ray work {fit['work']:.2f} core-s, {fit['tasks']} tasks x "
-                  f"{1e3 * fit['tau']:.1f} ms, {(fit['scene_bytes'] + fit['sent_bytes']) / 1e6:.1f} MB to each "
-                  f"worker, {fit['result_bytes'] / 1e6:.1f} MB back")
+                  f"bvh {fit['bvh']:.2f} s, ray work {fit['work']:.2f} core-s, {fit['tasks']} tasks in "
+                  f"{fit['passes']} passes x {1e3 * fit['tau']:.1f} ms, "
+                  f"{(fit['scene_bytes'] + fit['sent_bytes']) / 1e6:.1f} MB to each worker, "
+                  f"{fit['result_bytes'] / 1e6:.1f} MB back")
             if spec.kind == "local":
                 pred = model(fit, spec.workers, float("inf"))
                 print(f"  check: {spec.workers} local workers predicted {pred:.2f} s, measured {wd:.2f} s "

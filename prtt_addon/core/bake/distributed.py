@@ -172,6 +172,7 @@ class WorkerState:
                     # thread, as the local bake's single_threaded_blas.
                     self._blas = threadpool_limits(limits=1, user_api="blas")
                     sys.setswitchinterval(SWITCH_INTERVAL)
+                    heap_like_a_normal_process()
                     self.ready = True
 
     def ray_scene(self, scene, token: str):
@@ -198,6 +199,30 @@ class WorkerState:
 
 
 STATE = WorkerState()
+
+#: glibc mallopt parameters, and what a process that never set them grows to:
+#: its mmap threshold follows the largest freed block up to 32 MiB (64-bit),
+#: its trim threshold twice that.
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+HEAP_MMAP_THRESHOLD = 32 << 20
+
+
+def heap_like_a_normal_process() -> bool:
+    """Undo Dask's ``MALLOC_TRIM_THRESHOLD_`` in a worker process (glibc only).
+
+    Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536 so they give
+    memory back to the OS. Setting it also freezes glibc's mmap threshold at
+    128 KiB: every temporary array above that is mapped fresh and zeroed by
+    the kernel, and unmapped when freed. The bounce shading makes dozens of
+    such temporaries per chunk and ran 1.6x slower per ray on a worker than
+    in the local bake (bench bake --dask). Returns whether mallopt took."""
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None)
+        ok = libc.mallopt(M_MMAP_THRESHOLD, HEAP_MMAP_THRESHOLD) == 1
+        return libc.mallopt(M_TRIM_THRESHOLD, 2 * HEAP_MMAP_THRESHOLD) == 1 and ok
+    except (OSError, AttributeError):
+        return False
 
 
 def worker_name() -> str:
