@@ -17,8 +17,8 @@ the tasks, rays, core-ns per ray and bytes, and the model
 
 with W one-thread workers, R the measured core-seconds of ray work, ``client``
 the client's own serial work (G-buffers, exit radiance, dilation, writes,
-serialising), ``bvh`` one BVH build (each worker builds its own, at the same
-time), ``tau`` the measured worker-thread time lost per task (scheduling,
+serialising; it builds no BVH), ``bvh`` one BVH build (each worker builds its
+own, at the same time, in its first task), ``tau`` the measured worker-thread time lost per task (scheduling,
 transfers, idle at the tail), tasks(W) = max(the measured count, 4 W per
 pass) as distributed.units_of cuts them, ``scene``/``sent`` the bytes
 scattered to every worker and ``results`` the bytes sent back. Dask
@@ -79,7 +79,7 @@ def fit_of(wall: float, m: dict, sm: dict) -> dict:
     pass_wall = sum(p["wall_seconds"] for p in passes)
     idle = sum(p["wall_seconds"] * p["threads"] - p["task_seconds"] for p in passes)
     return {"start": sm["start_seconds"], "client": max(0.0, wall - sm["start_seconds"] - pass_wall),
-            "bvh": m["seconds"]["bvh"], "work": sm["task_seconds"], "tasks": sm["tasks"],
+            "bvh": sm["bvh_seconds"], "work": sm["task_seconds"] - sm["bvh_seconds"], "tasks": sm["tasks"],
             "tau": max(0.0, idle) / max(sm["tasks"], 1), "passes": len(passes), "scene_bytes": sm["scene_bytes"],
             "sent_bytes": sm["sent_bytes"], "result_bytes": sm["result_bytes"]}
 

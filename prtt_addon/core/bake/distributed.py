@@ -176,15 +176,19 @@ class WorkerState:
                     self.ready = True
 
     def ray_scene(self, scene, token: str):
-        """The BVH of ``scene`` (built on the first task of a new scene)."""
+        """(the BVH of ``scene``, seconds this call spent building it: 0 but
+        on the first task of a new scene)."""
         with self.lock:
+            t = 0.0
             if self.scene_token != token:
                 from .raytrace import RayScene
                 self.rays = self.scene = None
                 self.slots.clear()
+                t0 = time.perf_counter()
                 self.rays = RayScene(scene.positions)
+                t = time.perf_counter() - t0
                 self.scene, self.scene_token = scene, token
-            return self.rays
+            return self.rays, t
 
     def slot(self, name: str, token: str, build):
         """The object in ``name`` built for ``token`` (``build()`` when the slot
@@ -231,22 +235,24 @@ def worker_name() -> str:
 
 @dataclasses.dataclass
 class UnitResult:
-    """What a task returns: one entry per chunk, the seconds it computed, who ran it."""
+    """What a task returns: one entry per chunk, the seconds it computed (BVH
+    build included), who ran it, and the seconds it spent building the BVH."""
 
     items: list
     seconds: float
     worker: str
+    bvh_seconds: float = 0.0
 
 
 def transfer_task(identity: str, scene, scene_token: str, pts, pts_token: str, st, G: int, chunks) -> UnitResult:
     """A unit of a transfer (or vertex) pass: [(rows (n, K), counts)] per chunk."""
     t0 = time.perf_counter()
     STATE.setup(identity)
-    rs = STATE.ray_scene(scene, scene_token)
+    rs, bvh_s = STATE.ray_scene(scene, scene_token)
     from .transfer import ChunkKernel
     kernel = STATE.slot("points", pts_token, lambda: ChunkKernel(rs, pts, st, G))
     items = [kernel.run(c) for c in chunks]
-    return UnitResult(items, time.perf_counter() - t0, f"{worker_name()}:{threading.get_ident()}")
+    return UnitResult(items, time.perf_counter() - t0, f"{worker_name()}:{threading.get_ident()}", bvh_s)
 
 
 def level_task(identity: str, scene, scene_token: str, shader, shader_token: str, lr, lr_token: str,
@@ -255,7 +261,7 @@ def level_task(identity: str, scene, scene_token: str, shader, shader_token: str
     ``project`` arrives without its shader (the level's, scattered once)."""
     t0 = time.perf_counter()
     STATE.setup(identity)
-    rs = STATE.ray_scene(scene, scene_token)
+    rs, bvh_s = STATE.ray_scene(scene, scene_token)
     from .bounce import trace_chunk
 
     def with_scene():
@@ -271,7 +277,7 @@ def level_task(identity: str, scene, scene_token: str, shader, shader_token: str
     for c in chunks:
         ch = trace_chunk(rs, lr, tables, c)
         items.append((ch.n, ch.cols, proj(ch), int(ch.hit.size)))
-    return UnitResult(items, time.perf_counter() - t0, f"{worker_name()}:{threading.get_ident()}")
+    return UnitResult(items, time.perf_counter() - t0, f"{worker_name()}:{threading.get_ident()}", bvh_s)
 
 
 # --- the client side ---------------------------------------------------------------------
@@ -367,6 +373,7 @@ class DaskBake:
         self._log_levels = None
         self.start_seconds = 0.0            # cluster start or connection, until the first worker
         self.scene_bytes = 0                # the scene as scattered to every worker
+        self.bvh_seconds = 0.0              # the longest BVH build on a worker
         self.workers = 0
         self._sent = 0                      # bytes scattered for the current pass
 
@@ -545,6 +552,7 @@ class DaskBake:
                     except Exception as exc:
                         raise self._failure(what, exc, cancel) from None
                     task_s += res.seconds
+                    self.bvh_seconds = max(self.bvh_seconds, res.bvh_seconds)
                     result_bytes += payload_bytes(res.items)
                     handle(futures.pop(f), res)
                     f.release()
@@ -602,6 +610,7 @@ class DaskBake:
         wall = sum(p.wall_seconds for p in self.passes)
         avail = sum(p.wall_seconds * p.threads for p in self.passes)
         return {"workers": self.workers, "start_seconds": self.start_seconds, "scene_bytes": self.scene_bytes,
+                "bvh_seconds": self.bvh_seconds,
                 "tasks": tasks, "task_seconds": task_s, "wall_seconds": wall,
                 "rays": sum(p.rays for p in self.passes),
                 "sent_bytes": sum(p.sent_bytes for p in self.passes),

@@ -104,7 +104,8 @@ def bake_points_input(sc: Scene, set_index: int, gb: GBuffer, fn: np.ndarray, cl
 class Geometry:
     """What every set traces against (build_geometry). T = scene triangles."""
 
-    rays: RayScene                 # Embree BVH of every triangle (normalised scene units)
+    rays: RayScene | None          # Embree BVH of every triangle (normalised scene units); None when a
+                                   # Dask cluster traces (ctx.remote: each worker builds its own)
     face_normal: np.ndarray        # (T, 3) float64 unit, turned to the shaded side; zero where degenerate
     normal_group: np.ndarray       # (T,) int64: equal for faces with the same normal (1e-9); -1 degenerate
     clear: np.ndarray              # (T,) bool: no geometry above the face (hemisphere_clear)
@@ -136,11 +137,13 @@ def start_tables(ctx: BakeContext) -> None:
 
 
 def build_geometry(ctx: BakeContext) -> Geometry:
-    """Build the BVH and the per-face data (progress stages "bvh", "analytic-test")."""
+    """Build the BVH (not with a Dask cluster) and the per-face data (progress
+    stages "bvh", "analytic-test")."""
     st = ctx.settings
     ctx.emit(type="progress", stage="bvh", fraction=0.0)
     t = time.perf_counter()
-    rs = RayScene(ctx.scene.positions, cancel=ctx.cancel)
+    # With a cluster every ray is traced on the workers: the client needs no BVH.
+    rs = RayScene(ctx.scene.positions, cancel=ctx.cancel) if ctx.remote is None else None
     ctx.seconds["bvh"] = time.perf_counter() - t
     t = time.perf_counter()
     if st.analytic:
