@@ -281,8 +281,8 @@ def add_output_options(p: argparse.ArgumentParser) -> None:
 
 def dask_spec(value: str) -> str:
     """``--dask``'s value, checked (argparse type: a bad one is a usage error naming it)."""
-    from .core.bake.context import BakeError       # deferred: the option module loads before numpy
-    from .core.bake.distributed import parse_spec
+    from .core.bake.context import BakeError  # deferred: the option module loads before numpy
+    from .core.bake.distributed import parse_spec  # deferred: as above
     try:
         parse_spec(value)
     except BakeError as exc:

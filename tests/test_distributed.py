@@ -114,7 +114,11 @@ def test_units_cover_every_chunk_once_in_order():
         limit = max(1, min(cap, total // (dd.UNITS_PER_THREAD * threads)))
         # A unit holds more than the limit only when it is one chunk.
         assert all(len(u) == 1 or sum(c.idx.size for c in u) * 256 <= limit for u in units)
-        assert len(units) >= min(len(chunks), dd.UNITS_PER_THREAD * threads)
+        # So the pass is cut into at least total / limit tasks (fewer only where chunks exceed the limit).
+        biggest = max(c.idx.size for c in chunks) * 256
+        assert len(units) >= total // max(limit, biggest)
+        if limit >= biggest:
+            assert len(units) >= min(len(chunks), dd.UNITS_PER_THREAD * threads)
     assert dd.units_of([], 256, 2) == []
 
 

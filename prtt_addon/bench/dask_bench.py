@@ -19,7 +19,7 @@ with W one-thread workers, R the measured core-seconds of ray work, ``client``
 the client's own serial work (G-buffers, exit radiance, dilation, writes,
 serialising; it builds no BVH), ``bvh`` one BVH build (each worker builds its
 own, at the same time, in its first task), ``tau`` the measured worker-thread time lost per task (scheduling,
-transfers, idle at the tail), tasks(W) = max(the measured count, 4 W per
+transfers, idle at the tail), tasks(W) = max(the measured count, 8 W per
 pass) as distributed.units_of cuts them, ``scene``/``sent`` the bytes
 scattered to every worker and ``results`` the bytes sent back. Dask
 scatters with ``broadcast`` as one copy over the client's link and then a

@@ -44,8 +44,10 @@ dask and distributed are optional: without ``--dask`` nothing imports them.
 from __future__ import annotations
 
 import copy
+import ctypes
 import dataclasses
 import hashlib
+import importlib.metadata
 import logging
 import os
 import socket
@@ -55,8 +57,14 @@ import time
 import uuid
 from pathlib import Path
 
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from .bounce import trace_chunk
 from .context import BakeError
 from .parallel import Cancelled
+from .raytrace import RayScene
+from .transfer import SWITCH_INTERVAL, ChunkKernel
 
 #: The environment variable ``--dask`` without an address reads (Dask's own name).
 ENV_ADDRESS = "DASK_SCHEDULER_ADDRESS"
@@ -64,8 +72,10 @@ ENV_ADDRESS = "DASK_SCHEDULER_ADDRESS"
 MAX_LOCAL_WORKERS = 256
 #: Rays of one task (a unit of chunks): ~0.3-1 s of one core at 10-30 Mrays/s.
 UNIT_RAYS = 1 << 23
-#: Tasks per worker thread a pass is cut into at least (the tail's balance).
-UNITS_PER_THREAD = 4
+#: Tasks per worker thread a pass is cut into at least (the tail's balance: at
+#: 4, a bounce pass of 9 tasks on 2 threads left one idle for 11 % of the pass;
+#: a task costs ~4 ms of a worker's time).
+UNITS_PER_THREAD = 8
 #: Seconds without a scheduler connection before the bake fails.
 SCHEDULER_LOST_AFTER = 10.0
 #: Seconds to reach a scheduler, and to wait for its first worker.
@@ -127,10 +137,8 @@ def code_identity() -> str:
     equal on client and worker or the bits may differ."""
     global _IDENTITY
     if _IDENTITY is None:
-        import numpy as np
         try:
-            from importlib.metadata import version
-            embree = version("embreex")
+            embree = importlib.metadata.version("embreex")
         except Exception:               # no metadata (a vendored wheel): the module's own
             embree = "?"
         h = hashlib.sha256(f"numpy {np.__version__} embreex {embree}".encode())
@@ -166,8 +174,6 @@ class WorkerState:
         if not self.ready:
             with self.lock:
                 if not self.ready:
-                    from threadpoolctl import threadpool_limits
-                    from .transfer import SWITCH_INTERVAL
                     # A worker process does nothing else: one BLAS thread per task
                     # thread, as the local bake's single_threaded_blas.
                     self._blas = threadpool_limits(limits=1, user_api="blas")
@@ -181,7 +187,6 @@ class WorkerState:
         with self.lock:
             t = 0.0
             if self.scene_token != token:
-                from .raytrace import RayScene
                 self.rays = self.scene = None
                 self.slots.clear()
                 t0 = time.perf_counter()
@@ -221,7 +226,6 @@ def heap_like_a_normal_process() -> bool:
     such temporaries per chunk and ran 1.6x slower per ray on a worker than
     in the local bake (bench bake --dask). Returns whether mallopt took."""
     try:
-        import ctypes
         libc = ctypes.CDLL(None)
         ok = libc.mallopt(M_MMAP_THRESHOLD, HEAP_MMAP_THRESHOLD) == 1
         return libc.mallopt(M_TRIM_THRESHOLD, 2 * HEAP_MMAP_THRESHOLD) == 1 and ok
@@ -249,7 +253,6 @@ def transfer_task(identity: str, scene, scene_token: str, pts, pts_token: str, s
     t0 = time.perf_counter()
     STATE.setup(identity)
     rs, bvh_s = STATE.ray_scene(scene, scene_token)
-    from .transfer import ChunkKernel
     kernel = STATE.slot("points", pts_token, lambda: ChunkKernel(rs, pts, st, G))
     items = [kernel.run(c) for c in chunks]
     return UnitResult(items, time.perf_counter() - t0, f"{worker_name()}:{threading.get_ident()}", bvh_s)
@@ -262,7 +265,6 @@ def level_task(identity: str, scene, scene_token: str, shader, shader_token: str
     t0 = time.perf_counter()
     STATE.setup(identity)
     rs, bvh_s = STATE.ray_scene(scene, scene_token)
-    from .bounce import trace_chunk
 
     def with_scene():
         sh = copy.copy(shader)
@@ -315,7 +317,6 @@ def units_of(chunks: list, rays_per_point: int, threads: int, unit_rays: int = U
 def payload_bytes(obj, _depth: int = 0) -> int:
     """Bytes of the numpy arrays in ``obj`` (dataclasses, objects, dicts, lists,
     tuples; what pickling it ships, to within its small fields)."""
-    import numpy as np
     if isinstance(obj, np.ndarray):
         return int(obj.nbytes)
     if _depth > 6 or obj is None or isinstance(obj, (str, bytes, int, float, bool)):
@@ -383,7 +384,7 @@ class DaskBake:
         """Start the local cluster or connect to the scheduler, wait for a
         worker, and ship the scene. BakeError when any of it fails."""
         try:
-            import distributed
+            import distributed  # optional: only a bake with --dask needs it
         except ImportError:
             raise BakeError("--dask needs the optional packages dask and distributed "
                             "(pip install dask distributed)") from None
@@ -523,7 +524,7 @@ class DaskBake:
     def _run(self, what: str, fn, args: tuple, units: list, handle, cancel, rays_per_point: int) -> None:
         """Submit one task per unit, hand results to ``handle(unit, result)`` in
         the calling thread as they finish; Cancelled / BakeError as promised."""
-        import distributed
+        import distributed  # optional (open() checked that it is there)
 
         client = self.client
         t0 = time.perf_counter()
@@ -570,7 +571,7 @@ class DaskBake:
     def _failure(self, what: str, exc: Exception, cancel) -> Exception:
         """What a failed wait or task means for the bake: Cancelled when the bake
         was cancelled meanwhile, else a BakeError saying what went wrong."""
-        import distributed
+        import distributed  # optional (open() checked that it is there)
         if cancel is not None and cancel.is_set():
             return Cancelled()
         if isinstance(exc, WorkerMismatch):
