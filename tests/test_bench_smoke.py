@@ -62,3 +62,10 @@ def test_relight_bench_quick(tmp_path):
     for scene in ("ball", "room"):
         assert f"  {scene}: relightable bounce " in out and "relit vs rebaked at most" in out, out
         assert f"  {scene:6s}    90 deg  relit vs rebaked" in out
+
+
+def test_bake_bench_on_a_dask_cluster():
+    pytest.importorskip("distributed")
+    out = bench("bake", "--dask", "local:2", "--resolution", "128", "--rays", "32", "--repeat", "1")
+    assert "textures identical: True" in out and "speed-up over the local bake:" in out
+    assert "check: 2 local workers predicted" in out and "farm, 64 workers" in out
