@@ -139,6 +139,8 @@ def test_cluster_bake_is_bit_identical(tmp_path, room, small_units, mode):
     assert len(a) >= 3 * 5 and a == b
     assert manifest(tmp_path / "local") == manifest(tmp_path / "dask")
     assert any(e.get("type") == "info" and e["message"].startswith("Dask: 2 workers") for e in events)
+    # The cluster's summary comes before "done", which stays the last event (the worker protocol).
+    assert any("dask" in e for e in events) and events[-1]["type"] == "done"
     assert {e.get("stage") for e in events if e.get("type") == "progress"} >= {"trace", "vertex", "bounce"}
     assert no_workers_left()
 

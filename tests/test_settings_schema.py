@@ -18,14 +18,16 @@ from prtt_addon.core.bake.transfer import ADAPTIVE_TOL_LIMITS, INT_LIMITS, Trans
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TYPES = {"int": "int", "float": "float", "bool": "bool", "choice": "str"}
 
-#: Options of the command lines that are not bake settings.
-BAKE_JOB_OTHER = {"-h", "--help", "--out", "--force", "--env", "--env-strength", "--env-rotation", "-q", "--quiet"}
+#: Options of the command lines that are not bake settings (--dask: where the
+#: bake runs, not what it makes; the outputs are the same bits).
+BAKE_JOB_OTHER = {"-h", "--help", "--out", "--force", "--env", "--env-strength", "--env-rotation", "-q", "--quiet",
+                  "--dask"}
 BLENDER_OTHER = {"-h", "--help", "--out", "--scene", "--atlas", "--unwrap", "--force", "--no-save", "--save-as",
-                 "-q", "--quiet"}
-#: scene.prtt properties that are not bake settings (layout, light, preview, state).
+                 "-q", "--quiet", "--dask"}
+#: scene.prtt properties that are not bake settings (layout, light, preview, state, where the bake runs).
 SCENE_OTHER = {"unwrap_method", "existing_uv_map", "texture_sets", "output_dir", "selection_only", "light_source",
                "builtin_environment", "preview", "preview_mode", "preview_bounces", "status", "progress",
-               "baking", "last_bake"}
+               "baking", "last_bake", "dask_scheduler"}
 
 
 def _outside(s):

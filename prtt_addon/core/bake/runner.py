@@ -168,5 +168,10 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
     if plan.bouncing:
         levels = relight_levels if st.bounce_mode == "relightable" else bounce_levels
         bounce = levels(ctx, geo, plan, [r.bounce for r in results if r.bounce is not None])
+    if ctx.remote is not None:
+        # Every ray is traced: shut the cluster down (its summary event) before
+        # the commit, whose "done" event must be the bake's last.
+        ctx.remote.close()
+        ctx.remote = None
     manifest = make_manifest(ctx, plan, geo, results, vertex, bounce, t_start)
     return commit_bake(ctx, plan, manifest)
