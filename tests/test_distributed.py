@@ -34,8 +34,10 @@ pytest.importorskip("distributed")
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = dict(os.environ, PYTHONPATH=ROOT, PYTHONUNBUFFERED="1")
-#: Manifest entries that record how long things took (they differ run to run).
+#: Manifest entries that record how long things took (they differ run to run),
+#: and with them how many threads traced (the machine's or the cluster's).
 TIMING_KEYS = ("seconds", "created", "rays_per_second")
+EXECUTION_KEYS = TIMING_KEYS + ("threads",)
 
 
 def files(folder) -> dict:
@@ -137,7 +139,8 @@ def test_cluster_bake_is_bit_identical(tmp_path, room, small_units, mode):
     bake_scene(sc, tmp_path / "dask", st, light=light, dask="local:2", progress=events.append)
     a, b = files(tmp_path / "local"), files(tmp_path / "dask")
     assert len(a) >= 3 * 5 and a == b
-    assert manifest(tmp_path / "local") == manifest(tmp_path / "dask")
+    # "threads" counts the threads that traced: the local bake's, or the cluster's worker threads.
+    assert manifest(tmp_path / "local", EXECUTION_KEYS) == manifest(tmp_path / "dask", EXECUTION_KEYS)
     assert any(e.get("type") == "info" and e["message"].startswith("Dask: 2 workers") for e in events)
     # The cluster's summary comes before "done", which stays the last event (the worker protocol).
     assert any("dask" in e for e in events) and events[-1]["type"] == "done"
@@ -149,7 +152,8 @@ def test_killed_worker_costs_only_its_chunks(tmp_path, room, small_units):
     """SIGKILL one of the two workers mid-transfer: Dask reruns its units on
     the other (and the restarted) worker; the outputs are still identical.
     The manifest too, but for timing and the count of threads that traced
-    (the restarted worker's thread is a third one)."""
+    (the restarted worker's thread is a third one). With one worker, its
+    death loses the only copy of the scene and points: they are sent again."""
     sc, light = room
     st = BakeSettings(rays=128, bounces=2, bounce_rays=32, bounce_tolerance=0.0, vertex_mode=True)
     bake_scene(sc, tmp_path / "local", st, light=light)
@@ -165,8 +169,22 @@ def test_killed_worker_costs_only_its_chunks(tmp_path, room, small_units):
     bake_scene(sc, tmp_path / "dask", st, light=light, dask="local:2", progress=kill_one)
     assert killed
     assert files(tmp_path / "local") == files(tmp_path / "dask")
-    a, b = (manifest(tmp_path / d, TIMING_KEYS + ("threads",)) for d in ("local", "dask"))
+    a, b = (manifest(tmp_path / d, EXECUTION_KEYS) for d in ("local", "dask"))
     assert a == b
+    killed.clear()
+    events = []
+
+    def kill_only(e):
+        events.append(e)
+        if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0.2 and not killed:
+            w = spawned_workers()
+            assert len(w) == 1
+            w[0].send_signal(signal.SIGKILL)
+            killed.append(w[0].pid)
+
+    bake_scene(sc, tmp_path / "one", st, light=light, dask="local:1", progress=kill_only)
+    assert killed and files(tmp_path / "local") == files(tmp_path / "one")
+    assert any(e.get("type") == "warning" and "sending it again" in e["message"] for e in events)
     threads = [s["threads"] for s in json.loads((tmp_path / "dask" / "manifest.json").read_text())["sets"]]
     assert max(threads) >= 2
 
@@ -193,14 +211,37 @@ def test_cancel_stops_the_cluster_and_keeps_previous_outputs(tmp_path, room, sma
     assert no_workers_left()
 
 
-def test_lost_scheduler_is_a_clear_error(tmp_path, monkeypatch):
-    """A scheduler process killed mid-bake: BakeError naming it, within
-    seconds, previous outputs intact."""
-    monkeypatch.setattr(dd, "UNIT_RAYS", 1 << 15)
-    sc = floor_and_box(res=128)
-    out = tmp_path / "out"
-    bake_scene(sc, out, BakeSettings(rays=16))
-    before = files(out)
+def test_worker_state_keeps_each_tasks_own_scene():
+    """WorkerState under threads: every caller gets the BVH of its own scene
+    token, each object is built once, old ones are evicted, a bake's slot
+    objects are forgotten by its run id."""
+    state = dd.WorkerState()
+    scenes_ = {f"s{i}": floor_and_box(res=8, box=(1.0, 1.0, 0.5 + i)) for i in range(3)}
+    builds = []
+    got = {}
+
+    def look(token):
+        rs, _ = state.ray_scene(scenes_[token], token)
+        k = state.slot("points", f"run1-{token}", lambda: builds.append(token) or object())
+        got.setdefault(token, set()).add((id(rs), id(k)))
+
+    threads = [threading.Thread(target=look, args=(t,)) for t in ("s0", "s1", "s0", "s1") * 4]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(len(v) == 1 for v in got.values()) and sorted(builds) == ["s0", "s1"]
+    bvh = {t: next(iter(v))[0] for t, v in got.items()}
+    assert bvh["s0"] != bvh["s1"]
+    look("s2")                                            # a third scene evicts the oldest
+    assert len(state.scenes) == dd.KEEP_SCENES and "s2" in state.scenes
+    assert state.forget("run1-") == dd.KEEP_PER_SLOT and not state.slots["points"]
+
+
+@pytest.fixture
+def external_cluster(tmp_path):
+    """A `dask scheduler` process and a `dask worker` process with 2 threads;
+    yields (address, scheduler process)."""
     sfile = tmp_path / "scheduler.json"
     sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
                               "--port", "0", "--scheduler-file", str(sfile), "--no-dashboard"],
@@ -212,26 +253,51 @@ def test_lost_scheduler_is_a_clear_error(tmp_path, monkeypatch):
             time.sleep(0.1)
         time.sleep(0.3)
         addr = json.loads(sfile.read_text())["address"]
-        worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "1",
-                                   "--nworkers", "2", "--no-dashboard"], env=ENV, stdout=subprocess.DEVNULL,
+        worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "2",
+                                   "--nworkers", "1", "--no-dashboard"], env=ENV, stdout=subprocess.DEVNULL,
                                   stderr=subprocess.DEVNULL)
-        killed = {}
-
-        def kill_scheduler(e):
-            if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0 \
-                    and not killed:
-                killed["t"] = time.monotonic()
-                sched.kill()
-
-        with pytest.raises(BakeError, match=f"lost the Dask scheduler at {addr}.*previous outputs are intact"):
-            bake_scene(sc, out, BakeSettings(rays=2048, seed=3), dask=addr, progress=kill_scheduler)
-        assert killed and time.monotonic() - killed["t"] < dd.SCHEDULER_LOST_AFTER + 5
-        assert files(out) == before
+        yield addr, sched
     finally:
         for p in (sched, worker):
             if p is not None:
                 p.kill()
                 p.wait(30)
+
+
+def test_shared_cluster_with_threaded_workers(tmp_path, room, small_units, external_cluster):
+    """A running scheduler and a worker with 2 threads (tasks of a pass run
+    side by side in one process): two bakes of two scenes, one after the
+    other on the same cluster, each equal to its local bake."""
+    addr, _ = external_cluster
+    sc, light = room
+    st = BakeSettings(rays=64, bounces=1, bounce_rays=32, bounce_tolerance=0.0)
+    for name, scene in (("room", sc), ("box", floor_and_box(res=64))):
+        bake_scene(scene, tmp_path / f"{name}-local", st, light=light)
+        bake_scene(scene, tmp_path / f"{name}-dask", st, light=light, dask=addr)
+        assert files(tmp_path / f"{name}-local") == files(tmp_path / f"{name}-dask")
+
+
+def test_lost_scheduler_is_a_clear_error(tmp_path, monkeypatch, external_cluster):
+    """A scheduler process killed mid-bake: BakeError naming it, within
+    seconds, previous outputs intact."""
+    monkeypatch.setattr(dd, "UNIT_RAYS", 1 << 15)
+    addr, sched = external_cluster
+    sc = floor_and_box(res=128)
+    out = tmp_path / "out"
+    bake_scene(sc, out, BakeSettings(rays=16))
+    before = files(out)
+    killed = {}
+
+    def kill_scheduler(e):
+        if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0 and not killed:
+            killed["t"] = time.monotonic()
+            sched.kill()
+
+    with pytest.raises(BakeError, match=f"lost the Dask scheduler at {addr}.*previous outputs are intact"):
+        bake_scene(sc, out, BakeSettings(rays=2048, seed=3), dask=addr, progress=kill_scheduler)
+    # Dask cancels every future when the connection breaks: the bake ends at once.
+    assert killed and time.monotonic() - killed["t"] < 5
+    assert files(out) == before
 
 
 def test_bad_cluster_inputs_are_clear_errors(tmp_path, monkeypatch):

@@ -43,6 +43,7 @@ dask and distributed are optional: without ``--dask`` nothing imports them.
 """
 from __future__ import annotations
 
+import collections
 import copy
 import ctypes
 import dataclasses
@@ -55,6 +56,7 @@ import sys
 import threading
 import time
 import uuid
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -76,8 +78,12 @@ UNIT_RAYS = 1 << 23
 #: 4, a bounce pass of 9 tasks on 2 threads left one idle for 11 % of the pass;
 #: a task costs ~4 ms of a worker's time).
 UNITS_PER_THREAD = 8
-#: Seconds without a scheduler connection before the bake fails.
+#: Seconds a client that is not connected (and has not been told why) waits for
+#: its scheduler before the bake fails. A connection Dask sees break ends the
+#: bake at once: Dask cancels every future then.
 SCHEDULER_LOST_AFTER = 10.0
+#: Times a pass sends its inputs again after Dask lost their only copy.
+RESHIP_TRIES = 3
 #: Seconds to reach a scheduler, and to wait for its first worker.
 CONNECT_TIMEOUT = 20.0
 WORKERS_TIMEOUT = 60.0
@@ -151,17 +157,24 @@ def code_identity() -> str:
 
 
 class WorkerState:
-    """What one worker process keeps between tasks: the scene and its BVH (one
-    scene at a time, by token), and one object per slot (a pass's kernel, a
-    level's shader), rebuilt when the token changes. Thread-safe (a worker may
-    run several tasks at once)."""
+    """What one worker process keeps between tasks, thread-safe (a worker may
+    run several tasks at once, of one bake or of two):
+
+    * scenes and their BVHs by scene token (the scene's hashes), the
+      :data:`KEEP_SCENES` most recent: a second bake of a scene on the same
+      cluster reuses its BVH;
+    * per slot (a pass's kernel, a level's shader and tables) the
+      :data:`KEEP_PER_SLOT` most recent objects by token (tokens start with
+      the bake's run id: :meth:`forget` drops a finished bake's).
+
+    Each object is built once, outside the state's lock (a BVH of a million
+    triangles takes seconds; other threads look theirs up meanwhile)."""
 
     def __init__(self):
         self.lock = threading.Lock()
-        self.scene_token = None
-        self.scene = None
-        self.rays = None
-        self.slots: dict[str, tuple] = {}       # slot -> (token, object)
+        self.scenes: collections.OrderedDict = collections.OrderedDict()    # token -> RayScene
+        self.slots: dict[str, collections.OrderedDict] = {}                 # slot -> token -> object
+        self.building: dict[tuple, threading.Lock] = {}
         self.ready = False
 
     def setup(self, identity: str) -> None:
@@ -181,32 +194,53 @@ class WorkerState:
                     heap_like_a_normal_process()
                     self.ready = True
 
+    def _get(self, store: collections.OrderedDict, key, build, keep: int):
+        """(store[key], seconds spent building it here: 0 when it was there)."""
+        with self.lock:
+            if key in store:
+                store.move_to_end(key)
+                return store[key], 0.0
+            lock = self.building.setdefault((id(store), key), threading.Lock())
+        with lock:
+            with self.lock:
+                if key in store:
+                    return store[key], 0.0
+            t0 = time.perf_counter()
+            obj = build()
+            t = time.perf_counter() - t0
+            with self.lock:
+                store[key] = obj
+                while len(store) > keep:
+                    store.popitem(last=False)
+                self.building.pop((id(store), key), None)
+            return obj, t
+
     def ray_scene(self, scene, token: str):
         """(the BVH of ``scene``, seconds this call spent building it: 0 but
-        on the first task of a new scene)."""
-        with self.lock:
-            t = 0.0
-            if self.scene_token != token:
-                self.rays = self.scene = None
-                self.slots.clear()
-                t0 = time.perf_counter()
-                self.rays = RayScene(scene.positions)
-                t = time.perf_counter() - t0
-                self.scene, self.scene_token = scene, token
-            return self.rays, t
+        on the first task of a scene)."""
+        return self._get(self.scenes, token, lambda: RayScene(scene.positions), KEEP_SCENES)
 
     def slot(self, name: str, token: str, build):
-        """The object in ``name`` built for ``token`` (``build()`` when the slot
-        holds another token's)."""
+        """The object ``build()`` made for ``token`` in slot ``name``."""
         with self.lock:
-            held = self.slots.get(name)
-            if held is None or held[0] != token:
-                self.slots.pop(name, None)          # drop the old one before building
-                held = (token, build())
-                self.slots[name] = held
-            return held[1]
+            store = self.slots.setdefault(name, collections.OrderedDict())
+        return self._get(store, token, build, KEEP_PER_SLOT)[0]
+
+    def forget(self, prefix: str) -> int:
+        """Drop the slot objects whose token starts with ``prefix`` (a finished
+        bake's run id); returns how many."""
+        with self.lock:
+            n = 0
+            for store in self.slots.values():
+                for k in [k for k in store if k.startswith(prefix)]:
+                    del store[k]
+                    n += 1
+            return n
 
 
+#: Scenes (with their BVH) a worker keeps, and objects per slot.
+KEEP_SCENES = 2
+KEEP_PER_SLOT = 2
 STATE = WorkerState()
 
 #: glibc mallopt parameters, and what a process that never set them grows to:
@@ -231,6 +265,11 @@ def heap_like_a_normal_process() -> bool:
         return libc.mallopt(M_TRIM_THRESHOLD, 2 * HEAP_MMAP_THRESHOLD) == 1 and ok
     except (OSError, AttributeError):
         return False
+
+
+def forget_bake(prefix: str) -> int:
+    """Run on every worker when a bake ends (DaskBake.close): drop its objects."""
+    return STATE.forget(prefix)
 
 
 def worker_name() -> str:
@@ -268,7 +307,7 @@ def level_task(identity: str, scene, scene_token: str, shader, shader_token: str
 
     def with_scene():
         sh = copy.copy(shader)
-        sh.sc = STATE.scene
+        sh.sc = scene                 # this task's scene (another bake's may be cached too)
         return sh
 
     sh = STATE.slot("shader", shader_token, with_scene)
@@ -369,7 +408,8 @@ class DaskBake:
         self.scene_f = None
         self.scene_token = ""
         self.passes: list[PassStats] = []
-        self._shader = None                  # (shader object, its scattered future, token)
+        self._shader = None                  # (weakref to the level's shader, its scattered future, token)
+        self._sources: dict = {}            # scattered future's key -> the object (sent again if Dask loses it)
         self._n = 0
         self._log_levels = None
         self.start_seconds = 0.0            # cluster start or connection, until the first worker
@@ -384,7 +424,8 @@ class DaskBake:
         """Start the local cluster or connect to the scheduler, wait for a
         worker, and ship the scene. BakeError when any of it fails."""
         try:
-            import distributed  # optional: only a bake with --dask needs it
+            import dask  # optional: only a bake with --dask needs it
+            import distributed  # optional, as dask
         except ImportError:
             raise BakeError("--dask needs the optional packages dask and distributed "
                             "(pip install dask distributed)") from None
@@ -397,24 +438,29 @@ class DaskBake:
                 self.emit(type="progress", stage="dask", fraction=0.0)
                 # Workers without a memory limit: the bake checked its memory need
                 # itself, and Dask's limit would kill a worker holding a large scene.
-                self.cluster = distributed.LocalCluster(
-                    n_workers=self.spec.workers, threads_per_worker=1, processes=True, memory_limit=0,
-                    dashboard_address=None, silence_logs=logging.ERROR)
+                # No Active Memory Manager: it would drop the broadcast copies
+                # between passes (one copy left, refetched by every other worker,
+                # and lost with its worker).
+                with dask.config.set({"distributed.scheduler.active-memory-manager.start": False}):
+                    self.cluster = distributed.LocalCluster(
+                        n_workers=self.spec.workers, threads_per_worker=1, processes=True, memory_limit=0,
+                        dashboard_address=None, silence_logs=logging.ERROR)
                 self.client = distributed.Client(self.cluster, set_as_default=False)
             else:
                 self.client = distributed.Client(self.spec.address, timeout=CONNECT_TIMEOUT, set_as_default=False)
             self.client.wait_for_workers(1, timeout=WORKERS_TIMEOUT)
+            self.start_seconds = time.perf_counter() - t
+            self.scene_token = scene_token
+            self.scene_f = self._scatter(scene)
+            self.scene_bytes, self._sent = self._sent, 0
+            workers = self.client.scheduler_info().get("workers", {})
         except BaseException as exc:
             self.close()
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
+            if isinstance(exc, BakeError):
+                raise
             raise BakeError(f"cannot use {self.spec.describe()}: {type(exc).__name__}: {exc}") from None
-        self.start_seconds = time.perf_counter() - t
-        self.scene_token = scene_token
-        self.scene_f = self._scatter(scene)
-        self.scene_bytes, self._sent = self._sent, 0
-        info = self.client.scheduler_info()
-        workers = info.get("workers", {})
         self.workers = len(workers)
         threads = sum(int(w.get("nthreads", 1)) for w in workers.values())
         self.emit(type="info", message=f"Dask: {len(workers)} workers, {threads} threads "
@@ -435,6 +481,13 @@ class DaskBake:
         client, cluster = self.client, self.cluster
         self.client = self.cluster = None
         self.scene_f = self._shader = None
+        self._sources.clear()
+        if client is not None and cluster is None and client.status == "running":
+            # A shared cluster lives on: its workers drop this bake's kernels and shaders.
+            try:
+                client.run(forget_bake, self.run_id, wait=False)
+            except Exception:
+                pass
         for obj in (client, cluster):
             if obj is None:
                 continue
@@ -454,10 +507,16 @@ class DaskBake:
             return 1
         return max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
 
+    def _release(self, fut) -> None:
+        self._sources.pop(fut.key, None)
+        fut.release()
+
     def _scatter(self, obj):
         self._sent += payload_bytes(obj)
         try:
-            return self.client.scatter([obj], broadcast=True, hash=False)[0]
+            fut = self.client.scatter([obj], broadcast=True, hash=False)[0]
+            self._sources[fut.key] = obj
+            return fut
         except Exception as exc:
             raise BakeError(f"cannot send the bake's data to {self.spec.describe()}: "
                             f"{type(exc).__name__}: {exc}") from None
@@ -481,7 +540,7 @@ class DaskBake:
             self._run("transfer", transfer_task, (self.scene_f, self.scene_token, pts_f, token, st, G), units,
                       handle, cancel, st.rays)
         finally:
-            pts_f.release()
+            self._release(pts_f)
 
     def trace_level(self, lr, chunks, project, sink, on_result, cancel) -> None:
         """A bounce level of one set (bounce.trace_bounce_level):
@@ -502,7 +561,7 @@ class DaskBake:
                                              f"{self.run_id}-t{self._next()}", tpl), units, handle, cancel,
                       lr.st.rays)
         finally:
-            lr_f.release()
+            self._release(lr_f)
 
     def _next(self) -> int:
         self._n += 1
@@ -511,62 +570,110 @@ class DaskBake:
     def _level_shader(self, shader):
         """The level's shader scattered once (without the scene, which the
         workers have): every set of a level shares it."""
-        if self._shader is not None and self._shader[0] is shader:
+        if self._shader is not None and self._shader[0]() is shader:
             return self._shader[1], self._shader[2]
         if self._shader is not None:
-            self._shader[1].release()
+            self._release(self._shader[1])
         shipped = copy.copy(shader)
         shipped.sc = None
         fut = self._scatter(shipped)
-        self._shader = (shader, fut, f"{self.run_id}-s{self._next()}")
+        # A weak reference: the bake drops a level's shader before the next
+        # level's exit radiance is made (memory.check counts one at a time).
+        self._shader = (weakref.ref(shader), fut, f"{self.run_id}-s{self._next()}")
         return fut, self._shader[2]
 
     def _run(self, what: str, fn, args: tuple, units: list, handle, cancel, rays_per_point: int) -> None:
         """Submit one task per unit, hand results to ``handle(unit, result)`` in
-        the calling thread as they finish; Cancelled / BakeError as promised."""
+        the calling thread as they finish; Cancelled / BakeError as promised.
+
+        When Dask cancels the tasks because data they read is gone (the worker
+        holding the only copy of a scattered object died), the objects are
+        scattered again and the units not yet handled resubmitted, up to
+        :data:`RESHIP_TRIES` times (a warning says so)."""
         import distributed  # optional (open() checked that it is there)
 
         client = self.client
         t0 = time.perf_counter()
         threads = self.threads()
-        futures = {client.submit(fn, self.identity, *args, unit, pure=False,
-                                 key=f"prtt-{what}-{self.run_id}-{self._next()}"): unit for unit in units}
+        args = list(args)
+        reshipped: list = []                  # futures this pass scattered again (released at its end)
+
+        def submit(todo):
+            return {client.submit(fn, self.identity, *args, unit, pure=False,
+                                  key=f"prtt-{what}-{self.run_id}-{self._next()}"): unit for unit in todo}
+
+        futures = submit(units)
         pending = set(futures)
-        task_s, result_bytes = 0.0, 0
+        task_s, result_bytes, tries = 0.0, 0, 0
         lost_since = None
         try:
             while pending:
                 if cancel is not None and cancel.is_set():
                     raise Cancelled()
                 try:
-                    with client.as_current():
-                        done, pending = distributed.wait(pending, timeout=0.25, return_when="FIRST_COMPLETED")
-                except TimeoutError:
-                    lost_since = self._check_scheduler(lost_since)
-                    continue
-                except Exception as exc:
-                    raise self._failure(what, exc, cancel) from None
-                lost_since = None
-                for f in done:
                     try:
+                        with client.as_current():
+                            done, pending = distributed.wait(pending, timeout=0.25, return_when="FIRST_COMPLETED")
+                    except TimeoutError:
+                        lost_since = self._check_scheduler(lost_since)
+                        continue
+                    lost_since = None
+                    for f in done:
                         res = f.result()
-                    except Exception as exc:
+                        task_s += res.seconds
+                        self.bvh_seconds = max(self.bvh_seconds, res.bvh_seconds)
+                        result_bytes += payload_bytes(res.items)
+                        handle(futures.pop(f), res)
+                        f.release()
+                except Exception as exc:
+                    if not self._data_lost(exc, cancel) or tries >= RESHIP_TRIES:
                         raise self._failure(what, exc, cancel) from None
-                    task_s += res.seconds
-                    self.bvh_seconds = max(self.bvh_seconds, res.bvh_seconds)
-                    result_bytes += payload_bytes(res.items)
-                    handle(futures.pop(f), res)
-                    f.release()
+                    tries += 1
+                    self.emit(type="warning", message=f"Dask lost data the {what} tasks read (a worker holding its "
+                                                      f"only copy died); sending it again (try {tries})")
+                    client.cancel(list(futures), force=True)
+                    args = [self._rescatter(a, reshipped) for a in args]
+                    futures = submit(list(futures.values()))
+                    pending = set(futures)
         except BaseException:
             try:
                 client.cancel(list(pending), force=True)
             except Exception:
                 pass
             raise
+        finally:
+            for f in reshipped:
+                self._release(f)
         rays = sum(c.idx.size for u in units for c in u) * rays_per_point
         self.passes.append(PassStats(what, len(units), task_s, time.perf_counter() - t0, threads, rays,
                                      self._sent, result_bytes))
         self._sent = 0
+
+    def _data_lost(self, exc: Exception, cancel) -> bool:
+        """Whether ``exc`` is Dask cancelling tasks (not the bake, not a lost
+        scheduler): what losing the only copy of their input looks like."""
+        import distributed  # optional (open() checked that it is there)
+        from distributed.client import FuturesCancelledError  # optional, as distributed
+        return (isinstance(exc, (FuturesCancelledError, distributed.CancelledError))
+                and "connection" not in str(exc)          # "scheduler-connection-lost": not data
+                and not (cancel is not None and cancel.is_set())
+                and self.client is not None and self.client.status == "running")
+
+    def _rescatter(self, arg, reshipped: list):
+        """``arg`` scattered again when it is one of this bake's scattered
+        futures (the scene and the level's shader keep the new one)."""
+        obj = self._sources.get(getattr(arg, "key", None))
+        if obj is None:
+            return arg
+        new = self._scatter(obj)
+        self._release(arg)
+        if arg is self.scene_f:
+            self.scene_f = new
+        elif self._shader is not None and arg is self._shader[1]:
+            self._shader = (self._shader[0], new, self._shader[2])
+        else:
+            reshipped.append(new)
+        return new
 
     def _failure(self, what: str, exc: Exception, cancel) -> Exception:
         """What a failed wait or task means for the bake: Cancelled when the bake
@@ -577,13 +684,12 @@ class DaskBake:
         if isinstance(exc, WorkerMismatch):
             return BakeError(str(exc))
         if isinstance(exc, distributed.KilledWorker):
-            return BakeError(f"a {what} task was on workers that died {exc.args[1] if len(exc.args) > 1 else ''}, "
-                             f"too often (Dask's allowed-failures); the cluster's workers keep dying (memory? a "
-                             f"crash in native code?); nothing was written, the previous outputs are intact")
+            return BakeError(f"a {what} task was on workers that died, too often (Dask's allowed-failures); the "
+                             f"cluster's workers keep dying (memory? a crash in native code?); nothing was "
+                             f"written, the previous outputs are intact")
         text = str(exc).strip()
         why = text.splitlines()[0][:200] if text else ""
-        if "connection" in text.lower() or isinstance(exc, OSError) or self.client is None \
-                or self.client.status != "running":
+        if isinstance(exc, OSError) or self.client is None or self.client.status != "running":
             return BakeError(f"lost {self.spec.describe()} during the {what} pass ({type(exc).__name__}: {why}); "
                              f"nothing was written, the previous outputs are intact")
         return BakeError(f"a {what} task failed on the Dask cluster ({type(exc).__name__}: {why}); nothing was "
