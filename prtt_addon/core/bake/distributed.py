@@ -259,11 +259,13 @@ def heap_like_a_normal_process() -> bool:
     the kernel, and unmapped when freed. The bounce shading makes dozens of
     such temporaries per chunk and ran 1.6x slower per ray on a worker than
     in the local bake (bench bake --dask). Returns whether mallopt took."""
+    if not sys.platform.startswith("linux"):
+        return False
     try:
         libc = ctypes.CDLL(None)
         ok = libc.mallopt(M_MMAP_THRESHOLD, HEAP_MMAP_THRESHOLD) == 1
         return libc.mallopt(M_TRIM_THRESHOLD, 2 * HEAP_MMAP_THRESHOLD) == 1 and ok
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):     # not glibc (musl has no mallopt)
         return False
 
 
