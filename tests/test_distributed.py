@@ -157,33 +157,30 @@ def test_killed_worker_costs_only_its_chunks(tmp_path, room, small_units):
     sc, light = room
     st = BakeSettings(rays=128, bounces=2, bounce_rays=32, bounce_tolerance=0.0, vertex_mode=True)
     bake_scene(sc, tmp_path / "local", st, light=light)
-    killed = []
 
-    def kill_one(e):
-        if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0.2 and not killed:
-            w = spawned_workers()
-            assert len(w) == 2
-            w[0].send_signal(signal.SIGKILL)
-            killed.append(w[0].pid)
+    def bake_killing_one(name, workers):
+        """Bake on ``workers`` local workers, SIGKILL one of them 20 % into the
+        transfer; returns the bake's events."""
+        events, killed = [], []
 
-    bake_scene(sc, tmp_path / "dask", st, light=light, dask="local:2", progress=kill_one)
-    assert killed
-    assert files(tmp_path / "local") == files(tmp_path / "dask")
+        def kill_one(e):
+            events.append(e)
+            if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0.2 \
+                    and not killed:
+                w = spawned_workers()
+                assert len(w) == workers
+                w[0].send_signal(signal.SIGKILL)
+                killed.append(w[0].pid)
+
+        bake_scene(sc, tmp_path / name, st, light=light, dask=f"local:{workers}", progress=kill_one)
+        assert killed
+        assert files(tmp_path / "local") == files(tmp_path / name)
+        return events
+
+    bake_killing_one("dask", 2)
     a, b = (manifest(tmp_path / d, EXECUTION_KEYS) for d in ("local", "dask"))
     assert a == b
-    killed.clear()
-    events = []
-
-    def kill_only(e):
-        events.append(e)
-        if e.get("type") == "progress" and e.get("stage") == "trace" and e.get("fraction", 0) > 0.2 and not killed:
-            w = spawned_workers()
-            assert len(w) == 1
-            w[0].send_signal(signal.SIGKILL)
-            killed.append(w[0].pid)
-
-    bake_scene(sc, tmp_path / "one", st, light=light, dask="local:1", progress=kill_only)
-    assert killed and files(tmp_path / "local") == files(tmp_path / "one")
+    events = bake_killing_one("one", 1)
     assert any(e.get("type") == "warning" and "sending it again" in e["message"] for e in events)
     threads = [s["threads"] for s in json.loads((tmp_path / "dask" / "manifest.json").read_text())["sets"]]
     assert max(threads) >= 2
