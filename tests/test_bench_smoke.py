@@ -25,7 +25,7 @@ def test_bake_bench():
 
 def test_bounce_bench():
     out = bench("bounce", "--resolution", "256", "--rays", "64", "--bounce-rays", "16")
-    assert "shading evaluations" in out and "bounce / transfer:" in out
+    assert "shading evaluations" in out and "bounce / transfer:" in out and "within that bake:" in out
     assert "x the transfer-only bake" in out
 
 

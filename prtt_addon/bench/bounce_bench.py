@@ -71,8 +71,14 @@ def main(argv=None) -> int:
     if args.combined:
         with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
             t = time.perf_counter()
-            bake_scene(sc, d, st, light=light)
+            mb = bake_scene(sc, d, st, light=light)
             t_both = time.perf_counter() - t
         print(f"default bake (transfer + {args.bounces} bounce(s), one run): {t_both:.2f} s = "
               f"{t_both / t_transfer:.3f} x the transfer-only bake (target <= 1.5)")
+        sec = mb["seconds"]
+        tr = sum(sec[k] for k in ("bvh", "analytic_test", "gbuffer", "trace", "dilate", "write"))
+        bo = sum(sec[k] for k in ("bounce_exit", "bounce_trace", "bounce_write"))
+        print(f"within that bake: transfer stages {tr:.2f} s (bvh, analytic test, G-buffer, trace, dilate, write), "
+              f"bounce stages {bo:.2f} s (exit {sec['bounce_exit']:.2f}, trace+shade {sec['bounce_trace']:.2f}, "
+              f"dilate+write {sec['bounce_write']:.2f}): ratio {bo / tr:.3f}")
     return 0
