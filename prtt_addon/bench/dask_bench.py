@@ -32,9 +32,7 @@ to 8 and 64 workers.
 """
 from __future__ import annotations
 
-import hashlib
 import math
-import os
 import tempfile
 import time
 
@@ -48,14 +46,14 @@ DEFAULT_BANDWIDTH = 1.25e9
 
 
 def _bake(sc, st, light, dask):
-    """(wall seconds, manifest, {file: sha256}, the cluster's summary or None)."""
+    """(wall seconds, manifest, {file: sha256} of its textures as the manifest
+    records them, the cluster's summary or None)."""
     events = []
     with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
         t = time.perf_counter()
         m = bake_scene(sc, d, st, light=light, skip_if_unchanged=False, dask=dask, progress=events.append)
         wall = time.perf_counter() - t
-        files = {f: hashlib.sha256(open(os.path.join(d, f), "rb").read()).hexdigest()
-                 for f in sorted(os.listdir(d)) if f.endswith(".exr")}
+    files = {f: info["sha256"] for f, info in m["file_info"].items() if f.endswith(".exr")}
     summary = next((e["dask"] for e in events if e.get("type") == "info" and "dask" in e), None)
     return wall, m, files, summary
 

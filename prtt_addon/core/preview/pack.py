@@ -250,7 +250,7 @@ class PreviewSet:
         (a renderer refuses too few coefficients). Relightable bounces are
         shown under ``light`` (K, 3), the World as it is now (needed then)."""
         if self.relight:
-            return self.relit(self.load_relight(), light, n_coeffs)
+            return self._relit(light, n_coeffs)
         total = None
         for p in self.bounces:
             b, attrs = read_sh_exr(p)
@@ -265,12 +265,13 @@ class PreviewSet:
         """The relightable operator (dc, glossy, attrs) of exr_io.read_relight_exr."""
         return read_relight_exr(self.relight)
 
-    def relit(self, operator: tuple, light, n_coeffs: int | None = None) -> np.ndarray:
-        """(H, W, 3, K) float32: relightable bounce light (``operator`` from
-        :meth:`load_relight`) under ``light`` (K, 3), the World as it is now."""
+    def _relit(self, light, n_coeffs: int | None = None) -> np.ndarray:
+        """(H, W, 3, K) float32: the relightable bounce light under ``light``
+        (K, 3), the World as it is now, on the CPU (the numpy reference; the
+        viewport relights on the GPU, renderer._relit_bounce)."""
         if light is None:
             raise ValueError(f"{self.relight}: relightable bounces need the light to show them under")
-        dc, glossy, attrs = operator
+        dc, glossy, attrs = self.load_relight()
         bands = int(attrs["bands"]) if n_coeffs is None else int(round(math.sqrt(n_coeffs)))
         L = np.zeros((bands * bands, 3))
         given = np.asarray(light, np.float64)[:bands * bands]
