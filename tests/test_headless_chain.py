@@ -52,8 +52,9 @@ def blend(tmp_path_factory):
 BAKE = ["--resolution", "32", "--rays", "16", "--bounces", "0"]
 
 
-@pytest.mark.parametrize("bounces", [(), ("--bounces", "1", "--bounce-rays", "8", "--bounce-mode", "relightable")],
-                         ids=["direct", "relightable-bounce"])
+@pytest.mark.parametrize("bounces", [(), ("--bounces", "1", "--bounce-rays", "8", "--bounce-mode", "relightable"),
+                                     ("--bounces", "1", "--bounce-rays", "8", "--dask", "local:2")],
+                         ids=["direct", "relightable-bounce", "bounce-on-a-dask-cluster"])
 def test_bake_render_bake_render(blend, tmp_path, bounces):
     bake = BAKE + list(bounces)
     work = tmp_path / "work"
@@ -72,7 +73,8 @@ def test_bake_render_bake_render(blend, tmp_path, bounces):
     textures = {n: digest(work / "textures" / n) for n in os.listdir(work / "textures")}
     # the second bake finds the saved UV maps and bake record: nothing to do
     if bounces:
-        assert any(n.endswith(".relight.exr") for n in textures), sorted(textures)
+        kind = ".relight.exr" if "relightable" in bounces else ".bounce1.exr"
+        assert any(n.endswith(kind) for n in textures), sorted(textures)
     r = run("bake", "scene.blend", "--out", "textures", *bake, cwd=work)
     assert r.returncode == 0, r.stderr + r.stdout
     assert "unchanged" in r.stdout or "up to date" in r.stdout, r.stdout
