@@ -66,6 +66,7 @@ import numpy as np
 
 from ..sh.basis import basis_unchecked
 from .blas import single_threaded_blas
+from . import hit_kernel
 from ..texels.dilate import dilate
 from ..sh.gaunt import tpfl_matrix
 from ..texels.gbuffer import GBuffer
@@ -357,6 +358,29 @@ class ExitShader:
         self.K = bands * bands
         self.uv_frame = uv_frames(sc)
         self.glossy_tri = glossy_tri
+        # The compiled per-hit loop when numba is there (hit_kernel; same
+        # results to float32 rounding), else radiance()'s numpy.
+        self.compiled = hit_kernel.available()
+        self.consts = hit_kernel.recurrence_constants(bands)
+
+    def shade_rays(self, L: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_of: np.ndarray,
+                   D: np.ndarray) -> None:
+        """Write into rows ray_of of ``L`` (rays, 3) float32 the radiance that
+        hits (prim, u, v) send back along the rays ``D`` (rays, 3) (zero from
+        sets without exit textures); other rows are left as they are."""
+        if not (self.compiled and hit_kernel.kernel() is not None):
+            L[ray_of] = self.radiance(prim, u, v, -D[ray_of])
+            return
+        sets = self.sc.set_id[prim]
+        lit = np.zeros(prim.size, bool)
+        for s, ex in self.exits.items():
+            mine = sets == s
+            sel = np.flatnonzero(mine)
+            if sel.size:
+                lit |= mine
+                hit_kernel.shade_set_hits(sel, prim, u, v, ray_of, D, self.uv_frame, self.glossy_tri, ex,
+                                          self.bands, self.consts, L)
+        L[ray_of[~lit]] = 0.0                        # hits on sets dark at this level
 
     def radiance(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> np.ndarray:
         """(n, 3) float32 for hits on triangles ``tri`` at Embree's (u, v),
@@ -549,7 +573,7 @@ class BakedProjection:
         n, S, K = ch.n, ch.S, self.K
         L = np.zeros((n * S, 3), np.float32)
         if ch.hit.size:
-            L[ch.hit] = self.shader.radiance(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
+            self.shader.shade_rays(L, ch.prim, ch.u, ch.v, ch.hit, ch.D)
         # One product for the three colours: (n*3, S) @ (S, K).
         Lt = np.ascontiguousarray(L.reshape(n, S, 3).transpose(0, 2, 1)).reshape(n * 3, S)
         return ch.to_world(Lt, K, 3).reshape(n, 3 * K).T

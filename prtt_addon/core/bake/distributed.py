@@ -62,6 +62,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from . import hit_kernel
 from .bounce import trace_chunk
 from .context import BakeError
 from .parallel import Cancelled
@@ -139,15 +140,17 @@ _IDENTITY: str | None = None
 
 
 def code_identity() -> str:
-    """sha256 of the PRTT core's source files, numpy's and embreex's versions:
-    equal on client and worker or the bits may differ."""
+    """sha256 of the PRTT core's source files, numpy's and embreex's versions
+    and the bounce's hit shading (numba's version, or numpy: their sums round
+    differently): equal on client and worker or the bits may differ."""
     global _IDENTITY
     if _IDENTITY is None:
         try:
             embree = importlib.metadata.version("embreex")
         except Exception:               # no metadata (a vendored wheel): the module's own
             embree = "?"
-        h = hashlib.sha256(f"numpy {np.__version__} embreex {embree}".encode())
+        shading = f"numba {importlib.metadata.version('numba')}" if hit_kernel.available() else "numpy"
+        h = hashlib.sha256(f"numpy {np.__version__} embreex {embree} hits {shading}".encode())
         core = Path(__file__).resolve().parents[1]
         for p in sorted(core.rglob("*.py")):
             h.update(p.relative_to(core).as_posix().encode())

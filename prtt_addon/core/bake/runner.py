@@ -47,6 +47,7 @@ import time
 from ..io import atomic
 from ..io.outdir import FolderBusyError, FolderLock
 from ..io.scene import Scene
+from . import hit_kernel
 from .bounce_stage import bounce_levels
 from .relight_stage import relight_levels
 from .commit import commit_bake, finish_skipped, make_manifest
@@ -155,6 +156,8 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
         first_gb = start_gbuffer(ctx, todo[0]) if todo else None
         if todo or st.vertex_mode:
             start_tables(ctx)
+        if plan.bouncing and st.bounce_mode == "baked" and ctx.remote is None:
+            hit_kernel.warm_up(st.bands)
         geo = build_geometry(ctx)
         for position, s in enumerate(todo):
             gb = gbuffer_stage(ctx, s, first_gb if position == 0 else None)

@@ -1,0 +1,137 @@
+"""numba-compiled loop of :mod:`.hit_kernel` (imported only when numba is
+there and a bounce bake shades its first hits).
+
+Why a prefetch: the profile of the compiled loop on the room (one thread,
+data hot from the same chunk) put each hit at ~350 ns, of which the basis and
+the 75 multiply-adds were ~100 ns; the rest was waiting for the hit's
+312-byte glossy row, read at random from a table of tens of MB. The rows of
+all the set's hits are found first, and each hit asks the memory system for
+the row it will read PREFETCH_DISTANCE hits later, so the waits overlap the
+arithmetic of the hits between.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+PREFETCH_DISTANCE = 8          # hits ahead: ~ memory latency / compute per hit
+
+
+@intrinsic
+def prefetch(typingctx, arr, idx):
+    """Hint the cache to load arr[idx] (1-D contiguous array) for reading: LLVM's llvm.prefetch."""
+    if not isinstance(arr, types.Array) or arr.ndim != 1 or not isinstance(idx, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        ptr = builder.gep(ary.data, [args[1]])
+        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0i8")
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])    # read, keep, data
+        return context.get_dummy_value()
+
+    return types.void(arr, idx), codegen
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def shade_set_hits(sel, prim, u, v, ray_of, D, frames, row_of, W, H, diffuse,
+                   has_glossy, glossy_tri, grow_of, Wg, Hg, glossy, same_grid, bands, sect, ca, cb, out):
+    """For the hits ``sel`` (indices into prim/u/v/ray_of) of one set:
+    out[ray, c] = max(0, D_c + [glossy] sum_k G_c,k y_k(r)), ray = ray_of[i]
+    the hit's row in the chunk's rays, ``D`` (rays, 3) their directions
+    (view = -D), ``diffuse`` (M + 1, 3) and ``glossy`` (M' + 1, 3 + 3K)
+    float32 C-contiguous. ``has_glossy`` False: the set has no glossy rows
+    (``glossy`` a placeholder); ``same_grid``: the glossy rows share the
+    diffuse row map. Arithmetic in float32, as bounce.ExitShader's numpy."""
+    K = bands * bands
+    C = glossy.shape[1]
+    f32 = np.float32
+    fW, fH, fWg, fHg = f32(W), f32(H), f32(Wg), f32(Hg)
+    sqrt2 = f32(math.sqrt(2.0))
+    n = sel.size
+    rows = np.empty(n, np.int64)
+    grows = np.full(n, -1, np.int64)          # -1: the hit reads no glossy row
+    for j in range(n):
+        i = sel[j]
+        t = prim[i]
+        x = frames[t, 0] + u[i] * frames[t, 2] + v[i] * frames[t, 4]
+        yy = frames[t, 1] + u[i] * frames[t, 3] + v[i] * frames[t, 5]
+        ix = min(max(np.int64(x * fW), 0), W - 1)
+        iy = min(max(np.int64(yy * fH), 0), H - 1)
+        rows[j] = row_of[iy * W + ix]
+        if has_glossy and glossy_tri[t]:
+            if same_grid:
+                grows[j] = rows[j]
+            else:
+                gx = min(max(np.int64(x * fWg), 0), Wg - 1)
+                gy = min(max(np.int64(yy * fHg), 0), Hg - 1)
+                grows[j] = grow_of[gy * Wg + gx]
+    gflat = glossy.reshape(-1)
+    dflat = diffuse.reshape(-1)
+    y = np.empty(K, np.float32)
+    for j in range(n):
+        a = j + PREFETCH_DISTANCE
+        if a < n:
+            prefetch(dflat, rows[a] * 3)
+            ga = grows[a]
+            if ga >= 0:
+                base = ga * C
+                for off in range(0, C, 16):
+                    prefetch(gflat, base + off)
+                prefetch(gflat, base + C - 1)
+        i = sel[j]
+        ray = ray_of[i]
+        row = rows[j]
+        r0 = diffuse[row, 0]
+        r1 = diffuse[row, 1]
+        r2 = diffuse[row, 2]
+        grow = grows[j]
+        if grow >= 0:
+            nx, ny, nz = glossy[grow, 0], glossy[grow, 1], glossy[grow, 2]
+            wx, wy, wz = -D[ray, 0], -D[ray, 1], -D[ray, 2]
+            d = f32(2.0) * (nx * wx + ny * wy + nz * wz) / max(nx * nx + ny * ny + nz * nz, f32(1e-30))
+            rx, ry, rz = d * nx - wx, d * ny - wy, d * nz - wz
+            inv = f32(1.0) / math.sqrt(max(rx * rx + ry * ry + rz * rz, f32(1e-30)))
+            rx, ry, rz = rx * inv, ry * inv, rz * inv
+            # sh.basis.basis_unchecked's recurrence, one direction.
+            cm, sm = f32(1.0), f32(0.0)
+            for m in range(bands):
+                if m > 0:
+                    cm, sm = rx * cm - ry * sm, rx * sm + ry * cm
+                p_prev = sect[m]
+                p_cur = f32(0.0)
+                for l in range(m, bands):
+                    if l == m:
+                        p = p_prev
+                    elif l == m + 1:
+                        p_cur = ca[m, l] * rz * p_prev
+                        p = p_cur
+                    else:
+                        p = ca[m, l] * (rz * p_cur - cb[m, l] * p_prev)
+                        p_prev, p_cur = p_cur, p
+                    if m == 0:
+                        y[l * l + l] = p
+                    else:
+                        y[l * l + l + m] = sqrt2 * p * cm
+                        y[l * l + l - m] = sqrt2 * p * sm
+            s0, s1, s2 = f32(0.0), f32(0.0), f32(0.0)
+            for k in range(K):
+                yk = y[k]
+                s0 += glossy[grow, 3 + k] * yk
+                s1 += glossy[grow, 3 + K + k] * yk
+                s2 += glossy[grow, 3 + 2 * K + k] * yk
+            r0 += s0
+            r1 += s1
+            r2 += s2
+        out[ray, 0] = max(r0, f32(0.0))
+        out[ray, 1] = max(r1, f32(0.0))
+        out[ray, 2] = max(r2, f32(0.0))
