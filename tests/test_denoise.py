@@ -5,15 +5,20 @@ import pytest
 from scipy import ndimage
 
 from prtt_addon.core.bake.denoise import edge_aware, oidn_available, oidn_sh
-from prtt_addon.core.texels.islands import island_labels
+from prtt_addon.core import jit
+from prtt_addon.core.texels.islands import island_labels, island_labels_numpy
 
 
-def test_island_labels_match_scipy():
+@pytest.mark.parametrize("path", ["numba", "numpy"])
+def test_island_labels_match_scipy(path):
     rng = np.random.default_rng(5)
     mask = ndimage.binary_opening(rng.random((80, 96)) > 0.45)
     mask[10:70, 40] = True                               # a long thin island joining others
     mask[5, 5:90] = True
-    ours = island_labels(mask)
+    mask[79, 95] = mask[0, 0] = True                     # corners
+    if path == "numba":
+        assert jit.load("prtt_addon.core.texels.islands_jit") is not None, "numba is pinned in requirements.txt"
+    ours = island_labels(mask) if path == "numba" else island_labels_numpy(mask)
     ref, n = ndimage.label(mask, structure=np.ones((3, 3)))
     assert n > 5
     assert np.all((ours >= 0) == mask)
@@ -24,6 +29,30 @@ def test_island_labels_match_scipy():
     flat = np.arange(mask.size).reshape(mask.shape)
     for lab in set(ours[mask].tolist()):
         assert lab == flat[ours == lab].min()
+
+
+def test_island_labels_paths_agree_on_spirals_and_noise():
+    """The union-find (numba) and the min-label propagation (numpy) label
+    alike: a spiral (one island whose smallest index is reached last along
+    it), diagonal-only contacts and random masks of several densities."""
+    rng = np.random.default_rng(9)
+    masks = [rng.random((64, 80)) > p for p in (0.3, 0.5, 0.6, 0.8)]
+    spiral = np.zeros((41, 41), bool)
+    y, x, dy, dx, n = 20, 20, 0, 1, 1
+    while 0 <= y < 41 and 0 <= x < 41:
+        for _ in range(2):
+            for _ in range(n):
+                if 0 <= y < 41 and 0 <= x < 41:
+                    spiral[y, x] = True
+                y, x = y + 2 * dy, x + 2 * dx
+                if 0 <= y - dy < 41 and 0 <= x - dx < 41:
+                    spiral[y - dy, x - dx] = True
+            dy, dx = dx, -dy
+        n += 1
+    diag = np.eye(30, dtype=bool) | np.eye(30, dtype=bool)[::-1]
+    for mask in masks + [spiral, diag, np.zeros((5, 7), bool), np.ones((5, 7), bool)]:
+        assert np.array_equal(island_labels(mask), island_labels_numpy(mask))
+    assert len(set(island_labels(diag)[diag].tolist())) == 1
 
 
 def _two_islands(noise=0.2, seed=0):

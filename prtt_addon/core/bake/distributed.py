@@ -62,7 +62,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import hit_kernel
+from .. import jit
 from .bounce import trace_chunk
 from .context import BakeError
 from .parallel import Cancelled
@@ -141,16 +141,15 @@ _IDENTITY: str | None = None
 
 def code_identity() -> str:
     """sha256 of the PRTT core's source files, numpy's and embreex's versions
-    and the bounce's hit shading (numba's version, or numpy: their sums round
-    differently): equal on client and worker or the bits may differ."""
+    and numba's (None when off: the compiled loops' sums round differently
+    from numpy's): equal on client and worker or the bits may differ."""
     global _IDENTITY
     if _IDENTITY is None:
         try:
             embree = importlib.metadata.version("embreex")
         except Exception:               # no metadata (a vendored wheel): the module's own
             embree = "?"
-        shading = f"numba {importlib.metadata.version('numba')}" if hit_kernel.available() else "numpy"
-        h = hashlib.sha256(f"numpy {np.__version__} embreex {embree} hits {shading}".encode())
+        h = hashlib.sha256(f"numpy {np.__version__} embreex {embree} numba {jit.version()}".encode())
         core = Path(__file__).resolve().parents[1]
         for p in sorted(core.rglob("*.py")):
             h.update(p.relative_to(core).as_posix().encode())

@@ -16,11 +16,9 @@ Same results as the numpy path to float32 rounding: the same texel per hit
 tests/test_bounce_exit.py checks both paths against a float64 per-hit
 reference and against each other.
 
-numba is optional, and the extension zip does not bundle it (two ~45 MB
-wheels per Python and platform, and a numpy range of its own): without it,
-with PRTT_NO_NUMBA=1 in the environment, or when it fails to import,
-:func:`kernel` is None and the bake shades with numpy, whose textures are
-byte-identical to the bakes before the kernel. The first call in a process
+numba is optional (core/jit.py): without it :func:`kernel` is None and the
+bake shades with numpy, whose textures are byte-identical to the bakes
+before the kernel. The first call in a process
 loads the kernel from numba's cache (~0.45 s with numba's import, on a
 helper thread at the bake's start: :func:`warm_up`) or compiles it (1.5 s,
 once per install; ``cache=True`` writes beside hit_jit.py, or to the user's
@@ -29,32 +27,20 @@ cache directory when that is read-only).
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import math
-import os
 import threading
 
 import numpy as np
 
-
-def available() -> bool:
-    """numba is installed and not switched off (PRTT_NO_NUMBA=1). Checked
-    without importing it: numba's import costs ~0.5 s, paid only by the first
-    bounce chunk of a process (a bake's worker), never by Blender's UI."""
-    if os.environ.get("PRTT_NO_NUMBA", "") not in ("", "0"):
-        return False
-    return importlib.util.find_spec("numba") is not None
+from .. import jit
+from ..sh.basis import _sectoral_constants
 
 
 def recurrence_constants(bands: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """float32 constants of sh.basis.basis_unchecked's recurrence for ``bands``:
     sect (n,) Pbar_m^m; a, b (n, n) the three-term factors at [m, l] (0 where unused)."""
     n = bands
-    sect = np.empty(n)
-    sect[0] = math.sqrt(1.0 / (4.0 * math.pi))
-    for m in range(1, n):
-        sect[m] = -math.sqrt((2 * m + 1) / (2.0 * m)) * sect[m - 1]
+    sect = _sectoral_constants(n)
     a = np.zeros((n, n))
     b = np.zeros((n, n))
     for m in range(n):
@@ -67,27 +53,15 @@ def recurrence_constants(bands: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return sect.astype(np.float32), a.astype(np.float32), b.astype(np.float32)
 
 
-_compile_lock = threading.Lock()
-unavailable_reason = ""          # why numba is installed but the kernel could not load
-
-
-@functools.lru_cache(maxsize=None)
-def _compiled():
-    global unavailable_reason
-    try:
-        from . import hit_jit           # imports numba (optional, ~0.3 s): only in a bake that shades hits
-    except Exception as e:       # a numpy this numba does not support, a broken install: shade with numpy
-        unavailable_reason = f"{type(e).__name__}: {e}"
-        return None
-    return hit_jit.shade_set_hits
+def available() -> bool:
+    """numba is installed and not switched off (core/jit.py)."""
+    return jit.available()
 
 
 def kernel():
     """The compiled loop, or None if numba is off, missing or fails to import."""
-    if not available():
-        return None
-    with _compile_lock:                                    # the bake's threads ask at once
-        return _compiled()
+    mod = jit.load("prtt_addon.core.bake.hit_jit")
+    return None if mod is None else mod.shade_set_hits
 
 
 def warm_up(bands: int) -> threading.Thread | None:

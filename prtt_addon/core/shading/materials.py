@@ -131,29 +131,41 @@ def sample_texture(img_top_first: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def eval_materials(sc, tri: np.ndarray, bary: np.ndarray) -> ShadingParams:
-    """Shading parameters at points on triangles ``tri`` with barycentrics ``bary``."""
+    """Shading parameters at points on triangles ``tri`` with barycentrics ``bary``.
+
+    Untextured materials (and the default, for triangles without one) are
+    derived once each and gathered per point: the same elementwise formulas
+    on the same values as per point, ~10x less work on a 1024² G-buffer."""
     n = tri.shape[0]
     mats = [Material.from_dict(m) for m in sc.materials]
+    k = len(mats)
     mid = sc.material_id[tri] if sc.material_id is not None else np.full(n, -1)
-    base = np.tile(DEFAULT.base_color, (n, 1)).astype(np.float64)
-    metallic = np.full(n, DEFAULT.metallic)
-    rough = np.full(n, DEFAULT.roughness)
-    spec = np.full(n, DEFAULT.specular)
-    ior = np.full(n, DEFAULT.ior)
+    table = mats + [DEFAULT]                                # row k: the default
+    per_mat = derive(np.array([m.base_color for m in table], np.float64),
+                     np.array([m.metallic for m in table], np.float64),
+                     np.array([m.roughness for m in table], np.float64),
+                     np.array([m.specular for m in table], np.float64),
+                     np.array([m.ior for m in table], np.float64))
+    row = np.where((mid >= 0) & (mid < k), mid, k)
+    albedo, spec, exponent = per_mat.albedo[row], per_mat.spec[row], per_mat.exponent[row]
     for i, mat in enumerate(mats):
+        if not mat.textured:
+            continue
         sel = np.flatnonzero(mid == i)
         if sel.size == 0:
             continue
-        base[sel] = mat.base_color
-        metallic[sel], rough[sel], spec[sel], ior[sel] = mat.metallic, mat.roughness, mat.specular, mat.ior
-        if mat.textured:
-            uv = np.einsum("nk,nkc->nc", bary[sel], sc.mat_uvs[tri[sel]])
-            if mat.base_color_texture >= 0:
-                rgb = sample_texture(sc.textures[mat.base_color_texture], uv)
-                base[sel] = np.maximum(rgb[:, :3] if rgb.shape[1] >= 3 else np.repeat(rgb[:, :1], 3, 1), 0.0)
-            if mat.roughness_texture >= 0:
-                rough[sel] = np.clip(sample_texture(sc.textures[mat.roughness_texture], uv)[:, 0], 0.0, 1.0)
-    return derive(base, metallic, rough, spec, ior)
+        base = np.tile(np.asarray(mat.base_color, np.float64), (sel.size, 1))
+        rough = np.full(sel.size, mat.roughness, np.float64)
+        uv = np.einsum("nk,nkc->nc", bary[sel], sc.mat_uvs[tri[sel]])
+        if mat.base_color_texture >= 0:
+            rgb = sample_texture(sc.textures[mat.base_color_texture], uv)
+            base = np.maximum(rgb[:, :3] if rgb.shape[1] >= 3 else np.repeat(rgb[:, :1], 3, 1), 0.0)
+        if mat.roughness_texture >= 0:
+            rough = np.clip(sample_texture(sc.textures[mat.roughness_texture], uv)[:, 0], 0.0, 1.0)
+        p = derive(base, np.full(sel.size, mat.metallic), rough, np.full(sel.size, mat.specular),
+                   np.full(sel.size, mat.ior))
+        albedo[sel], spec[sel], exponent[sel] = p.albedo, p.spec, p.exponent
+    return ShadingParams(albedo, spec, exponent)
 
 
 def materials_hash(sc) -> str:

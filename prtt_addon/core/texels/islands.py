@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import jit
+
 _OFFSETS8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 
 
@@ -22,7 +24,16 @@ def island_labels(mask: np.ndarray) -> np.ndarray:
     Min-label propagation with pointer jumping: each round every texel takes
     the smallest label among its covered neighbours, then follows labels to
     their own label; rounds repeat until nothing changes (a few dozen for
-    islands hundreds of texels long)."""
+    islands hundreds of texels long). With numba (core/jit.py) a compiled
+    union-find gives the same labels (islands_jit)."""
+    fast = jit.load("prtt_addon.core.texels.islands_jit")
+    if fast is not None:
+        return fast.island_labels(np.ascontiguousarray(mask, dtype=bool))
+    return island_labels_numpy(mask)
+
+
+def island_labels_numpy(mask: np.ndarray) -> np.ndarray:
+    """:func:`island_labels` without numba."""
     H, W = mask.shape
     flat = np.where(mask.reshape(-1), np.arange(H * W), -1).reshape(H, W)
     big = np.int64(H * W)
