@@ -379,11 +379,13 @@ def load_transfer_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, old_report: 
     from ``<set>.transfer.exr`` in the output folder; ``old_report`` is the
     set's entry of the previous manifest (kept as it is)."""
     name = ctx.scene.set_names[gb.set_index]
-    data, attrs = exr_io.read_sh_exr(os.path.join(ctx.out_dir, f"{name}.transfer.exr"))
-    planes = np.ascontiguousarray(np.moveaxis(data, 2, 0))
     with numpy_hugepage_advice(True):       # looked up at random by bounce rays
-        pm = pixel_major(planes)
-        incident = IncidentSet(pm, gb.width, gb.height)
+        data, attrs = exr_io.read_sh_exr(os.path.join(ctx.out_dir, f"{name}.transfer.exr"))
+    if data.shape[:2] != (gb.height, gb.width):
+        raise BakeError(f"{name}.transfer.exr is {data.shape[1]}x{data.shape[0]}, the set is "
+                        f"{gb.width}x{gb.height}: bake the transfer again")
+    pm = data.reshape(gb.height * gb.width, -1)    # (H, W, K) rows are already pixel-major
+    incident = IncidentSet(pm, gb.width, gb.height)
     src = BounceSource(gb.set_index, name, gb, geo.points(ctx.scene, gb.set_index, gb), pm[gb.texel], incident,
                        storage=attrs.get("storage", "half"))
     return SetResult(gb.set_index, name, old_report, [], bounce=src)

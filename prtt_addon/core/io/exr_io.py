@@ -215,8 +215,14 @@ def _stack(path, chans: dict, names: list[str]) -> np.ndarray:
     missing = [n for n in names if n not in chans]
     if missing:
         raise TextureError(f"{path}: missing channels {missing[:4]}{'...' if len(missing) > 4 else ''}")
-    data = np.stack([chans[n].astype(np.float32) for n in names], axis=-1)
-    return np.ascontiguousarray(data[::-1])
+    H, W = chans[names[0]].shape
+    # One pass per channel into the interleaved result, rows flipped as they
+    # go (stacking, then flipping, then re-laying out made three copies of
+    # what is 100 MB for a 1024² band-5 texture).
+    data = np.empty((H, W, len(names)), np.float32)
+    for i, n in enumerate(names):
+        data[:, :, i] = chans[n][::-1]
+    return data
 
 
 def read_relight_exr(path) -> tuple[np.ndarray, np.ndarray | None, dict]:
