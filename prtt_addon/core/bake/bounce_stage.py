@@ -35,7 +35,7 @@ from .memory import numpy_hugepage_advice
 from .plan import BakePlan
 from .relight import uniform_energy
 from .stages import BounceSource, Geometry, write_planes
-from .transfer import TransferSettings
+from .transfer import TransferSettings, warm_tables
 
 
 @dataclasses.dataclass(eq=False)
@@ -381,6 +381,10 @@ def bounce_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list
     filt = denoise.resolve_filter(st.bounce_denoise, st.bounce_rays)
     reports, files = [], []
     inputs, Lp = bounce_inputs(ctx, sources, geo)
+    # The levels' ray patterns and estimator tables (~0.2 s) on a helper while
+    # level 1's exit radiance is computed, not serially before its first chunk.
+    for rays in sorted({g.rays or st.bounce_rays for g in inputs.grids.values()} or {st.bounce_rays}):
+        ctx.helpers.submit(warm_tables, bounce_settings(st, rays), ctx.stop)
     stopped = None
     for level in range(1, st.bounces + 1):
         ctx.check_cancel()
