@@ -368,7 +368,7 @@ class ExitShader:
         """Write into rows ray_of of ``L`` (rays, 3) float32 the radiance that
         hits (prim, u, v) send back along the rays ``D`` (rays, 3) (zero from
         sets without exit textures); other rows are left as they are."""
-        if not (self.compiled and hit_kernel.kernel() is not None):
+        if not (self.compiled and hit_kernel.kernel(self.bands) is not None):
             L[ray_of] = self.radiance(prim, u, v, -D[ray_of])
             return
         sets = self.sc.set_id[prim]

@@ -58,10 +58,15 @@ def available() -> bool:
     return jit.available()
 
 
-def kernel():
-    """The compiled loop, or None if numba is off, missing or fails to import."""
-    mod = jit.load("prtt_addon.core.bake.hit_jit")
-    return None if mod is None else mod.shade_set_hits
+def _jit():
+    return jit.load("prtt_addon.core.bake.hit_jit")
+
+
+def kernel(bands: int = 5):
+    """The compiled shading loop for ``bands`` bands, or None if numba is off,
+    missing or fails to import."""
+    mod = _jit()
+    return None if mod is None else mod.for_bands(bands)
 
 
 def warm_up(bands: int) -> threading.Thread | None:
@@ -72,16 +77,15 @@ def warm_up(bands: int) -> threading.Thread | None:
     if not available():
         return None
     i64, f32 = np.zeros(0, np.int64), np.zeros(0, np.float32)
-    row, consts = np.zeros(1, np.int32), recurrence_constants(bands)
 
     def load():
-        fn = kernel()
-        if fn is None:
+        mod = _jit()
+        if mod is None:
             return
-        # The dtypes of a real call, so the overload loaded is the one the bake uses.
-        fn(i64, i64, f32, f32, i64, np.zeros((1, 3), np.float32), np.zeros((1, 6), np.float32),
-                  row, 1, 1, np.zeros((1, 3), np.float32), False, np.zeros(1, bool), row, 1, 1,
-                  _NO_GLOSSY, True, bands, *consts, np.zeros((1, 3), np.float32))
+        # No hits, but the dtypes of a real call: the overloads loaded are the bake's.
+        rows, f2 = np.zeros(1, np.int32), np.zeros((1, 3), np.float32)
+        mod.texel_indices(i64, i64, f32, f32, np.zeros((1, 6), np.float32), 1, 1, True, np.zeros(1, bool), 1, 1)
+        mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands), f2)
 
     t = threading.Thread(target=load, name="prtt-hit-kernel", daemon=True)
     t.start()
@@ -89,7 +93,6 @@ def warm_up(bands: int) -> threading.Thread | None:
 
 
 _NO_GLOSSY = np.zeros((1, 1), np.float32)
-_NO_ROWS = np.zeros(1, np.int32)
 
 
 def shade_set_hits(sel: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_of: np.ndarray,
@@ -104,8 +107,8 @@ def shade_set_hits(sel: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarr
     is not None."""
     dg, gg = ex.diffuse_grid, ex.glossy_grid
     has = ex.glossy is not None
-    same = (not has) or gg is dg
-    grow_of, Wg, Hg = (_NO_ROWS, 1, 1) if same else (gg.row_of, gg.width, gg.height)
-    sect, ca, cb = consts
-    kernel()(sel, prim, u, v, ray_of, D, frames, dg.row_of, dg.width, dg.height, ex.diffuse,
-            has, glossy_tri, grow_of, Wg, Hg, ex.glossy if has else _NO_GLOSSY, same, bands, sect, ca, cb, out)
+    g = gg if has else dg
+    mod = _jit()
+    tex, gtex = mod.texel_indices(sel, prim, u, v, frames, dg.width, dg.height, has, glossy_tri, g.width, g.height)
+    mod.for_bands(bands)(tex, gtex, dg.row_of, g.row_of, sel, ray_of, D, ex.diffuse,
+                         ex.glossy if has else _NO_GLOSSY, bands, *consts, out)
