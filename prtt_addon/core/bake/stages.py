@@ -368,8 +368,9 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
                threads=info["threads"], trace_seconds=info["seconds"])
     res = SetResult(gb.set_index, name, rep, written.files)
     if keep_for_bounce:
-        with numpy_hugepage_advice(True):   # looked up at random by bounce rays
-            incident = IncidentSet(pixel_major(sp.planes), gb.width, gb.height)
+        # Normal pages (the runner's advice): the exit radiance reads it in
+        # texel order, and huge pages cost ~6x more to fault in here.
+        incident = IncidentSet(pixel_major(sp.planes), gb.width, gb.height)
         res.bounce = BounceSource(gb.set_index, name, gb, traced.points, traced.rows, incident)
     return res
 
@@ -379,8 +380,7 @@ def load_transfer_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, old_report: 
     from ``<set>.transfer.exr`` in the output folder; ``old_report`` is the
     set's entry of the previous manifest (kept as it is)."""
     name = ctx.scene.set_names[gb.set_index]
-    with numpy_hugepage_advice(True):       # looked up at random by bounce rays
-        data, attrs = exr_io.read_sh_exr(os.path.join(ctx.out_dir, f"{name}.transfer.exr"))
+    data, attrs = exr_io.read_sh_exr(os.path.join(ctx.out_dir, f"{name}.transfer.exr"))
     if data.shape[:2] != (gb.height, gb.width):
         raise BakeError(f"{name}.transfer.exr is {data.shape[1]}x{data.shape[0]}, the set is "
                         f"{gb.width}x{gb.height}: bake the transfer again")
