@@ -40,7 +40,7 @@ from ..texels.texsample import pixel_major, planes_from_rows
 from .bounce import IncidentSet
 from .context import BakeContext, BakeError
 from .hemisphere_clear import FLAT_COS, clear_triangles
-from .memory import numpy_hugepage_advice, release_free_memory
+from .memory import release_free_memory
 from .parallel import Cancelled
 from .plan import BakePlan
 from .raytrace import RayScene
