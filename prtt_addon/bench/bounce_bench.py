@@ -13,6 +13,7 @@ import os
 import tempfile
 import time
 
+from ..core import jit
 from ..cli import env_light
 from ..core.bake.runner import BakeSettings, bake_scene
 from . import scenes
@@ -66,6 +67,8 @@ def main(argv=None) -> int:
         print(f"total: {b['rays_traced']:,} rays, {b['hits_shaded']:,} shading evaluations; "
               f"trace+shade {m['seconds']['bounce_trace']:.2f} s, dilate+write {m['seconds']['bounce_write']:.2f} s")
         print(f"bounce texture bytes on disk: {sum(os.path.getsize(os.path.join(d, f)) for f in b['files']):,}")
+        print(f"hit shading: {', '.join(sorted({r.get('hit_shading', '?') for r in b['sets']}))} "
+              f"(numba {'off or missing: PRTT_NO_NUMBA or not installed' if not jit.available() else 'on'})")
         if b.get("stopped_early"):
             print(f"stopped early: {b['stopped_early']}")
     if args.combined:

@@ -363,12 +363,16 @@ class ExitShader:
         self.compiled = hit_kernel.available()
         self.consts = hit_kernel.recurrence_constants(bands)
 
+    def path(self) -> str:
+        """How hits are shaded: "compiled" (hit_kernel) or "numpy" (the manifest says which)."""
+        return "compiled" if self.compiled and hit_kernel.kernel(self.bands) is not None else "numpy"
+
     def shade_rays(self, L: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_of: np.ndarray,
                    D: np.ndarray) -> None:
         """Write into rows ray_of of ``L`` (rays, 3) float32 the radiance that
         hits (prim, u, v) send back along the rays ``D`` (rays, 3) (zero from
         sets without exit textures); other rows are left as they are."""
-        if not (self.compiled and hit_kernel.kernel(self.bands) is not None):
+        if self.path() == "numpy":
             L[ray_of] = self.radiance(prim, u, v, -D[ray_of])
             return
         sets = self.sc.set_id[prim]
@@ -591,6 +595,7 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
 
     stats = trace_bounce_level(rs, gb, pts, skip, st, level, BakedProjection(shader, K), store,
                                progress=progress, cancel=cancel, remote=remote)
+    stats["hit_shading"] = shader.path()
     return tex, gb.mask(), stats
 
 
