@@ -8,8 +8,9 @@ about the texel's shading normal (docs/shading.md). bounce.ExitShader.radiance
 does this with numpy: a dozen gathers, scatters and temporaries per hit, 57 %
 of the bounce's trace + shade time in the profile (~460 ns per hit on one
 core of the 2-core VM). :func:`shade_set_hits` runs the same arithmetic in
-one compiled loop (hit_jit.py) that prefetches the rows later hits read:
-~140 ns per hit on the room's hits.
+compiled loops (hit_jit.py: texel indices in strict float32, then one
+shading loop per band count that prefetches the rows later hits read):
+~100 ns per hit on the room's hits.
 
 Same results as the numpy path to float32 rounding: the same texel per hit
 (identical float32 texture coordinates), the 25-term sums in another order.
