@@ -71,8 +71,9 @@ def kernel(bands: int = 5):
 
 
 def warm_up(bands: int) -> threading.Thread | None:
-    """Import numba and load (or compile) the kernel on a daemon thread, so
-    that the bounce's first chunks do not wait for it: ~0.45 s with numba's
+    """Import numba and load (or compile) the kernels on a daemon thread (the
+    hit shading's, and the UV island labels' the bounce grid is chosen with),
+    so that the bounce stage does not wait for them: ~0.45 s with numba's
     cache, 1.5 s for the first compile (measured on the 2-core VM). Called at
     the start of a bake with bounces; None when numba is not there."""
     if not available():
@@ -87,6 +88,9 @@ def warm_up(bands: int) -> threading.Thread | None:
         rows, f2 = np.zeros(1, np.int32), np.zeros((1, 3), np.float32)
         mod.texel_indices(i64, i64, f32, f32, np.zeros((1, 6), np.float32), 1, 1, True, np.zeros(1, bool), 1, 1)
         mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands), f2)
+        islands = jit.load("prtt_addon.core.texels.islands_jit")   # the bounce grid's choice labels islands
+        if islands is not None:
+            islands.island_labels(np.zeros((1, 1), bool))
 
     t = threading.Thread(target=load, name="prtt-hit-kernel", daemon=True)
     t.start()
