@@ -10,7 +10,12 @@ In real Blender (bpy), through the add-on's own operators:
 3. bake transfer, per-vertex transfer and one bounce (PRTT > Bake Transfer,
    in the worker process);
 4. render the preview offscreen from the scene camera: fragment TPFL (PRTT)
-   and vertex TPFL (the traditional baseline), side by side, into one image.
+   and vertex TPFL (the traditional baseline), side by side, into one image;
+5. relightable bounces: bake the bounce as a linear map of the light
+   (``--bounce-mode relightable``), turn the World by 90 degrees and render
+   it relit, beside a full rebake of the bounce under the turned World (in
+   copies of the texture folder: the saved .blend and its textures stay as
+   step 3 made them). ``--no-relight`` skips this step.
 
 It prints each stage's time and where everything went (``out/demo`` by
 default: the .blend, the textures, the pictures). Needs no network.
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -100,8 +106,61 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, expo
     return path
 
 
+def relight_step(bpy, out_dir: str, size, exposure: float, log=print) -> dict:
+    """Step 5: the room's bounce light relit under a World turned by 90
+    degrees, beside the bounce rebaked under it. Works in copies of the
+    texture folder (the transfer is reused there: only bounces are baked)
+    and puts the scene's settings and World back afterwards. Returns the
+    picture, the two renders, their relative RMSE and the seconds."""
+    import shutil
+    from .blender.bake.run import bake_blocking  # needs bpy (see run)
+    from .blender.preview.render import render_scene  # needs bpy (see run)
+    st = bpy.context.scene.prtt
+    mapping = next(n for n in bpy.context.scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
+    home, mode0, turn0 = st.output_dir, st.bounce_mode, mapping.inputs["Rotation"].default_value[2]
+    shots, secs = {}, {}
+    try:
+        for mode in ("RELIGHTABLE", "BAKED"):
+            folder = os.path.join(out_dir, f"textures_{mode.lower()}_90")
+            if os.path.isdir(folder):
+                shutil.rmtree(folder)
+            shutil.copytree(home, folder)
+            st.output_dir, st.bounce_mode = folder, mode
+            # Relightable: baked under the World as it was, then turned. Baked: rebaked under the turned World.
+            mapping.inputs["Rotation"].default_value[2] = turn0 + (math.pi / 2 if mode == "BAKED" else 0.0)
+            t = time.perf_counter()
+            outcome = bake_blocking(bpy.context)
+            if outcome.status != "done":
+                raise RuntimeError(outcome.message)
+            secs[f"bake {mode.lower()}"] = time.perf_counter() - t
+            if not outcome.manifest.get("transfer_reused"):
+                raise RuntimeError(f"{folder}: the transfer was baked again, not reused")
+            mapping.inputs["Rotation"].default_value[2] = turn0 + math.pi / 2
+            t = time.perf_counter()
+            shots[mode], _, status, _ = render_scene(bpy.context, mode="tpfl", size=size)
+            secs[f"render {mode.lower()}"] = time.perf_counter() - t
+            for level, text in status.messages:
+                if level != "INFO":
+                    log(f"      {level.lower()}: {text}")
+    finally:
+        st.output_dir, st.bounce_mode = home, mode0
+        mapping.inputs["Rotation"].default_value[2] = turn0
+    relit, rebaked = shots["RELIGHTABLE"], shots["BAKED"]
+    covered = (relit[..., 3] > 0.5) & (rebaked[..., 3] > 0.5)
+    diff = relit[..., :3][covered] - rebaked[..., :3][covered]
+    rmse = float(np.sqrt(np.mean(diff ** 2)) / np.sqrt(np.mean(rebaked[..., :3][covered] ** 2)))
+    image = side_by_side(relit, rebaked,
+                         ("relightable bounces, baked at 0\u00b0, relit with the World turned 90\u00b0",
+                          "baked bounces, rebaked with the World turned 90\u00b0"),
+                         os.path.join(out_dir, "demo_relight_90.png"), exposure=exposure,
+                         title=f"turning the World without a rebake: image difference {100 * rmse:.2f} % "
+                               f"(relative RMSE); relightable bake {secs['bake relightable']:.1f} s, "
+                               f"rebake {secs['bake baked']:.1f} s")
+    return {"image": image, "rmse": rmse, "seconds": secs, "shots": shots}
+
+
 def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: int | None = None,
-        size=(960, 540), log=print) -> dict:
+        size=(960, 540), relight: bool = True, log=print) -> dict:
     import bpy
 
     # The Blender side needs bpy: this module loads without it (the CLI's parser).
@@ -110,6 +169,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
     from .blender.ui.properties import UV_MAP  # needs bpy (see above)
     t_all = time.perf_counter()
     times = {}
+    n = 5 if relight else 4                  # steps
     os.makedirs(out_dir, exist_ok=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if not hasattr(bpy.types.Scene, "prtt"):
@@ -122,7 +182,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         ob.data.calc_loop_triangles()
         tris += len(ob.data.loop_triangles)
     times["build scene"] = time.perf_counter() - t
-    log(f"[1/4] built the room-class scene: {len(objects)} objects, {tris} triangles "
+    log(f"[1/{n}] built the room-class scene: {len(objects)} objects, {tris} triangles "
         f"({times['build scene']:.1f} s)")
 
     st = bpy.context.scene.prtt
@@ -139,7 +199,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         raise RuntimeError("unwrap failed")
     times["unwrap"] = time.perf_counter() - t
     assert all(UV_MAP in ob.data.uv_layers for ob in objects.values())
-    log(f"[2/4] unwrapped into one {resolution}x{resolution} atlas (Smart UV Project, "
+    log(f"[2/{n}] unwrapped into one {resolution}x{resolution} atlas (Smart UV Project, "
         f"'{UV_MAP}' UV map) ({times['unwrap']:.1f} s)")
 
     t = time.perf_counter()
@@ -155,7 +215,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
     m = outcome.manifest
     sec = m["seconds"]
     b = m.get("bounce") or {}
-    log(f"[3/4] baked transfer ({rays} rays/texel, {m['totals']['texels']:,} texels, "
+    log(f"[3/{n}] baked transfer ({rays} rays/texel, {m['totals']['texels']:,} texels, "
         f"{m['totals']['rays_traced'] / 1e6:.0f}M rays), per-vertex transfer and "
         f"{b.get('levels', 0)} bounce ({bounce_rays} rays) in {times['bake']:.1f} s "
         f"[transfer {sec.get('trace', 0) + sec.get('gbuffer', 0) + sec.get('dilate', 0):.1f} s, "
@@ -185,17 +245,29 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
                          title=f"room-class scene, {tris} triangles; {st.bands} SH bands, {rays} rays/texel, "
                                f"{bounce_rays} bounce rays; light: {json.loads(st.last_bake).get('light') or 'World'}; "
                                f"{w}x{h}, rendered on {_gpu_name()}")
-    log(f"[4/4] rendered {w}x{h} previews on {_gpu_name()}: fragment TPFL {times['render tpfl']:.1f} s, "
+    log(f"[4/{n}] rendered {w}x{h} previews on {_gpu_name()}: fragment TPFL {times['render tpfl']:.1f} s, "
         f"vertex TPFL {times['render vertex-tpfl']:.1f} s (first frames: shader compile and uploads included)")
+    rl = None
+    if relight:
+        t = time.perf_counter()
+        rl = relight_step(bpy, out_dir, (w, h), exposure, log)
+        times["relight step"] = time.perf_counter() - t
+        sec = rl["seconds"]
+        log(f"[5/5] relightable bounces: baked in {sec['bake relightable']:.1f} s, then the World turned 90\u00b0 "
+            f"and relit; a rebake of the bounce under the turned World took {sec['bake baked']:.1f} s; "
+            f"the two pictures differ by {100 * rl['rmse']:.2f} % (relative RMSE)")
     times["total"] = time.perf_counter() - t_all
     log("")
     log(f"side by side:  {os.path.relpath(image)}")
+    if rl is not None:
+        log(f"relit at 90\u00b0: {os.path.relpath(rl['image'])}")
     log(f"single images: {', '.join(os.path.relpath(f) for f in files)}")
     log(f"the .blend:    {os.path.relpath(blend)}   (open it in Blender with PRTT installed: "
         f"Sidebar > PRTT > Preview)")
     log(f"textures:      {os.path.relpath(st.output_dir)}/ ({', '.join(m['files'])})")
     log("stage times: " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
-    return {"image": image, "files": files, "blend": blend, "times": times, "manifest": m, "shots": shots}
+    return {"image": image, "files": files, "blend": blend, "times": times, "manifest": m, "shots": shots,
+            "relight": rl}
 
 
 def _gpu_name() -> str:
@@ -212,6 +284,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rays", type=int, default=256, help="transfer rays per texel")
     p.add_argument("--bounce-rays", type=int, default=None, help="default: the bake default")
     p.add_argument("--size", default="960x540", help="each preview image, WxH")
+    p.add_argument("--no-relight", dest="relight", action="store_false",
+                   help="skip step 5 (relightable bounces, the World turned by 90 degrees)")
 
 
 def main(argv=None) -> int:
@@ -231,7 +305,8 @@ def run_args(args) -> int:
     w, h = (int(v) for v in args.size.lower().split("x"))
     print("PRTT demo: room-class scene, unwrap, bake (transfer + 1 bounce), TPFL vs vertex-TPFL preview")
     try:
-        run(args.out, resolution=args.resolution, rays=args.rays, bounce_rays=args.bounce_rays, size=(w, h))
+        run(args.out, resolution=args.resolution, rays=args.rays, bounce_rays=args.bounce_rays, size=(w, h),
+            relight=args.relight)
     except (RuntimeError, ValueError, OSError) as exc:
         print(f"prtt: error: {exc}", file=sys.stderr)
         return 1

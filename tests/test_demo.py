@@ -1,5 +1,6 @@
 """The README's main job, at a small size: every stage runs and says where its output is."""
 import os
+import re
 import subprocess
 import sys
 
@@ -18,13 +19,23 @@ def test_demo_runs_end_to_end(tmp_path):
                        capture_output=True, text=True, timeout=900, cwd=str(tmp_path),
                        env=dict(os.environ, PYTHONPATH=ROOT))
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    for step in ("[1/4] built the room-class scene: 14 objects, 21024 triangles",
-                 "[2/4] unwrapped", "[3/4] baked transfer", "1 bounce", "[4/4] rendered 160x90",
-                 "side by side:", "stage times:"):
+    for step in ("[1/5] built the room-class scene: 14 objects, 21024 triangles",
+                 "[2/5] unwrapped", "[3/5] baked transfer", "1 bounce", "[4/5] rendered 160x90",
+                 "[5/5] relightable bounces", "side by side:", "relit at 90", "stage times:"):
         assert step in r.stdout, (step, r.stdout)
     for f in ("demo_side_by_side.png", "demo_tpfl.png", "demo_vertex-tpfl.png", "prtt_demo.blend",
-              "textures/atlas.transfer.exr", "textures/atlas.bounce1.exr", "textures/atlas.vertex.npz"):
+              "textures/atlas.transfer.exr", "textures/atlas.bounce1.exr", "textures/atlas.vertex.npz",
+              "demo_relight_90.png", "textures_relightable_90/atlas.relight.exr",
+              "textures_baked_90/atlas.bounce1.exr"):
         assert (out / f).is_file(), f
+    # Step 5 worked in copies: the saved .blend's textures are still the ones step 3 baked (World at 0).
+    import json
+    home, turned = (json.loads((out / d / "manifest.json").read_text())["bounce"]
+                    for d in ("textures", "textures_baked_90"))
+    assert home["files"] == ["atlas.bounce1.exr"] and home.get("mode", "baked") == "baked"
+    assert home["light_hash"] != turned["light_hash"]      # the rebake saw the turned World
+    diff = float(re.search(r"the two pictures differ by ([0-9.]+) %", r.stdout).group(1))
+    assert 0.0 < diff < 10.0, diff
     import matplotlib.image as mpimg
     frag, vert = mpimg.imread(out / "demo_tpfl.png"), mpimg.imread(out / "demo_vertex-tpfl.png")
     assert frag.shape == (90, 160, 4) and frag[..., 3].mean() > 0.5

@@ -23,7 +23,7 @@ from ..cli_options import (ConsoleProgress, add_dask_option, add_output_options,
 from ..core.bake import settings_schema as schema
 from .bake.run import bake_blocking
 from .blendfile import open_scene, save_blend
-from .export.unwrap import UnwrapError, needs_user_unwrap, unwrap_objects
+from .export.unwrap import UnwrapError, bake_downscale, needs_user_unwrap, unwrap_objects
 from .preview.render import render_file
 
 _CLI_HANDLE = None
@@ -131,7 +131,8 @@ def _bake_file(args) -> int:
                     if objects:
                         unwrap_objects(ctx, objects, method=method, resolution=st.resolution,
                                        padding=st.padding, atlas=st.texture_sets == "ATLAS",
-                                       source_map=st.existing_uv_map, dilate=st.dilate)
+                                       source_map=st.existing_uv_map, dilate=st.dilate,
+                                       bounce_downscale=bake_downscale(st))
             except (UnwrapError, RuntimeError) as exc:
                 print(f"prtt: error: unwrap failed: {exc}", file=sys.stderr)
                 return 1

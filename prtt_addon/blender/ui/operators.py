@@ -4,7 +4,7 @@ import numpy as np
 
 from ..bake import run as bake_run
 from ..export.scene import ExportError
-from ..export.unwrap import UnwrapError, unwrap_objects
+from ..export.unwrap import UnwrapError, bake_downscale, unwrap_objects
 from ..preview.render import RenderError, exposure_of, render_scene
 from .panels import draw_progress
 from .properties import PREVIEW_MODES
@@ -42,7 +42,8 @@ class PRTT_OT_unwrap(bpy.types.Operator):
         try:
             overlaps = unwrap_objects(context, objects, method=st.unwrap_method, resolution=st.resolution,
                                       padding=st.padding, atlas=st.texture_sets == "ATLAS",
-                                      source_map=st.existing_uv_map, dilate=st.dilate)
+                                      source_map=st.existing_uv_map, dilate=st.dilate,
+                                      bounce_downscale=bake_downscale(st))
         except (UnwrapError, RuntimeError) as exc:
             self.report({"ERROR"}, f"PRTT: {exc}")
             return {"CANCELLED"}

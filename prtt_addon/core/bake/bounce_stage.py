@@ -148,6 +148,15 @@ def choose_bounce_bands(sc, set_index: int, glossy_tri: np.ndarray, bands: int) 
 MIN_BOUNCE_SIDE = 16
 
 
+def asked_downscale(bounces: int, tuning: str, bounce_downscale: int) -> int:
+    """The coarsest bounce grid (1/N per side) a bake asks for; choose_grid
+    then takes the coarsest of 1/N, 1/(N/2) ... that mixes no UV islands (the
+    unwrap leaves room for 1/N: blender/export/unwrap.margin_texels)."""
+    if bounces <= 0:
+        return 1
+    return max(bounce_downscale, AUTO_DOWNSCALE) if tuning == "auto" else bounce_downscale
+
+
 def choose_grid(gb: GBuffer, asked: int) -> BounceGrid:
     """The coarsest grid of 1/asked, 1/(asked/2) ... 1/1 of ``gb``'s resolution
     per side that divides it, keeps at least MIN_BOUNCE_SIDE texels a side and
@@ -211,7 +220,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
     t = time.perf_counter()
     glossy_tri = glossy_triangles(sc)
     auto = st.tuning == "auto"
-    asked = max(st.bounce_downscale, AUTO_DOWNSCALE) if auto else st.bounce_downscale
+    asked = asked_downscale(st.bounces, st.tuning, st.bounce_downscale)
     if geo is None:
         asked = 1
 
