@@ -4,7 +4,9 @@ Bakes the room-class scene (1024^2 atlas, glossy floor and table, diffuse
 walls, a metal sphere, ...) lit by Blender's "forest" HDRI: the transfer
 textures first (timed apart), then the bounce levels, and prints per level the
 seconds, texels skipped without rays, rays traced, hits shaded (shading
-evaluations) and rays/s.
+evaluations) and rays/s. ``--scene demo``: the demo's own scene instead
+(``./prtt.sh demo``: built in Blender, its textured wooden floor, unwrapped
+by PRTT's Unwrap with Smart UV Project, exported as the add-on exports it).
 """
 from __future__ import annotations
 
@@ -19,6 +21,27 @@ from ..core.bake.runner import BakeSettings, bake_scene
 from . import scenes
 
 
+def demo_scene(resolution: int):
+    """The demo's scene (prtt_addon.demo) built and unwrapped in Blender and
+    exported as the add-on does: (core Scene, the World's light as SH)."""
+    import bpy  # Blender as a module: only this scene needs it
+    from .. import demo, register
+    from ..blender.export.scene import export_scene  # needs bpy
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    if not hasattr(bpy.types.Scene, "prtt"):
+        register()
+    objects = demo.build_scene(bpy)
+    st = bpy.context.scene.prtt
+    st.resolution, st.texture_sets, st.unwrap_method = resolution, "ATLAS", "SMART"
+    for ob in bpy.context.view_layer.objects:
+        ob.select_set(ob.type == "MESH")
+    bpy.context.view_layer.objects.active = objects["floor"]
+    if bpy.ops.prtt.unwrap() != {"FINISHED"}:
+        raise RuntimeError("unwrap failed")
+    exp = export_scene(bpy.context, with_light=True)
+    return exp.scene, exp.light
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m prtt_addon.bench bounce", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -31,14 +54,19 @@ def main(argv=None) -> int:
                    help="per-set tuning of the bounce textures (auto: coarser grid, fewer bands where they "
                         "are not read)")
     p.add_argument("--env", default="forest")
+    p.add_argument("--scene", default="room", choices=("room", "demo"),
+                   help="room: the bench's room-class atlas; demo: the demo's scene, unwrapped in Blender")
     p.add_argument("--no-combined", dest="combined", action="store_false",
                    help="skip the third bake (transfer and bounces in one run)")
     args = p.parse_args(argv)
-    sc = scenes.room_scene(args.resolution, atlas=True, materials=True)
-    light = env_light(args.env, 5)
+    if args.scene == "demo":
+        sc, light = demo_scene(args.resolution)
+    else:
+        sc = scenes.room_scene(args.resolution, atlas=True, materials=True)
+        light = env_light(args.env, 5)
     st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_rays=args.bounce_rays,
                       bounce_denoise=args.bounce_denoise, tuning=args.tuning)
-    print(f"room-class scene: {sc.n_triangles} triangles, {args.resolution}^2 atlas, "
+    print(f"{args.scene} scene: {sc.n_triangles} triangles, {args.resolution}^2 atlas, "
           f"{len(sc.materials)} materials, light '{args.env}'; transfer {args.rays} rays, "
           f"{args.bounces} bounce(s) x {args.bounce_rays} rays, denoise {args.bounce_denoise}, "
           f"tuning {args.tuning}")
