@@ -173,6 +173,10 @@ def _shade(tex, gtex, row_of, grow_of, sel, ray_of, D, diffuse, glossy, bands, s
 
 _KW = dict(nogil=True, cache=True, error_model="numpy", fastmath=FASTMATH)
 
+# One function per band count, written out rather than generated: numba's
+# cache keeps only functions defined in a source file, and a generated one
+# would compile again (1-2 s) in every bake's worker process.
+
 
 @numba.njit(**_KW)
 def shade_any(tex, gtex, row_of, grow_of, sel, ray_of, D, diffuse, glossy, bands, sect, ca, cb, out):
