@@ -182,3 +182,29 @@ def test_forged_band_counts_are_refused_before_listing_channels(tmp_path, header
     if "bands" in header:
         with pytest.raises(exr_io.TextureError, match="is not a band count"):
             exr_io.read_sh_exr(path)
+
+
+def test_compiled_relight_forms_equal_the_numpy_path(tmp_path, monkeypatch):
+    """The relightable operator from the compiled per-hit loop (numba,
+    hit_jit.relight_forms) equals the numpy path's to float32 rounding, for
+    two levels (level 1: one form for all colours; level 2: one per colour)
+    of a glossy and a diffuse set; the manifest says which path ran."""
+    from prtt_addon.core import jit
+    assert jit.available(), "numba is pinned in requirements.txt"
+    sc = _scene(GLOSSY_WALL, res=16)
+    paths = {}
+    for path, off in (("compiled", "0"), ("numpy", "1")):
+        monkeypatch.setenv("PRTT_NO_NUMBA", off)
+        m = bake_scene(sc, str(tmp_path / path), _settings(bounces=2, bounce_mode="relightable"), light=sky())
+        assert {r["hit_shading"] for r in m["bounce"]["sets"]} == {path}
+        paths[path] = tmp_path / path
+    for name in ("floor", "wall"):
+        a = exr_io.read_relight_exr(str(paths["compiled"] / f"{name}.relight.exr"))
+        b = exr_io.read_relight_exr(str(paths["numpy"] / f"{name}.relight.exr"))
+        for x, y in zip(a[:2], b[:2]):
+            if y is None:
+                assert x is None
+                continue
+            scale = np.abs(y).max()
+            assert scale > 0
+            np.testing.assert_allclose(x, y, rtol=0, atol=2e-6 * scale)

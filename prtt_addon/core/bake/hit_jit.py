@@ -74,6 +74,39 @@ def texel_indices(sel, prim, u, v, frames, W, H, has_glossy, glossy_tri, Wg, Hg)
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
+def _reflected_basis(nx, ny, nz, wx, wy, wz, bands, sect, ca, cb, y):
+    """y[k] (K = bands², float32) = the real SH at r, the unit reflection of the
+    view w about the (dilated, not unit) normal n: r = 2 (n.w) n / |n|² - w
+    (bounce.reflect_rows), by sh.basis.basis_unchecked's recurrence."""
+    f32 = np.float32
+    sqrt2 = f32(math.sqrt(2.0))
+    d = f32(2.0) * (nx * wx + ny * wy + nz * wz) / max(nx * nx + ny * ny + nz * nz, f32(1e-30))
+    rx, ry, rz = d * nx - wx, d * ny - wy, d * nz - wz
+    inv = f32(1.0) / math.sqrt(max(rx * rx + ry * ry + rz * rz, f32(1e-30)))
+    rx, ry, rz = rx * inv, ry * inv, rz * inv
+    cm, sm = f32(1.0), f32(0.0)
+    for m in range(bands):
+        if m > 0:
+            cm, sm = rx * cm - ry * sm, rx * sm + ry * cm
+        p_prev = sect[m]
+        p_cur = f32(0.0)
+        for l in range(m, bands):
+            if l == m:
+                p = p_prev
+            elif l == m + 1:
+                p_cur = ca[m, l] * rz * p_prev
+                p = p_cur
+            else:
+                p = ca[m, l] * (rz * p_cur - cb[m, l] * p_prev)
+                p_prev, p_cur = p_cur, p
+            if m == 0:
+                y[l * l + l] = p
+            else:
+                y[l * l + l + m] = sqrt2 * p * cm
+                y[l * l + l - m] = sqrt2 * p * sm
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
 def _shade(tex, gtex, row_of, grow_of, sel, ray_of, D, diffuse, glossy, bands, sect, ca, cb, out):
     """For the hits ``sel`` (indices into ray_of) of one set, on the texels
     :func:`texel_indices` found, whose rows row_of / grow_of give: out[ray, c] = max(0, D_c + [glossy] sum_k
@@ -93,7 +126,6 @@ def _shade(tex, gtex, row_of, grow_of, sel, ray_of, D, diffuse, glossy, bands, s
     K = bands * bands
     C = glossy.shape[1]
     f32 = np.float32
-    sqrt2 = f32(math.sqrt(2.0))
     n = sel.size
     pd = PREFETCH_DISTANCE
     gflat = glossy.reshape(-1)
@@ -130,33 +162,8 @@ def _shade(tex, gtex, row_of, grow_of, sel, ray_of, D, diffuse, glossy, bands, s
         r2 = diffuse[row, 2]
         grow = grows[j]
         if grow >= 0:
-            nx, ny, nz = glossy[grow, 0], glossy[grow, 1], glossy[grow, 2]
-            wx, wy, wz = -D[ray, 0], -D[ray, 1], -D[ray, 2]
-            d = f32(2.0) * (nx * wx + ny * wy + nz * wz) / max(nx * nx + ny * ny + nz * nz, f32(1e-30))
-            rx, ry, rz = d * nx - wx, d * ny - wy, d * nz - wz
-            inv = f32(1.0) / math.sqrt(max(rx * rx + ry * ry + rz * rz, f32(1e-30)))
-            rx, ry, rz = rx * inv, ry * inv, rz * inv
-            # sh.basis.basis_unchecked's recurrence, one direction.
-            cm, sm = f32(1.0), f32(0.0)
-            for m in range(bands):
-                if m > 0:
-                    cm, sm = rx * cm - ry * sm, rx * sm + ry * cm
-                p_prev = sect[m]
-                p_cur = f32(0.0)
-                for l in range(m, bands):
-                    if l == m:
-                        p = p_prev
-                    elif l == m + 1:
-                        p_cur = ca[m, l] * rz * p_prev
-                        p = p_cur
-                    else:
-                        p = ca[m, l] * (rz * p_cur - cb[m, l] * p_prev)
-                        p_prev, p_cur = p_cur, p
-                    if m == 0:
-                        y[l * l + l] = p
-                    else:
-                        y[l * l + l + m] = sqrt2 * p * cm
-                        y[l * l + l - m] = sqrt2 * p * sm
+            _reflected_basis(glossy[grow, 0], glossy[grow, 1], glossy[grow, 2], -D[ray, 0], -D[ray, 1], -D[ray, 2],
+                             bands, sect, ca, cb, y)
             s0, s1, s2 = f32(0.0), f32(0.0), f32(0.0)
             for k in range(K):
                 yk = y[k]
@@ -215,3 +222,70 @@ BY_BANDS = {3: shade_b3, 4: shade_b4, 5: shade_b5, 6: shade_b6}
 def for_bands(bands: int):
     """The compiled loop for ``bands`` bands."""
     return BY_BANDS.get(bands, shade_any)
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=FASTMATH)
+def relight_forms(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale, g_rows, g_scale, normal, gbands,
+                  sect, ca, cb, ad, ag, rows, wg):
+    """Relightable bounces (relight.RelightShader): the linear forms of the
+    radiance leaving the hits ``sel`` of one set, written per ray (row ray =
+    ray_of[i]): ad[ray] = d_scale[row] (3), rows[ray, c] = d_rows[row, c or 0]
+    (K), and on glossy hits ag[ray] = g_scale[grow] (3), wg[ray, c, i] =
+    sum_o y_o(r) g_rows[grow, c or 0, o, i] (Kg), r the view reflected about
+    normal[grow]; rows of the texels :func:`texel_indices` found. What
+    relight.RelightShader.forms computes with numpy, in one loop that
+    prefetches the rows later hits read (as :func:`_shade`)."""
+    pd = PREFETCH_DISTANCE
+    cds, cd, K = d_rows.shape[1], rows.shape[1], rows.shape[2]
+    cgs, cg, kg = g_rows.shape[1], wg.shape[1], wg.shape[2]
+    f32 = np.float32
+    dstride = cds * K
+    gstride = cgs * kg * kg
+    dflat = d_rows.reshape(-1)
+    gflat = g_rows.reshape(-1)
+    n = sel.size
+    prow = np.empty(n, np.int64)
+    pgrow = np.empty(n, np.int64)
+    for j in range(min(pd, n)):
+        prow[j] = row_of[tex[j]]
+        pgrow[j] = grow_of[gtex[j]] if gtex[j] >= 0 else -1
+    y = np.empty(kg, np.float32)
+    for j in range(n):
+        a2 = j + 2 * pd
+        if a2 < n:
+            prefetch(row_of, tex[a2])
+            if gtex[a2] >= 0:
+                prefetch(grow_of, gtex[a2])
+        a = j + pd
+        if a < n:
+            ra = row_of[tex[a]]
+            ga = grow_of[gtex[a]] if gtex[a] >= 0 else -1
+            prow[a] = ra
+            pgrow[a] = ga
+            for off in range(0, dstride, 16):
+                prefetch(dflat, ra * dstride + off)
+            if ga >= 0:
+                for off in range(0, gstride, 16):
+                    prefetch(gflat, ga * gstride + off)
+        i = sel[j]
+        ray = ray_of[i]
+        row = prow[j]
+        for c in range(3):
+            ad[ray, c] = d_scale[row, c]
+        for c in range(cd):
+            cs = c if cds == cd else 0
+            for k in range(K):
+                rows[ray, c, k] = d_rows[row, cs, k]
+        grow = pgrow[j]
+        if grow >= 0:
+            _reflected_basis(normal[grow, 0], normal[grow, 1], normal[grow, 2], -D[ray, 0], -D[ray, 1], -D[ray, 2],
+                             gbands, sect, ca, cb, y)
+            for c in range(cg):
+                cs = c if cgs == cg else 0
+                for ii in range(kg):
+                    s = f32(0.0)
+                    for o in range(kg):
+                        s += y[o] * g_rows[grow, cs, o, ii]
+                    wg[ray, c, ii] = s
+            for c in range(3):
+                ag[ray, c] = g_scale[grow, c]

@@ -70,7 +70,7 @@ def kernel(bands: int = 5):
     return None if mod is None else mod.for_bands(bands)
 
 
-def warm_up(bands: int) -> threading.Thread | None:
+def warm_up(bands: int, relightable: bool = False) -> threading.Thread | None:
     """Import numba and load (or compile) the kernels on a daemon thread (the
     hit shading's, and the UV island labels' the bounce grid is chosen with),
     so that the bounce stage does not wait for them: ~0.45 s with numba's
@@ -81,13 +81,25 @@ def warm_up(bands: int) -> threading.Thread | None:
     i64, f32 = np.zeros(0, np.int64), np.zeros(0, np.float32)
 
     def load():
+        try:
+            _load()
+        except Exception:          # noqa: BLE001 - the bake's own first call raises it where it can be reported
+            pass
+
+    def _load():
         mod = _jit()
         if mod is None:
             return
         # No hits, but the dtypes of a real call: the overloads loaded are the bake's.
         rows, f2 = np.zeros(1, np.int32), np.zeros((1, 3), np.float32)
         mod.texel_indices(i64, i64, f32, f32, np.zeros((1, 6), np.float32), 1, 1, True, np.zeros(1, bool), 1, 1)
-        mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands), f2)
+        if relightable:
+            mod.relight_forms(i64, i64, rows, rows, i64, i64, f2, np.zeros((1, 1, 1), np.float32), f2,
+                              np.zeros((1, 1, 1, 1), np.float32), f2, f2, 3, *recurrence_constants(3), f2, f2,
+                              np.zeros((1, 1, 1), np.float32), np.zeros((1, 1, 1), np.float32))
+        else:
+            mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands),
+                                 f2)
         islands = jit.load("prtt_addon.core.texels.islands_jit")   # the bounce grid's choice labels islands
         if islands is not None:
             islands.island_labels(np.zeros((1, 1), bool))

@@ -49,9 +49,13 @@ from ..texels.gbuffer import GBuffer
 from ..shading.model import lobe_factors
 from .bounce import ChunkHits, SurfaceTexels, TexelRows, hits_by_set, reflect_rows, trace_bounce_level, uv_frames
 from .raytrace import RayScene
+from .. import jit
+from . import hit_kernel
 from .transfer import Points, TransferSettings
 
 SQRT_4PI = math.sqrt(4.0 * math.pi)
+_NO_FORMS = np.zeros((1, 1, 1, 1), np.float32)      # placeholders for a set without a specular lobe
+_NO_SCALE = np.zeros((1, 3), np.float32)
 #: Default bands of the glossy part (in and out): 9 x 9 per colour.
 GLOSSY_BANDS = 3
 
@@ -176,6 +180,36 @@ class RelightShader:
         self.glossy_tri = glossy_tri
         self.cd = max((ex.d_rows.shape[1] for ex in exits.values()), default=1)
         self.cg = max((ex.g_rows.shape[1] for ex in exits.values() if ex.g_rows is not None), default=1)
+        # The compiled loop when numba is there (hit_jit.relight_forms), else forms()' numpy.
+        self.compiled = hit_kernel.available()
+        self.consts = hit_kernel.recurrence_constants(max(glossy_bands, 1))
+
+    def path(self) -> str:
+        """How hits are evaluated: "compiled" or "numpy" (the manifest says which)."""
+        return "compiled" if self.compiled and hit_kernel.kernel() is not None else "numpy"
+
+    def ray_forms(self, ch: ChunkHits):
+        """The exit forms of a chunk's hits per ray, zeros where a ray missed or
+        hit a dark set: (ad (rays, 3), ag (rays, 3), rows (rays, cd, K), wg
+        (rays, cg, Kg)) float32, HitForms' factors. The compiled path only."""
+        mod = jit.load("prtt_addon.core.bake.hit_jit")
+        kg, nr = self.glossy_bands ** 2, ch.n * ch.S
+        ad, ag = np.zeros((nr, 3), np.float32), np.zeros((nr, 3), np.float32)
+        rows = np.zeros((nr, self.cd, self.K), np.float32)
+        wg = np.zeros((nr, self.cg, kg), np.float32)
+        sets = self.sc.set_id[ch.prim]
+        for s, ex in self.exits.items():
+            sel = np.flatnonzero(sets == s)
+            if sel.size == 0:
+                continue
+            has = ex.g_rows is not None
+            g = ex.glossy_grid if has else ex.diffuse_grid
+            tex, gtex = mod.texel_indices(sel, ch.prim, ch.u, ch.v, self.uv_frame, ex.diffuse_grid.width,
+                                          ex.diffuse_grid.height, has, self.glossy_tri, g.width, g.height)
+            mod.relight_forms(tex, gtex, ex.diffuse_grid.row_of, g.row_of, sel, ch.hit, ch.D, ex.d_rows,
+                              ex.d_scale, ex.g_rows if has else _NO_FORMS, ex.g_scale if has else _NO_SCALE,
+                              ex.normal if has else _NO_SCALE, self.glossy_bands, *self.consts, ad, ag, rows, wg)
+        return ad, ag, rows, wg
 
     def forms(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> HitForms:
         """The exit forms at hits on triangles ``tri`` at Embree's (u, v),
@@ -226,27 +260,35 @@ class RelightProjection:
     def __call__(self, ch: ChunkHits):
         K, kg = self.K, self.kg
         n, S = ch.n, ch.S
-        f = self.shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
-        cd, cg = f.d_rows.shape[1], f.g_w.shape[1]
+        if self.shader.path() == "compiled":
+            ad, ag, rows_c, wg_c = self.shader.ray_forms(ch)
+            cd, cg = rows_c.shape[1], wg_c.shape[1]
+            f = None
+        else:
+            f = self.shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
+            cd, cg = f.d_rows.shape[1], f.g_w.shape[1]
+            # Per ray (zeros where it missed): the DC weight folded into the colour scales.
+            ad = np.zeros((n * S, 3), np.float32)
+            ag = np.zeros((n * S, 3), np.float32)
+            at = ch.hit[f.index]                  # the rays the forms' rows belong to
+            ad[at] = f.d_scale
+            ag[at] = f.g_scale
         w0 = np.ascontiguousarray(ch.table[:, 0])
-        # Per ray (zeros where it missed): the DC weight folded into the colour scales.
-        ad = np.zeros((n * S, 3), np.float32)
-        ag = np.zeros((n * S, 3), np.float32)
-        at = ch.hit[f.index]                  # the rays the forms' rows belong to
-        ad[at] = f.d_scale
-        ag[at] = f.g_scale
         ad = ad.reshape(n, S, 3)
         ag = ag.reshape(n, S, 3)
         Y = gl = None
         if cd == 1 and cg == 1:
             # Level 1: one row per hit for all colours, so the DC row is a
             # (3, S) @ (S, K) product per texel; no (rays, 3, K) array.
-            rows = np.zeros((n * S, K), np.float32)
-            wg = np.zeros((n * S, kg), np.float32)
-            rows[at] = f.d_rows[:, 0]
-            wg[at] = f.g_w[:, 0]
-            rows = rows.reshape(n, S, K)
-            wg = wg.reshape(n, S, kg)
+            if f is None:
+                rows, wg = rows_c.reshape(n, S, K), wg_c.reshape(n, S, kg)
+            else:
+                rows = np.zeros((n * S, K), np.float32)
+                wg = np.zeros((n * S, kg), np.float32)
+                rows[at] = f.d_rows[:, 0]
+                wg[at] = f.g_w[:, 0]
+                rows = rows.reshape(n, S, K)
+                wg = wg.reshape(n, S, kg)
             # Contiguous operands: numpy's stacked matmul takes BLAS only for those.
             out = np.matmul(np.ascontiguousarray((ad * w0[:, None]).transpose(0, 2, 1)), rows)   # (n, 3, K)
             out[:, :, :kg] += np.matmul(np.ascontiguousarray((ag * w0[:, None]).transpose(0, 2, 1)), wg)
@@ -254,8 +296,13 @@ class RelightProjection:
             if self.glossy_out:
                 Y = ad[:, :, :, None] * rows[:, :, None, :kg] + ag[:, :, :, None] * wg[:, :, None, :]
         else:
-            X = np.zeros((n * S, 3, K), np.float32)
-            X[at] = f.full()
+            if f is None:
+                # HitForms.full per ray (misses and dark sets: zeros).
+                X = ad.reshape(n * S, 3, 1) * rows_c
+                X[:, :, :kg] += ag.reshape(n * S, 3, 1) * wg_c
+            else:
+                X = np.zeros((n * S, 3, K), np.float32)
+                X[at] = f.full()
             X = X.reshape(n, S, 3 * K)
             # The DC row: the estimator's DC weights (rotation leaves the DC alone).
             dc = (w0 @ X).T
@@ -287,6 +334,7 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
 
     stats = trace_bounce_level(rs, gb, pts, skip, st, level, RelightProjection(shader, K, kg, glossy_out), store,
                                progress=progress, cancel=cancel, remote=remote)
+    stats["hit_shading"] = shader.path()
     return dc, gl, gb.mask(), stats
 
 

@@ -156,8 +156,8 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
         first_gb = start_gbuffer(ctx, todo[0]) if todo else None
         if todo or st.vertex_mode:
             start_tables(ctx)
-        if plan.bouncing and st.bounce_mode == "baked" and ctx.remote is None:
-            hit_kernel.warm_up(st.bands)
+        if plan.bouncing and ctx.remote is None:
+            hit_kernel.warm_up(st.bands, relightable=st.bounce_mode == "relightable")
         geo = build_geometry(ctx)
         for position, s in enumerate(todo):
             gb = gbuffer_stage(ctx, s, first_gb if position == 0 else None)
