@@ -116,7 +116,10 @@ def relight_step(bpy, out_dir: str, size, exposure: float, log=print) -> dict:
     from .blender.bake.run import bake_blocking  # needs bpy (see run)
     from .blender.preview.render import render_scene  # needs bpy (see run)
     st = bpy.context.scene.prtt
-    mapping = next(n for n in bpy.context.scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
+    world = bpy.context.scene.world
+    mapping = next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping"), None) if world else None
+    if mapping is None:
+        raise RuntimeError("the relight step turns the World's Mapping node, and this World has none")
     home, mode0, turn0 = st.output_dir, st.bounce_mode, mapping.inputs["Rotation"].default_value[2]
     shots, secs = {}, {}
     try:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from prtt_addon.core.io import exr_io
+from prtt_addon.core import jit
 from prtt_addon.core.bake import hit_kernel
 from prtt_addon.core.bake.runner import BakeSettings, bake_scene
 from prtt_addon.core.bake.bounce import (ExitShader, IncidentSet, block_mean_incident, exit_textures,
@@ -59,6 +60,7 @@ def _shade(shader, path, tri, u, v, view):
         return shader.radiance(tri, u, v, view.astype(np.float32))
     assert hit_kernel.available(), "numba is a pinned dependency (requirements.txt)"
     shader.compiled = True
+    assert shader.path() == "compiled", jit.failures          # not numpy against numpy
     # Every other ray a miss: rows the hits do not own must stay as they were.
     L = np.full((2 * tri.size, 3), -7.0, np.float32)
     D = np.zeros((2 * tri.size, 3), np.float32)
@@ -263,12 +265,42 @@ def test_compiled_and_numpy_paths_agree_on_many_hits_and_sets_without_exits(band
         assert np.all(b[dark] == 0.0) and np.all(a[dark] == 0.0)
 
 
-def test_numba_can_be_switched_off():
-    """PRTT_NO_NUMBA=1: the bake shades with numpy (and says numba is not available)."""
+def test_numba_can_be_switched_off(tmp_path, monkeypatch):
+    """PRTT_NO_NUMBA=1: numba is not even imported, and the bake shades with
+    numpy (the manifest says so)."""
+    import os
     import subprocess
     import sys
-    code = "from prtt_addon.core.bake import hit_kernel; print(hit_kernel.available())"
-    for value, want in (("1", "False"), ("0", "True")):
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                             env={**__import__("os").environ, "PRTT_NO_NUMBA": value})
-        assert out.stdout.strip() == want
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    code = ("import sys; from prtt_addon.core.bake import hit_kernel; "
+            "print(hit_kernel.available(), hit_kernel.usable('baked', 5), 'numba' in sys.modules)")
+    for value, want in (("1", "False False False"), ("0", "True True True")):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root,
+                             env={**os.environ, "PRTT_NO_NUMBA": value, "PYTHONPATH": root})
+        assert out.stdout.strip() == want, out.stdout + out.stderr
+    sc = corner_scene(GLOSSY_WALL, res=12)
+    for value, want in (("1", "numpy"), ("0", "compiled")):
+        monkeypatch.setenv("PRTT_NO_NUMBA", value)
+        m = bake_scene(sc, str(tmp_path / value), BakeSettings(rays=16, bounces=1, bounce_rays=8), light=sky())
+        assert {r["hit_shading"] for r in m["bounce"]["sets"]} == {want}
+
+
+def test_a_numba_that_cannot_compile_the_loops_falls_back_to_numpy(tmp_path, monkeypatch):
+    """numba imports but fails to compile (a numba or llvmlite this code was
+    not written for): the bake shades with numpy, says so in the manifest and
+    in core.jit.failures, and does not try again."""
+    calls = []
+
+    def refuse(*args):
+        calls.append(args)
+        raise RuntimeError("LLVM ERROR: intrinsic llvm.prefetch.p0i8 has a wrong type")
+
+    monkeypatch.setattr(jit, "failures", {})
+    monkeypatch.setattr(hit_kernel, "_probed", {})
+    monkeypatch.setattr(hit_kernel, "_probe", refuse)
+    sc = corner_scene(GLOSSY_WALL, res=12)
+    for k in (1, 2):
+        m = bake_scene(sc, str(tmp_path / str(k)), BakeSettings(rays=16, bounces=1, bounce_rays=8), light=sky())
+        assert m["bounce"]["files"] and {r["hit_shading"] for r in m["bounce"]["sets"]} == {"numpy"}
+    assert "prefetch" in jit.failures["prtt_addon.core.bake.hit_jit"]
+    assert len(calls) == 1                                     # tried once per process

@@ -50,6 +50,7 @@ def test_island_labels_paths_agree_on_spirals_and_noise():
             dy, dx = dx, -dy
         n += 1
     diag = np.eye(30, dtype=bool) | np.eye(30, dtype=bool)[::-1]
+    assert jit.load("prtt_addon.core.texels.islands_jit") is not None, jit.failures    # not numpy against numpy
     for mask in masks + [spiral, diag, np.zeros((5, 7), bool), np.ones((5, 7), bool)]:
         assert np.array_equal(island_labels(mask), island_labels_numpy(mask))
     assert len(set(island_labels(diag)[diag].tolist())) == 1

@@ -44,3 +44,14 @@ def test_demo_room_unwrap_keeps_the_half_grid_island_safe(tuning, mixed):
     # Fixed tuning asks for no coarse grid: the user's 4 texels stay, and the
     # 1/2 grid would mix islands (what auto's margin avoids).
     assert (conflicts > 0) == mixed, conflicts
+
+
+def test_generated_uvs_do_not_follow_the_bounce_settings():
+    """UVs generated at bake time are part of the geometry's hash: their margin
+    must not change with bounce settings (a transfer rebake for a bounce change)."""
+    addon_bpy()
+    from prtt_addon.blender.export.unwrap import generated_margin
+    st = lambda **kw: types.SimpleNamespace(**{"padding": 4, "dilate": 3, "tuning": "AUTO", "bounces": 1,  # noqa
+                                              "bounce_downscale": 1, **kw})
+    got = {generated_margin(st(**kw)) for kw in ({}, {"bounces": 0}, {"tuning": "FIXED"}, {"bounce_downscale": 4})}
+    assert got == {6}

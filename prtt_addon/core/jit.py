@@ -43,16 +43,29 @@ def _import(name: str):
 
 def load(name: str):
     """The numba-compiled module ``name`` (absolute), or None when numba is
-    off, missing or fails to import. Thread-safe: the bake's threads ask at once."""
-    if not available():
+    off, missing, fails to import, or failed to compile a function of the
+    module (:func:`broken`). Thread-safe: the bake's threads ask at once."""
+    if not available() or name in failures:
         return None
     with _lock:
         return _import(name)
 
 
+def broken(name: str, exc: BaseException) -> None:
+    """Record that module ``name`` imported but a function of it failed to
+    compile or run (a numba or llvmlite the code was not written for): from
+    now on :func:`load` returns None for it and callers take their numpy path."""
+    failures[name] = f"{type(exc).__name__}: {exc}"
+
+
 def version() -> str | None:
-    """numba's version when :func:`available`, else None (for the Dask code identity)."""
-    if not available():
+    """numba's version when the compiled loops load (the Dask code identity:
+    numba's sums round differently from numpy's), else None."""
+    if load("prtt_addon.core.bake.hit_jit") is None:
         return None
     import importlib.metadata
-    return importlib.metadata.version("numba")
+    try:
+        return importlib.metadata.version("numba")
+    except importlib.metadata.PackageNotFoundError:       # a vendored numba without metadata
+        import numba
+        return str(numba.__version__)

@@ -48,7 +48,7 @@ from ...core.texels.unwrap import UnwrapError, unwrap
 from .materials import image_array, parse_material
 from ..ui.properties import UV_MAP
 from .scene_objects import reported_without_faces, scene_geometry
-from .unwrap import bake_downscale, margin_texels, needs_user_unwrap
+from .unwrap import generated_margin, needs_user_unwrap
 from .world import world_light
 
 #: Texels left empty on each side of an instance tile, so that bilinear lookups
@@ -420,7 +420,7 @@ def _layout(parts, st, warnings):
     for i, p in enumerate(parts):
         if p.baked and p.kind == "object" and p.uv_origin == "generated":
             w = res[set_of[i]][0]
-            p.uv = _generate_uvs(p, w, margin_texels(st.padding, st.dilate, bake_downscale(st)))
+            p.uv = _generate_uvs(p, w, generated_margin(st))
             generated[p.uv_group] = p.uv.astype(np.float32)
     for (source, _data, _T, origin), members in groups.items():
         first = parts[members[0]]
@@ -440,7 +440,7 @@ def _layout(parts, st, warnings):
         s = new_set(f"{source}_instances", gx * r, gy * r)
         group = f"instances:{source}:{first.data_name}:{first.triangles}"
         if origin == "generated":
-            uv = _generate_uvs(first, r, margin_texels(st.padding, st.dilate, bake_downscale(st)))
+            uv = _generate_uvs(first, r, generated_margin(st))
             generated[group] = uv.astype(np.float32)
         inset = TILE_INSET / r if r > 4 * TILE_INSET else 0.0
         for j, i in enumerate(members):

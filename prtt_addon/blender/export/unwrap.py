@@ -187,6 +187,15 @@ def margin_texels(padding: int, dilate: int = 0, bounce_downscale: int = 1) -> i
     return max(int(padding), MIN_MARGIN, int(dilate), coarse)
 
 
+def generated_margin(st) -> int:
+    """Texels between the charts of UVs generated at bake time (meshes without
+    a PRTT map): room for tuning auto's coarse bounce grid whatever the
+    bounce settings, so that changing only those does not change the
+    geometry (its hash holds the UVs) and bake the transfer again."""
+    from ...core.bake.bounce_stage import AUTO_DOWNSCALE  # see bake_downscale
+    return margin_texels(st.padding, st.dilate, AUTO_DOWNSCALE)
+
+
 def bake_downscale(st) -> int:
     """The bounce grid's downscale the bake will ask for with scene settings
     ``st`` (core/bake/bounce_stage.asked_downscale): what the unwrap leaves

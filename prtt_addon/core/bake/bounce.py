@@ -365,7 +365,7 @@ class ExitShader:
 
     def path(self) -> str:
         """How hits are shaded: "compiled" (hit_kernel) or "numpy" (the manifest says which)."""
-        return "compiled" if self.compiled and hit_kernel.kernel(self.bands) is not None else "numpy"
+        return "compiled" if self.compiled and hit_kernel.usable("baked", self.bands) else "numpy"
 
     def shade_rays(self, L: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray, ray_of: np.ndarray,
                    D: np.ndarray) -> None:

@@ -45,6 +45,19 @@ def prefetch(typingctx, arr, idx):
     return types.void(arr, idx), codegen
 
 
+@numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _cell(f, n):
+    """The texel column (row) of texture coordinate times size ``f``, as numpy's
+    clip(int64(f), 0, n - 1) for finite f; NaN gives 0 and +-inf or huge
+    values the nearest edge (numpy's cast is undefined there; numba's would
+    index out of bounds)."""
+    if not f >= 0.0:
+        return 0
+    if f >= n:
+        return n - 1
+    return min(np.int64(f), n - 1)
+
+
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def texel_indices(sel, prim, u, v, frames, W, H, has_glossy, glossy_tri, Wg, Hg):
     """(tex, gtex) (n,) int64 of the hits ``sel``: the flat index of the
@@ -63,13 +76,9 @@ def texel_indices(sel, prim, u, v, frames, W, H, has_glossy, glossy_tri, Wg, Hg)
         t = prim[i]
         x = frames[t, 0] + u[i] * frames[t, 2] + v[i] * frames[t, 4]
         yy = frames[t, 1] + u[i] * frames[t, 3] + v[i] * frames[t, 5]
-        ix = min(max(np.int64(x * fW), 0), W - 1)
-        iy = min(max(np.int64(yy * fH), 0), H - 1)
-        tex[j] = iy * W + ix
+        tex[j] = _cell(yy * fH, H) * W + _cell(x * fW, W)
         if has_glossy and glossy_tri[t]:
-            gx = min(max(np.int64(x * fWg), 0), Wg - 1)
-            gy = min(max(np.int64(yy * fHg), 0), Hg - 1)
-            gtex[j] = gy * Wg + gx
+            gtex[j] = _cell(yy * fHg, Hg) * Wg + _cell(x * fWg, Wg)
     return tex, gtex
 
 

@@ -59,50 +59,77 @@ def available() -> bool:
     return jit.available()
 
 
+_JIT = "prtt_addon.core.bake.hit_jit"
+_ISLANDS = "prtt_addon.core.texels.islands_jit"
+_probe_lock = threading.Lock()
+_probed: dict = {}
+
+
 def _jit():
-    return jit.load("prtt_addon.core.bake.hit_jit")
+    return jit.load(_JIT)
+
+
+def _probe(mod, kind: str, bands: int) -> None:
+    """Call the loops of ``kind`` ("baked" or "relight") on no hits, with the
+    dtypes of a real call: numba compiles (or loads from its cache) the very
+    overloads a bake uses."""
+    i64, f32 = np.zeros(0, np.int64), np.zeros(0, np.float32)
+    rows, f2 = np.zeros(1, np.int32), np.zeros((1, 3), np.float32)
+    mod.texel_indices(i64, i64, f32, f32, np.zeros((1, 6), np.float32), 1, 1, True, np.zeros(1, bool), 1, 1)
+    if kind == "relight":
+        mod.relight_forms(i64, i64, rows, rows, i64, i64, f2, np.zeros((1, 1, 1), np.float32), f2,
+                          np.zeros((1, 1, 1, 1), np.float32), f2, f2, bands, *recurrence_constants(bands), f2, f2,
+                          np.zeros((1, 1, 1), np.float32), np.zeros((1, 1, 1), np.float32))
+    else:
+        mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands), f2)
+
+
+def usable(kind: str, bands: int) -> bool:
+    """The compiled loops of ``kind`` for ``bands`` bands load and run (once
+    per process, cached): False when numba is off or missing, fails to
+    import, or fails to compile them (then recorded in core/jit.failures and
+    never tried again: the bake shades with numpy)."""
+    key = (kind, bands)
+    if key in _probed:
+        return _probed[key]
+    with _probe_lock:
+        if key not in _probed:
+            mod = _jit()
+            ok = mod is not None
+            if ok:
+                try:
+                    _probe(mod, kind, bands)
+                except Exception as exc:      # noqa: BLE001 - a numba/llvmlite this code was not written for
+                    jit.broken(_JIT, exc)
+                    ok = False
+            _probed[key] = ok
+    return _probed[key]
 
 
 def kernel(bands: int = 5):
-    """The compiled shading loop for ``bands`` bands, or None if numba is off,
-    missing or fails to import."""
-    mod = _jit()
-    return None if mod is None else mod.for_bands(bands)
+    """The compiled shading loop for ``bands`` bands, or None if it is not
+    :func:`usable`."""
+    return _jit().for_bands(bands) if usable("baked", bands) else None
 
 
-def warm_up(bands: int, relightable: bool = False) -> threading.Thread | None:
+def warm_up(bands: int, relightable: bool = False, glossy_bands: int = 3) -> threading.Thread | None:
     """Import numba and load (or compile) the kernels on a daemon thread (the
-    hit shading's, and the UV island labels' the bounce grid is chosen with),
-    so that the bounce stage does not wait for them: ~0.45 s with numba's
-    cache, 1.5 s for the first compile (measured on the 2-core VM). Called at
-    the start of a bake with bounces; None when numba is not there."""
+    hit shading's for the bake's mode, and the UV island labels' the bounce
+    grid is chosen with), so that the bounce stage does not wait for them:
+    ~0.45 s with numba's cache, 1.5 s for the first compile (measured on the
+    2-core VM). Called at the start of a bake with bounces; None when numba
+    is not there. Failures are recorded, not raised (:func:`usable`)."""
     if not available():
         return None
-    i64, f32 = np.zeros(0, np.int64), np.zeros(0, np.float32)
 
     def load():
-        try:
-            _load()
-        except Exception:          # noqa: BLE001 - the bake's own first call raises it where it can be reported
-            pass
-
-    def _load():
-        mod = _jit()
-        if mod is None:
-            return
-        # No hits, but the dtypes of a real call: the overloads loaded are the bake's.
-        rows, f2 = np.zeros(1, np.int32), np.zeros((1, 3), np.float32)
-        mod.texel_indices(i64, i64, f32, f32, np.zeros((1, 6), np.float32), 1, 1, True, np.zeros(1, bool), 1, 1)
-        if relightable:
-            mod.relight_forms(i64, i64, rows, rows, i64, i64, f2, np.zeros((1, 1, 1), np.float32), f2,
-                              np.zeros((1, 1, 1, 1), np.float32), f2, f2, 3, *recurrence_constants(3), f2, f2,
-                              np.zeros((1, 1, 1), np.float32), np.zeros((1, 1, 1), np.float32))
-        else:
-            mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands),
-                                 f2)
-        islands = jit.load("prtt_addon.core.texels.islands_jit")   # the bounce grid's choice labels islands
+        usable("relight", glossy_bands) if relightable else usable("baked", bands)
+        islands = jit.load(_ISLANDS)
         if islands is not None:
-            islands.island_labels(np.zeros((1, 1), bool))
+            try:
+                islands.island_labels(np.zeros((1, 1), bool))
+            except Exception as exc:          # noqa: BLE001 - see usable
+                jit.broken(_ISLANDS, exc)
 
     t = threading.Thread(target=load, name="prtt-hit-kernel", daemon=True)
     t.start()

@@ -186,7 +186,7 @@ class RelightShader:
 
     def path(self) -> str:
         """How hits are evaluated: "compiled" or "numpy" (the manifest says which)."""
-        return "compiled" if self.compiled and hit_kernel.kernel() is not None else "numpy"
+        return "compiled" if self.compiled and hit_kernel.usable("relight", self.glossy_bands) else "numpy"
 
     def ray_forms(self, ch: ChunkHits):
         """The exit forms of a chunk's hits per ray, zeros where a ray missed or

@@ -25,12 +25,17 @@ from .relight import (GLOSSY_BANDS, RelightRows, RelightShader, bake_relight_set
 from .stages import BounceSource, Geometry, write_planes
 
 
+def relight_glossy_bands(st) -> int:
+    """Bands of the relightable glossy part, in and out (relight.GLOSSY_BANDS, at most the bake's)."""
+    return min(GLOSSY_BANDS, st.bands)
+
+
 def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list[BounceSource]) -> BounceResult:
     """Bake the relightable bounce light of every set in ``sources`` and stage
     one ``<set>.relight.exr`` per set that any level reached."""
     st, sc = ctx.settings, ctx.scene
     K = st.bands ** 2
-    gbands = min(GLOSSY_BANDS, st.bands)
+    gbands = relight_glossy_bands(st)
     kg = gbands * gbands
     bst = bounce_settings(st, st.bounce_rays)
     inputs, T = bounce_inputs(ctx, sources, geo, lit=False)

@@ -49,7 +49,7 @@ from ..io.outdir import FolderBusyError, FolderLock
 from ..io.scene import Scene
 from . import hit_kernel
 from .bounce_stage import bounce_levels
-from .relight_stage import relight_levels
+from .relight_stage import relight_glossy_bands, relight_levels
 from .commit import commit_bake, finish_skipped, make_manifest
 from .distributed import DaskBake, parse_spec
 from .context import BAKE_FORMAT_VERSION, BAKE_INT_LIMITS, MANIFEST, BakeContext, BakeError, BakeSettings, emit
@@ -157,7 +157,8 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
         if todo or st.vertex_mode:
             start_tables(ctx)
         if plan.bouncing and ctx.remote is None:
-            hit_kernel.warm_up(st.bands, relightable=st.bounce_mode == "relightable")
+            hit_kernel.warm_up(st.bands, relightable=st.bounce_mode == "relightable",
+                               glossy_bands=relight_glossy_bands(st))
         geo = build_geometry(ctx)
         for position, s in enumerate(todo):
             gb = gbuffer_stage(ctx, s, first_gb if position == 0 else None)

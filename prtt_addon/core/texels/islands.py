@@ -26,9 +26,13 @@ def island_labels(mask: np.ndarray) -> np.ndarray:
     their own label; rounds repeat until nothing changes (a few dozen for
     islands hundreds of texels long). With numba (core/jit.py) a compiled
     union-find gives the same labels (islands_jit)."""
-    fast = jit.load("prtt_addon.core.texels.islands_jit")
+    name = "prtt_addon.core.texels.islands_jit"
+    fast = jit.load(name)
     if fast is not None:
-        return fast.island_labels(np.ascontiguousarray(mask, dtype=bool))
+        try:
+            return fast.island_labels(np.ascontiguousarray(mask, dtype=bool))
+        except Exception as exc:          # noqa: BLE001 - a numba that imports but cannot compile it
+            jit.broken(name, exc)
     return island_labels_numpy(mask)
 
 
