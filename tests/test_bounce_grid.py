@@ -178,3 +178,58 @@ def test_bounce_bands_follow_the_phong_lobe(roughness, bands):
     A = np.array([2 * np.pi * np.sum(w * lobe * legval(x, np.eye(5)[l])) for l in range(5)])
     want = 1 + max(l for l in range(5) if abs(A[l] / A[0]) >= bounce_stage.AUTO_LOBE_TOLERANCE)
     assert got == want == bands, (got, want, A / A[0])
+
+
+def _quantize_reference(v: np.ndarray, keep: int) -> np.ndarray:
+    """Round float64 values of float16 numbers to ``keep`` mantissa bits, ties
+    to even, by arithmetic on the values: the quantum is 2^(e - keep) for a
+    normal half of exponent e, 2^(-24 + 10 - keep) for a subnormal one."""
+    a = np.abs(v)
+    e = np.floor(np.log2(np.where(a > 0, a, 1.0)))
+    q = np.where(a >= 2.0 ** -14, 2.0 ** (e - keep), 2.0 ** (-24 + 10 - keep))
+    return np.round(v / q) * q                         # np.round: ties to even
+
+
+@pytest.mark.parametrize("keep", [1, 3, 6, 9, 10])
+def test_quantize_half_rounds_every_half_to_nearest_even(keep):
+    from prtt_addon.core.io.exr_io import quantize_half
+    h = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16).view(np.float16)
+    h = h[np.isfinite(h)]
+    got = quantize_half(h, keep).astype(np.float64)
+    ref = _quantize_reference(h.astype(np.float64), keep)
+    fits = np.abs(ref) <= 65504.0                      # rounding past the largest half keeps the value
+    assert np.array_equal(got[fits], ref[fits])
+    assert np.array_equal(got[~fits], h[~fits].astype(np.float64))
+    err, a = np.abs(got - h)[fits], np.abs(h.astype(np.float64))[fits]
+    assert np.all(err <= np.where(a >= 2.0 ** -14, 2.0 ** -(keep + 1) * a, 2.0 ** (-15 - keep)))
+    with pytest.raises(ValueError):
+        quantize_half(h, 0)
+
+
+def test_tuning_auto_stores_higher_bands_with_six_mantissa_bits(tmp_path):
+    """Tuning auto: the transfer's DC channel is fixed's, bit for bit, and
+    bands l >= 1 are fixed's rounded to 6 mantissa bits (same rays); bounce
+    textures likewise; the header says so; fixed writes all 10 bits as before."""
+    from prtt_addon.core.io.exr_io import quantize_half
+    import OpenEXR
+    sc = corner_scene({"name": "wall", "base_color": [0.9, 0.2, 0.1], "roughness": 0.3}, res=32)
+    light = sky()
+    out = {}
+    for tuning in ("fixed", "auto"):
+        d = tmp_path / tuning
+        bake_scene(sc, str(d), BakeSettings(rays=32, bounces=1, bounce_rays=16, tuning=tuning), light=light)
+        out[tuning] = d
+    for name in ("floor", "wall"):
+        fx = OpenEXR.File(str(out["fixed"] / f"{name}.transfer.exr"))
+        au = OpenEXR.File(str(out["auto"] / f"{name}.transfer.exr"))
+        assert au.header()["prtt_mantissa_bits"] == 6 and "prtt_mantissa_bits" not in fx.header()
+        fc, ac = fx.channels(), au.channels()
+        assert np.array_equal(ac["sh000"].pixels, fc["sh000"].pixels)
+        for k in range(1, 25):
+            n = f"sh{k:03d}"
+            assert np.array_equal(ac[n].pixels.view(np.uint16), quantize_half(fc[n].pixels, 6).view(np.uint16)), n
+        b = OpenEXR.File(str(out["auto"] / f"{name}.bounce1.exr"))
+        assert b.header()["prtt_mantissa_bits"] == 6
+        for n, c in b.channels().items():
+            low = c.pixels.view(np.uint16) & 0xF
+            assert (n.endswith("sh000") or not low.any()), n

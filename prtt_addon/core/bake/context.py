@@ -35,6 +35,10 @@ BAKE_FORMAT_VERSION = 1
 BAKE_INT_LIMITS = _schema.int_limits("bake")
 #: Stage timers (the manifest's "seconds"), zero before the stage runs; "bvh",
 #: "analytic_test" and "total" are added as those steps finish.
+#: Tuning auto: mantissa bits of half storage for SH bands l >= 1 (of 10): a
+#: rounding step of 2^-7 relative, far below a 256-ray texel's Monte Carlo
+#: noise in those bands; ~0.73 of the bytes (bench auto, docs/benchmarks.md).
+AUTO_MANTISSA_BITS = 6
 STAGE_SECONDS = ("gbuffer", "trace", "dilate", "write", "vertex", "bounce_exit", "bounce_trace", "bounce_write")
 _d = _schema.default
 
@@ -81,12 +85,20 @@ class BakeSettings(TransferSettings):
             raise ValueError(f"unknown bake settings: {sorted(unknown)}")
         return cls(**d)
 
+    def storage_bits(self) -> int:
+        """Mantissa bits the half textures keep for the coefficients of bands
+        l >= 1 (exr_io.quantize_half; the DC keeps all 10): AUTO_MANTISSA_BITS
+        under tuning auto, all 10 otherwise (fixed writes today's bits)."""
+        return AUTO_MANTISSA_BITS if self.tuning == "auto" and self.half else 10
+
     def result_key(self) -> dict:
         """Settings that change the transfer textures (not threads, chunking or bounces)."""
         d = self.as_dict()
         for k in ("threads", "chunk_rays", "bounces", "bounce_rays", "bounce_tolerance", "bounce_denoise",
                   "bounce_downscale", "tuning", "bounce_mode"):
             d.pop(k)
+        if self.storage_bits() < 10:
+            d["storage_bits"] = self.storage_bits()     # absent under fixed: its keys are as before
         return d
 
 

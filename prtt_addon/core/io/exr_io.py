@@ -44,6 +44,31 @@ def channel_names(n_coeffs: int, rgb: bool = False) -> list[str]:
     return names
 
 
+HALF_MANTISSA_BITS = 10
+
+
+def quantize_half(h: np.ndarray, keep: int) -> np.ndarray:
+    """float16 values rounded to ``keep`` of half's 10 mantissa bits (round to
+    nearest, ties to even; a carry moves into the exponent as it should).
+    keep: 1 .. 10. Relative rounding error at most 2^-(keep+1) (absolute
+    2^(-15-keep) for subnormals). A value that would round up past the
+    largest half is left as it is.
+    ZIP then compresses the zeroed low bits: noisy SH coefficients at 6 bits
+    take ~0.73 of the bytes (docs/benchmarks.md)."""
+    h = np.asarray(h, np.float16)
+    if not 1 <= int(keep) <= HALF_MANTISSA_BITS:
+        raise ValueError(f"keep {keep} mantissa bits: it must be 1..{HALF_MANTISSA_BITS}")
+    drop = HALF_MANTISSA_BITS - int(keep)
+    if drop <= 0:
+        return h
+    b = h.view(np.uint16).astype(np.uint32)
+    r = (b + ((1 << (drop - 1)) - 1) + ((b >> drop) & 1)) & ~np.uint32((1 << drop) - 1)
+    out = r.astype(np.uint16).view(np.float16)
+    over = ~np.isfinite(out) & np.isfinite(h)
+    out[over] = h[over]
+    return out
+
+
 def value_range(values: np.ndarray, executor=None) -> tuple[float, float]:
     """(min, max) of ``values`` (NaN if any value is NaN; (0, 0) when empty).
 
@@ -89,7 +114,8 @@ def relight_channel_names(n_coeffs: int, glossy_coeffs: int = 0) -> list[str]:
 def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
                     rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
                     executor=None, rng: tuple[float, float] | None = None,
-                    names: list[str] | None = None, bands: int | None = None) -> str:
+                    names: list[str] | None = None, bands: int | None = None,
+                    mantissa_bits: int = HALF_MANTISSA_BITS) -> str:
     """Write an SH texture from channel-first ``planes`` (C, H, W), row 0 at the bottom.
 
     C = K for kind "transfer", 3K when ``rgb`` (bounce; R.sh000.., G.., B..).
@@ -99,6 +125,10 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     rng : the planes' :func:`value_range`, if the caller has it.
     names, bands : the channel names and the header's band count, for layouts
             other than C = K or 3K (relightable bounces: relight_channel_names).
+    mantissa_bits : half storage of the coefficients of bands l >= 1 rounded to
+            this many mantissa bits (:func:`quantize_half`; the DC channels keep
+            all 10); the header records it as ``prtt_mantissa_bits``. Only for
+            the standard layouts (``names`` None).
     Returns the path written.
     """
     import OpenEXR
@@ -108,6 +138,7 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     a = np.asarray(planes)
     if a.ndim != 3:
         raise ValueError(f"SH planes must be (C, H, W), got {a.shape}")
+    custom_names = names is not None
     if names is not None:
         if len(names) != a.shape[0] or bands is None:
             raise ValueError(f"{len(names)} channel names (and the bands) for {a.shape[0]} planes")
@@ -123,8 +154,15 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
         raise ValueError(f"{half_overflow(a, rng)} values exceed the half-float range; write float32")
     dtype = np.float16 if half else np.float32
     H, W = a.shape[1:]
+    lossy = half and mantissa_bits < HALF_MANTISSA_BITS
+    if lossy and custom_names:
+        raise ValueError("mantissa_bits is for the standard SH layouts")
+    K = bands * bands
+
     # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).
-    convert = lambda c: np.ascontiguousarray(a[c, ::-1], dtype=dtype)  # noqa: E731
+    def convert(c):
+        plane = np.ascontiguousarray(a[c, ::-1], dtype=dtype)
+        return quantize_half(plane, mantissa_bits) if lossy and c % K else plane
     mapper = executor.map if executor is not None else map
     channels = dict(zip(names, mapper(convert, range(len(names)))))
     header = {
@@ -137,6 +175,8 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
         "prtt_resolution": f"{W}x{H}",
         "prtt_storage": "half" if half else "float",
     }
+    if lossy:
+        header["prtt_mantissa_bits"] = int(mantissa_bits)
     for k, v in (attrs or {}).items():
         key = k if k.startswith("prtt_") else "prtt_" + k
         if isinstance(v, (bool, np.bool_)):
