@@ -5,7 +5,7 @@ the UV island labels (texels/islands_jit.py). Each keeps a numpy path, used
 when numba is not installed (the extension zip does not bundle it: two
 ~45 MB wheels per Python and platform, and a numpy range of its own), when
 it fails to import (a numpy it does not support), or with PRTT_NO_NUMBA=1 in
-the environment; the numpy paths give the bakes' earlier bytes exactly.
+the environment; the numpy paths run the bakes' earlier arithmetic exactly.
 
 Modules that need numba are imported through :func:`load`, never at the top
 of a module Blender's UI imports: numba's import costs ~0.3 s.

@@ -18,8 +18,8 @@ tests/test_bounce_exit.py checks both paths against a float64 per-hit
 reference and against each other.
 
 numba is optional (core/jit.py): without it :func:`kernel` is None and the
-bake shades with numpy, whose textures are byte-identical to the bakes
-before the kernel. The first call in a process
+bake shades with numpy, the arithmetic of the bakes before the kernel
+(their bytes exactly, under the same settings and storage). The first call in a process
 loads the kernel from numba's cache (~0.45 s with numba's import, on a
 helper thread at the bake's start: :func:`warm_up`) or compiles it (1.5 s,
 once per install; ``cache=True`` writes beside hit_jit.py, or to the user's
