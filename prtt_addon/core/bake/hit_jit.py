@@ -115,6 +115,51 @@ def _reflected_basis(nx, ny, nz, wx, wy, wz, bands, sect, ca, cb, y):
                 y[l * l + l - m] = sqrt2 * p * sm
 
 
+@numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _prefetch_row(flat, row, stride):
+    """Ask for the cache lines of row ``row`` of a (M, stride) table seen flat."""
+    base = row * stride
+    for off in range(0, stride, 16):
+        prefetch(flat, base + off)
+    prefetch(flat, base + stride - 1)
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _first_rows(tex, gtex, row_of, grow_of):
+    """(rows, grows) (n,) int64 for the hits' texels ``tex``/``gtex`` (-1: no
+    glossy row), filled for the first PREFETCH_DISTANCE hits; the loops'
+    :func:`_next_rows` fills the rest PREFETCH_DISTANCE hits ahead."""
+    n = tex.size
+    rows = np.empty(n, np.int64)
+    grows = np.empty(n, np.int64)
+    for j in range(min(PREFETCH_DISTANCE, n)):
+        rows[j] = row_of[tex[j]]
+        grows[j] = grow_of[gtex[j]] if gtex[j] >= 0 else -1
+    return rows, grows
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _next_rows(j, tex, gtex, row_of, grow_of, rows, grows, dflat, dstride, gflat, gstride):
+    """The load pipeline at hit j: ask for the row maps of hit j + 2d, read
+    the rows of hit j + d and ask for their exit rows (``dflat`` rows of
+    ``dstride`` floats; ``gflat`` of ``gstride``), d = PREFETCH_DISTANCE."""
+    n, pd = tex.size, PREFETCH_DISTANCE
+    a2 = j + 2 * pd
+    if a2 < n:
+        prefetch(row_of, tex[a2])
+        if gtex[a2] >= 0:
+            prefetch(grow_of, gtex[a2])
+    a = j + pd
+    if a < n:
+        ra = row_of[tex[a]]
+        ga = grow_of[gtex[a]] if gtex[a] >= 0 else -1
+        rows[a] = ra
+        grows[a] = ga
+        _prefetch_row(dflat, ra, dstride)
+        if ga >= 0:
+            _prefetch_row(gflat, ga, gstride)
+
+
 @numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=FASTMATH, inline="always")
 def _shade(tex, gtex, row_of, grow_of, sel, ray_of, D, diffuse, glossy, bands, sect, ca, cb, out):
     """For the hits ``sel`` (indices into ray_of) of one set, on the texels
@@ -135,34 +180,12 @@ def _shade(tex, gtex, row_of, grow_of, sel, ray_of, D, diffuse, glossy, bands, s
     K = bands * bands
     C = glossy.shape[1]
     f32 = np.float32
-    n = sel.size
-    pd = PREFETCH_DISTANCE
     gflat = glossy.reshape(-1)
     dflat = diffuse.reshape(-1)
-    rows = np.empty(n, np.int64)
-    grows = np.empty(n, np.int64)
-    for j in range(min(pd, n)):
-        rows[j] = row_of[tex[j]]
-        grows[j] = grow_of[gtex[j]] if gtex[j] >= 0 else -1
+    rows, grows = _first_rows(tex, gtex, row_of, grow_of)
     y = np.empty(K, np.float32)
-    for j in range(n):
-        a2 = j + 2 * pd
-        if a2 < n:
-            prefetch(row_of, tex[a2])
-            if gtex[a2] >= 0:
-                prefetch(grow_of, gtex[a2])
-        a = j + pd
-        if a < n:
-            ra = row_of[tex[a]]
-            ga = grow_of[gtex[a]] if gtex[a] >= 0 else -1
-            rows[a] = ra
-            grows[a] = ga
-            prefetch(dflat, ra * 3)
-            if ga >= 0:
-                base = ga * C
-                for off in range(0, C, 16):
-                    prefetch(gflat, base + off)
-                prefetch(gflat, base + C - 1)
+    for j in range(sel.size):
+        _next_rows(j, tex, gtex, row_of, grow_of, rows, grows, dflat, 3, gflat, C)
         i = sel[j]
         ray = ray_of[i]
         row = rows[j]
@@ -244,38 +267,15 @@ def relight_forms(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale, g
     normal[grow]; rows of the texels :func:`texel_indices` found. What
     relight.RelightShader.forms computes with numpy, in one loop that
     prefetches the rows later hits read (as :func:`_shade`)."""
-    pd = PREFETCH_DISTANCE
     cds, cd, K = d_rows.shape[1], rows.shape[1], rows.shape[2]
     cgs, cg, kg = g_rows.shape[1], wg.shape[1], wg.shape[2]
     f32 = np.float32
-    dstride = cds * K
-    gstride = cgs * kg * kg
     dflat = d_rows.reshape(-1)
     gflat = g_rows.reshape(-1)
-    n = sel.size
-    prow = np.empty(n, np.int64)
-    pgrow = np.empty(n, np.int64)
-    for j in range(min(pd, n)):
-        prow[j] = row_of[tex[j]]
-        pgrow[j] = grow_of[gtex[j]] if gtex[j] >= 0 else -1
+    prow, pgrow = _first_rows(tex, gtex, row_of, grow_of)
     y = np.empty(kg, np.float32)
-    for j in range(n):
-        a2 = j + 2 * pd
-        if a2 < n:
-            prefetch(row_of, tex[a2])
-            if gtex[a2] >= 0:
-                prefetch(grow_of, gtex[a2])
-        a = j + pd
-        if a < n:
-            ra = row_of[tex[a]]
-            ga = grow_of[gtex[a]] if gtex[a] >= 0 else -1
-            prow[a] = ra
-            pgrow[a] = ga
-            for off in range(0, dstride, 16):
-                prefetch(dflat, ra * dstride + off)
-            if ga >= 0:
-                for off in range(0, gstride, 16):
-                    prefetch(gflat, ga * gstride + off)
+    for j in range(sel.size):
+        _next_rows(j, tex, gtex, row_of, grow_of, prow, pgrow, dflat, cds * K, gflat, cgs * kg * kg)
         i = sel[j]
         ray = ray_of[i]
         row = prow[j]

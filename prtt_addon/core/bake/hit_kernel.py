@@ -17,7 +17,7 @@ Same results as the numpy path to float32 rounding: the same texel per hit
 tests/test_bounce_exit.py checks both paths against a float64 per-hit
 reference and against each other.
 
-numba is optional (core/jit.py): without it :func:`kernel` is None and the
+numba is optional (core/jit.py): without it :func:`usable` is False and the
 bake shades with numpy, the arithmetic of the bakes before the kernel
 (their bytes exactly, under the same settings and storage). The first call in a process
 loads the kernel from numba's cache (~0.45 s with numba's import, on a
@@ -106,12 +106,6 @@ def usable(kind: str, bands: int) -> bool:
     return _probed[key]
 
 
-def kernel(bands: int = 5):
-    """The compiled shading loop for ``bands`` bands, or None if it is not
-    :func:`usable`."""
-    return _jit().for_bands(bands) if usable("baked", bands) else None
-
-
 def warm_up(bands: int, relightable: bool = False, glossy_bands: int = 3) -> threading.Thread | None:
     """Import numba and load (or compile) the kernels on a daemon thread (the
     hit shading's for the bake's mode, and the UV island labels' the bounce
@@ -147,12 +141,25 @@ def shade_set_hits(sel: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarr
     float32, row ray_of[i] for hit i. prim (h,) int64 triangles, u, v (h,)
     float32 barycentrics, ray_of (h,) int64, D (rays, 3) float32 ray
     directions, frames (T, 6) float32 (bounce.uv_frames), glossy_tri (T,)
-    bool, consts = recurrence_constants(bands). Only when :func:`kernel`
-    is not None."""
-    dg, gg = ex.diffuse_grid, ex.glossy_grid
+    bool, consts = recurrence_constants(bands). Only when
+    usable("baked", bands)."""
     has = ex.glossy is not None
-    g = gg if has else dg
-    mod = _jit()
-    tex, gtex = mod.texel_indices(sel, prim, u, v, frames, dg.width, dg.height, has, glossy_tri, g.width, g.height)
-    mod.for_bands(bands)(tex, gtex, dg.row_of, g.row_of, sel, ray_of, D, ex.diffuse,
-                         ex.glossy if has else _NO_GLOSSY, bands, *consts, out)
+    tex, gtex, g = hit_texels(sel, prim, u, v, frames, glossy_tri, ex.diffuse_grid, ex.glossy_grid if has else None)
+    _jit().for_bands(bands)(tex, gtex, ex.diffuse_grid.row_of, g.row_of, sel, ray_of, D, ex.diffuse,
+                            ex.glossy if has else _NO_GLOSSY, bands, *consts, out)
+
+
+def relight_loop():
+    """hit_jit.relight_forms (only when usable("relight", glossy_bands))."""
+    return _jit().relight_forms
+
+
+def hit_texels(sel, prim, u, v, frames, glossy_tri, diffuse_grid, glossy_grid):
+    """(tex, gtex, grid): the hits ``sel``'s flat texels on ``diffuse_grid`` and,
+    on triangles with a lobe, on ``glossy_grid`` (-1 elsewhere; None: the set
+    has no glossy rows), and the grid gtex indexes (hit_jit.texel_indices).
+    For the compiled loops of both bounce modes."""
+    g = glossy_grid if glossy_grid is not None else diffuse_grid
+    tex, gtex = _jit().texel_indices(sel, prim, u, v, frames, diffuse_grid.width, diffuse_grid.height,
+                                     glossy_grid is not None, glossy_tri, g.width, g.height)
+    return tex, gtex, g

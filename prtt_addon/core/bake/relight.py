@@ -49,7 +49,6 @@ from ..texels.gbuffer import GBuffer
 from ..shading.model import lobe_factors
 from .bounce import ChunkHits, SurfaceTexels, TexelRows, hits_by_set, reflect_rows, trace_bounce_level, uv_frames
 from .raytrace import RayScene
-from .. import jit
 from . import hit_kernel
 from .transfer import Points, TransferSettings
 
@@ -192,7 +191,6 @@ class RelightShader:
         """The exit forms of a chunk's hits per ray, zeros where a ray missed or
         hit a dark set: (ad (rays, 3), ag (rays, 3), rows (rays, cd, K), wg
         (rays, cg, Kg)) float32, HitForms' factors. The compiled path only."""
-        mod = jit.load("prtt_addon.core.bake.hit_jit")
         kg, nr = self.glossy_bands ** 2, ch.n * ch.S
         ad, ag = np.zeros((nr, 3), np.float32), np.zeros((nr, 3), np.float32)
         rows = np.zeros((nr, self.cd, self.K), np.float32)
@@ -203,10 +201,9 @@ class RelightShader:
             if sel.size == 0:
                 continue
             has = ex.g_rows is not None
-            g = ex.glossy_grid if has else ex.diffuse_grid
-            tex, gtex = mod.texel_indices(sel, ch.prim, ch.u, ch.v, self.uv_frame, ex.diffuse_grid.width,
-                                          ex.diffuse_grid.height, has, self.glossy_tri, g.width, g.height)
-            mod.relight_forms(tex, gtex, ex.diffuse_grid.row_of, g.row_of, sel, ch.hit, ch.D, ex.d_rows,
+            tex, gtex, g = hit_kernel.hit_texels(sel, ch.prim, ch.u, ch.v, self.uv_frame, self.glossy_tri,
+                                                 ex.diffuse_grid, ex.glossy_grid if has else None)
+            hit_kernel.relight_loop()(tex, gtex, ex.diffuse_grid.row_of, g.row_of, sel, ch.hit, ch.D, ex.d_rows,
                               ex.d_scale, ex.g_rows if has else _NO_FORMS, ex.g_scale if has else _NO_SCALE,
                               ex.normal if has else _NO_SCALE, self.glossy_bands, *self.consts, ad, ag, rows, wg)
         return ad, ag, rows, wg
