@@ -33,6 +33,7 @@ import numpy as np
 
 from . import register
 from .bench.scenes import ROOM_MATERIALS, room_objects
+from .bench.texture_error import image_error
 from .core.bake.settings_schema import BY_NAME as _SETTINGS
 from .core.io.image_write import srgb_encode, write_image
 from .core.sh.envmap import builtin_environment_path
@@ -149,9 +150,7 @@ def relight_step(bpy, out_dir: str, size, exposure: float, log=print) -> dict:
         st.output_dir, st.bounce_mode = home, mode0
         mapping.inputs["Rotation"].default_value[2] = turn0
     relit, rebaked = shots["RELIGHTABLE"], shots["BAKED"]
-    covered = (relit[..., 3] > 0.5) & (rebaked[..., 3] > 0.5)
-    diff = relit[..., :3][covered] - rebaked[..., :3][covered]
-    rmse = float(np.sqrt(np.mean(diff ** 2)) / np.sqrt(np.mean(rebaked[..., :3][covered] ** 2)))
+    rmse = image_error(relit, rebaked)          # bench relight's measure: RMSE over covered pixels / mean
     image = side_by_side(relit, rebaked,
                          ("relightable bounces, baked at 0\u00b0, relit with the World turned 90\u00b0",
                           "baked bounces, rebaked with the World turned 90\u00b0"),

@@ -31,7 +31,8 @@ import numpy as np
 from ..cli import env_light
 from ..core.bake.runner import BakeSettings, bake_scene
 from . import scenes
-from .sweep import Previewer, image_error, write_csv
+from .sweep import Previewer, write_csv
+from .texture_error import image_error
 
 DOCS_BENCH = os.path.join(scenes.ROOT, "docs", "bench")
 

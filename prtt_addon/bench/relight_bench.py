@@ -35,7 +35,8 @@ from ..core.bake.runner import BakeSettings, bake_scene
 from ..core.io import meshgen as mg
 from ..core.sh.rotation import rotate_zyz
 from . import scenes
-from .sweep import Previewer, image_error, write_csv
+from .sweep import Previewer, write_csv
+from .texture_error import image_error
 
 DOCS_BENCH = os.path.join(scenes.ROOT, "docs", "bench")
 FLOOR = {"name": "floor", "base_color": [0.55, 0.5, 0.45], "roughness": 0.3, "specular": 0.5}

@@ -50,7 +50,7 @@ from ..core.bake.runner import BakeSettings, bake_scene
 from ..core.io.scene import save_scene
 from . import scenes
 from .denoise_sweep import print_rays_needed, sweep_bounce_denoise, sweep_transfer_denoise
-from .texture_error import load_set_textures, texel_error
+from .texture_error import image_error, load_set_textures, texel_error
 
 OUT = os.path.join(scenes.ROOT, "docs", "bench")
 
@@ -81,13 +81,6 @@ class Config:
 
 
 # --- helpers -------------------------------------------------------------------------------
-
-def image_error(img: np.ndarray, ref: np.ndarray) -> float:
-    """Relative RMSE over pixels covered in both."""
-    m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
-    a, b = img[..., :3][m].astype(np.float64), ref[..., :3][m].astype(np.float64)
-    return float(np.sqrt(np.mean((a - b) ** 2)) / np.mean(b))
-
 
 def timed_bake(sc, out_dir, settings: BakeSettings) -> tuple[float, dict]:
     t = time.perf_counter()

@@ -23,3 +23,11 @@ def texel_error(tex: dict, ref: dict) -> float:
         num += float(((t[covered] - r[covered]) ** 2).sum())
         den += float((r[covered] ** 2).sum())
     return float(np.sqrt(num / den))
+
+
+def image_error(img: np.ndarray, ref: np.ndarray) -> float:
+    """Relative RMSE over pixels covered in both: RMSE of RGB over the mean of
+    ``ref`` (H, W, 4) renders, alpha > 0.5 as covered."""
+    m = (img[..., 3] > 0.5) & (ref[..., 3] > 0.5)
+    a, b = img[..., :3][m].astype(np.float64), ref[..., :3][m].astype(np.float64)
+    return float(np.sqrt(np.mean((a - b) ** 2)) / np.mean(b))

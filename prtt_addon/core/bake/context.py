@@ -33,12 +33,12 @@ BAKE_FORMAT_VERSION = 1
 #: Integer settings of the bake beyond TransferSettings': (lowest, highest, why),
 #: derived from settings_schema.SETTINGS (scope "bake").
 BAKE_INT_LIMITS = _schema.int_limits("bake")
-#: Stage timers (the manifest's "seconds"), zero before the stage runs; "bvh",
-#: "analytic_test" and "total" are added as those steps finish.
 #: Tuning auto: mantissa bits of half storage for SH bands l >= 1 (of 10): a
 #: rounding step of 2^-7 relative, far below a 256-ray texel's Monte Carlo
 #: noise in those bands; ~0.73 of the bytes (bench auto, docs/benchmarks.md).
 AUTO_MANTISSA_BITS = 6
+#: Stage timers (the manifest's "seconds"), zero before the stage runs; "bvh",
+#: "analytic_test" and "total" are added as those steps finish.
 STAGE_SECONDS = ("gbuffer", "trace", "dilate", "write", "vertex", "bounce_exit", "bounce_trace", "bounce_write")
 _d = _schema.default
 
