@@ -28,8 +28,9 @@ local thread pool runs, and the outputs are the same bits. What goes where:
 * **Faults.** A worker that dies takes only its running units with it: Dask
   runs them again elsewhere (up to its ``allowed-failures``), and since a
   chunk's result is a function of the chunk, the outputs are still the same
-  bits. A scheduler that is gone for :data:`SCHEDULER_LOST_AFTER` seconds ends
-  the bake with a BakeError; nothing is written (the bake's staging keeps the
+  bits. A scheduler whose connection breaks ends the bake at once (within
+  :data:`PEER_CONNECT_TIMEOUT` when a fetch was opening a connection to it),
+  one silent for :data:`SCHEDULER_LOST_AFTER` seconds too, with a BakeError; nothing is written (the bake's staging keeps the
   previous outputs). Cancellation (SIGTERM, Esc in Blender) cancels the
   cluster's pending tasks and closes a local cluster.
 * **Same code.** Every task first checks that the worker runs the client's
@@ -87,6 +88,10 @@ SCHEDULER_LOST_AFTER = 10.0
 RESHIP_TRIES = 3
 #: Seconds to reach a scheduler, and to wait for its first worker.
 CONNECT_TIMEOUT = 20.0
+#: Seconds a new connection to a scheduler or worker already reached may take
+#: to open. A scheduler killed while a result was being fetched made that
+#: fetch retry the dead address for CONNECT_TIMEOUT (CI, 2026-11-24).
+PEER_CONNECT_TIMEOUT = 3.0
 WORKERS_TIMEOUT = 60.0
 
 
@@ -453,6 +458,10 @@ class DaskBake:
             else:
                 self.client = distributed.Client(self.spec.address, timeout=CONNECT_TIMEOUT, set_as_default=False)
             self.client.wait_for_workers(1, timeout=WORKERS_TIMEOUT)
+            # Reached: from now on a new connection (a gather through the
+            # scheduler, a fetch from a worker) that cannot open is a peer gone,
+            # not one starting; Dask would retry it for CONNECT_TIMEOUT.
+            self.client.rpc.timeout = PEER_CONNECT_TIMEOUT
             self.start_seconds = time.perf_counter() - t
             self.scene_token = scene_token
             self.scene_f = self._scatter(scene)
@@ -505,6 +514,7 @@ class DaskBake:
 
     def threads(self) -> int:
         """Worker threads the scheduler knows now (at least 1)."""
+        self._connected()
         try:
             workers = self.client.scheduler_info().get("workers", {})
         except Exception:
@@ -515,7 +525,16 @@ class DaskBake:
         self._sources.pop(fut.key, None)
         fut.release()
 
+    def _connected(self) -> None:
+        """BakeError at once when Dask already saw the connection to the
+        scheduler break: a call that needs the scheduler (scatter, its worker
+        list) would otherwise wait out Dask's reconnect (CONNECT_TIMEOUT)."""
+        if self.client is not None and self.client.status != "running":
+            raise BakeError(f"lost {self.spec.describe()} (the connection broke, Dask is {self.client.status}); "
+                            f"nothing was written, the previous outputs are intact")
+
     def _scatter(self, obj):
+        self._connected()
         self._sent += payload_bytes(obj)
         try:
             fut = self.client.scatter([obj], broadcast=True, hash=False)[0]
@@ -640,10 +659,11 @@ class DaskBake:
                     futures = submit(list(futures.values()))
                     pending = set(futures)
         except BaseException:
-            try:
-                client.cancel(list(pending), force=True)
-            except Exception:
-                pass
+            if client.status == "running":       # else Dask cancelled them, and a call would wait to reconnect
+                try:
+                    client.cancel(list(pending), force=True)
+                except Exception:
+                    pass
             raise
         finally:
             for f in reshipped:
