@@ -233,3 +233,24 @@ def test_tuning_auto_stores_higher_bands_with_six_mantissa_bits(tmp_path):
         for n, c in b.channels().items():
             low = c.pixels.view(np.uint16) & 0xF
             assert (n.endswith("sh000") or not low.any()), n
+
+
+def test_tuning_auto_rounds_relightable_channels_but_the_dc_response(tmp_path):
+    """A relightable bounce texture under tuning auto: every channel but the
+    out-DC response to the light's DC (``c.dc.i000``) carries no low mantissa
+    bits; those three keep all 10 (and use them); fixed writes every bit."""
+    import OpenEXR
+    sc = corner_scene({"name": "wall", "base_color": [0.9, 0.2, 0.1], "roughness": 0.3}, res=32)
+    for tuning in ("fixed", "auto"):
+        d = tmp_path / tuning
+        bake_scene(sc, str(d), BakeSettings(rays=32, bounces=2, bounce_rays=16, tuning=tuning,
+                                            bounce_mode="relightable"), light=sky())
+        f = OpenEXR.File(str(d / "floor.relight.exr"))
+        ch = f.channels()
+        assert any(".o001." in n for n in ch)                 # the glossy rows are there too
+        low = {n: bool((c.pixels.view(np.uint16) & 0xF).any()) for n, c in ch.items()}
+        if tuning == "fixed":
+            assert "prtt_mantissa_bits" not in f.header() and sum(low.values()) > len(low) // 2
+        else:
+            assert f.header()["prtt_mantissa_bits"] == 6
+            assert {n for n, v in low.items() if v} == {"R.dc.i000", "G.dc.i000", "B.dc.i000"}

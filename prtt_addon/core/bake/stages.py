@@ -291,11 +291,12 @@ def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, at
     if over:
         ctx.warn(f"{fname}: {over} values exceed the half-float range; stored as float32")
         half = False
-    # Tuning auto rounds the half coefficients of bands l >= 1 (context.AUTO_MANTISSA_BITS).
-    bits = ctx.settings.storage_bits() if names is None else exr_io.HALF_MANTISSA_BITS
+    # Tuning auto rounds the half coefficients of bands l >= 1 (context.AUTO_MANTISSA_BITS),
+    # and every relightable channel but the DC-to-DC one.
     exr_io.write_sh_planes(ctx.staging.path(fname), planes, kind=kind, half=half, rgb=rgb,
                            attrs=attrs, atomic=False, executor=ctx.helpers, rng=rng, names=names, bands=bands,
-                           mantissa_bits=bits)
+                           mantissa_bits=ctx.settings.storage_bits(),
+                           full_bits=None if names is None else exr_io.relight_full_bits(names))
     return half
 
 

@@ -111,11 +111,20 @@ def relight_channel_names(n_coeffs: int, glossy_coeffs: int = 0) -> list[str]:
     return names
 
 
+def relight_full_bits(names: list[str]) -> list[bool]:
+    """Which channels of a relightable texture keep all mantissa bits under a
+    lossy storage (write_sh_planes' full_bits): the out-DC response to the
+    light's DC, ``c.dc.i000``, as a transfer texture's DC keeps them; every
+    other channel is a response to a band l >= 1 of the light or of the
+    direction out."""
+    return [n.endswith(".dc.i000") for n in names]
+
+
 def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
                     rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
                     executor=None, rng: tuple[float, float] | None = None,
                     names: list[str] | None = None, bands: int | None = None,
-                    mantissa_bits: int = HALF_MANTISSA_BITS) -> str:
+                    mantissa_bits: int = HALF_MANTISSA_BITS, full_bits=None) -> str:
     """Write an SH texture from channel-first ``planes`` (C, H, W), row 0 at the bottom.
 
     C = K for kind "transfer", 3K when ``rgb`` (bounce; R.sh000.., G.., B..).
@@ -127,8 +136,9 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
             other than C = K or 3K (relightable bounces: relight_channel_names).
     mantissa_bits : half storage of the coefficients of bands l >= 1 rounded to
             this many mantissa bits (:func:`quantize_half`; the DC channels keep
-            all 10); the header records it as ``prtt_mantissa_bits``. Only for
-            the standard layouts (``names`` None).
+            all 10); the header records it as ``prtt_mantissa_bits``.
+    full_bits : with ``names``, one bool per channel: which keep all 10 bits
+            under ``mantissa_bits`` (the layout's DC channels; relight_full_bits).
     Returns the path written.
     """
     import OpenEXR
@@ -155,14 +165,18 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     dtype = np.float16 if half else np.float32
     H, W = a.shape[1:]
     lossy = half and mantissa_bits < HALF_MANTISSA_BITS
-    if lossy and custom_names:
-        raise ValueError("mantissa_bits is for the standard SH layouts")
     K = bands * bands
+    if custom_names:
+        if lossy and (full_bits is None or len(full_bits) != len(names)):
+            raise ValueError("mantissa_bits with custom channel names needs full_bits, one per channel")
+        exact = [bool(f) for f in full_bits] if lossy else None
+    else:
+        exact = [c % K == 0 for c in range(len(names))]
 
     # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).
     def convert(c):
         plane = np.ascontiguousarray(a[c, ::-1], dtype=dtype)
-        return quantize_half(plane, mantissa_bits) if lossy and c % K else plane
+        return quantize_half(plane, mantissa_bits) if lossy and not exact[c] else plane
     mapper = executor.map if executor is not None else map
     channels = dict(zip(names, mapper(convert, range(len(names)))))
     header = {
