@@ -184,21 +184,25 @@ def test_forged_band_counts_are_refused_before_listing_channels(tmp_path, header
             exr_io.read_sh_exr(path)
 
 
-def test_compiled_relight_forms_equal_the_numpy_path(tmp_path, monkeypatch):
-    """The relightable operator from the compiled per-hit loop (numba,
-    hit_jit.relight_forms) equals the numpy path's to float32 rounding, for
-    two levels (level 1: one form for all colours; level 2: one per colour)
-    of a glossy and a diffuse set; the manifest says which path ran."""
+@pytest.mark.parametrize("scene", ["corner", "ball"])
+def test_compiled_relight_projection_equals_the_numpy_path(tmp_path, monkeypatch, scene):
+    """The relightable operator from the compiled loop that shades and
+    projects each hit (numba, hit_jit.relight_project) equals the numpy
+    path's to float32 rounding, for two levels (level 1: one form for all
+    colours; level 2: one per colour) of glossy and diffuse sets, flat ones
+    (one frame per chunk) and a ball (a frame per texel); the manifest says
+    which path ran."""
     from prtt_addon.core import jit
+    from prtt_addon.bench.relight_bench import ball_scene
     assert jit.available(), "numba is pinned in requirements.txt"
-    sc = _scene(GLOSSY_WALL, res=16)
+    sc = _scene(GLOSSY_WALL, res=16) if scene == "corner" else ball_scene(32)[0]
     paths = {}
     for path, off in (("compiled", "0"), ("numpy", "1")):
         monkeypatch.setenv("PRTT_NO_NUMBA", off)
         m = bake_scene(sc, str(tmp_path / path), _settings(bounces=2, bounce_mode="relightable"), light=sky())
         assert {r["hit_shading"] for r in m["bounce"]["sets"]} == {path}
         paths[path] = tmp_path / path
-    for name in ("floor", "wall"):
+    for name in (("floor", "wall") if scene == "corner" else ("floor", "ball", "box")):
         a = exr_io.read_relight_exr(str(paths["compiled"] / f"{name}.relight.exr"))
         b = exr_io.read_relight_exr(str(paths["numpy"] / f"{name}.relight.exr"))
         for x, y in zip(a[:2], b[:2]):

@@ -467,8 +467,15 @@ class ChunkHits:
         if self.fr.shared:
             # One frame: turn the estimator table to world once, not every texel's result.
             return rows @ (table.astype(np.float64) @ shared_rotation(self.fr, K)).astype(np.float32)
+        return self.local_to_world(rows @ table, K, per_texel)
+
+    def local_to_world(self, local: np.ndarray, K: int, per_texel: int) -> np.ndarray:
+        """World SH (n * per_texel, K) of coefficients ``local`` (n * per_texel,
+        K) float32 in each texel's frame (texel-major)."""
+        if self.fr.shared:
+            return local @ shared_rotation(self.fr, K).astype(np.float32)
         rep = lambda a: np.repeat(a, per_texel)  # noqa: E731
-        return rotate_zyz(rows @ table, rep(self.fr.alpha), rep(self.fr.beta), rep(self.fr.gamma))
+        return rotate_zyz(local, rep(self.fr.alpha), rep(self.fr.beta), rep(self.fr.gamma))
 
 
 @dataclasses.dataclass(eq=False)

@@ -257,44 +257,63 @@ def for_bands(bands: int):
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=FASTMATH)
-def relight_forms(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale, g_rows, g_scale, normal, gbands,
-                  sect, ca, cb, ad, ag, rows, wg):
-    """Relightable bounces (relight.RelightShader): the linear forms of the
-    radiance leaving the hits ``sel`` of one set, written per ray (row ray =
-    ray_of[i]): ad[ray] = d_scale[row] (3), rows[ray, c] = d_rows[row, c or 0]
-    (K), and on glossy hits ag[ray] = g_scale[grow] (3), wg[ray, c, i] =
-    sum_o y_o(r) g_rows[grow, c or 0, o, i] (Kg), r the view reflected about
-    normal[grow]; rows of the texels :func:`texel_indices` found. What
-    relight.RelightShader.forms computes with numpy, in one loop that
-    prefetches the rows later hits read (as :func:`_shade`)."""
-    cds, cd, K = d_rows.shape[1], rows.shape[1], rows.shape[2]
-    cgs, cg, kg = g_rows.shape[1], wg.shape[1], wg.shape[2]
+def relight_project(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale, g_rows, g_scale, normal, gbands,
+                    sect, ca, cb, S, w0, table, dc, loc):
+    """Relightable bounces (relight.RelightProjection): the hits ``sel`` of
+    one set projected as they are shaded, with no per-ray array. Hit i (ray
+    = ray_of[i] = t S + s: texel t of the chunk, ray s of its pattern) leaves
+    X[c, k] = d_scale[row, c] d_rows[row, c or 0, k] + (k < Kg) g_scale[grow,
+    c] sum_o y_o(r) g_rows[grow, c or 0, o, k] (r the view reflected about
+    normal[grow]; the glossy term on hits with a lobe); then
+    dc[t, c, k] += w0[s] X[c, k] (the DC row), and when loc has texels,
+    loc[t, c, i, o] += X[c, i] table[s, o] for i, o < Kg (the estimator's
+    local projection; the caller turns it to the world). What relight.py's
+    numpy path computes from the per-ray forms; rows of the texels
+    :func:`texel_indices` found, prefetched as in :func:`_shade`."""
+    cds, K = d_rows.shape[1], d_rows.shape[2]
+    cgs = g_rows.shape[1]
+    kg = table.shape[1]
+    glossy_out = loc.shape[0] > 0
     f32 = np.float32
     dflat = d_rows.reshape(-1)
     gflat = g_rows.reshape(-1)
     prow, pgrow = _first_rows(tex, gtex, row_of, grow_of)
     y = np.empty(kg, np.float32)
+    wg = np.empty((cgs, kg), np.float32)
+    x = np.empty((3, K), np.float32)
     for j in range(sel.size):
         _next_rows(j, tex, gtex, row_of, grow_of, prow, pgrow, dflat, cds * K, gflat, cgs * kg * kg)
-        i = sel[j]
-        ray = ray_of[i]
+        ray = ray_of[sel[j]]
+        t = ray // S
+        s = ray - t * S
         row = prow[j]
         for c in range(3):
-            ad[ray, c] = d_scale[row, c]
-        for c in range(cd):
-            cs = c if cds == cd else 0
+            cs = c if cds == 3 else 0
+            a = d_scale[row, c]
             for k in range(K):
-                rows[ray, c, k] = d_rows[row, cs, k]
+                x[c, k] = a * d_rows[row, cs, k]
         grow = pgrow[j]
         if grow >= 0:
             _reflected_basis(normal[grow, 0], normal[grow, 1], normal[grow, 2], -D[ray, 0], -D[ray, 1], -D[ray, 2],
                              gbands, sect, ca, cb, y)
-            for c in range(cg):
-                cs = c if cgs == cg else 0
+            for cs in range(cgs):
                 for ii in range(kg):
-                    s = f32(0.0)
+                    acc = f32(0.0)
                     for o in range(kg):
-                        s += y[o] * g_rows[grow, cs, o, ii]
-                    wg[ray, c, ii] = s
+                        acc += y[o] * g_rows[grow, cs, o, ii]
+                    wg[cs, ii] = acc
             for c in range(3):
-                ag[ray, c] = g_scale[grow, c]
+                cs = c if cgs == 3 else 0
+                a = g_scale[grow, c]
+                for ii in range(kg):
+                    x[c, ii] += a * wg[cs, ii]
+        w = w0[s]
+        for c in range(3):
+            for k in range(K):
+                dc[t, c, k] += w * x[c, k]
+        if glossy_out:
+            for c in range(3):
+                for ii in range(kg):
+                    xi = x[c, ii]
+                    for o in range(kg):
+                        loc[t, c, ii, o] += xi * table[s, o]

@@ -77,9 +77,9 @@ def _probe(mod, kind: str, bands: int) -> None:
     rows, f2 = np.zeros(1, np.int32), np.zeros((1, 3), np.float32)
     mod.texel_indices(i64, i64, f32, f32, np.zeros((1, 6), np.float32), 1, 1, True, np.zeros(1, bool), 1, 1)
     if kind == "relight":
-        mod.relight_forms(i64, i64, rows, rows, i64, i64, f2, np.zeros((1, 1, 1), np.float32), f2,
-                          np.zeros((1, 1, 1, 1), np.float32), f2, f2, bands, *recurrence_constants(bands), f2, f2,
-                          np.zeros((1, 1, 1), np.float32), np.zeros((1, 1, 1), np.float32))
+        f4 = np.zeros((1, 1, 1, 1), np.float32)
+        mod.relight_project(i64, i64, rows, rows, i64, i64, f2, np.zeros((1, 1, 1), np.float32), f2, f4, f2, f2,
+                            bands, *recurrence_constants(bands), 1, f32, f2, np.zeros((1, 1, 1), np.float32), f4)
     else:
         mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands), f2)
 
@@ -150,8 +150,8 @@ def shade_set_hits(sel: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarr
 
 
 def relight_loop():
-    """hit_jit.relight_forms (only when usable("relight", glossy_bands))."""
-    return _jit().relight_forms
+    """hit_jit.relight_project (only when usable("relight", glossy_bands))."""
+    return _jit().relight_project
 
 
 def hit_texels(sel, prim, u, v, frames, glossy_tri, diffuse_grid, glossy_grid):

@@ -179,7 +179,7 @@ class RelightShader:
         self.glossy_tri = glossy_tri
         self.cd = max((ex.d_rows.shape[1] for ex in exits.values()), default=1)
         self.cg = max((ex.g_rows.shape[1] for ex in exits.values() if ex.g_rows is not None), default=1)
-        # The compiled loop when numba is there (hit_jit.relight_forms), else forms()' numpy.
+        # The compiled loop when numba is there (hit_jit.relight_project), else forms()' numpy.
         self.compiled = hit_kernel.available()
         self.consts = hit_kernel.recurrence_constants(max(glossy_bands, 1))
 
@@ -187,14 +187,15 @@ class RelightShader:
         """How hits are evaluated: "compiled" or "numpy" (the manifest says which)."""
         return "compiled" if self.compiled and hit_kernel.usable("relight", self.glossy_bands) else "numpy"
 
-    def ray_forms(self, ch: ChunkHits):
-        """The exit forms of a chunk's hits per ray, zeros where a ray missed or
-        hit a dark set: (ad (rays, 3), ag (rays, 3), rows (rays, cd, K), wg
-        (rays, cg, Kg)) float32, HitForms' factors. The compiled path only."""
-        kg, nr = self.glossy_bands ** 2, ch.n * ch.S
-        ad, ag = np.zeros((nr, 3), np.float32), np.zeros((nr, 3), np.float32)
-        rows = np.zeros((nr, self.cd, self.K), np.float32)
-        wg = np.zeros((nr, self.cg, kg), np.float32)
+    def project(self, ch: ChunkHits, glossy_out: bool):
+        """The chunk's hits projected as they are shaded (hit_jit.relight_project;
+        the compiled path only): (dc (n, 3, K), local glossy (n, 3, Kg, Kg) in
+        the texels' frames, or None unless ``glossy_out``), float32."""
+        kg, n = self.glossy_bands ** 2, ch.n
+        dc = np.zeros((n, 3, self.K), np.float32)
+        loc = np.zeros((n if glossy_out else 0, 3, kg, kg), np.float32)
+        w0 = np.ascontiguousarray(ch.table[:, 0], dtype=np.float32)
+        table = np.ascontiguousarray(ch.table[:, :kg], dtype=np.float32)
         sets = self.sc.set_id[ch.prim]
         for s, ex in self.exits.items():
             sel = np.flatnonzero(sets == s)
@@ -204,9 +205,10 @@ class RelightShader:
             tex, gtex, g = hit_kernel.hit_texels(sel, ch.prim, ch.u, ch.v, self.uv_frame, self.glossy_tri,
                                                  ex.diffuse_grid, ex.glossy_grid if has else None)
             hit_kernel.relight_loop()(tex, gtex, ex.diffuse_grid.row_of, g.row_of, sel, ch.hit, ch.D, ex.d_rows,
-                              ex.d_scale, ex.g_rows if has else _NO_FORMS, ex.g_scale if has else _NO_SCALE,
-                              ex.normal if has else _NO_SCALE, self.glossy_bands, *self.consts, ad, ag, rows, wg)
-        return ad, ag, rows, wg
+                                      ex.d_scale, ex.g_rows if has else _NO_FORMS, ex.g_scale if has else _NO_SCALE,
+                                      ex.normal if has else _NO_SCALE, self.glossy_bands, *self.consts, ch.S, w0,
+                                      table, dc, loc)
+        return dc, (loc if glossy_out else None)
 
     def forms(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> HitForms:
         """The exit forms at hits on triangles ``tri`` at Embree's (u, v),
@@ -258,18 +260,20 @@ class RelightProjection:
         K, kg = self.K, self.kg
         n, S = ch.n, ch.S
         if self.shader.path() == "compiled":
-            ad, ag, rows_c, wg_c = self.shader.ray_forms(ch)
-            cd, cg = rows_c.shape[1], wg_c.shape[1]
-            f = None
-        else:
-            f = self.shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
-            cd, cg = f.d_rows.shape[1], f.g_w.shape[1]
-            # Per ray (zeros where it missed): the DC weight folded into the colour scales.
-            ad = np.zeros((n * S, 3), np.float32)
-            ag = np.zeros((n * S, 3), np.float32)
-            at = ch.hit[f.index]                  # the rays the forms' rows belong to
-            ad[at] = f.d_scale
-            ag[at] = f.g_scale
+            dc, loc = self.shader.project(ch, self.glossy_out)
+            gl = None
+            if loc is not None:
+                world = ch.local_to_world(loc.reshape(n * 3 * kg, kg), kg, 3 * kg).reshape(n, 3, kg, kg)
+                gl = np.ascontiguousarray(world[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
+            return dc.reshape(n, 3 * K).T, gl
+        f = self.shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
+        cd, cg = f.d_rows.shape[1], f.g_w.shape[1]
+        # Per ray (zeros where it missed): the DC weight folded into the colour scales.
+        ad = np.zeros((n * S, 3), np.float32)
+        ag = np.zeros((n * S, 3), np.float32)
+        at = ch.hit[f.index]                  # the rays the forms' rows belong to
+        ad[at] = f.d_scale
+        ag[at] = f.g_scale
         w0 = np.ascontiguousarray(ch.table[:, 0])
         ad = ad.reshape(n, S, 3)
         ag = ag.reshape(n, S, 3)
@@ -277,15 +281,12 @@ class RelightProjection:
         if cd == 1 and cg == 1:
             # Level 1: one row per hit for all colours, so the DC row is a
             # (3, S) @ (S, K) product per texel; no (rays, 3, K) array.
-            if f is None:
-                rows, wg = rows_c.reshape(n, S, K), wg_c.reshape(n, S, kg)
-            else:
-                rows = np.zeros((n * S, K), np.float32)
-                wg = np.zeros((n * S, kg), np.float32)
-                rows[at] = f.d_rows[:, 0]
-                wg[at] = f.g_w[:, 0]
-                rows = rows.reshape(n, S, K)
-                wg = wg.reshape(n, S, kg)
+            rows = np.zeros((n * S, K), np.float32)
+            wg = np.zeros((n * S, kg), np.float32)
+            rows[at] = f.d_rows[:, 0]
+            wg[at] = f.g_w[:, 0]
+            rows = rows.reshape(n, S, K)
+            wg = wg.reshape(n, S, kg)
             # Contiguous operands: numpy's stacked matmul takes BLAS only for those.
             out = np.matmul(np.ascontiguousarray((ad * w0[:, None]).transpose(0, 2, 1)), rows)   # (n, 3, K)
             out[:, :, :kg] += np.matmul(np.ascontiguousarray((ag * w0[:, None]).transpose(0, 2, 1)), wg)
@@ -293,13 +294,8 @@ class RelightProjection:
             if self.glossy_out:
                 Y = ad[:, :, :, None] * rows[:, :, None, :kg] + ag[:, :, :, None] * wg[:, :, None, :]
         else:
-            if f is None:
-                # HitForms.full per ray (misses and dark sets: zeros).
-                X = ad.reshape(n * S, 3, 1) * rows_c
-                X[:, :, :kg] += ag.reshape(n * S, 3, 1) * wg_c
-            else:
-                X = np.zeros((n * S, 3, K), np.float32)
-                X[at] = f.full()
+            X = np.zeros((n * S, 3, K), np.float32)
+            X[at] = f.full()
             X = X.reshape(n, S, 3 * K)
             # The DC row: the estimator's DC weights (rotation leaves the DC alone).
             dc = (w0 @ X).T
