@@ -212,3 +212,33 @@ def test_compiled_relight_projection_equals_the_numpy_path(tmp_path, monkeypatch
             scale = np.abs(y).max()
             assert scale > 0
             np.testing.assert_allclose(x, y, rtol=0, atol=2e-6 * scale)
+
+
+def test_local_to_world_shared_frame_equals_per_texel_frames():
+    """ChunkHits.local_to_world of a shared-frame chunk (one rotation matrix)
+    equals the per-texel rotation of the same frame, and to_world(rows) equals
+    local_to_world(rows @ table), both ways."""
+    from prtt_addon.core.bake.bounce import ChunkHits
+    from prtt_addon.core.bake.transfer import ChunkFrames
+    rng = np.random.default_rng(3)
+    n, per, S, kg = 5, 4, 16, 9
+    a, b, g = rng.uniform(0, 2 * np.pi), rng.uniform(0, np.pi), rng.uniform(0, 2 * np.pi)
+    z3, zb = np.zeros((n, 3), np.float32), np.zeros(n, bool)
+
+    def hits(shared):
+        fr = ChunkFrames(np.full(n, a), np.full(n, b), np.full(n, g), np.zeros((n, 3, 3), np.float32), z3, z3, zb,
+                         shared=shared)
+        return ChunkHits(np.arange(n), S, np.zeros((n * S, 3), np.float32), np.zeros(0, np.int64),
+                         np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.float32),
+                         rng.standard_normal((S, 25)).astype(np.float32), fr)
+
+    sh, pt = hits(True), hits(False)
+    pt.table = sh.table
+    local = rng.standard_normal((n * per, kg)).astype(np.float32)
+    np.testing.assert_allclose(sh.local_to_world(local, kg, per), pt.local_to_world(local, kg, per), atol=2e-5)
+    rows = rng.standard_normal((n * per, S)).astype(np.float32)
+    for h in (sh, pt):
+        np.testing.assert_allclose(h.to_world(rows, kg, per), h.local_to_world(rows @ h.table[:, :kg], kg, per),
+                                   rtol=1e-4, atol=1e-4)
+    # A real rotation: the per-texel path moves coefficients of band 1 and 2.
+    assert not np.allclose(pt.local_to_world(local, kg, per)[:, 1:], local[:, 1:], atol=1e-2)
