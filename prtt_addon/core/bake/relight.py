@@ -244,6 +244,14 @@ class RelightShader:
                           for f in dataclasses.fields(HitForms)))
 
 
+def _glossy_channels(world: np.ndarray, n: int, kg: int) -> np.ndarray:
+    """The glossy rows' channels (3 (Kg - 1) Kg, n), colour, then out
+    coefficient o >= 1, then light coefficient, from world SH (n 3 Kg, Kg)
+    ordered texel, colour, light coefficient i (rows) by out coefficient o."""
+    w = world.reshape(n, 3, kg, kg)                                                # (n, c, i, o)
+    return np.ascontiguousarray(w[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
+
+
 @dataclasses.dataclass(eq=False)
 class RelightProjection:
     """A relightable level's projection of one chunk (bounce.trace_bounce_level):
@@ -263,8 +271,7 @@ class RelightProjection:
             dc, loc = self.shader.project(ch, self.glossy_out)
             gl = None
             if loc is not None:
-                world = ch.local_to_world(loc.reshape(n * 3 * kg, kg), kg, 3 * kg).reshape(n, 3, kg, kg)
-                gl = np.ascontiguousarray(world[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
+                gl = _glossy_channels(ch.local_to_world(loc.reshape(n * 3 * kg, kg), kg, 3 * kg), n, kg)
             return dc.reshape(n, 3 * K).T, gl
         f = self.shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
         cd, cg = f.d_rows.shape[1], f.g_w.shape[1]
@@ -304,8 +311,7 @@ class RelightProjection:
         if Y is not None:
             # Rows (texel, colour, light coefficient i < Kg) projected on Kg out coefficients.
             Yt = np.ascontiguousarray(Y.transpose(0, 2, 3, 1)).reshape(n * 3 * kg, S)
-            world = ch.to_world(Yt, kg, 3 * kg).reshape(n, 3, kg, kg)                    # (n, c, i, o)
-            gl = np.ascontiguousarray(world[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
+            gl = _glossy_channels(ch.to_world(Yt, kg, 3 * kg), n, kg)
         return dc, gl
 
 
