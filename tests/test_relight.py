@@ -242,3 +242,11 @@ def test_local_to_world_shared_frame_equals_per_texel_frames():
                                    rtol=1e-4, atol=1e-4)
     # A real rotation: the per-texel path moves coefficients of band 1 and 2.
     assert not np.allclose(pt.local_to_world(local, kg, per)[:, 1:], local[:, 1:], atol=1e-2)
+    # Distinct frames per texel: each texel's rows turned by its own rotation.
+    pt.fr.alpha, pt.fr.beta, pt.fr.gamma = (rng.uniform(0, 3, n) for _ in range(3))
+    rep = lambda v: np.repeat(v, per)  # noqa: E731
+    from prtt_addon.core.sh.rotation import rotate_zyz
+    want = rotate_zyz(local.astype(np.float64), rep(pt.fr.alpha), rep(pt.fr.beta), rep(pt.fr.gamma))
+    np.testing.assert_allclose(pt.local_to_world(local, kg, per), want, atol=2e-5)
+    np.testing.assert_allclose(pt.to_world(rows, kg, per), pt.local_to_world(rows @ pt.table[:, :kg], kg, per),
+                               rtol=1e-4, atol=1e-4)

@@ -30,7 +30,9 @@ local thread pool runs, and the outputs are the same bits. What goes where:
   chunk's result is a function of the chunk, the outputs are still the same
   bits. A scheduler whose connection breaks ends the bake at once (within
   :data:`PEER_CONNECT_TIMEOUT` when a fetch was opening a connection to it),
-  one silent for :data:`SCHEDULER_LOST_AFTER` seconds too, with a BakeError; nothing is written (the bake's staging keeps the
+  with a BakeError, as does a client Dask keeps disconnected for
+  :data:`SCHEDULER_LOST_AFTER` seconds. A scheduler that hangs with its
+  connection open is not detected (Dask's own timeouts apply). Nothing is written (the bake's staging keeps the
   previous outputs). Cancellation (SIGTERM, Esc in Blender) cancels the
   cluster's pending tasks and closes a local cluster.
 * **Same code.** Every task first checks that the worker runs the client's
@@ -285,8 +287,7 @@ def quiet_shutdown() -> None:
     """Run on a local cluster's workers before it is closed: their shutdown
     races (a heartbeat to a scheduler already stopping logs a traceback,
     CI 2026-11-24) are not the bake's errors; errors during it were logged."""
-    import logging
-    logging.getLogger("distributed").setLevel(logging.CRITICAL)
+    quiet_loggers("distributed")
 
 
 def worker_name() -> str:
@@ -553,6 +554,10 @@ class DaskBake:
             self._sources[fut.key] = obj
             return fut
         except Exception as exc:
+            if isinstance(exc, OSError) or self.client.status != "running":
+                # The scheduler went away as the data left (Dask had not seen it yet).
+                raise BakeError(f"lost {self.spec.describe()} while sending the bake's data ({type(exc).__name__}: "
+                                f"{exc}); nothing was written, the previous outputs are intact") from None
             raise BakeError(f"cannot send the bake's data to {self.spec.describe()}: "
                             f"{type(exc).__name__}: {exc}") from None
 

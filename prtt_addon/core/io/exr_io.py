@@ -138,7 +138,7 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
             this many mantissa bits (:func:`quantize_half`; the DC channels keep
             all 10); the header records it as ``prtt_mantissa_bits``.
     full_bits : with ``names``, one bool per channel: which keep all 10 bits
-            under ``mantissa_bits`` (the layout's DC channels; relight_full_bits).
+            under ``mantissa_bits`` (the layout's DC-to-DC channels; relight_full_bits).
     Returns the path written.
     """
     import OpenEXR
