@@ -150,10 +150,6 @@ def main(argv=None) -> int:
     names.sort(key=lambda n: n == "room")              # the room's summary is the last line
     res, size = (128, (160, 90)) if args.quick else (1024, (640, 360))
     light = env_light("forest", 5)
-    # Per-process set-up (numba and its cached kernels, ray tables per ray
-    # count: ~2 s the first time) is warmed on a toy room before each timed
-    # bake; cold, the first variant (fixed) paid it.
-    tiny = scenes.room_scene(64, atlas=True, materials=True)
     rows = []
     for name in names:
         sc, camera = scene_and_camera(name, res if name == "room" or not args.quick else 64)
@@ -167,8 +163,8 @@ def main(argv=None) -> int:
                 if variant == "grid 1/2" and name != "room":
                     continue
                 d = os.path.join(tmp, variant.replace(" ", "_").replace("/", "-"))
-                bake_scene(tiny, os.path.join(tmp, "warm"), BakeSettings(bounces=1, **extra), light=light,
-                           skip_if_unchanged=False)
+                # Cold, the first variant (fixed) paid the process's set-up.
+                scenes.warm_up(os.path.join(tmp, "warm"), BakeSettings(bounces=1, **extra), light)
                 r = {"scene": name, "variant": variant, **bake_variant(sc, d, light, extra, view, ref_img)}
                 rows.append(r)
                 shutil.rmtree(d, ignore_errors=True)

@@ -71,11 +71,8 @@ def main(argv=None) -> int:
           f"{args.bounces} bounce(s) x {args.bounce_rays} rays, denoise {args.bounce_denoise}, "
           f"tuning {args.tuning}")
     with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
-        # Per-process set-up (numba and its cached kernels, ray tables: ~1-2 s
-        # once) is paid on a toy room first; cold, the transfer-only bake that
-        # the ratios divide by carried it.
-        tiny = scenes.room_scene(64, atlas=True, materials=True)
-        bake_scene(tiny, os.path.join(d, "warm"), st, light=light)
+        # Cold, the transfer-only bake that the ratios divide by carried the process's set-up.
+        scenes.warm_up(os.path.join(d, "warm"), st, light)
         t = time.perf_counter()
         bake_scene(sc, d, BakeSettings(rays=args.rays, bounces=0, tuning=args.tuning), light=light)
         t_transfer = time.perf_counter() - t

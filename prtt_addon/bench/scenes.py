@@ -142,6 +142,15 @@ ROOM_MATERIALS = {
 }
 
 
+def warm_up(folder: str, settings, light=None) -> None:
+    """Bake a toy room (64² atlas, the room's materials) with ``settings`` into
+    ``folder``: a process's first bake pays its set-up (numba and its cached
+    kernels, ray tables per ray count: ~1-2 s), which a timed bake that
+    follows then does not. The benches that compare bake times call it first."""
+    from ..core.bake.runner import bake_scene       # the benches' scenes need not import the bake
+    bake_scene(room_scene(64, atlas=True, materials=True), folder, settings, light=light, skip_if_unchanged=False)
+
+
 def with_room_materials(sc: Scene) -> Scene:
     """The room scene with one Principled-style material per object."""
     from ..core.io.scene import validate
