@@ -69,3 +69,9 @@ def test_bake_bench_on_a_dask_cluster():
     out = bench("bake", "--dask", "local:2", "--resolution", "128", "--rays", "32", "--repeat", "1")
     assert "textures identical: True" in out and "speed-up over the local bake:" in out
     assert "check: 2 local workers predicted" in out and "farm, 64 workers" in out
+
+
+def test_sweep_adaptive_bounce_quick(tmp_path):
+    out = bench("sweep", "--quick", "--only", "adaptive_bounce", "--out", str(tmp_path))
+    assert (tmp_path / "adaptive_bounce.csv").is_file(), out
+    assert "oracle allocation needs" in out

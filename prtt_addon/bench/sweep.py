@@ -26,6 +26,10 @@ Everything is measured in this run on this machine and written to
   bilateral within UV islands; OIDN RTLightmap on normalised SH when pyoidn
   is installed), error against a 2048-ray bounce reference, time including
   the denoiser. -> denoise.csv, bounce_denoise.png (bench/denoise_sweep.py)
+* **adaptive_bounce** (``--only adaptive_bounce``): the most an adaptive bounce ray count
+  could save, from two default bakes that differ in their seed (the oracle
+  allocation's ray saving at equal error). -> adaptive_bounce.csv
+  (bench/adaptive_bound.py)
 * **scenes** of the paper's table (room 21K, plants 18K, two statues and a
   monkey 458K, dragon-class 1.33M triangles), 256 rays: seconds, peak RSS,
   texels, bytes per texel against the paper's 100 MB per 1024^2 texture.
@@ -49,6 +53,7 @@ import numpy as np
 from ..core.bake.runner import BakeSettings, bake_scene
 from ..core.io.scene import save_scene
 from . import scenes
+from .adaptive_bound import sweep_adaptive_bound
 from .denoise_sweep import print_rays_needed, sweep_bounce_denoise, sweep_transfer_denoise
 from .texture_error import image_error, load_set_textures, texel_error
 
@@ -446,6 +451,11 @@ def main(argv=None) -> int:
                 results["denoise_transfer"] = sweep_transfer_denoise(cfg, sc, tmp)
                 print_rays_needed(results["denoise_transfer"], "rays", 256, "transfer")
             part_seconds["denoise"] = time.perf_counter() - t
+        if "adaptive_bounce" in parts:
+            print("adaptive bounce rays, the oracle's bound (room, tuning auto):", flush=True)
+            t = time.perf_counter()
+            results["adaptive_bounce"] = sweep_adaptive_bound(cfg, light_fn(5), tmp)
+            part_seconds["adaptive_bounce"] = time.perf_counter() - t
         if "scenes" in parts:
             print("the paper's scene classes (256 rays):", flush=True)
             t = time.perf_counter()
