@@ -251,6 +251,9 @@ def test_tuning_auto_rounds_relightable_channels_but_the_dc_response(tmp_path):
         low = {n: bool((c.pixels.view(np.uint16) & 0xF).any()) for n, c in ch.items()}
         if tuning == "fixed":
             assert "prtt_mantissa_bits" not in f.header() and sum(low.values()) > len(low) // 2
+            assert "prtt_glossy_colour" not in f.header() and "R.o001.i000" in ch
         else:
             assert f.header()["prtt_mantissa_bits"] == 6
+            # Auto also stores the glossy rows once for all colours.
+            assert f.header()["prtt_glossy_colour"] == "shared" and "S.o001.i000" in ch and "R.o001.i000" not in ch
             assert {n for n, v in low.items() if v} == {"R.dc.i000", "G.dc.i000", "B.dc.i000"}

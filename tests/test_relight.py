@@ -184,17 +184,18 @@ def test_forged_band_counts_are_refused_before_listing_channels(tmp_path, header
             exr_io.read_sh_exr(path)
 
 
-@pytest.mark.parametrize("scene", ["corner", "ball"])
-def test_compiled_relight_projection_equals_the_numpy_path(tmp_path, monkeypatch, scene):
+@pytest.mark.parametrize("scene,shared", [("corner", False), ("ball", False), ("ball", True)])
+def test_compiled_relight_projection_equals_the_numpy_path(tmp_path, monkeypatch, scene, shared):
     """The relightable operator from the compiled loop that shades and
     projects each hit (numba, hit_jit.relight_project) equals the numpy
     path's to float32 rounding, for two levels (level 1: one form for all
     colours; level 2: one per colour) of glossy and diffuse sets, flat ones
-    (one frame per chunk) and a ball (a frame per texel); the manifest says
-    which path ran."""
+    (one frame per chunk) and a ball (a frame per texel), with glossy rows per
+    colour and shared; the manifest says which path ran."""
     from prtt_addon.core import jit
     from prtt_addon.bench.relight_bench import ball_scene
     assert jit.available(), "numba is pinned in requirements.txt"
+    monkeypatch.setattr(relight_stage, "relight_shared_colour", lambda st: shared)
     sc = _scene(GLOSSY_WALL, res=16) if scene == "corner" else ball_scene(32)[0]
     paths = {}
     for path, off in (("compiled", "0"), ("numpy", "1")):
@@ -250,3 +251,84 @@ def test_local_to_world_shared_frame_equals_per_texel_frames():
     np.testing.assert_allclose(pt.local_to_world(local, kg, per), want, atol=2e-5)
     np.testing.assert_allclose(pt.to_world(rows, kg, per), pt.local_to_world(rows @ pt.table[:, :kg], kg, per),
                                rtol=1e-4, atol=1e-4)
+
+
+GREY_FLOOR = {"name": "floor", "base_color": [0.5, 0.5, 0.5], "specular": 0.0}
+GREY_GLOSSY = {"name": "glossy", "base_color": [0.6, 0.6, 0.6], "roughness": 0.45, "specular": 1.0}
+
+
+def _bake_both(tmp_path, monkeypatch, sc, levels):
+    """(per-colour folder, shared folder) of the same relightable bake."""
+    out = {}
+    for shared in (False, True):
+        monkeypatch.setattr(relight_stage, "relight_shared_colour", lambda st, v=shared: v)
+        out[shared] = tmp_path / ("shared" if shared else "per-colour")
+        bake_scene(sc, str(out[shared]), _settings(bounces=levels, bounce_mode="relightable"), light=sky())
+    return out[False], out[True]
+
+
+def test_shared_colour_glossy_rows_are_exact_off_grey_surfaces(tmp_path, monkeypatch):
+    """Light that bounced off grey surfaces only has the same glossy rows in
+    every colour, so the shared rows (one set, tinted back by the DC
+    response) equal the per-colour ones and, at full bands, the baked bounce
+    texture, for two levels (level 2 reads the shared rows of level 1)."""
+    monkeypatch.setattr(relight_stage, "GLOSSY_BANDS", 5)
+    sc = _scene(GREY_GLOSSY, res=16)
+    sc.materials[0] = GREY_FLOOR
+    light = sky()
+    per, shared = _bake_both(tmp_path, monkeypatch, sc, 2)
+    bake_scene(sc, str(tmp_path / "b"), _settings(bounces=2), light=light)
+    import OpenEXR
+    with OpenEXR.File(str(shared / "wall.relight.exr")) as f:
+        names, header = set(f.channels()), dict(f.header())
+    assert header["prtt_glossy_colour"] == "shared"
+    assert "S.o001.i000" in names and not any(n.startswith("R.o") for n in names)
+    assert len(names) == 3 * 25 + 24 * 25
+    with OpenEXR.File(str(per / "wall.relight.exr")) as f:
+        assert "prtt_glossy_colour" not in f.header()
+    a, b = exr_io.read_relight_exr(str(per / "wall.relight.exr")), exr_io.read_relight_exr(str(shared / "wall.relight.exr"))
+    assert b[1].shape == a[1].shape
+    np.testing.assert_allclose(b[1], a[1], rtol=0, atol=1e-5 * np.abs(a[1]).max())
+    baked = _baked(str(tmp_path / "b"), "wall", 2)
+    np.testing.assert_allclose(_relit(str(shared), "wall", light, 25), baked, rtol=0,
+                               atol=5e-5 * np.abs(baked).max())
+
+
+def test_shared_colour_glossy_rows_keep_the_colour_mean_and_the_dc_rows(tmp_path, monkeypatch):
+    """Off coloured surfaces the shared rows are an approximation, but the DC
+    rows are the per-colour bake's bit for bit (one level), and the colours'
+    mean of the tinted rows is the per-colour rows' mean (the tints average
+    to one)."""
+    sc = _scene(GLOSSY_WALL, res=16)
+    # A glossy floor too: each set sees a diffuse and a specular colour, so its rows differ per colour.
+    sc.materials[0] = {"name": "floor", "base_color": [0.8, 0.5, 0.2], "roughness": 0.4, "specular": 0.8}
+    per, shared = _bake_both(tmp_path, monkeypatch, sc, 1)
+    for name in ("floor", "wall"):
+        a = exr_io.read_relight_exr(str(per / f"{name}.relight.exr"))
+        b = exr_io.read_relight_exr(str(shared / f"{name}.relight.exr"))
+        np.testing.assert_array_equal(b[0], a[0])
+        scale = np.abs(a[1]).max()
+        np.testing.assert_allclose(b[1].mean(axis=2), a[1].mean(axis=2), rtol=0, atol=1e-5 * scale)
+        assert np.abs(b[1] - a[1]).max() > 1e-2 * scale          # the colours do differ here
+
+
+def test_expand_shared_glossy_tints_by_the_dc_response():
+    dc = np.zeros((2, 3, 25), np.float32)
+    dc[0, :, 0] = (0.3, 0.6, 0.9)                            # tints 0.5, 1, 1.5
+    S = np.arange(2 * 8 * 9, dtype=np.float32).reshape(2, 8, 9)
+    out = exr_io.expand_shared_glossy(dc, S)
+    np.testing.assert_allclose(out[0], np.array([0.5, 1.0, 1.5])[:, None, None] * S[0], rtol=1e-6)
+    np.testing.assert_array_equal(out[1], np.broadcast_to(S[1], (3, 8, 9)))   # no DC response: untinted
+
+
+def test_an_unknown_glossy_colour_layout_is_refused(tmp_path):
+    path = str(tmp_path / "x.relight.exr")
+    names = exr_io.relight_channel_names(4, 4, shared=True)
+    exr_io.write_sh_planes(path, np.zeros((len(names), 2, 2), np.float32), kind="relight", half=False, names=names,
+                           bands=2, attrs={"glossy_bands": 2, "glossy_colour": "shared"})
+    dc, gl, _ = exr_io.read_relight_exr(path)
+    assert dc.shape == (2, 2, 3, 4) and gl.shape == (2, 2, 3, 3, 4)
+    exr_io.write_sh_planes(path, np.zeros((len(names), 2, 2), np.float32), kind="relight", half=False, names=names,
+                           bands=2, attrs={"glossy_bands": 2, "glossy_colour": "mono"})
+    with pytest.raises(exr_io.TextureError, match="glossy_colour 'mono'"):
+        exr_io.read_relight_exr(path)

@@ -244,34 +244,40 @@ class RelightShader:
                           for f in dataclasses.fields(HitForms)))
 
 
-def _glossy_channels(world: np.ndarray, n: int, kg: int) -> np.ndarray:
-    """The glossy rows' channels (3 (Kg - 1) Kg, n), colour, then out
-    coefficient o >= 1, then light coefficient, from world SH (n 3 Kg, Kg)
-    ordered texel, colour, light coefficient i (rows) by out coefficient o."""
-    w = world.reshape(n, 3, kg, kg)                                                # (n, c, i, o)
+def _glossy_channels(world: np.ndarray, n: int, kg: int, colours: int = 3) -> np.ndarray:
+    """The glossy rows' channels (colours (Kg - 1) Kg, n), colour, then out
+    coefficient o >= 1, then light coefficient, from world SH (n colours Kg,
+    Kg) ordered texel, colour, light coefficient i (rows) by out coefficient o."""
+    w = world.reshape(n, colours, kg, kg)                                          # (n, c, i, o)
     return np.ascontiguousarray(w[:, :, :, 1:].transpose(0, 1, 3, 2)).reshape(n, -1).T
 
 
 @dataclasses.dataclass(eq=False)
 class RelightProjection:
     """A relightable level's projection of one chunk (bounce.trace_bounce_level):
-    (DC rows (3K, n), glossy rows (3 (Kg - 1) Kg, n) or None unless
+    (DC rows (3K, n), glossy rows (C (Kg - 1) Kg, n) or None unless
     ``glossy_out``) for the chunk's texel columns; channel order colour, then
-    out coefficient, then light coefficient."""
+    out coefficient, then light coefficient. C = 3, or 1 with
+    ``shared_colour``: the colours' mean (exr_io.expand_shared_glossy tints
+    it back), projected and turned to the world once instead of three times."""
 
     shader: RelightShader
     K: int
     kg: int
     glossy_out: bool
+    shared_colour: bool = False
 
     def __call__(self, ch: ChunkHits):
         K, kg = self.K, self.kg
         n, S = ch.n, ch.S
+        nc = 1 if self.shared_colour else 3
         if self.shader.path() == "compiled":
             dc, loc = self.shader.project(ch, self.glossy_out)
             gl = None
             if loc is not None:
-                gl = _glossy_channels(ch.local_to_world(loc.reshape(n * 3 * kg, kg), kg, 3 * kg), n, kg)
+                if self.shared_colour:
+                    loc = loc.mean(axis=1)
+                gl = _glossy_channels(ch.local_to_world(loc.reshape(n * nc * kg, kg), kg, nc * kg), n, kg, nc)
             return dc.reshape(n, 3 * K).T, gl
         f = self.shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
         cd, cg = f.d_rows.shape[1], f.g_w.shape[1]
@@ -309,29 +315,34 @@ class RelightProjection:
             if self.glossy_out:
                 Y = X.reshape(n, S, 3, K)[:, :, :, :kg]
         if Y is not None:
+            if self.shared_colour:
+                Y = Y.mean(axis=2, keepdims=True)
             # Rows (texel, colour, light coefficient i < Kg) projected on Kg out coefficients.
-            Yt = np.ascontiguousarray(Y.transpose(0, 2, 3, 1)).reshape(n * 3 * kg, S)
-            gl = _glossy_channels(ch.to_world(Yt, kg, 3 * kg), n, kg)
+            Yt = np.ascontiguousarray(Y.transpose(0, 2, 3, 1)).reshape(n * nc * kg, S)
+            gl = _glossy_channels(ch.to_world(Yt, kg, nc * kg), n, kg, nc)
         return dc, gl
 
 
 def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: RelightShader,
-                     st: TransferSettings, level: int, *, glossy_out: bool, progress=None, cancel=None,
-                     remote=None):
+                     st: TransferSettings, level: int, *, glossy_out: bool, shared_colour: bool = False,
+                     progress=None, cancel=None, remote=None):
     """One set's relightable level. Returns (dc planes (3K, H*W), glossy planes
-    (3 (Kg - 1) Kg, H*W) or None when not ``glossy_out``, coverage mask (H, W),
-    stats); channel order colour, then out coefficient, then light coefficient."""
+    (C (Kg - 1) Kg, H*W) or None when not ``glossy_out``, coverage mask (H, W),
+    stats); channel order colour, then out coefficient, then light coefficient;
+    C = 1 with ``shared_colour`` (RelightProjection), else 3."""
     K, kg = shader.K, shader.glossy_bands ** 2
     HW = gb.height * gb.width
     dc = np.zeros((3 * K, HW), np.float32)
-    gl = np.zeros((3 * (kg - 1) * kg, HW), np.float32) if glossy_out else None
+    nc = 1 if shared_colour else 3
+    gl = np.zeros((nc * (kg - 1) * kg, HW), np.float32) if glossy_out else None
 
     def store(cols, result):
         dc[:, cols] = result[0]
         if gl is not None:
             gl[:, cols] = result[1]
 
-    stats = trace_bounce_level(rs, gb, pts, skip, st, level, RelightProjection(shader, K, kg, glossy_out), store,
+    stats = trace_bounce_level(rs, gb, pts, skip, st, level, RelightProjection(shader, K, kg, glossy_out,
+                                                                               shared_colour), store,
                                progress=progress, cancel=cancel, remote=remote)
     stats["hit_shading"] = shader.path()
     return dc, gl, gb.mask(), stats

@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from ..texels.dilate import dilate
-from ..io.exr_io import relight_channel_names
+from ..io.exr_io import expand_shared_glossy, relight_channel_names
 from .bounce import bounce_settings
 from .bounce_stage import BounceResult, bounce_inputs, early_stop, set_level_plan, skipped_set
 from .context import BakeContext
@@ -30,6 +30,14 @@ def relight_glossy_bands(st) -> int:
     return min(GLOSSY_BANDS, st.bands)
 
 
+def relight_shared_colour(st) -> bool:
+    """Whether the glossy rows are stored once for all colours (tuning auto:
+    exr_io.expand_shared_glossy; 147 instead of 291 channels at the default
+    bands, the room's relit frames within 0.013 percentage points of the
+    per-colour rows', docs/benchmarks.md). Tuning fixed keeps one per colour."""
+    return st.tuning == "auto"
+
+
 def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list[BounceSource]) -> BounceResult:
     """Bake the relightable bounce light of every set in ``sources`` and stage
     one ``<set>.relight.exr`` per set that any level reached."""
@@ -37,6 +45,7 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
     K = st.bands ** 2
     gbands = relight_glossy_bands(st)
     kg = gbands * gbands
+    shared = relight_shared_colour(st)
     bst = bounce_settings(st, st.bounce_rays)
     inputs, T = bounce_inputs(ctx, sources, geo, lit=False)
     glossy_sets = {s.index: bool(inputs.glossy_tri[sc.triangles_of_set(s.index)].any()) for s in inputs.sources}
@@ -62,8 +71,8 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
             t = time.perf_counter()
             lbst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
             dc, gl, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
-                                                   glossy_out=glossy_sets[src.index], progress=on_progress,
-                                                   cancel=ctx.cancel, remote=ctx.remote)
+                                                   glossy_out=glossy_sets[src.index], shared_colour=shared,
+                                                   progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
             ctx.seconds["bounce_trace"] += time.perf_counter() - t
             t = time.perf_counter()
             H, W = gb.height, gb.width
@@ -81,9 +90,14 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
             if level < st.bounces:
                 valid = inputs.surface[src.index].valid
                 M = valid.size
-                g_rows = None if gl is None else flat[3 * K:, valid].T.reshape(M, 3, kg - 1, kg)
-                nxt[src.index] = RelightRows(np.ascontiguousarray(flat[:3 * K, valid].T.reshape(M, 3, K)),
-                                             None if g_rows is None else np.ascontiguousarray(g_rows))
+                dc_rows = np.ascontiguousarray(flat[:3 * K, valid].T.reshape(M, 3, K))
+                g_rows = None
+                if gl is not None and shared:
+                    # The next level reads what is stored: the shared rows, tinted per colour.
+                    g_rows = expand_shared_glossy(dc_rows, flat[3 * K:, valid].T.reshape(M, kg - 1, kg))
+                elif gl is not None:
+                    g_rows = np.ascontiguousarray(flat[3 * K:, valid].T.reshape(M, 3, kg - 1, kg))
+                nxt[src.index] = RelightRows(dc_rows, g_rows)
             stats.update(name=src.name, level=level, file=f"{src.name}.relight.exr", rays=lbst.rays, **extra)
             reports.append(stats)
             ctx.seconds["bounce_write"] += time.perf_counter() - t
@@ -101,8 +115,10 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         attrs = dict(plan.exr_attrs(st), levels=max(r["level"] for r in reports if r["name"] == src.name),
                      rays=rays, materials_hash=plan.materials_hash, texels=int(src.gbuffer.n),
                      glossy_bands=gbands if g else 0, bounce_mode="relightable")
+        if g and shared:
+            attrs["glossy_colour"] = "shared"
         write_planes(ctx, fname, planes, "relight", attrs, rgb=False,
-                     names=relight_channel_names(K, kg if g else 0), bands=st.bands)
+                     names=relight_channel_names(K, kg if g else 0, g and shared), bands=st.bands)
         files.append(fname)
         ctx.seconds["bounce_write"] += time.perf_counter() - t
     return BounceResult(reports, files, stopped)

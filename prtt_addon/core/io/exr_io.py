@@ -101,14 +101,29 @@ def check_finite(values: np.ndarray, what: str, rng: tuple[float, float] | None 
         raise ValueError(f"refusing to write non-finite values to {what}")
 
 
-def relight_channel_names(n_coeffs: int, glossy_coeffs: int = 0) -> list[str]:
+def relight_channel_names(n_coeffs: int, glossy_coeffs: int = 0, shared: bool = False) -> list[str]:
     """Channels of a relightable bounce texture (kind "relight"): per colour
     ``c.dc.iNNN`` (the DC row over light coefficient i < K), then, with
     ``glossy_coeffs`` Kg > 0, per colour ``c.oNNN.iNNN`` for out coefficient
-    1 <= o < Kg and light coefficient i < Kg."""
+    1 <= o < Kg and light coefficient i < Kg; ``shared`` (header
+    ``prtt_glossy_colour`` = "shared"): one set ``S.oNNN.iNNN`` for all
+    colours instead (expand_shared_glossy)."""
     names = [f"{c}.dc.i{i:03d}" for c in "RGB" for i in range(n_coeffs)]
-    names += [f"{c}.o{o:03d}.i{i:03d}" for c in "RGB" for o in range(1, glossy_coeffs) for i in range(glossy_coeffs)]
+    colours = "S" if shared else "RGB"
+    names += [f"{c}.o{o:03d}.i{i:03d}" for c in colours for o in range(1, glossy_coeffs) for i in range(glossy_coeffs)]
     return names
+
+
+def expand_shared_glossy(dc: np.ndarray, shared: np.ndarray) -> np.ndarray:
+    """Per-colour glossy rows (..., 3, Kg - 1, Kg) float32 from the shared rows
+    ``shared`` (..., Kg - 1, Kg), the colour mean of the rows, tinted as the
+    texel's DC response to the light's DC: R_c ~= kappa_c S with kappa_c =
+    dc_c,0 / mean_c dc_c,0 (1 where that mean is zero). Exact when the light
+    bounced off grey surfaces only (every colour's rows are then equal)."""
+    d0 = np.asarray(dc[..., 0], np.float64)                                        # (..., 3)
+    m = d0.mean(axis=-1, keepdims=True)
+    kappa = np.divide(d0, m, out=np.ones_like(d0), where=np.abs(m) > 0.0)
+    return (kappa[..., None, None] * np.asarray(shared, np.float64)[..., None, :, :]).astype(np.float32)
 
 
 def relight_full_bits(names: list[str]) -> list[bool]:
@@ -281,18 +296,26 @@ def _stack(path, chans: dict, names: list[str]) -> np.ndarray:
 
 def read_relight_exr(path) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Read a relightable bounce texture (kind "relight"): (dc (H, W, 3, K),
-    glossy (H, W, 3, Kg - 1, Kg) or None, attrs), float32, row 0 at the bottom."""
+    glossy (H, W, 3, Kg - 1, Kg) or None, attrs), float32, row 0 at the bottom.
+    Shared glossy rows (``prtt_glossy_colour`` "shared") come back per colour
+    (expand_shared_glossy), so every reader sees one layout."""
     chans, attrs = _read_channels(path)
     if attrs["kind"] != "relight":
         raise TextureError(f"{path}: a {attrs['kind']!r} texture, not a relightable bounce texture")
     bands = _bands(path, attrs, "bands", 1)
     K, kg = bands * bands, _bands(path, attrs, "glossy_bands", 0, bands) ** 2
-    names = relight_channel_names(K, kg)
+    colour = attrs.get("glossy_colour", "per-colour")
+    if colour not in ("per-colour", "shared"):
+        raise TextureError(f"{path}: unknown prtt_glossy_colour {colour!r} (per-colour or shared)")
+    shared = colour == "shared"
+    names = relight_channel_names(K, kg, shared)
     data = _stack(path, chans, names)
     H, W = data.shape[:2]
     dc = np.ascontiguousarray(data[..., :3 * K].reshape(H, W, 3, K))
     glossy = None
-    if kg:
+    if kg and shared:
+        glossy = expand_shared_glossy(dc, data[..., 3 * K:].reshape(H, W, kg - 1, kg))
+    elif kg:
         glossy = np.ascontiguousarray(data[..., 3 * K:].reshape(H, W, 3, kg - 1, kg))
     return dc, glossy, attrs
 
