@@ -267,7 +267,8 @@ def relight_project(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale,
     normal[grow]; the glossy term on hits with a lobe); then
     dc[t, c, k] += w0[s] X[c, k] (the DC row), and when loc has texels,
     loc[t, c, i, o] += X[c, i] table[s, o] for i, o < Kg (the estimator's
-    local projection; the caller turns it to the world). What relight.py's
+    local projection; the caller turns it to the world; loc with one colour,
+    (n, 1, Kg, Kg), takes the colours' mean: shared glossy rows). What relight.py's
     numpy path computes from the per-ray forms; rows of the texels
     :func:`texel_indices` found, prefetched as in :func:`_shade`."""
     cds, K = d_rows.shape[1], d_rows.shape[2]
@@ -311,7 +312,12 @@ def relight_project(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale,
         for c in range(3):
             for k in range(K):
                 dc[t, c, k] += w * x[c, k]
-        if glossy_out:
+        if glossy_out and loc.shape[1] == 1:
+            for ii in range(kg):
+                xi = (x[0, ii] + x[1, ii] + x[2, ii]) * f32(1.0 / 3.0)
+                for o in range(kg):
+                    loc[t, 0, ii, o] += xi * table[s, o]
+        elif glossy_out:
             for c in range(3):
                 for ii in range(kg):
                     xi = x[c, ii]

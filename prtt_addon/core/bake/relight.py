@@ -187,13 +187,14 @@ class RelightShader:
         """How hits are evaluated: "compiled" or "numpy" (the manifest says which)."""
         return "compiled" if self.compiled and hit_kernel.usable("relight", self.glossy_bands) else "numpy"
 
-    def project(self, ch: ChunkHits, glossy_out: bool):
+    def project(self, ch: ChunkHits, glossy_out: bool, shared_colour: bool = False):
         """The chunk's hits projected as they are shaded (hit_jit.relight_project;
-        the compiled path only): (dc (n, 3, K), local glossy (n, 3, Kg, Kg) in
-        the texels' frames, or None unless ``glossy_out``), float32."""
+        the compiled path only): (dc (n, 3, K), local glossy (n, C, Kg, Kg) in
+        the texels' frames, C = 1 (the colours' mean) with ``shared_colour``,
+        else 3, or None unless ``glossy_out``), float32."""
         kg, n = self.glossy_bands ** 2, ch.n
         dc = np.zeros((n, 3, self.K), np.float32)
-        loc = np.zeros((n if glossy_out else 0, 3, kg, kg), np.float32)
+        loc = np.zeros((n if glossy_out else 0, 1 if shared_colour else 3, kg, kg), np.float32)
         w0 = np.ascontiguousarray(ch.table[:, 0], dtype=np.float32)
         table = np.ascontiguousarray(ch.table[:, :kg], dtype=np.float32)
         sets = self.sc.set_id[ch.prim]
@@ -272,11 +273,9 @@ class RelightProjection:
         n, S = ch.n, ch.S
         nc = 1 if self.shared_colour else 3
         if self.shader.path() == "compiled":
-            dc, loc = self.shader.project(ch, self.glossy_out)
+            dc, loc = self.shader.project(ch, self.glossy_out, self.shared_colour)
             gl = None
             if loc is not None:
-                if self.shared_colour:
-                    loc = loc.mean(axis=1)
                 gl = _glossy_channels(ch.local_to_world(loc.reshape(n * nc * kg, kg), kg, nc * kg), n, kg, nc)
             return dc.reshape(n, 3 * K).T, gl
         f = self.shader.forms(ch.prim, ch.u, ch.v, -ch.D[ch.hit])
