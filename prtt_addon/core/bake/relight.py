@@ -325,15 +325,18 @@ class RelightProjection:
 def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: RelightShader,
                      st: TransferSettings, level: int, *, glossy_out: bool, shared_colour: bool = False,
                      progress=None, cancel=None, remote=None):
-    """One set's relightable level. Returns (dc planes (3K, H*W), glossy planes
-    (C (Kg - 1) Kg, H*W) or None when not ``glossy_out``, coverage mask (H, W),
-    stats); channel order colour, then out coefficient, then light coefficient;
-    C = 1 with ``shared_colour`` (RelightProjection), else 3."""
+    """One set's relightable level. Returns (planes (3K + G, H*W): the DC rows'
+    3K channels, then the G = C (Kg - 1) Kg glossy rows' (G = 0 when not
+    ``glossy_out``), in one array so they dilate and add up without a copy;
+    coverage mask (H, W); stats). Channel order colour, then out coefficient,
+    then light coefficient; C = 1 with ``shared_colour`` (RelightProjection),
+    else 3."""
     K, kg = shader.K, shader.glossy_bands ** 2
     HW = gb.height * gb.width
-    dc = np.zeros((3 * K, HW), np.float32)
     nc = 1 if shared_colour else 3
-    gl = np.zeros((nc * (kg - 1) * kg, HW), np.float32) if glossy_out else None
+    planes = np.zeros((3 * K + (nc * (kg - 1) * kg if glossy_out else 0), HW), np.float32)
+    dc = planes[:3 * K]
+    gl = planes[3 * K:] if glossy_out else None
 
     def store(cols, result):
         dc[:, cols] = result[0]
@@ -344,7 +347,7 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
                                                                                shared_colour), store,
                                progress=progress, cancel=cancel, remote=remote)
     stats["hit_shading"] = shader.path()
-    return dc, gl, gb.mask(), stats
+    return planes, gb.mask(), stats
 
 
 def uniform_energy(dc: np.ndarray) -> float:

@@ -70,19 +70,19 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
                 continue
             t = time.perf_counter()
             lbst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
-            dc, gl, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
+            planes, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
                                                    glossy_out=glossy_sets[src.index], shared_colour=shared,
                                                    progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
             ctx.seconds["bounce_trace"] += time.perf_counter() - t
             t = time.perf_counter()
             H, W = gb.height, gb.width
-            planes = dc if gl is None else np.concatenate([dc, gl])
+            flat = planes
             planes = planes.reshape(-1, H, W)
             with numpy_hugepage_advice(False):
                 # Dilation is linear with one mask: dilating each level equals dilating the sum.
                 dilate(planes, mask, st.dilate, executor=ctx.helpers)
-            flat = planes.reshape(planes.shape[0], -1)
-            energy += uniform_energy(flat[:3 * K, gb.texel].T.reshape(-1, 3, K))
+            # The early stop reads only the DC responses to the light's DC (channels c K).
+            energy += uniform_energy(flat[0:3 * K:K][:, gb.texel].T[:, :, None])
             if src.index in sums:
                 sums[src.index][1] += planes
             else:
@@ -92,10 +92,10 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
                 M = valid.size
                 dc_rows = np.ascontiguousarray(flat[:3 * K, valid].T.reshape(M, 3, K))
                 g_rows = None
-                if gl is not None and shared:
+                if flat.shape[0] > 3 * K and shared:
                     # The next level reads what is stored: the shared rows, tinted per colour.
                     g_rows = expand_shared_glossy(dc_rows, flat[3 * K:, valid].T.reshape(M, kg - 1, kg))
-                elif gl is not None:
+                elif flat.shape[0] > 3 * K:
                     g_rows = np.ascontiguousarray(flat[3 * K:, valid].T.reshape(M, 3, kg - 1, kg))
                 nxt[src.index] = RelightRows(dc_rows, g_rows)
             stats.update(name=src.name, level=level, file=f"{src.name}.relight.exr", rays=lbst.rays, **extra)
