@@ -243,8 +243,11 @@ def test_tuning_auto_rounds_relightable_channels_but_the_dc_response(tmp_path):
     sc = corner_scene({"name": "wall", "base_color": [0.9, 0.2, 0.1], "roughness": 0.3}, res=32)
     for tuning in ("fixed", "auto"):
         d = tmp_path / tuning
-        bake_scene(sc, str(d), BakeSettings(rays=32, bounces=2, bounce_rays=16, tuning=tuning,
-                                            bounce_mode="relightable"), light=sky())
+        m = bake_scene(sc, str(d), BakeSettings(rays=32, bounces=2, bounce_rays=16, tuning=tuning,
+                                                bounce_mode="relightable"), light=sky())
+        said = {r.get("glossy_colour", "") for r in m["bounce"]["sets"] if r["name"] == "wall"}
+        assert said == ({""} if tuning == "fixed" else {"shared: tuning auto stores the glossy rows once, "
+                                                        "tinted per colour on reading"})
         f = OpenEXR.File(str(d / "floor.relight.exr"))
         ch = f.channels()
         assert any(".o001." in n for n in ch)                 # the glossy rows are there too

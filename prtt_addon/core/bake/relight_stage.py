@@ -99,6 +99,8 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
                     g_rows = np.ascontiguousarray(flat[3 * K:, valid].T.reshape(M, 3, kg - 1, kg))
                 nxt[src.index] = RelightRows(dc_rows, g_rows)
             stats.update(name=src.name, level=level, file=f"{src.name}.relight.exr", rays=lbst.rays, **extra)
+            if shared and glossy_sets[src.index]:
+                stats["glossy_colour"] = "shared: tuning auto stores the glossy rows once, tinted per colour on reading"
             reports.append(stats)
             ctx.seconds["bounce_write"] += time.perf_counter() - t
         rows = nxt
