@@ -313,12 +313,40 @@ def test_shared_colour_glossy_rows_keep_the_colour_mean_and_the_dc_rows(tmp_path
 
 
 def test_expand_shared_glossy_tints_by_the_dc_response():
-    dc = np.zeros((2, 3, 25), np.float32)
+    dc = np.zeros((3, 3, 25), np.float32)
     dc[0, :, 0] = (0.3, 0.6, 0.9)                            # tints 0.5, 1, 1.5
-    S = np.arange(2 * 8 * 9, dtype=np.float32).reshape(2, 8, 9)
+    dc[2, :, 0] = (1.0, -1.0, 1e-6)                          # signs that cancel: no tint, not 1e6
+    S = np.arange(3 * 8 * 9, dtype=np.float32).reshape(3, 8, 9)
     out = exr_io.expand_shared_glossy(dc, S)
+    assert out.dtype == np.float32 and out.shape == (3, 3, 8, 9)
     np.testing.assert_allclose(out[0], np.array([0.5, 1.0, 1.5])[:, None, None] * S[0], rtol=1e-6)
     np.testing.assert_array_equal(out[1], np.broadcast_to(S[1], (3, 8, 9)))   # no DC response: untinted
+    np.testing.assert_array_equal(out[2], np.broadcast_to(S[2], (3, 8, 9)))
+
+
+def test_the_next_level_reads_the_tinted_shared_rows(tmp_path, monkeypatch):
+    """Level 2's glossy exit gets level 1's shared rows tinted per colour by
+    level 1's own DC response (coloured surfaces, so the tint is not 1)."""
+    sc = _scene(GLOSSY_WALL, res=16)
+    sc.materials[0] = {"name": "floor", "base_color": [0.8, 0.5, 0.2], "roughness": 0.4, "specular": 0.8}
+    seen = []
+    real = relight_stage.later_exit
+
+    def spy(surf, rows, glossy_bands):
+        seen.append(rows)
+        return real(surf, rows, glossy_bands)
+
+    monkeypatch.setattr(relight_stage, "relight_shared_colour", lambda st: True)
+    monkeypatch.setattr(relight_stage, "later_exit", spy)
+    bake_scene(sc, str(tmp_path), _settings(bounces=2, bounce_mode="relightable"), light=sky())
+    glossy = [r for r in seen if r.glossy is not None]
+    assert glossy
+    for rows in glossy:
+        S = rows.glossy.mean(axis=1)                        # the shared rows (the tints average to one)
+        np.testing.assert_allclose(rows.glossy, exr_io.expand_shared_glossy(rows.dc, S), rtol=1e-5,
+                                   atol=1e-6 * np.abs(rows.glossy).max())
+        d0 = rows.dc[:, :, 0]
+        assert np.abs(d0 / d0.mean(axis=1, keepdims=True) - 1).max() > 0.05    # really tinted
 
 
 def test_an_unknown_glossy_colour_layout_is_refused(tmp_path):

@@ -31,20 +31,16 @@ from prtt_addon.bench.relight_bench import turned                      # noqa: E
 from prtt_addon.bench.sweep import Previewer                           # noqa: E402
 from prtt_addon.bench.texture_error import image_error                 # noqa: E402
 from prtt_addon.cli import env_light                                   # noqa: E402
+from prtt_addon.core.bake import relight_stage                         # noqa: E402
 from prtt_addon.core.bake.runner import BakeSettings, bake_scene      # noqa: E402
-from prtt_addon.core.io.exr_io import read_relight_exr, relight_channel_names, write_sh_planes  # noqa: E402
-
-
-def shared_colour(dc: np.ndarray, glossy: np.ndarray) -> np.ndarray:
-    """glossy (H, W, 3, Kg-1, Kg) replaced by kappa_c * mean_c(glossy_c)."""
-    d0 = dc[..., 0].astype(np.float64)                                   # (H, W, 3)
-    m = d0.mean(axis=-1, keepdims=True)
-    kappa = np.divide(d0, m, out=np.ones_like(d0), where=np.abs(m) > 1e-12)
-    S = glossy.astype(np.float64).mean(axis=2, keepdims=True)
-    return (kappa[..., None, None] * S).astype(np.float32)
+from prtt_addon.core.io.exr_io import (expand_shared_glossy, read_relight_exr, relight_channel_names,  # noqa: E402
+                                       write_sh_planes)
 
 
 def main() -> int:
+    # The baseline keeps one set of glossy rows per colour (what tuning auto
+    # wrote before it shared them); the shared form is made from it below.
+    relight_stage.relight_shared_colour = lambda st: False
     light = env_light("forest", 5)
     sc = scenes.room_scene(1024, atlas=True, materials=True)
     name = sc.set_names[0]
@@ -62,18 +58,19 @@ def main() -> int:
         dc, glossy, attrs = read_relight_exr(path)
         H, W, _, K = dc.shape
         kg = glossy.shape[-1]
-        g2 = shared_colour(dc, glossy)
+        g2 = expand_shared_glossy(dc, glossy.mean(axis=2))     # what a reader makes of shared rows
         rel = np.sqrt(((g2 - glossy) ** 2).sum() / (glossy.astype(np.float64) ** 2).sum())
         print(f"glossy rows: shared-colour form differs from the stored rows by {100 * rel:.1f} % (relative RMSE)")
         planes = np.concatenate([dc.reshape(H, W, -1), g2.reshape(H, W, -1)], axis=-1).transpose(2, 0, 1)
-        own = ("kind", "bands", "format_version", "convention", "resolution", "storage", "mantissa_bits")
+        own = ("kind", "bands", "format_version", "convention", "resolution", "storage", "mantissa_bits",
+               "glossy_colour")
         keep = {k: v for k, v in attrs.items() if k not in own}
         write_sh_planes(os.path.join(sh, f"{name}.relight.exr"), np.ascontiguousarray(planes), kind="relight",
                         half=False, attrs=keep, names=relight_channel_names(K, kg), bands=int(round(K ** 0.5)))
         # No glossy rows at all: glossy receivers read the DC row (irradiance) alone.
-        write_sh_planes(os.path.join(dco, f"{name}.relight.exr"), np.ascontiguousarray(dc.reshape(H, W, -1).transpose(2, 0, 1)),
-                        kind="relight", half=False, attrs=dict(keep, glossy_bands=0), names=relight_channel_names(K, 0),
-                        bands=int(round(K ** 0.5)))
+        dc_planes = np.ascontiguousarray(dc.reshape(H, W, -1).transpose(2, 0, 1))
+        write_sh_planes(os.path.join(dco, f"{name}.relight.exr"), dc_planes, kind="relight", half=False,
+                        attrs=dict(keep, glossy_bands=0), names=relight_channel_names(K, 0), bands=int(round(K ** 0.5)))
         view = Previewer(sc, light, (640, 360), bounces=True)
         for deg in (0.0, 120.0, 240.0):
             L = turned(light, deg)

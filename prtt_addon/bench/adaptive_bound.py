@@ -21,7 +21,8 @@ Var(one bake's texel) ~= |a_i - b_i|^2 / 2, summed over the 75 RGB SH
 coefficients. The difference also holds the transfer's own noise as the
 bounce reads it (~3 % per coefficient at 256 rays, averaged over a texel's
 hits), which makes the s_i slightly more even; the per-texel estimate's own
-noise makes them less even, so the gain reads high: an upper bound.
+noise makes them less even, by more at these ray counts, so the gain reads
+high rather than low: a bound in that sense, not a guarantee.
 """
 from __future__ import annotations
 
@@ -45,10 +46,14 @@ def _bounce_planes(folder: str, name: str) -> np.ndarray:
 
 def oracle_gain(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> dict:
     """The oracle allocation's ray saving from two independent estimates
-    ``a``, ``b`` (H, W, C) of the same texels, over texels ``mask`` (H, W).
-    Returns gain, the share of the summed variance in the noisiest 10 % of
-    texels, and the texel count."""
-    var = ((a[mask] - b[mask]) ** 2).sum(axis=1) / 2.0              # (T,) one bake's variance per texel
+    ``a``, ``b`` (H, W, C) of the same texels, over the texels of ``mask``
+    (H, W) where they differ (equal ones traced no rays). Returns gain, the
+    share of the summed variance in the noisiest 10 % of texels, and the
+    texel count."""
+    var = ((a[mask] - b[mask]) ** 2).sum(axis=1) / 2.0              # one bake's variance per texel
+    # Texels the bake skips (provably open, or seeing nothing) give both bakes
+    # the same value: no rays to move, so they are not in T.
+    var = var[var > 0]
     s = np.sqrt(var)
     T = var.size
     gain = float(T * var.sum() / s.sum() ** 2) if s.sum() > 0 else 1.0

@@ -33,8 +33,8 @@ def relight_glossy_bands(st) -> int:
 def relight_shared_colour(st) -> bool:
     """Whether the glossy rows are stored once for all colours (tuning auto:
     exr_io.expand_shared_glossy; 147 instead of 291 channels at the default
-    bands, the room's relit frames within 0.013 percentage points of the
-    per-colour rows', docs/benchmarks.md). Tuning fixed keeps one per colour."""
+    bands; the room's relit-vs-rebaked error within 0.04 percentage points of
+    the per-colour rows', docs/benchmarks.md). Tuning fixed keeps one per colour."""
     return st.tuning == "auto"
 
 

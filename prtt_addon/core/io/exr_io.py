@@ -118,12 +118,16 @@ def expand_shared_glossy(dc: np.ndarray, shared: np.ndarray) -> np.ndarray:
     """Per-colour glossy rows (..., 3, Kg - 1, Kg) float32 from the shared rows
     ``shared`` (..., Kg - 1, Kg), the colour mean of the rows, tinted as the
     texel's DC response to the light's DC: R_c ~= kappa_c S with kappa_c =
-    dc_c,0 / mean_c dc_c,0 (1 where that mean is zero). Exact when the light
-    bounced off grey surfaces only (every colour's rows are then equal)."""
+    dc_c,0 / mean_c dc_c,0 (1 where that mean is zero or below 1e-3 of the
+    largest colour's). Exact when the light bounced off grey surfaces only
+    (every colour's rows are then equal)."""
     d0 = np.asarray(dc[..., 0], np.float64)                                        # (..., 3)
     m = d0.mean(axis=-1, keepdims=True)
-    kappa = np.divide(d0, m, out=np.ones_like(d0), where=np.abs(m) > 0.0)
-    return (kappa[..., None, None] * np.asarray(shared, np.float64)[..., None, :, :]).astype(np.float32)
+    # A mean far below its colours' size (signs that cancel) would blow the tint up: untinted there.
+    ok = np.abs(m) > 1e-3 * np.abs(d0).max(axis=-1, keepdims=True)
+    kappa = np.divide(d0, m, out=np.ones_like(d0), where=ok).astype(np.float32)
+    # float32 product: the expanded rows are what a reader holds (no float64 copy of them).
+    return kappa[..., None, None] * np.asarray(shared, np.float32)[..., None, :, :]
 
 
 def relight_full_bits(names: list[str]) -> list[bool]:
