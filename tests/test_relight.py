@@ -155,11 +155,18 @@ def test_memory_estimate_counts_the_relightable_operator():
     from prtt_addon.core.bake.memory import bounce_resident_bytes, relight_resident_bytes
     from prtt_addon.core.bake.plan import bake_memory_bytes
     res = np.array([[1024, 1024]])
-    baked = bake_memory_bytes(res, BakeSettings(bounces=1), n_triangles=10, bouncing=True)
-    relit = bake_memory_bytes(res, BakeSettings(bounces=1, bounce_mode="relightable"), n_triangles=10, bouncing=True)
-    # 291 operator channels held three times against 75 bounce channels.
-    assert relit - baked == relight_resident_bytes(1024, 1024, 25, 9) - bounce_resident_bytes(1024, 1024, 25)
-    assert relight_resident_bytes(1024, 1024, 25, 9) > 4 * bounce_resident_bytes(1024, 1024, 25)
+    for tuning, colours in (("fixed", 3), ("auto", 1)):
+        baked = bake_memory_bytes(res, BakeSettings(bounces=1, tuning=tuning), n_triangles=10, bouncing=True)
+        relit = bake_memory_bytes(res, BakeSettings(bounces=1, bounce_mode="relightable", tuning=tuning),
+                                  n_triangles=10, bouncing=True)
+        assert relit - baked == (relight_resident_bytes(1024, 1024, 25, 9, colours)
+                                 - bounce_resident_bytes(1024, 1024, 25))
+    # Per colour: 291 operator channels held four times against 75 bounce channels; shared rows
+    # (147 stored channels) count less, but the next level's tinted rows still per colour.
+    per, shared = relight_resident_bytes(1024, 1024, 25, 9), relight_resident_bytes(1024, 1024, 25, 9, 1)
+    assert per == 1024 * 1024 * (4 * (4 * 291 + 6) + 220)
+    assert shared == 1024 * 1024 * (4 * (2 * 147 + 2 * 291 + 6) + 220)
+    assert per > 4 * bounce_resident_bytes(1024, 1024, 25)
 
 
 @pytest.mark.parametrize("header", [{"glossy_bands": 100000}, {"bands": 10**6}, {"bands": "five"}])

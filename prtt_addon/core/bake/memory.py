@@ -73,13 +73,17 @@ def bounce_resident_bytes(width: int, height: int, n_coeffs: int) -> int:
     return width * height * (4 * (9 * n_coeffs + 9) + 220)
 
 
-def relight_resident_bytes(width: int, height: int, n_coeffs: int, glossy_coeffs: int) -> int:
+def relight_resident_bytes(width: int, height: int, n_coeffs: int, glossy_coeffs: int,
+                           glossy_colours: int = 3) -> int:
     """bounce_resident_bytes for relightable bounces (relight_stage.py): per
-    texel C = 3K + 3 (Kg - 1) Kg floats of operator, held three times (the
-    sum over levels, the level being baked, the next level's rows), exit
-    rows of at most C + 6 floats, surface texels and G-buffer: 4 (4C + 6) + 220."""
-    C = 3 * n_coeffs + 3 * (glossy_coeffs - 1) * glossy_coeffs
-    return width * height * (4 * (4 * C + 6) + 220)
+    texel C = 3K + g (Kg - 1) Kg floats of stored operator (g = glossy_colours:
+    3, or 1 for glossy rows shared between colours), held twice (the sum over
+    levels, the level being baked), and C3 (g = 3) twice more (the next
+    level's rows, tinted per colour, and exit rows of at most C3 + 6 floats),
+    surface texels and G-buffer: 4 (2 C + 2 C3 + 6) + 220."""
+    glossy = (glossy_coeffs - 1) * glossy_coeffs
+    C, C3 = 3 * n_coeffs + glossy_colours * glossy, 3 * n_coeffs + 3 * glossy
+    return width * height * (4 * (2 * C + 2 * C3 + 6) + 220)
 
 
 def check_fits(needed: int, what: str, *, fraction: float = 0.8) -> None:

@@ -23,7 +23,7 @@ from ..shading.model import light_hash
 from . import denoise
 from .context import MANIFEST, BakeContext, BakeError, BakeSettings
 from .memory import bounce_resident_bytes, bvh_bytes, check_fits, relight_resident_bytes, set_bytes
-from .relight import GLOSSY_BANDS
+from .relight import GLOSSY_BANDS, relight_shared_colour
 
 
 def settings_hash(settings: BakeSettings) -> str:
@@ -88,7 +88,7 @@ def bake_memory_bytes(set_resolution, st: BakeSettings, *, n_triangles: int, bou
                                          rays=st.rays))
         if bouncing and st.bounce_mode == "relightable":
             kg = min(GLOSSY_BANDS, st.bands) ** 2
-            resident += relight_resident_bytes(int(w), int(h), K, kg)
+            resident += relight_resident_bytes(int(w), int(h), K, kg, 1 if relight_shared_colour(st) else 3)
         elif bouncing:
             resident += bounce_resident_bytes(int(w), int(h), K)
     return bvh_bytes(n_triangles) + per_set + resident

@@ -59,6 +59,14 @@ _NO_SCALE = np.zeros((1, 3), np.float32)
 GLOSSY_BANDS = 3
 
 
+def relight_shared_colour(st) -> bool:
+    """Whether the glossy rows are stored once for all colours (tuning auto:
+    exr_io.expand_shared_glossy; 147 instead of 291 channels at the default
+    bands; the room's relit-vs-rebaked error within 0.04 percentage points of
+    the per-colour rows', docs/benchmarks.md). Tuning fixed keeps one per colour."""
+    return st.tuning == "auto"
+
+
 @dataclasses.dataclass
 class RelightRows:
     """One receiver set's relightable bounce light at M texels (float32):

@@ -21,21 +21,13 @@ from .context import BakeContext
 from .memory import numpy_hugepage_advice
 from .plan import BakePlan
 from .relight import (GLOSSY_BANDS, RelightRows, RelightShader, bake_relight_set, later_exit, level1_exit,
-                      uniform_energy)
+                      relight_shared_colour, uniform_energy)
 from .stages import BounceSource, Geometry, write_planes
 
 
 def relight_glossy_bands(st) -> int:
     """Bands of the relightable glossy part, in and out (relight.GLOSSY_BANDS, at most the bake's)."""
     return min(GLOSSY_BANDS, st.bands)
-
-
-def relight_shared_colour(st) -> bool:
-    """Whether the glossy rows are stored once for all colours (tuning auto:
-    exr_io.expand_shared_glossy; 147 instead of 291 channels at the default
-    bands; the room's relit-vs-rebaked error within 0.04 percentage points of
-    the per-colour rows', docs/benchmarks.md). Tuning fixed keeps one per colour."""
-    return st.tuning == "auto"
 
 
 def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list[BounceSource]) -> BounceResult:
