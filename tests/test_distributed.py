@@ -92,6 +92,20 @@ def small_units(monkeypatch):
 
 # --- parsing and planning (no cluster) -------------------------------------------------
 
+def test_peer_timeout_from_the_environment_is_bounded():
+    """A shared cluster may need longer than 3 s to open a connection under
+    load: $PRTT_DASK_PEER_TIMEOUT sets it for a scheduler address, within
+    0.5-300 s; anything else is refused naming the value. A local cluster
+    keeps the default."""
+    env = {"PRTT_DASK_PEER_TIMEOUT": "12.5"}
+    assert dd.parse_spec("tls://farm:8786", env).peer_timeout == 12.5
+    assert dd.parse_spec("tcp://farm:8786", {}).peer_timeout == dd.PEER_CONNECT_TIMEOUT == 3.0
+    assert dd.parse_spec("local:2", env).peer_timeout == dd.PEER_CONNECT_TIMEOUT
+    for bad in ("0.1", "301", "nan", "inf", "-3", "soon"):
+        with pytest.raises(BakeError, match=rf"PRTT_DASK_PEER_TIMEOUT must be seconds from 0.5 to 300, got '{bad}'"):
+            dd.parse_spec("tcp://farm:8786", {"PRTT_DASK_PEER_TIMEOUT": bad})
+
+
 def test_spec_parsing_and_clear_errors(monkeypatch):
     assert dd.parse_spec("local:3") == dd.DaskSpec("local", 3)
     assert dd.parse_spec("local").workers == max(1, os.cpu_count() or 1)

@@ -29,7 +29,8 @@ local thread pool runs, and the outputs are the same bits. What goes where:
   runs them again elsewhere (up to its ``allowed-failures``), and since a
   chunk's result is a function of the chunk, the outputs are still the same
   bits. A scheduler whose connection breaks ends the bake at once (within
-  :data:`PEER_CONNECT_TIMEOUT` when a fetch was opening a connection to it),
+  :data:`PEER_CONNECT_TIMEOUT`, or ``$PRTT_DASK_PEER_TIMEOUT`` for a
+  scheduler address, when a fetch was opening a connection to it),
   with a BakeError, as does a client Dask keeps disconnected for
   :data:`SCHEDULER_LOST_AFTER` seconds. A scheduler that hangs with its
   connection open is not detected (Dask's own timeouts apply). Nothing is written (the bake's staging keeps the
@@ -94,6 +95,11 @@ CONNECT_TIMEOUT = 20.0
 #: to open. A scheduler killed while a result was being fetched made that
 #: fetch retry the dead address for CONNECT_TIMEOUT (CI, 2026-11-24).
 PEER_CONNECT_TIMEOUT = 3.0
+#: Environment variable that replaces PEER_CONNECT_TIMEOUT for a scheduler
+#: address (a shared cluster whose TLS handshakes take longer under load), in
+#: seconds within PEER_TIMEOUT_RANGE.
+ENV_PEER_TIMEOUT = "PRTT_DASK_PEER_TIMEOUT"
+PEER_TIMEOUT_RANGE = (0.5, 300.0)
 WORKERS_TIMEOUT = 60.0
 
 
@@ -109,6 +115,7 @@ class DaskSpec:
     kind: str                  # "local" | "address"
     workers: int = 0
     address: str = ""
+    peer_timeout: float = PEER_CONNECT_TIMEOUT   # seconds (PEER_CONNECT_TIMEOUT, $PRTT_DASK_PEER_TIMEOUT)
 
     def describe(self) -> str:
         return f"a local cluster of {self.workers} worker processes" if self.kind == "local" \
@@ -138,7 +145,23 @@ def parse_spec(spec: str, environ=None) -> DaskSpec:
     scheme, sep, rest = s.partition("://")
     if not sep or not scheme.isalnum() or not rest or any(c.isspace() for c in rest):
         raise BakeError(f"--dask must be local, local:N or a scheduler address like tcp://HOST:PORT, got {spec!r}")
-    return DaskSpec("address", address=s)
+    return DaskSpec("address", address=s, peer_timeout=peer_timeout(environ))
+
+
+def peer_timeout(environ) -> float:
+    """PEER_CONNECT_TIMEOUT, or $PRTT_DASK_PEER_TIMEOUT (seconds, within
+    PEER_TIMEOUT_RANGE; BakeError naming the value otherwise)."""
+    raw = (environ.get(ENV_PEER_TIMEOUT) or "").strip()
+    if not raw:
+        return PEER_CONNECT_TIMEOUT
+    lo, hi = PEER_TIMEOUT_RANGE
+    try:
+        v = float(raw)
+    except ValueError:
+        v = float("nan")
+    if not lo <= v <= hi:                       # also refuses nan and inf
+        raise BakeError(f"${ENV_PEER_TIMEOUT} must be seconds from {lo:g} to {hi:g}, got {raw!r}")
+    return v
 
 
 # --- the worker side ---------------------------------------------------------------------
@@ -470,7 +493,7 @@ class DaskBake:
             # Reached: from now on a new connection (a gather through the
             # scheduler, a fetch from a worker) that cannot open is a peer gone,
             # not one starting; Dask would retry it for CONNECT_TIMEOUT.
-            self.client.rpc.timeout = PEER_CONNECT_TIMEOUT
+            self.client.rpc.timeout = self.spec.peer_timeout
             self.start_seconds = time.perf_counter() - t
             self.scene_token = scene_token
             self.scene_f = self._scatter(scene)
