@@ -7,11 +7,12 @@ from prtt_addon.bench.adaptive_bound import oracle_gain
 
 
 def _pair(sigma, channels=400, seed=0):
-    """Two independent estimates of zero per texel, texel i with total
-    variance sigma_i^2 spread over ``channels`` channels."""
+    """Two independent estimates of zero per texel as (channels, T, 1)
+    planes, texel i with total variance sigma_i^2 spread over ``channels``
+    channels."""
     rng = np.random.default_rng(seed)
-    s = (np.asarray(sigma, float) / np.sqrt(channels))[:, None, None]
-    shape = (len(sigma), 1, channels)
+    s = (np.asarray(sigma, float) / np.sqrt(channels))[None, :, None]
+    shape = (channels, len(sigma), 1)
     return rng.normal(size=shape) * s, rng.normal(size=shape) * s, np.ones((len(sigma), 1), bool)
 
 
@@ -25,7 +26,7 @@ def test_two_noise_levels_give_the_neyman_saving():
 
 def test_even_noise_saves_nothing_and_a_masked_texel_is_ignored():
     a, b, mask = _pair(np.ones(3000))
-    a[0, 0] += 1e6                      # a texel outside the mask must not count
+    a[:, 0, 0] += 1e6                   # a texel outside the mask must not count
     mask[0] = False
     assert oracle_gain(a, b, mask)["gain"] == pytest.approx(1.0, abs=0.01)
 

@@ -32,25 +32,21 @@ import shutil
 import numpy as np
 
 from ..core.bake.runner import BakeSettings, bake_scene
-from ..core.io.exr_io import read_sh_exr
 from ..core.texels.gbuffer import build_gbuffer
 from . import scenes
+from .denoise_sweep import bounce_planes
 
 SEEDS = (11, 29)
 
 
-def _bounce_planes(folder: str, name: str) -> np.ndarray:
-    data, _ = read_sh_exr(os.path.join(folder, f"{name}.bounce1.exr"))   # (H, W, 3, K)
-    return data.astype(np.float64).reshape(data.shape[0], data.shape[1], -1)
-
-
 def oracle_gain(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> dict:
     """The oracle allocation's ray saving from two independent estimates
-    ``a``, ``b`` (H, W, C) of the same texels, over the texels of ``mask``
-    (H, W) where they differ (equal ones traced no rays). Returns gain, the
-    share of the summed variance in the noisiest 10 % of texels, and the
-    texel count."""
-    var = ((a[mask] - b[mask]) ** 2).sum(axis=1) / 2.0              # one bake's variance per texel
+    ``a``, ``b`` (C, H, W) planes of the same texels, over the texels of
+    ``mask`` (H, W) where they differ (equal ones traced no rays). Returns
+    gain, the share of the summed variance in the noisiest 10 % of texels,
+    and the texel count."""
+    diff = a[:, mask].astype(np.float64) - b[:, mask]
+    var = (diff ** 2).sum(axis=0) / 2.0                               # one bake's variance per texel
     # Texels the bake skips (provably open, or seeing nothing) give both bakes
     # the same value: no rays to move, so they are not in T.
     var = var[var > 0]
@@ -75,9 +71,9 @@ def sweep_adaptive_bound(cfg, light, tmp: str) -> list:
             m = bake_scene(sc, d, BakeSettings(rays=256, bounces=1, bounce_rays=rays, half=False, seed=seed,
                                                bounce_denoise="none", tuning="auto"), light=light,
                            skip_if_unchanged=False)
-            est.append(_bounce_planes(d, name))
+            est.append(bounce_planes(os.path.join(d, f"{name}.bounce1.exr")))
             shutil.rmtree(d, ignore_errors=True)
-        H, W = est[0].shape[:2]
+        H, W = est[0].shape[1:]
         mask = build_gbuffer(sc, 0, resolution=(W, H)).mask()
         grid = m["bounce"]["sets"][0].get("grid", {})
         r = dict(bounce_rays=rays, texel_rays=grid.get("rays", rays), grid=f"{W}x{H}", **oracle_gain(*est, mask))

@@ -27,7 +27,8 @@ from .texture_error import load_set_textures, texel_error
 REF_BOUNCE_RAYS = 2048
 
 
-def _planes(path: str) -> np.ndarray:
+def bounce_planes(path: str) -> np.ndarray:
+    """A baked bounce texture as channel-first planes (3K, H, W) float32, row 0 at the bottom."""
     data, _ = read_sh_exr(path)                       # (H, W, 3, K), row 0 at the bottom
     H, W, _, K = data.shape
     return np.ascontiguousarray(data.transpose(2, 3, 0, 1).reshape(3 * K, H, W)).astype(np.float32)
@@ -62,7 +63,7 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
         print(f"  reference bounce ({ref_rays} rays per texel) ...", flush=True)
         bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=ref_rays, half=False,
                                           bounce_denoise="none", tuning="fixed"), light=light)
-        ref = _planes(os.path.join(work, f"{name}.bounce1.exr"))
+        ref = bounce_planes(os.path.join(work, f"{name}.bounce1.exr"))
         if not cfg.quick:
             os.makedirs(os.path.dirname(cache), exist_ok=True)
             np.save(cache, ref)
@@ -77,7 +78,7 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
                                                bounce_denoise="none", tuning="fixed"), light=light)
         bake_s = time.perf_counter() - t
         assert m["transfer_reused"]
-        raw = _planes(os.path.join(work, f"{name}.bounce1.exr"))
+        raw = bounce_planes(os.path.join(work, f"{name}.bounce1.exr"))
         rows.append(dict(bounce_rays=rays, filter="none", bake_s=bake_s, denoise_s=0.0, total_s=bake_s,
                          error=_error(raw, ref, mask)))
         if with_denoise:
