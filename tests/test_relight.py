@@ -262,6 +262,8 @@ def test_local_to_world_shared_frame_equals_per_texel_frames():
 
 GREY_FLOOR = {"name": "floor", "base_color": [0.5, 0.5, 0.5], "specular": 0.0}
 GREY_GLOSSY = {"name": "glossy", "base_color": [0.6, 0.6, 0.6], "roughness": 0.45, "specular": 1.0}
+# With GLOSSY_WALL, each set sees a diffuse and a specular colour, so its glossy rows differ per colour.
+GLOSSY_FLOOR = {"name": "floor", "base_color": [0.8, 0.5, 0.2], "roughness": 0.4, "specular": 0.8}
 
 
 def _bake_both(tmp_path, monkeypatch, sc, levels):
@@ -308,7 +310,7 @@ def test_shared_colour_glossy_rows_keep_the_colour_mean_and_the_dc_rows(tmp_path
     to one)."""
     sc = _scene(GLOSSY_WALL, res=16)
     # A glossy floor too: each set sees a diffuse and a specular colour, so its rows differ per colour.
-    sc.materials[0] = {"name": "floor", "base_color": [0.8, 0.5, 0.2], "roughness": 0.4, "specular": 0.8}
+    sc.materials[0] = GLOSSY_FLOOR
     per, shared = _bake_both(tmp_path, monkeypatch, sc, 1)
     for name in ("floor", "wall"):
         a = exr_io.read_relight_exr(str(per / f"{name}.relight.exr"))
@@ -335,7 +337,7 @@ def test_the_next_level_reads_the_tinted_shared_rows(tmp_path, monkeypatch):
     """Level 2's glossy exit gets level 1's shared rows tinted per colour by
     level 1's own DC response (coloured surfaces, so the tint is not 1)."""
     sc = _scene(GLOSSY_WALL, res=16)
-    sc.materials[0] = {"name": "floor", "base_color": [0.8, 0.5, 0.2], "roughness": 0.4, "specular": 0.8}
+    sc.materials[0] = GLOSSY_FLOOR
     seen = []
     real = relight_stage.later_exit
 
