@@ -256,6 +256,18 @@ def for_bands(bands: int):
     return BY_BANDS.get(bands, shade_any)
 
 
+@numba.njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _prefetch_scales(row, grow, dsflat, gsflat, nflat):
+    """Ask for a hit's colour scales (d_scale row, and g_scale and normal rows
+    when grow >= 0: (M + 1, 3) tables seen flat). They are small but read at
+    random from tables of MBs: unprefetched, these three loads cost the room's
+    relightable loop ~170 of its ~340 ns per hit (measured on the 2-core VM)."""
+    prefetch(dsflat, row * 3)
+    if grow >= 0:
+        prefetch(gsflat, grow * 3)
+        prefetch(nflat, grow * 3)
+
+
 @numba.njit(nogil=True, cache=True, error_model="numpy", fastmath=FASTMATH)
 def relight_project(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale, g_rows, g_scale, normal, gbands,
                     sect, ca, cb, S, w0, table, dc, loc):
@@ -278,12 +290,19 @@ def relight_project(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale,
     f32 = np.float32
     dflat = d_rows.reshape(-1)
     gflat = g_rows.reshape(-1)
+    dsflat = d_scale.reshape(-1)
+    gsflat = g_scale.reshape(-1)
+    nflat = normal.reshape(-1)
     prow, pgrow = _first_rows(tex, gtex, row_of, grow_of)
+    for j in range(min(PREFETCH_DISTANCE, sel.size)):
+        _prefetch_scales(prow[j], pgrow[j], dsflat, gsflat, nflat)
     y = np.empty(kg, np.float32)
     wg = np.empty((cgs, kg), np.float32)
     x = np.empty((3, K), np.float32)
     for j in range(sel.size):
         _next_rows(j, tex, gtex, row_of, grow_of, prow, pgrow, dflat, cds * K, gflat, cgs * kg * kg)
+        if j + PREFETCH_DISTANCE < sel.size:
+            _prefetch_scales(prow[j + PREFETCH_DISTANCE], pgrow[j + PREFETCH_DISTANCE], dsflat, gsflat, nflat)
         ray = ray_of[sel[j]]
         t = ray // S
         s = ray - t * S
