@@ -69,27 +69,32 @@ def _jit():
     return jit.load(_JIT)
 
 
-def _probe(mod, kind: str, bands: int) -> None:
+def _probe(mod, kind: str, bands: int, transfer_bands: int = 0) -> None:
     """Call the loops of ``kind`` ("baked" or "relight") on no hits, with the
     dtypes of a real call: numba compiles (or loads from its cache) the very
-    overloads a bake uses."""
+    overloads a bake uses (for "relight": both loops of glossy ``bands``
+    with a transfer of ``transfer_bands``)."""
     i64, f32 = np.zeros(0, np.int64), np.zeros(0, np.float32)
     rows, f2 = np.zeros(1, np.int32), np.zeros((1, 3), np.float32)
     mod.texel_indices(i64, i64, f32, f32, np.zeros((1, 6), np.float32), 1, 1, True, np.zeros(1, bool), 1, 1)
     if kind == "relight":
-        f4 = np.zeros((1, 1, 1, 1), np.float32)
-        mod.relight_project(i64, i64, rows, rows, i64, i64, f2, np.zeros((1, 1, 1), np.float32), f2, f4, f2, f2,
-                            bands, *recurrence_constants(bands), 1, f32, f2, np.zeros((1, 1, 1), np.float32), f4)
+        K, kg = max(transfer_bands, bands) ** 2, bands * bands
+        loops = {mod.relight_project, mod.relight_for(transfer_bands, bands, True)}
+        for loop in loops:
+            loop(i64, i64, rows, rows, i64, i64, f2, np.zeros((1, 1, K), np.float32), f2,
+                 np.zeros((1, 1, kg, kg), np.float32), f2, f2, bands, *recurrence_constants(bands), 1, f32,
+                 np.zeros((1, kg), np.float32), np.zeros((1, 3, K), np.float32), np.zeros((1, 1, kg, kg), np.float32))
     else:
         mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands), f2)
 
 
-def usable(kind: str, bands: int) -> bool:
-    """The compiled loops of ``kind`` for ``bands`` bands load and run (once
+def usable(kind: str, bands: int, transfer_bands: int = 0) -> bool:
+    """The compiled loops of ``kind`` for ``bands`` bands (for "relight" the
+    glossy part's, with a transfer of ``transfer_bands``) load and run (once
     per process, cached): False when numba is off or missing, fails to
     import, or fails to compile them (then recorded in core/jit.failures and
     never tried again: the bake shades with numpy)."""
-    key = (kind, bands)
+    key = (kind, bands, transfer_bands)
     if key in _probed:
         return _probed[key]
     with _probe_lock:
@@ -98,7 +103,7 @@ def usable(kind: str, bands: int) -> bool:
             ok = mod is not None
             if ok:
                 try:
-                    _probe(mod, kind, bands)
+                    _probe(mod, kind, bands, transfer_bands)
                 except Exception as exc:      # noqa: BLE001 - a numba/llvmlite this code was not written for
                     jit.broken(_JIT, exc)
                     ok = False
@@ -117,7 +122,7 @@ def warm_up(bands: int, relightable: bool = False, glossy_bands: int = 3) -> thr
         return None
 
     def load():
-        usable("relight", glossy_bands) if relightable else usable("baked", bands)
+        usable("relight", glossy_bands, bands) if relightable else usable("baked", bands)
         islands = jit.load(_ISLANDS)
         if islands is not None:
             try:
@@ -149,9 +154,10 @@ def shade_set_hits(sel: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarr
                             ex.glossy if has else _NO_GLOSSY, bands, *consts, out)
 
 
-def relight_loop():
-    """hit_jit.relight_project (only when usable("relight", glossy_bands))."""
-    return _jit().relight_project
+def relight_loop(bands: int, glossy_bands: int, shared_exit: bool):
+    """The relightable loop (hit_jit.relight_for) for exit forms shared
+    between the colours or not (only when usable("relight", glossy_bands, bands))."""
+    return _jit().relight_for(bands, glossy_bands, shared_exit)
 
 
 def hit_texels(sel, prim, u, v, frames, glossy_tri, diffuse_grid, glossy_grid):

@@ -182,7 +182,7 @@ class RelightShader:
 
     def __init__(self, sc, exits: dict, bands: int, glossy_bands: int, glossy_tri: np.ndarray):
         self.sc, self.exits = sc, exits
-        self.K, self.glossy_bands = bands * bands, glossy_bands
+        self.K, self.bands, self.glossy_bands = bands * bands, bands, glossy_bands
         self.uv_frame = uv_frames(sc)
         self.glossy_tri = glossy_tri
         self.cd = max((ex.d_rows.shape[1] for ex in exits.values()), default=1)
@@ -193,7 +193,7 @@ class RelightShader:
 
     def path(self) -> str:
         """How hits are evaluated: "compiled" or "numpy" (the manifest says which)."""
-        return "compiled" if self.compiled and hit_kernel.usable("relight", self.glossy_bands) else "numpy"
+        return "compiled" if self.compiled and hit_kernel.usable("relight", self.glossy_bands, self.bands) else "numpy"
 
     def project(self, ch: ChunkHits, glossy_out: bool, shared_colour: bool = False):
         """The chunk's hits projected as they are shaded (hit_jit.relight_project;
@@ -213,10 +213,11 @@ class RelightShader:
             has = ex.g_rows is not None
             tex, gtex, g = hit_kernel.hit_texels(sel, ch.prim, ch.u, ch.v, self.uv_frame, self.glossy_tri,
                                                  ex.diffuse_grid, ex.glossy_grid if has else None)
-            hit_kernel.relight_loop()(tex, gtex, ex.diffuse_grid.row_of, g.row_of, sel, ch.hit, ch.D, ex.d_rows,
-                                      ex.d_scale, ex.g_rows if has else _NO_FORMS, ex.g_scale if has else _NO_SCALE,
-                                      ex.normal if has else _NO_SCALE, self.glossy_bands, *self.consts, ch.S, w0,
-                                      table, dc, loc)
+            shared_exit = ex.d_rows.shape[1] == 1 and (not has or ex.g_rows.shape[1] == 1)
+            loop = hit_kernel.relight_loop(self.bands, self.glossy_bands, shared_exit)
+            loop(tex, gtex, ex.diffuse_grid.row_of, g.row_of, sel, ch.hit, ch.D, ex.d_rows, ex.d_scale,
+                 ex.g_rows if has else _NO_FORMS, ex.g_scale if has else _NO_SCALE,
+                 ex.normal if has else _NO_SCALE, self.glossy_bands, *self.consts, ch.S, w0, table, dc, loc)
         return dc, (loc if glossy_out else None)
 
     def forms(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, view: np.ndarray) -> HitForms:
