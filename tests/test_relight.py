@@ -291,6 +291,7 @@ def test_shared_colour_glossy_rows_are_exact_off_grey_surfaces(tmp_path, monkeyp
     with OpenEXR.File(str(shared / "wall.relight.exr")) as f:
         names, header = set(f.channels()), dict(f.header())
     assert header["prtt_glossy_colour"] == "shared"
+    assert header["compression"] == OpenEXR.PIZ_COMPRESSION      # exr_io.compression_of
     assert "S.o001.i000" in names and not any(n.startswith("R.o") for n in names)
     assert len(names) == 3 * 25 + 24 * 25
     with OpenEXR.File(str(per / "wall.relight.exr")) as f:
@@ -369,3 +370,57 @@ def test_an_unknown_glossy_colour_layout_is_refused(tmp_path):
                            bands=2, attrs={"glossy_bands": 2, "glossy_colour": "mono"})
     with pytest.raises(exr_io.TextureError, match="glossy_colour 'mono'"):
         exr_io.read_relight_exr(path)
+
+
+def test_vector_intrinsics_equal_numpy():
+    """hit_jit's LLVM vector operations (axpy, rows_combine, outer_acc) against
+    numpy in float64, at offsets inside longer arrays and for the lengths the
+    relightable loops use (9, 16, 25, 36), neighbours untouched."""
+    from prtt_addon.core import jit
+    assert jit.available(), "numba is pinned in requirements.txt"
+    import numba
+    from prtt_addon.core.bake.hit_jit import axpy, outer_acc, rows_combine
+
+    @numba.njit
+    def run(dst, src, y, x, tile, big, a):
+        axpy(dst, 3, src, 5, a, 25)
+        axpy(dst, 40, src, 1, a, 9)
+        axpy(dst, 60, src, 2, a, 16)
+        axpy(dst, 80, src, 0, a, 36)
+        rows_combine(x, big, 7, y, 9, 9)
+        outer_acc(dst, 120, x, tile, 4, 9)
+
+    rng = np.random.default_rng(3)
+    dst, src = rng.standard_normal(220).astype(np.float32), rng.standard_normal(60).astype(np.float32)
+    y, x = rng.standard_normal(9).astype(np.float32), np.zeros(9, np.float32)
+    tile, big = rng.standard_normal(90).astype(np.float32), rng.standard_normal(100).astype(np.float32)
+    a = np.float32(0.7)
+    want = dst.astype(np.float64)
+    for off, soff, n in ((3, 5, 25), (40, 1, 9), (60, 2, 16), (80, 0, 36)):
+        want[off:off + n] += float(a) * src[soff:soff + n].astype(np.float64)
+    xw = y.astype(np.float64) @ big[7:88].astype(np.float64).reshape(9, 9)
+    want[120:201] += (xw[:, None] * tile[4:85].astype(np.float64).reshape(9, 9)).ravel()
+    run(dst, src, y, x, tile, big, a)
+    np.testing.assert_allclose(x, xw, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(dst, want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("bands", [3, 4, 6])
+def test_band_specialised_relight_loops_equal_the_numpy_path(tmp_path, monkeypatch, bands):
+    """Level 1's vector loop is compiled once per transfer band count
+    (hit_jit.LEVEL1_BY_BANDS); each equals the numpy path to float32
+    rounding (the default 5 bands: test_compiled_relight_projection_equals_the_numpy_path)."""
+    from prtt_addon.core.bake import hit_jit
+    assert hit_jit.relight_for(bands, 3, True) is hit_jit.LEVEL1_BY_BANDS[bands]
+    sc = _scene(GLOSSY_WALL, res=12)
+    out = {}
+    for path, off in (("compiled", "0"), ("numpy", "1")):
+        monkeypatch.setenv("PRTT_NO_NUMBA", off)
+        m = bake_scene(sc, str(tmp_path / path), _settings(bands=bands, bounces=1, bounce_mode="relightable"),
+                       light=sky(bands))
+        assert {r["hit_shading"] for r in m["bounce"]["sets"]} == {path}
+        out[path] = exr_io.read_relight_exr(str(tmp_path / path / "wall.relight.exr"))
+    for x, y in zip(out["compiled"][:2], out["numpy"][:2]):
+        scale = np.abs(y).max()
+        assert scale > 0
+        np.testing.assert_allclose(x, y, rtol=0, atol=2e-6 * scale)

@@ -2,7 +2,8 @@
 
 One scanline EXR per texture: channels ``sh000 .. sh{K-1}`` (transfer, coefficient
 order k = l^2 + l + m) or ``R.sh000 .. B.sh{K-1}`` (RGB bounce textures), half
-(default) or float32, ZIP compressed, with ``prtt_*`` header attributes.
+(default) or float32, ZIP compressed (relightable bounces: PIZ, compression_of), with
+``prtt_*`` header attributes.
 
 The bake keeps textures channel-first, (C, H, W) with C = K (transfer) or 3K
 (RGB, ordered R.sh000.., G.sh000.., B.sh000..), row 0 at the *bottom* (v up, like
@@ -139,6 +140,16 @@ def relight_full_bits(names: list[str]) -> list[bool]:
     return [n.endswith(".dc.i000") for n in names]
 
 
+def compression_of(kind: str):
+    """The EXR compression of a texture of ``kind``: ZIP, except relightable
+    bounces (kind "relight"), PIZ. Both are lossless. On the room's relight
+    texture (147 half channels, 512^2, 2 threads) ZIP wrote in 0.48 s and
+    PIZ in 0.22 s, for 38.9 against 42.7 MB (reads 0.17 and 0.15 s): its
+    write was the largest part of the relightable bake's write stage."""
+    import OpenEXR
+    return OpenEXR.PIZ_COMPRESSION if kind == "relight" else OpenEXR.ZIP_COMPRESSION
+
+
 def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
                     rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
                     executor=None, rng: tuple[float, float] | None = None,
@@ -199,7 +210,7 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     mapper = executor.map if executor is not None else map
     channels = dict(zip(names, mapper(convert, range(len(names)))))
     header = {
-        "compression": OpenEXR.ZIP_COMPRESSION,
+        "compression": compression_of(kind),
         "type": OpenEXR.scanlineimage,
         "prtt_format_version": TEXTURE_FORMAT_VERSION,
         "prtt_kind": kind,
