@@ -606,7 +606,7 @@ def bake_bounce_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, sh
     tex = np.zeros((3 * K, gb.height * gb.width), np.float32)
 
     def store(cols, planes):
-        tex[:, cols] = planes
+        hit_kernel.store_columns(tex, cols, planes)
 
     stats = trace_bounce_level(rs, gb, pts, skip, st, level, BakedProjection(shader, K), store,
                                progress=progress, cancel=cancel, remote=remote)

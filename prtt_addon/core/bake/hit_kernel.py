@@ -70,7 +70,7 @@ def _jit():
 
 
 def _probe(mod, kind: str, bands: int, transfer_bands: int = 0) -> None:
-    """Call the loops of ``kind`` ("baked" or "relight") on no hits, with the
+    """Call the loops of ``kind`` ("baked", "relight" or "columns") on no hits, with the
     dtypes of a real call: numba compiles (or loads from its cache) the very
     overloads a bake uses (for "relight": both loops of glossy ``bands``
     with a transfer of ``transfer_bands``)."""
@@ -84,6 +84,9 @@ def _probe(mod, kind: str, bands: int, transfer_bands: int = 0) -> None:
             loop(i64, i64, rows, rows, i64, i64, f2, np.zeros((1, 1, K), np.float32), f2,
                  np.zeros((1, 1, kg, kg), np.float32), f2, f2, bands, *recurrence_constants(bands), 1, f32,
                  np.zeros((1, kg), np.float32), np.zeros((1, 3, K), np.float32), np.zeros((1, 1, kg, kg), np.float32))
+    elif kind == "columns":
+        mod.put_columns(f2, i64, np.zeros((3, 0), np.float32))
+        mod.put_texel_rows(f2, i64, np.zeros((0, 3), np.float32))
     else:
         mod.for_bands(bands)(i64, i64, rows, rows, i64, i64, f2, f2, f2, bands, *recurrence_constants(bands), f2)
 
@@ -123,6 +126,7 @@ def warm_up(bands: int, relightable: bool = False, glossy_bands: int = 3) -> thr
 
     def load():
         usable("relight", glossy_bands, bands) if relightable else usable("baked", bands)
+        usable("columns", 0)
         islands = jit.load(_ISLANDS)
         if islands is not None:
             try:
@@ -169,3 +173,23 @@ def hit_texels(sel, prim, u, v, frames, glossy_tri, diffuse_grid, glossy_grid):
     tex, gtex = _jit().texel_indices(sel, prim, u, v, frames, diffuse_grid.width, diffuse_grid.height,
                                      glossy_grid is not None, glossy_tri, g.width, g.height)
     return tex, gtex, g
+
+
+def store_columns(dst: np.ndarray, cols: np.ndarray, src: np.ndarray) -> None:
+    """dst[:, cols] = src: a chunk's result (C, n) into its texel columns of a
+    texture (C, H*W), as numpy's assignment would (the same values; the
+    bakes' stores call it from their threads for disjoint columns). Compiled
+    (hit_jit.put_columns, put_texel_rows) for float32 into C-contiguous
+    float32 rows, src either C-contiguous or the transpose of a C-contiguous
+    (n, C) array (the projections' results); numpy otherwise."""
+    fast = (dst.dtype == np.float32 and src.dtype == np.float32 and dst.flags.c_contiguous
+            and src.shape == (dst.shape[0], cols.size) and cols.dtype == np.int64)
+    if fast and available() and usable("columns", 0):
+        mod = _jit()
+        if src.flags.c_contiguous:
+            mod.put_columns(dst, cols, src)
+            return
+        if src.T.flags.c_contiguous:
+            mod.put_texel_rows(dst, cols, src.T)
+            return
+    dst[:, cols] = src

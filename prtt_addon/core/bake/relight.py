@@ -348,9 +348,9 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
     gl = planes[3 * K:] if glossy_out else None
 
     def store(cols, result):
-        dc[:, cols] = result[0]
+        hit_kernel.store_columns(dc, cols, result[0])
         if gl is not None:
-            gl[:, cols] = result[1]
+            hit_kernel.store_columns(gl, cols, result[1])
 
     stats = trace_bounce_level(rs, gb, pts, skip, st, level, RelightProjection(shader, K, kg, glossy_out,
                                                                                shared_colour), store,
