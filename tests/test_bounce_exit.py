@@ -304,3 +304,32 @@ def test_a_numba_that_cannot_compile_the_loops_falls_back_to_numpy(tmp_path, mon
         assert m["bounce"]["files"] and {r["hit_shading"] for r in m["bounce"]["sets"]} == {"numpy"}
     assert "prefetch" in jit.failures["prtt_addon.core.bake.hit_jit"]
     assert len(calls) == 1                                     # tried once per process
+
+
+def test_column_store_equals_numpy_assignment():
+    """hit_kernel.store_columns writes a chunk's rows into its texel columns
+    as dst[:, cols] = src does, bit for bit: the compiled loops for a
+    C-contiguous src and for the transposed texel-major rows the projections
+    return, numpy for any other layout or dtype; columns it is not given
+    keep their values."""
+    assert hit_kernel.usable("columns", 0)
+    rng = np.random.default_rng(3)
+    base = rng.normal(size=(7, 300)).astype(np.float32)
+    cols = np.sort(rng.choice(300, 40, replace=False)).astype(np.int64)
+    rows = rng.normal(size=(40, 7)).astype(np.float32)
+    srcs = {"contiguous": np.ascontiguousarray(rows.T), "transposed": rows.T, "float64": rows.T.astype(np.float64),
+            "strided": np.asfortranarray(rng.normal(size=(7, 80)).astype(np.float32))[:, ::2]}
+    for name, src in srcs.items():
+        want, got = base.copy(), base.copy()
+        want[:, cols] = src
+        hit_kernel.store_columns(got, cols, src)
+        assert np.array_equal(want, got), name
+    mod = hit_kernel._jit()
+    got = base.copy()
+    mod.put_texel_rows(got, cols, rows)
+    want = base.copy()
+    want[:, cols] = rows.T
+    assert np.array_equal(want, got)
+    got = base.copy()
+    mod.put_columns(got, cols, np.ascontiguousarray(rows.T))
+    assert np.array_equal(want, got)

@@ -18,7 +18,7 @@ rendered by the viewport's shaders (offscreen, llvmpipe where there is no
 GPU) under the turned light; the error is the relative RMSE of the relit
 frame against the rebaked one over covered pixels (the band limit of
 relightable glossy bounce light, docs/shading.md). Then the frame time of
-each (median of 5 after the first), what a new light adds to the first
+each (median of 9 after the first, the two interleaved), what a new light adds to the first
 frame under it (the GPU relight pass, what turning the World costs), and
 the bounce texture bytes of each. Writes
 docs/bench/relight.csv and docs/images/relight_room_90.png (the room at 90°:
@@ -84,14 +84,21 @@ def bounce_seconds(m: dict) -> float:
     return s["bounce_exit"] + s["bounce_trace"] + s["bounce_write"]
 
 
-def frame_ms(view: Previewer, out_dir: str, frames: int = 5) -> float:
-    view.render(out_dir)                       # uploads, shader compile
-    times = []
+def frame_ms(pairs: list, frames: int = 9) -> list[float]:
+    """Median frame time (ms) of each (Previewer, folder) pair, their frames
+    interleaved (llvmpipe's frame times drift by tens of per cent within a
+    minute: each drift hits every folder); one Previewer per folder, so that
+    each keeps its textures uploaded. The first frame of each (uploads,
+    shader compile, the relight pass) is not counted."""
+    for view, d in pairs:
+        view.render(d)
+    times = [[] for _ in pairs]
     for _ in range(frames):
-        t = time.perf_counter()
-        view.render(out_dir)
-        times.append(time.perf_counter() - t)
-    return 1000.0 * float(np.median(times))
+        for (view, d), ts in zip(pairs, times):
+            t = time.perf_counter()
+            view.render(d)
+            ts.append(time.perf_counter() - t)
+    return [1000.0 * float(np.median(ts)) for ts in times]
 
 
 #: Display exposure of the figure (the forest HDRI through the room's camera).
@@ -154,7 +161,8 @@ def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str, figure
               f"{row['baked_bounce_seconds']:5.2f} s, relightable {t_rl:5.2f} s)", flush=True)
     view.light = light
     bake_scene(sc, bk, BakeSettings(bounces=1), light=light)
-    f_bk, f_rl = frame_ms(view, bk), frame_ms(view, rl)
+    other = Previewer(sc, light, size, bounces=True, **camera)
+    f_bk, f_rl = frame_ms([(other, bk), (view, rl)])
     # A turned World: the first frame under each new light runs the relight pass.
     turns = []
     for deg in (10.0, 20.0, 30.0):
