@@ -19,7 +19,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 def test_outputs_manifest_and_header(tmp_path):
     sc = floor_and_box(res=32)
-    m = bake_scene(sc, tmp_path, BakeSettings(rays=64))
+    m = bake_scene(sc, tmp_path, BakeSettings(rays=64, bounce_mode="baked"))
     assert sorted(os.listdir(tmp_path)) == ["box.transfer.exr", "floor.transfer.exr", "manifest.json"]
     man = json.loads((tmp_path / "manifest.json").read_text())
     assert man == m and man["skipped"] is False
@@ -218,8 +218,8 @@ def test_atlas_and_per_object_sets(tmp_path):
     per = mg.assemble(objs, resolution=128)
     atlas = mg.assemble(objs, resolution=128, atlas=True)
     assert per.set_names == ["a", "b"] and atlas.set_names == ["atlas"]
-    m1 = bake_scene(per, tmp_path / "per", BakeSettings(rays=16))
-    m2 = bake_scene(atlas, tmp_path / "atlas", BakeSettings(rays=16))
+    m1 = bake_scene(per, tmp_path / "per", BakeSettings(rays=16, bounce_mode="baked"))
+    m2 = bake_scene(atlas, tmp_path / "atlas", BakeSettings(rays=16, bounce_mode="baked"))
     assert m1["files"] == ["a.transfer.exr", "b.transfer.exr"]
     assert m2["files"] == ["atlas.transfer.exr"] and m2["sets"][0]["overlap_texels"] == 0
 

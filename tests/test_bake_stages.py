@@ -83,7 +83,7 @@ def test_bounce_stage_from_the_transfer_on_disk_matches_the_full_bake(tmp_path, 
     the bounce levels; the same textures as the bake that traced them."""
     sc = corner_scene({"name": "w", "base_color": [0.8, 0.4, 0.2], "specular": 0.0}, res=16)
     st = BakeSettings(rays=32, bounces=2, bounce_rays=16, bounce_tolerance=0.0, half=False,
-                      threads=2).validate()
+                      threads=2, bounce_mode="baked").validate()
     m = bake_scene(sc, tmp_path, st, light=sky())
     ctx = context(sc, str(tmp_path), st, light=sky())
     plan = plan_bake(ctx)
@@ -107,7 +107,7 @@ def test_bounce_stage_from_the_transfer_on_disk_matches_the_full_bake(tmp_path, 
 
 def test_plan_reuse_decisions(tmp_path, context):
     sc = corner_scene({"name": "w", "base_color": [0.6, 0.6, 0.6]}, res=8)
-    st = BakeSettings(rays=16, bounces=1, bounce_rays=8).validate()
+    st = BakeSettings(rays=16, bounces=1, bounce_rays=8, bounce_mode="baked").validate()
     bake_scene(sc, tmp_path, st, light=sky())
 
     def plan(settings=st, light=sky(), **kw):

@@ -64,7 +64,8 @@ def brute_force_bounce(sc, light, p, n_dirs=4096, q_rays=1024):
 def test_one_bounce_matches_brute_force(tmp_path, wall):
     sc = corner_scene(wall, res=32)
     light = sky()
-    m = bake_scene(sc, tmp_path, BakeSettings(rays=512, bounces=1, bounce_rays=2048, half=False, tuning="fixed"), light=light)
+    m = bake_scene(sc, tmp_path, BakeSettings(rays=512, bounces=1, bounce_rays=2048, half=False, tuning="fixed",
+                                              bounce_mode="baked"), light=light)
     assert "floor.bounce1.exr" in m["files"]
     data, attrs = exr_io.read_sh_exr(tmp_path / "floor.bounce1.exr")
     assert data.shape == (32, 32, 3, 25) and attrs["kind"] == "bounce" and attrs["level"] == 1
@@ -83,7 +84,8 @@ def test_one_bounce_matches_brute_force(tmp_path, wall):
 def test_zero_albedo_gives_exact_zero(tmp_path):
     sc = corner_scene({"name": "black", "base_color": [0, 0, 0], "specular": 0.0})
     sc.materials[0] = {"name": "black", "base_color": [0, 0, 0], "specular": 0.0}
-    m = bake_scene(sc, tmp_path, BakeSettings(rays=64, bounces=2, bounce_rays=64, tuning="fixed"), light=sky())
+    m = bake_scene(sc, tmp_path, BakeSettings(rays=64, bounces=2, bounce_rays=64, tuning="fixed",
+                                              bounce_mode="baked"), light=sky())
     for f in m["bounce"]["files"]:
         data, _ = exr_io.read_sh_exr(tmp_path / f)
         assert np.all(data == 0.0), f
@@ -101,7 +103,8 @@ def test_energy_decreases_with_bounces_and_stays_finite(tmp_path):
     sc.material_id = np.zeros(sc.n_triangles, np.int32)
     from prtt_addon.core.io.scene import validate
     validate(sc)
-    bake_scene(sc, tmp_path, BakeSettings(rays=128, bounces=3, bounce_rays=256, half=False), light=sky())
+    bake_scene(sc, tmp_path, BakeSettings(rays=128, bounces=3, bounce_rays=256, half=False,
+                                          bounce_mode="baked"), light=sky())
     energy = []
     for level in (1, 2, 3):
         data, _ = exr_io.read_sh_exr(tmp_path / f"box.bounce{level}.exr")
@@ -132,7 +135,7 @@ def test_skipping_and_stats(tmp_path):
 
 def test_light_or_material_change_rebakes_only_bounces(tmp_path):
     sc = corner_scene({"name": "w", "base_color": [0.5, 0.5, 0.5]})
-    st = BakeSettings(rays=64, bounces=1, bounce_rays=32)
+    st = BakeSettings(rays=64, bounces=1, bounce_rays=32, bounce_mode="baked")
     first = bake_scene(sc, tmp_path, st, light=sky())
     t_before = (tmp_path / "floor.transfer.exr").read_bytes()
     b_before = (tmp_path / "floor.bounce1.exr").read_bytes()
@@ -148,7 +151,7 @@ def test_light_or_material_change_rebakes_only_bounces(tmp_path):
     third = bake_scene(sc, tmp_path, st, light=brighter)
     assert third["transfer_reused"] and third["bounce"]["materials_hash"] != second["bounce"]["materials_hash"]
     # fewer bounces: the old level's file is removed with the new manifest
-    bake_scene(sc, tmp_path, BakeSettings(rays=64, bounces=2, bounce_rays=32), light=brighter)
+    bake_scene(sc, tmp_path, BakeSettings(rays=64, bounces=2, bounce_rays=32, bounce_mode="baked"), light=brighter)
     assert os.path.exists(tmp_path / "floor.bounce2.exr")
     bake_scene(sc, tmp_path, st, light=brighter)
     assert not os.path.exists(tmp_path / "floor.bounce2.exr")
@@ -156,7 +159,7 @@ def test_light_or_material_change_rebakes_only_bounces(tmp_path):
 
 def test_no_light_skips_bounces_with_warning(tmp_path):
     sc = corner_scene({"name": "w", "base_color": [0.5, 0.5, 0.5]})
-    m = bake_scene(sc, tmp_path, BakeSettings(rays=32, bounces=1))
+    m = bake_scene(sc, tmp_path, BakeSettings(rays=32, bounces=1, bounce_mode="baked"))
     assert m["bounce"] is None and any("no light given" in w for w in m["warnings"])
     with pytest.raises(ValueError, match="bounces must be an integer"):
-        BakeSettings(bounces=-1).validate()
+        BakeSettings(bounces=-1, bounce_mode="baked").validate()

@@ -195,7 +195,7 @@ def test_bounce_textures_identical_for_any_thread_count(tmp_path):
     for threads in (1, 2, 3):
         d = tmp_path / f"t{threads}"
         bake_scene(sc, d, BakeSettings(rays=64, bounces=2, bounce_rays=32, threads=threads, half=False,
-                                       bounce_tolerance=0.0), light=sky())
+                                       bounce_tolerance=0.0, bounce_mode="baked"), light=sky())
         outs.append([(d / f"{n}.bounce{k}.exr") for n in ("floor", "wall") for k in (1, 2)])
     for files in outs[1:]:
         for a, b in zip(outs[0], files):
@@ -210,7 +210,7 @@ def test_levels_stop_early_below_the_tolerance_and_say_so(tmp_path):
     sc.materials[0] = {"name": "floor", "base_color": [0.05, 0.05, 0.05], "specular": 0.0}
     events = []
     m = bake_scene(sc, tmp_path / "stop", BakeSettings(rays=64, bounces=3, bounce_rays=32,
-                                                       bounce_tolerance=0.01),
+                                                       bounce_tolerance=0.01, bounce_mode="baked"),
                    light=sky(), progress=events.append)
     stop = m["bounce"]["stopped_early"]
     assert stop["after_level"] == 1 and stop["levels_not_baked"] == 2 and stop["energy_ratio"] < 0.01
@@ -222,7 +222,8 @@ def test_levels_stop_early_below_the_tolerance_and_say_so(tmp_path):
     data, _ = exr_io.read_sh_exr(tmp_path / "stop" / "wall.bounce1.exr")
     assert data[..., 0].sum() > 0
     # Tolerance 0 bakes every level.
-    m0 = bake_scene(sc, tmp_path / "all", BakeSettings(rays=64, bounces=3, bounce_rays=32, bounce_tolerance=0.0),
+    m0 = bake_scene(sc, tmp_path / "all", BakeSettings(rays=64, bounces=3, bounce_rays=32, bounce_tolerance=0.0,
+                                                       bounce_mode="baked"),
                     light=sky())
     assert m0["bounce"]["stopped_early"] is None
     assert any(".bounce3." in f for f in m0["bounce"]["files"])

@@ -91,7 +91,7 @@ def test_half_grid_bake_matches_the_full_grid_block_means(tmp_path):
     """Baked at 1/2, the bounce texture is the full-grid bake averaged over 2 x 2
     blocks, to within the Monte Carlo noise of both (same rays per texel)."""
     sc = _corner(64)
-    st = dict(bounces=1, bounce_rays=512, rays=256, half=False, dilate=0, tuning="fixed")
+    st = dict(bounces=1, bounce_rays=512, rays=256, half=False, dilate=0, tuning="fixed", bounce_mode="baked")
     full = bake_scene(sc, tmp_path / "full", BakeSettings(**st), light=_light())
     half = bake_scene(sc, tmp_path / "half", BakeSettings(**st, bounce_downscale=2), light=_light())
     assert full["bounce"]["sets"][0].get("grid") is None
@@ -127,7 +127,7 @@ def test_auto_tuning_stores_the_bands_each_set_reads(tmp_path):
     sc = _corner(64)
     sc.materials[0]["specular"] = 0.0          # a purely diffuse floor (the default has a Phong lobe)
     sc.materials[1]["roughness"] = 0.8         # a rough wall: Phong exponent 0.72, |A_3|, |A_4| < 0.05 A_0
-    st = dict(bounces=1, rays=64, half=False)
+    st = dict(bounces=1, rays=64, half=False, bounce_mode="baked")
     # auto traces 1.5x the bounce rays on its coarser grid: 32 -> 48
     full = bake_scene(sc, tmp_path / "full", BakeSettings(**st, bounce_rays=48, bounce_downscale=2, tuning="fixed"),
                       light=_light())
@@ -217,7 +217,8 @@ def test_tuning_auto_stores_higher_bands_with_six_mantissa_bits(tmp_path):
     out = {}
     for tuning in ("fixed", "auto"):
         d = tmp_path / tuning
-        bake_scene(sc, str(d), BakeSettings(rays=32, bounces=1, bounce_rays=16, tuning=tuning), light=light)
+        bake_scene(sc, str(d), BakeSettings(rays=32, bounces=1, bounce_rays=16, tuning=tuning,
+                                            bounce_mode="baked"), light=light)
         out[tuning] = d
     for name in ("floor", "wall"):
         fx = OpenEXR.File(str(out["fixed"] / f"{name}.transfer.exr"))

@@ -24,16 +24,18 @@ def test_demo_runs_end_to_end(tmp_path):
                  "[5/5] relightable bounces", "side by side:", "relit at 90", "stage times:"):
         assert step in r.stdout, (step, r.stdout)
     for f in ("demo_side_by_side.png", "demo_tpfl.png", "demo_vertex-tpfl.png", "prtt_demo.blend",
-              "textures/atlas.transfer.exr", "textures/atlas.bounce1.exr", "textures/atlas.vertex.npz",
-              "demo_relight_90.png", "textures_relightable_90/atlas.relight.exr",
-              "textures_baked_90/atlas.bounce1.exr"):
+              "textures/atlas.transfer.exr", "textures/atlas.relight.exr", "textures/atlas.vertex.npz",
+              "demo_relight_90.png", "textures_baked_90/atlas.bounce1.exr"):
         assert (out / f).is_file(), f
-    # Step 5 worked in copies: the saved .blend's textures are still the ones step 3 baked (World at 0).
+    # Step 3 baked relightable bounces (the default); step 5 relit them and rebaked a
+    # baked bounce in a copy: the saved .blend's textures are still step 3's.
+    assert not (out / "textures_relightable_90").exists()
     import json
     home, turned = (json.loads((out / d / "manifest.json").read_text())["bounce"]
                     for d in ("textures", "textures_baked_90"))
-    assert home["files"] == ["atlas.bounce1.exr"] and home.get("mode", "baked") == "baked"
-    assert home["light_hash"] != turned["light_hash"]      # the rebake saw the turned World
+    assert home["files"] == ["atlas.relight.exr"] and home["mode"] == "relightable" and home["light_hash"] is None
+    assert turned.get("mode", "baked") == "baked" and turned["light_hash"]      # the rebake saw the turned World
+    assert not any(n.endswith(".bounce1.exr") for n in os.listdir(out / "textures"))
     diff = float(re.search(r"the two pictures differ by ([0-9.]+) %", r.stdout).group(1))
     assert 0.0 < diff < 10.0, diff
     import matplotlib.image as mpimg

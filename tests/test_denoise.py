@@ -128,7 +128,7 @@ def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
     from prtt_addon.core.io import exr_io
     from tests.test_bounce import corner_scene, sky
     sc = corner_scene({"name": "w", "base_color": [0.6, 0.5, 0.4], "specular": 0.0}, res=24)
-    st = dict(rays=64, bounces=1, bounce_rays=16, half=False)
+    st = dict(rays=64, bounces=1, bounce_rays=16, half=False, bounce_mode="baked")
     raw_m = bake_scene(sc, tmp_path / "raw", BakeSettings(bounce_denoise="none", **st), light=sky())
     m = bake_scene(sc, tmp_path / "den", BakeSettings(bounce_denoise="edge-aware", **st), light=sky())
     assert m["bounce"]["key"] != raw_m["bounce"]["key"]

@@ -52,9 +52,9 @@ def blend(tmp_path_factory):
 BAKE = ["--resolution", "32", "--rays", "16", "--bounces", "0"]
 
 
-@pytest.mark.parametrize("bounces", [(), ("--bounces", "1", "--bounce-rays", "8", "--bounce-mode", "relightable"),
+@pytest.mark.parametrize("bounces", [(), ("--bounces", "1", "--bounce-rays", "8", "--bounce-mode", "baked"),
                                      ("--bounces", "1", "--bounce-rays", "8", "--dask", "local:2")],
-                         ids=["direct", "relightable-bounce", "bounce-on-a-dask-cluster"])
+                         ids=["direct", "baked-bounce", "relightable-bounce-on-a-dask-cluster"])
 def test_bake_render_bake_render(blend, tmp_path, bounces):
     bake = BAKE + list(bounces)
     work = tmp_path / "work"
@@ -73,7 +73,7 @@ def test_bake_render_bake_render(blend, tmp_path, bounces):
     textures = {n: digest(work / "textures" / n) for n in os.listdir(work / "textures")}
     # the second bake finds the saved UV maps and bake record: nothing to do
     if bounces:
-        kind = ".relight.exr" if "relightable" in bounces else ".bounce1.exr"
+        kind = ".bounce1.exr" if "baked" in bounces else ".relight.exr"     # relightable: the default
         assert any(n.endswith(kind) for n in textures), sorted(textures)
     r = run("bake", "scene.blend", "--out", "textures", *bake, cwd=work)
     assert r.returncode == 0, r.stderr + r.stdout

@@ -56,12 +56,12 @@ def test_budget_never_claims_clear():
 
 def test_occluder_only_triangles_cast_shadows_without_texels(tmp_path):
     sc = floor_and_box(res=16)
-    bake_scene(sc, tmp_path / "a", BakeSettings(rays=64))
+    bake_scene(sc, tmp_path / "a", BakeSettings(rays=64, bounce_mode="baked"))
     sc.set_id[sc.set_id == 1] = -1                     # the box: occluder only
     from prtt_addon.core.io.scene import validate
     sc.set_names, sc.set_resolution = ["floor"], sc.set_resolution[:1]
     validate(sc)
-    m = bake_scene(sc, tmp_path / "b", BakeSettings(rays=64))
+    m = bake_scene(sc, tmp_path / "b", BakeSettings(rays=64, bounce_mode="baked"))
     assert m["files"] == ["floor.transfer.exr"]
     from prtt_addon.core.io.exr_io import read_sh_exr
     a, _ = read_sh_exr(tmp_path / "a" / "floor.transfer.exr")

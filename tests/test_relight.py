@@ -27,6 +27,7 @@ def _scene(wall, res=24):
 
 
 def _settings(**kw):
+    kw.setdefault("bounce_mode", "baked")        # the default is relightable: say which side is which
     return BakeSettings(rays=64, bounce_rays=48, half=False, tuning="fixed", seed=7, **kw)
 
 
@@ -156,7 +157,8 @@ def test_memory_estimate_counts_the_relightable_operator():
     from prtt_addon.core.bake.plan import bake_memory_bytes
     res = np.array([[1024, 1024]])
     for tuning, colours in (("fixed", 3), ("auto", 1)):
-        baked = bake_memory_bytes(res, BakeSettings(bounces=1, tuning=tuning), n_triangles=10, bouncing=True)
+        baked = bake_memory_bytes(res, BakeSettings(bounces=1, tuning=tuning,
+                                                    bounce_mode="baked"), n_triangles=10, bouncing=True)
         relit = bake_memory_bytes(res, BakeSettings(bounces=1, bounce_mode="relightable", tuning=tuning),
                                   n_triangles=10, bouncing=True)
         assert relit - baked == (relight_resident_bytes(1024, 1024, 25, 9, colours)

@@ -141,7 +141,8 @@ def test_bake_job_cli_overrides(tmp_path):
 def test_worker_bakes_bounces_with_the_jobs_light(tmp_path):
     from tests.test_bounce import corner_scene, sky
     sc = corner_scene({"name": "w", "base_color": [0.5, 0.5, 0.5]})
-    save_scene(sc, tmp_path / "job.npz", extra={"settings": {"rays": 32, "bounces": 1, "bounce_rays": 16},
+    save_scene(sc, tmp_path / "job.npz", extra={"settings": {"rays": 32, "bounces": 1, "bounce_rays": 16,
+                                                                     "bounce_mode": "baked"},
                                                 "light": {"coeffs": sky().tolist(), "description": "sky"}})
     r = run_worker(tmp_path / "job.npz", tmp_path / "out")
     assert r.returncode == 0, r.stderr

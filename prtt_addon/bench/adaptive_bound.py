@@ -69,7 +69,7 @@ def sweep_adaptive_bound(cfg, light, tmp: str) -> list:
         for seed in SEEDS:
             d = os.path.join(tmp, f"adaptive-{rays}-{seed}")
             m = bake_scene(sc, d, BakeSettings(rays=256, bounces=1, bounce_rays=rays, half=False, seed=seed,
-                                               bounce_denoise="none", tuning="auto"), light=light,
+                                               bounce_mode="baked", bounce_denoise="none", tuning="auto"), light=light,
                            skip_if_unchanged=False)
             est.append(bounce_planes(os.path.join(d, f"{name}.bounce1.exr")))
             shutil.rmtree(d, ignore_errors=True)

@@ -48,7 +48,7 @@ def reference_dir(name: str, sc, light, res: int, rays: int, bounce_rays: int) -
               f"{os.path.relpath(d, scenes.ROOT)})", flush=True)
         t = time.perf_counter()
         bake_scene(sc, d, BakeSettings(rays=rays, bounces=1, bounce_rays=bounce_rays, half=False, seed=4242,
-                                       tuning="fixed"), light=light, skip_if_unchanged=False)
+                                       tuning="fixed", bounce_mode="baked"), light=light, skip_if_unchanged=False)
         print(f"  reference took {time.perf_counter() - t:.0f} s", flush=True)
     return d
 
@@ -83,7 +83,7 @@ def scene_and_camera(name: str, res: int):
 
 
 def bake_variant(sc, d: str, light, extra: dict, view, ref_img) -> dict:
-    st = BakeSettings(bounces=1, **extra)
+    st = BakeSettings(bounces=1, bounce_mode="baked", **extra)
     t = time.perf_counter()
     m = bake_scene(sc, d, st, light=light, skip_if_unchanged=False)
     seconds = time.perf_counter() - t
@@ -164,7 +164,7 @@ def main(argv=None) -> int:
                     continue
                 d = os.path.join(tmp, variant.replace(" ", "_").replace("/", "-"))
                 # Cold, the first variant (fixed) paid the process's set-up.
-                scenes.warm_up(os.path.join(tmp, "warm"), BakeSettings(bounces=1, **extra), light)
+                scenes.warm_up(os.path.join(tmp, "warm"), BakeSettings(bounces=1, bounce_mode="baked", **extra), light)
                 r = {"scene": name, "variant": variant, **bake_variant(sc, d, light, extra, view, ref_img)}
                 rows.append(r)
                 shutil.rmtree(d, ignore_errors=True)

@@ -64,7 +64,7 @@ def main(argv=None) -> int:
     else:
         sc = scenes.room_scene(args.resolution, atlas=True, materials=True)
         light = env_light(args.env, 5)
-    st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_rays=args.bounce_rays,
+    st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_mode="baked", bounce_rays=args.bounce_rays,
                       bounce_denoise=args.bounce_denoise, tuning=args.tuning)
     print(f"{args.scene} scene: {sc.n_triangles} triangles, {args.resolution}^2 atlas, "
           f"{len(sc.materials)} materials, light '{args.env}'; transfer {args.rays} rays, "

@@ -61,7 +61,7 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
         ref = np.load(cache)
     else:
         print(f"  reference bounce ({ref_rays} rays per texel) ...", flush=True)
-        bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=ref_rays, half=False,
+        bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_mode="baked", bounce_rays=ref_rays, half=False,
                                           bounce_denoise="none", tuning="fixed"), light=light)
         ref = bounce_planes(os.path.join(work, f"{name}.bounce1.exr"))
         if not cfg.quick:
@@ -74,7 +74,7 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
     for rays in rays_list:
         t = time.perf_counter()
         # The full grid: the denoisers are measured on the transfer's texels (bench auto has the coarse grid).
-        m = bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_rays=rays, half=False,
+        m = bake_scene(sc, work, BakeSettings(rays=256, bounces=1, bounce_mode="baked", bounce_rays=rays, half=False,
                                                bounce_denoise="none", tuning="fixed"), light=light)
         bake_s = time.perf_counter() - t
         assert m["transfer_reused"]

@@ -134,14 +134,14 @@ def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str, figure
     bake_scene(sc, bk, BakeSettings(bounces=0), light=light)
     # One untimed bounce bake of each mode first: a process's first level loads its kernels.
     m = bake_relightable(sc, rl, light)
-    bake_scene(sc, bk, BakeSettings(bounces=1), light=light)
+    bake_scene(sc, bk, BakeSettings(bounces=1, bounce_mode="baked"), light=light)
     rl_bytes = sum(os.path.getsize(os.path.join(rl, f)) for f in m["bounce"]["files"])
     view = Previewer(sc, light, size, bounces=True, **camera)
     rows = []
     for deg in angles:
         L = turned(light, deg)
         view.light = L
-        mb = bake_scene(sc, bk, BakeSettings(bounces=1), light=L)
+        mb = bake_scene(sc, bk, BakeSettings(bounces=1, bounce_mode="baked"), light=L)
         assert mb["transfer_reused"]
         # The relightable bounce rebaked beside each baked one (it does not depend
         # on the light: the same texture every time), so the VM's drifts hit both.
@@ -160,7 +160,7 @@ def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str, figure
         print(f"  {name:6s} {deg:5.0f} deg  relit vs rebaked {100 * err:6.3f} %  (bounce: baked rebake "
               f"{row['baked_bounce_seconds']:5.2f} s, relightable {t_rl:5.2f} s)", flush=True)
     view.light = light
-    bake_scene(sc, bk, BakeSettings(bounces=1), light=light)
+    bake_scene(sc, bk, BakeSettings(bounces=1, bounce_mode="baked"), light=light)
     other = Previewer(sc, light, size, bounces=True, **camera)
     f_bk, f_rl = frame_ms([(other, bk), (view, rl)])
     # A turned World: the first frame under each new light runs the relight pass.

@@ -304,7 +304,7 @@ def case_half_overflow_and_sun(d):
     sc = floor_and_box()
     sc.materials = [{"name": "white", "base_color": [0.9, 0.9, 0.9], "roughness": 0.5}]
     sc.material_id = np.zeros(sc.n_triangles, np.int32)
-    m = bake_scene(sc, d, BakeSettings(rays=64, bounces=1, bounce_rays=32), light=light,
+    m = bake_scene(sc, d, BakeSettings(rays=64, bounces=1, bounce_rays=32, bounce_mode="baked"), light=light,
                    skip_if_unchanged=False)
     res["warnings"] = [w for w in m["warnings"] if "half" in w]
     b = m["bounce"]

@@ -235,8 +235,9 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("overlap", "bake", "choice", "warn", "what overlapping UV islands do",
             choices=(Choice("warn", "Warn", "bake with a warning"), Choice("error", "Error", "refuse to bake")),
             option="--overlap"),
-    Setting("bounces", "bake", "int", 1, "inter-reflection levels, each a texture per set (they bake the "
-            "light and materials in); 0 = off, skipped with a warning when there is no light",
+    Setting("bounces", "bake", "int", 1, "inter-reflection levels: summed into one texture per set that "
+            "the current light is applied to (bounce mode relightable), or a texture per level with the "
+            "light baked in (baked: skipped with a warning when there is no light); 0 = off",
             unit="levels", lo=0, hi=8, option="--bounces", metavar="N", ui=Ui("bounces", "Bounces", soft_hi=3,
                                                                                 why_soft="each level adds "
                                                                                          "less light")),
@@ -276,7 +277,7 @@ SETTINGS: tuple[Setting, ...] = (
                 "auto": ("Auto", "per set: bounce grid 1/2 where UV islands allow, bounce bands from the "
                          "materials (1 without glossy ones)")}),
             option="--tuning", ui=Ui("tuning", "Tuning")),
-    Setting("bounce_mode", "bake", "choice", "baked", "what the bounce textures hold: the inter-reflected "
+    Setting("bounce_mode", "bake", "choice", "relightable", "what the bounce textures hold: the inter-reflected "
             "light of the bake's light (baked: one texture per level, stale when the World changes), or "
             "a linear map of the light summed over all levels (relightable: the viewport and render apply "
             "the World as it is now; diffuse exactly, glossy lobes read bands 0-2 of the bounce light "
