@@ -34,6 +34,7 @@ import numpy as np
 from . import register
 from .bench.scenes import ROOM_MATERIALS, room_objects
 from .bench.texture_error import image_error
+from .core.bake.context import bounce_seconds
 from .core.bake.settings_schema import BY_NAME as _SETTINGS
 from .core.io.image_write import srgb_encode, write_image
 from .core.sh.envmap import builtin_environment_path
@@ -107,12 +108,6 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, expo
     return path
 
 
-def _bounce_seconds(manifest: dict) -> float:
-    """The bounce stages' seconds of a bake (exit forms, trace, dilate + write)."""
-    s = manifest.get("seconds", {})
-    return float(sum(s.get(k, 0.0) for k in ("bounce_exit", "bounce_trace", "bounce_write")))
-
-
 def _bake_copy(bpy, bake_blocking, out_dir: str, home: str, mode: str, mapping, turn0: float) -> float:
     """Bake the bounces of ``mode`` in a copy of the texture folder ``home``
     (the transfer reused): relightable under the World as it was, baked
@@ -131,7 +126,7 @@ def _bake_copy(bpy, bake_blocking, out_dir: str, home: str, mode: str, mapping, 
         raise RuntimeError(outcome.message)
     if not outcome.manifest.get("transfer_reused"):
         raise RuntimeError(f"{folder}: the transfer was baked again, not reused")
-    return _bounce_seconds(outcome.manifest)
+    return bounce_seconds(outcome.manifest["seconds"])
 
 
 def relight_step(bpy, out_dir: str, size, exposure: float, log=print) -> dict:
@@ -156,7 +151,7 @@ def relight_step(bpy, out_dir: str, size, exposure: float, log=print) -> dict:
             if mode == "RELIGHTABLE" == mode0:
                 # Step 3 baked them under the World as it was: turn it, and relight.
                 with open(os.path.join(bpy.path.abspath(home), "manifest.json"), encoding="utf-8") as f:
-                    secs["bake relightable"] = _bounce_seconds(json.load(f))
+                    secs["bake relightable"] = bounce_seconds(json.load(f)["seconds"])
             else:
                 secs[f"bake {mode.lower()}"] = _bake_copy(bpy, bake_blocking, out_dir, home, mode, mapping, turn0)
             mapping.inputs["Rotation"].default_value[2] = turn0 + math.pi / 2

@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from ..cli import env_light
+from ..core.bake.context import bounce_seconds
 from ..core.bake.runner import BakeSettings, bake_scene
 from . import scenes
 from .sweep import Previewer, write_csv
@@ -93,7 +94,7 @@ def bake_variant(sc, d: str, light, extra: dict, view, ref_img) -> dict:
     grids = [r.get("grid") for r in m["bounce"]["sets"]]
     shown = sorted({f"1/{g['downscale']} {g.get('bands', 5)} bands" for g in grids if g})
     return {"seconds": seconds, "transfer_seconds": sec["trace"],
-            "bounce_seconds": sec["bounce_exit"] + sec["bounce_trace"] + sec["bounce_write"],
+            "bounce_seconds": bounce_seconds(sec),
             "bytes": transfer_bytes + bounce_bytes, "transfer_bytes": transfer_bytes, "bounce_bytes": bounce_bytes,
             "image_rel_rmse": image_error(view.render(d), ref_img),
             "rays_traced": m["totals"]["rays_traced"] + m["bounce"]["rays_traced"],

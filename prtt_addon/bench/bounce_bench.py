@@ -17,6 +17,7 @@ import time
 
 from ..core import jit
 from ..cli import env_light
+from ..core.bake.context import bounce_seconds
 from ..core.bake.runner import BakeSettings, bake_scene
 from . import scenes
 
@@ -110,7 +111,7 @@ def main(argv=None) -> int:
               f"{t_both / t_transfer:.3f} x the transfer-only bake (target <= 1.5)")
         sec = mb["seconds"]
         tr = sum(sec[k] for k in ("bvh", "analytic_test", "gbuffer", "trace", "dilate", "write"))
-        bo = sum(sec[k] for k in ("bounce_exit", "bounce_trace", "bounce_write"))
+        bo = bounce_seconds(sec)
         print(f"within that bake: transfer stages {tr:.2f} s (bvh, analytic test, G-buffer, trace, dilate, write), "
               f"bounce stages {bo:.2f} s (exit {sec['bounce_exit']:.2f}, trace+shade {sec['bounce_trace']:.2f}, "
               f"dilate+write {sec['bounce_write']:.2f}): ratio {bo / tr:.3f}")

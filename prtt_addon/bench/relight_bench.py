@@ -35,6 +35,7 @@ import time
 import numpy as np
 
 from ..cli import env_light
+from ..core.bake.context import bounce_seconds
 from ..core.bake.runner import BakeSettings, bake_scene
 from ..core.io import meshgen as mg
 from ..core.sh.rotation import rotate_zyz
@@ -77,11 +78,6 @@ def turned(light: np.ndarray, degrees: float) -> np.ndarray:
     a = math.radians(degrees)
     L = np.asarray(light, np.float64)
     return rotate_zyz(L.T, np.full(3, a), np.zeros(3), np.zeros(3)).T
-
-
-def bounce_seconds(m: dict) -> float:
-    s = m["seconds"]
-    return s["bounce_exit"] + s["bounce_trace"] + s["bounce_write"]
 
 
 def frame_ms(pairs: list, frames: int = 9) -> list[float]:
@@ -145,7 +141,7 @@ def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str, figure
         assert mb["transfer_reused"]
         # The relightable bounce rebaked beside each baked one (it does not depend
         # on the light: the same texture every time), so the VM's drifts hit both.
-        t_rl = bounce_seconds(bake_relightable(sc, rl, light))
+        t_rl = bounce_seconds(bake_relightable(sc, rl, light)["seconds"])
         img_rl, img_bk = view.render(rl), view.render(bk)
         err = image_error(img_rl, img_bk)
         if figure and deg == 90.0:
@@ -153,8 +149,8 @@ def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str, figure
             base = view.render(rl)
             view.light = L
             save_figure(figure, {"baked": base, "relit": img_rl, "rebaked": img_bk}, deg, err)
-        row = {"scene": name, "degrees": deg, "relit_vs_rebaked": err, "baked_bounce_seconds": bounce_seconds(mb),
-               "relight_bounce_seconds": t_rl,
+        row = {"scene": name, "degrees": deg, "relit_vs_rebaked": err,
+               "baked_bounce_seconds": bounce_seconds(mb["seconds"]), "relight_bounce_seconds": t_rl,
                "baked_bounce_bytes": sum(os.path.getsize(os.path.join(bk, f)) for f in mb["bounce"]["files"])}
         rows.append(row)
         print(f"  {name:6s} {deg:5.0f} deg  relit vs rebaked {100 * err:6.3f} %  (bounce: baked rebake "

@@ -40,6 +40,14 @@ AUTO_MANTISSA_BITS = 6
 #: Stage timers (the manifest's "seconds"), zero before the stage runs; "bvh",
 #: "analytic_test" and "total" are added as those steps finish.
 STAGE_SECONDS = ("gbuffer", "trace", "dilate", "write", "vertex", "bounce_exit", "bounce_trace", "bounce_write")
+#: The bounce stages among them: exit forms, trace + shade, dilate + write.
+BOUNCE_STAGES = ("bounce_exit", "bounce_trace", "bounce_write")
+
+
+def bounce_seconds(seconds: dict) -> float:
+    """The bounce stages' seconds of a bake's ``seconds`` (its manifest's)."""
+    return float(sum(seconds.get(k, 0.0) for k in BOUNCE_STAGES))
+
 _d = _schema.default
 
 
