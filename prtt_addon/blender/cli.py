@@ -24,6 +24,7 @@ from ..core.bake import settings_schema as schema
 from .bake.run import bake_blocking
 from .blendfile import open_scene, save_blend
 from .export.unwrap import UnwrapError, bake_downscale, needs_user_unwrap, unwrap_objects
+from .rna_arrays import RnaArrayError
 from .preview.render import render_file
 
 _CLI_HANDLE = None
@@ -133,7 +134,7 @@ def _bake_file(args) -> int:
                                        padding=st.padding, atlas=st.texture_sets == "ATLAS",
                                        source_map=st.existing_uv_map, dilate=st.dilate,
                                        bounce_downscale=bake_downscale(st))
-            except (UnwrapError, RuntimeError) as exc:
+            except (UnwrapError, RnaArrayError, RuntimeError) as exc:
                 print(f"prtt: error: unwrap failed: {exc}", file=sys.stderr)
                 return 1
             if hidden and not args.quiet:

@@ -25,6 +25,7 @@ from ...core.io.exr_io import read_sh_exr
 from ...core.io.scene import save_scene
 from ..export.scene import GENERATED_UVS, ExportError, export_scene, output_folder
 from ..preview.scene import materials_signature
+from ..rna_arrays import write_pixels
 from ..ui.properties import redraw_viewports
 from .worker_job import WorkerJob
 
@@ -181,7 +182,7 @@ def load_preview_images(out_dir: str, manifest: dict) -> list:
             img.colorspace_settings.name = "Non-Color"
         rgba = np.ones((h, w, 4), np.float32)
         rgba[..., :3] = ao[..., None]
-        img.pixels.foreach_set(rgba.ravel())             # row 0 = bottom, like ours
+        write_pixels(img, rgba)                          # row 0 = bottom, like ours
         keep_image(img)
         made.append(img)
     return made

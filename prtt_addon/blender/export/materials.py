@@ -21,6 +21,7 @@ import os
 import numpy as np
 
 from ...core.shading.materials import DEFAULT
+from ..rna_arrays import read_pixels
 
 
 @dataclasses.dataclass
@@ -145,11 +146,7 @@ def image_array(image, *, linearise: bool) -> np.ndarray:
             image.reload()
         except RuntimeError:
             pass
-    w, h = image.size
-    c = image.channels
-    px = np.empty(w * h * c, np.float32)
-    image.pixels.foreach_get(px)
-    px = px.reshape(h, w, c)[::-1]
+    px = read_pixels(image)[::-1]
     if linearise and not image.is_float and image.colorspace_settings.name.lower().startswith("srgb"):
         rgb = px[..., :3]
         px = np.concatenate([np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4),

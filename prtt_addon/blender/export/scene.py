@@ -45,6 +45,7 @@ from ...core.io.assembly import MeshPart, assemble_parts, default_tangents
 from ...core.io.scene import MAX_RESOLUTION, NormalMap, Scene, SceneError
 from ...core.texels.raster import rasterize
 from ...core.texels.unwrap import UnwrapError, unwrap
+from ..rna_arrays import read
 from .materials import image_array, parse_material
 from ..ui.properties import UV_MAP
 from .scene_objects import reported_without_faces, scene_geometry
@@ -115,6 +116,7 @@ class Part:
     name: str = ""
     tile: tuple | None = None    # (columns, rows, column, row, inset): see apply_tile
     copies_faces: bool = False   # modifiers changed the face count (Array, Mirror ... may copy UVs)
+    loose: tuple = (0, 0)        # (vertices in no edge, edges in no face): not baked, not shadowing
 
     @property
     def triangles(self) -> int:
@@ -132,13 +134,6 @@ def safe_name(name: str, taken: set) -> str:
         s = base[:MAX_SET_NAME - len(suffix)] + suffix
     taken.add(s)
     return s
-
-
-def _foreach(coll, attr, n, width, dtype=np.float32):
-    a = np.empty(n * width, dtype)
-    if n:
-        coll.foreach_get(attr, a)
-    return a.reshape(n, width) if width > 1 else a
 
 
 #: Texels per metre an object's own texture set gets under Tuning "Auto" when
@@ -181,7 +176,7 @@ def export_scene(context, *, with_light: bool = True) -> ExportResult:
     warnings, missing_uv, empty = [], [], []
     parts: list[Part] = []
     mats, mat_index = [], {}
-    with_faces = set()
+    with_faces, loose = set(), {}
     for found in scene_geometry(depsgraph, context.scene, context.view_layer, include_viewport_hidden=True):
         ob = found.evaluated
         try:
@@ -198,6 +193,8 @@ def export_scene(context, *, with_light: bool = True) -> ExportResult:
             empty.append(f"{found.owner.name} (zero area)")   # shows nothing, shadows nothing
             continue
         with_faces.add(found.owner.name)
+        if any(part.loose):
+            loose.setdefault(found.owner.name, part.loose)
         part.baked = _bakes(found, st)
         if part.baked and part.uv is None and found.kind == "object" and needs_user_unwrap(found.owner):
             missing_uv.append(found.owner.name)
@@ -210,6 +207,8 @@ def export_scene(context, *, with_light: bool = True) -> ExportResult:
         more = f" and {len(skipped) - 8} more" if len(skipped) > 8 else ""
         warnings.append(f"skipped {len(skipped)} object(s) with nothing to bake (no faces): "
                         f"{', '.join(skipped[:8])}{more}")
+    if loose:
+        warnings.append(loose_geometry_note(loose))
     if missing_uv:
         raise ExportError(f"{len(missing_uv)} object(s) have no '{UV_MAP}' UV map: "
                           f"{', '.join(sorted(missing_uv)[:8])}; run PRTT > Unwrap first "
@@ -219,6 +218,18 @@ def export_scene(context, *, with_light: bool = True) -> ExportResult:
                           + (f"; {warnings[-1]}" if skipped else ""))
     _name_parts(parts)
     return _assemble(context, parts, mats, warnings, st, with_light)
+
+
+def loose_geometry_note(loose: dict) -> str:
+    """The one line about loose geometry ({object: (vertices in no edge, edges
+    in no face)}): it has no surface to bake or to cast shadows."""
+    def count(v, e):
+        words = [f"{v} loose {'vertex' if v == 1 else 'vertices'}"] if v else []
+        return " and ".join(words + ([f"{e} loose edge{'' if e == 1 else 's'}"] if e else []))
+    names = sorted(loose)
+    more = f" and {len(names) - 8} more" if len(names) > 8 else ""
+    return (f"ignored loose vertices and edges (in no face: nothing to bake, no shadow) in "
+            f"{len(names)} object(s): " + ", ".join(f"{n} ({count(*loose[n])})" for n in names[:8]) + more)
 
 
 def _name_parts(parts) -> None:
@@ -247,11 +258,12 @@ def _mesh_part(found, mesh, mats, mat_index, warnings) -> Part | None:
     if T == 0:
         return None
     M = found.matrix
-    loops = _foreach(mesh.loop_triangles, "loops", T, 3, np.int32)
-    verts = _foreach(mesh.loop_triangles, "vertices", T, 3, np.int32)
-    mat_idx = _foreach(mesh.loop_triangles, "material_index", T, 1, np.int32)
-    co = _foreach(mesh.vertices, "co", len(mesh.vertices), 3).astype(np.float64)
-    cn = _foreach(mesh.corner_normals, "vector", len(mesh.loops), 3).astype(np.float64)
+    L = len(mesh.loops)
+    loops = read(mesh.loop_triangles, "loops", 3, np.int32)
+    verts = read(mesh.loop_triangles, "vertices", 3, np.int32)
+    mat_idx = read(mesh.loop_triangles, "material_index", 1, np.int32)
+    co = read(mesh.vertices, "co", 3).astype(np.float64)
+    cn = read(mesh.corner_normals, "vector", 3, expect=L, what=f"{found.owner.name}: corner normals").astype(np.float64)
     world = co @ M[:3, :3].T + M[:3, 3]
     N = np.linalg.inv(M[:3, :3]).T if abs(np.linalg.det(M[:3, :3])) > 1e-300 else np.eye(3)
     nw = cn @ N.T                                 # normals transform by the inverse transpose
@@ -259,7 +271,7 @@ def _mesh_part(found, mesh, mats, mat_index, warnings) -> Part | None:
     uvl = mesh.uv_layers.get(UV_MAP)
     uv = None
     if uvl is not None:
-        uv = _foreach(uvl.uv, "vector", len(mesh.loops), 2).astype(np.float64)[loops]
+        uv = read(uvl.uv, "vector", 2, expect=L, what=f"{found.owner.name}: UV map {UV_MAP!r}").astype(np.float64)[loops]
     ob = found.evaluated
     who = found.owner.name
     # Materials of this object's slots, shared across objects (name_full: a
@@ -287,14 +299,15 @@ def _mesh_part(found, mesh, mats, mat_index, warnings) -> Part | None:
         if name is None or name not in mesh.uv_layers:
             warnings.append(f"object {who!r}: UV map {name!r} for its textures is missing")
             continue
-        tuv = _foreach(mesh.uv_layers[name].uv, "vector", len(mesh.loops), 2).astype(np.float64)[loops]
+        tuv = read(mesh.uv_layers[name].uv, "vector", 2, expect=L,
+                   what=f"{who}: UV map {name!r}").astype(np.float64)[loops]
         tangents = None
         if any(mats[k].normal_image is not None and (mats[k].normal_uv or render_uv) == name for k in np.unique(ids)):
             try:
                 mesh.calc_tangents(uvmap=name)
-                tan = _foreach(mesh.loops, "tangent", len(mesh.loops), 3).astype(np.float64) @ M[:3, :3].T
+                tan = read(mesh.loops, "tangent", 3).astype(np.float64) @ M[:3, :3].T
                 tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-30)
-                sgn = _foreach(mesh.loops, "bitangent_sign", len(mesh.loops), 1)
+                sgn = read(mesh.loops, "bitangent_sign")
                 if np.linalg.det(M[:3, :3]) < 0:
                     sgn = -sgn                        # mirrored objects flip the bitangent
                 tangents = np.concatenate([tan, sgn[:, None]], axis=1)[loops].astype(np.float32)
@@ -307,7 +320,11 @@ def _mesh_part(found, mesh, mats, mat_index, warnings) -> Part | None:
     # xatlas gets a vertex per corner (loop): it welds equal positions itself but
     # keeps the mesh's UV seams, and charts indexed vertices far worse (330
     # overlapping texels on Suzanne at 1024^2, against none).
-    loop_vert = _foreach(mesh.loops, "vertex_index", len(mesh.loops), 1, np.int32)
+    loop_vert = read(mesh.loops, "vertex_index", 1, np.int32)
+    # Blender's loose elements: vertices in no edge, edges in no face.
+    in_edge = np.zeros(len(mesh.vertices), bool)
+    in_edge[read(mesh.edges, "vertices", 2, np.int32).ravel()] = True
+    edges_in_faces = np.unique(read(mesh.loops, "edge_index", 1, np.int32)).size
     owner = found.owner
     copies = (found.kind == "object" and owner.type == "MESH"
               and len(mesh.polygons) != len(owner.data.polygons))
@@ -317,7 +334,8 @@ def _mesh_part(found, mesh, mats, mat_index, warnings) -> Part | None:
                 normal_mapped=normal_mapped, nm_uvs=nm_uvs, tangents=tangents,
                 local=(co[loop_vert], loops), uv=uv,
                 data_name=data.name_full if data is not None else found.source_name,
-                copies_faces=copies)
+                copies_faces=copies,
+                loose=(int(len(in_edge) - in_edge.sum()), int(len(mesh.edges) - edges_in_faces)))
 
 
 def _sampling_uvs(ids, mats, render_uv, mesh_uvs):

@@ -17,6 +17,7 @@ import numpy as np
 
 from ...core.texels.raster import rasterize
 from ...core.texels.unwrap import LoopMesh, unwrap_loops
+from ..rna_arrays import read, write
 from ..ui.properties import UV_MAP
 
 
@@ -41,24 +42,28 @@ def _select_flag_usable(me, coll: str) -> bool:
 
 @contextlib.contextmanager
 def _preserved(context, objects):
-    """Restore mode, selection, active object, active/render UV maps and mesh
-    selection flags after the block."""
+    """Run the block in Object Mode; restore mode, selection, active object,
+    active/render UV maps and mesh selection flags after it.
+
+    A mesh in Edit Mode keeps its data in the edit mesh: its UV layers read
+    as empty and its loops, faces and flags are those of the last mode change.
+    Leaving Edit Mode first writes the edits into the mesh (what Blender's own
+    bake does), so everything read and written in the block is current (a
+    .blend saved in Edit Mode opens in Edit Mode, also headless)."""
     view_layer = context.view_layer
     active = view_layer.objects.active
     mode = context.object.mode if context.object else "OBJECT"
     selected = [o for o in context.selected_objects]
+    if mode != "OBJECT":
+        bpy.ops.object.mode_set(mode="OBJECT")
     saved = {}
     for ob in objects:
         me = ob.data
         uv = me.uv_layers
         flags = {}
         for coll in ("vertices", "edges", "polygons"):
-            if not _select_flag_usable(me, coll):
-                continue
-            c = getattr(me, coll)
-            a = np.empty(len(c), bool)
-            c.foreach_get("select", a)
-            flags[coll] = a
+            if _select_flag_usable(me, coll):
+                flags[coll] = read(getattr(me, coll), "select", 1, bool)
         saved[ob.name] = (uv.active.name if uv.active else None,
                           next((u.name for u in uv if u.active_render), None), flags)
     try:
@@ -75,7 +80,7 @@ def _preserved(context, objects):
                 me.uv_layers[render].active_render = True
             for coll, a in flags.items():
                 if _select_flag_usable(me, coll) and len(getattr(me, coll)) == len(a):
-                    getattr(me, coll).foreach_set("select", a)
+                    write(getattr(me, coll), "select", a, 1, bool)
             me.update()
         for o in context.view_layer.objects:
             o.select_set(o in selected)
@@ -131,22 +136,15 @@ def _loop_mesh(ob) -> LoopMesh:
     """An object's mesh as core.texels.unwrap wants it, in world space."""
     me = ob.data
     me.calc_loop_triangles()
-    T = len(me.loop_triangles)
-    loops = np.empty(T * 3, np.int32)
-    me.loop_triangles.foreach_get("loops", loops)
-    verts = np.empty(len(me.loops), np.int32)
-    me.loops.foreach_get("vertex_index", verts)
-    co = np.empty(len(me.vertices) * 3, np.float32)
-    me.vertices.foreach_get("co", co)
-    poly = np.empty(T, np.int32)
-    me.loop_triangles.foreach_get("polygon_index", poly)
-    start = np.empty(len(me.polygons), np.int32)
-    me.polygons.foreach_get("loop_start", start)
-    total = np.empty(len(me.polygons), np.int32)
-    me.polygons.foreach_get("loop_total", total)
+    loops = read(me.loop_triangles, "loops", 3, np.int32)
+    verts = read(me.loops, "vertex_index", 1, np.int32)
+    co = read(me.vertices, "co", 3)
+    poly = read(me.loop_triangles, "polygon_index", 1, np.int32)
+    start = read(me.polygons, "loop_start", 1, np.int32)
+    total = read(me.polygons, "loop_total", 1, np.int32)
     M = np.array(ob.matrix_world, dtype=np.float64)
-    world = co.reshape(-1, 3) @ M[:3, :3].T + M[:3, 3]
-    return LoopMesh(world[verts], loops.reshape(-1, 3), verts, poly, start, total)
+    world = co @ M[:3, :3].T + M[:3, 3]
+    return LoopMesh(world[verts], loops, verts, poly, start, total)
 
 
 def _xatlas(objects, resolution, padding, atlas):
@@ -154,7 +152,8 @@ def _xatlas(objects, resolution, padding, atlas):
     for group in groups:
         layouts = unwrap_loops([_loop_mesh(ob) for ob in group], resolution, padding=padding)
         for ob, per_loop in zip(group, layouts):
-            prtt_layer(ob.data).uv.foreach_set("vector", np.clip(per_loop, 0.0, 1.0).astype(np.float32).ravel())
+            write(prtt_layer(ob.data).uv, "vector", np.clip(per_loop, 0.0, 1.0), 2,
+                  what=f"{ob.name}: UV map {UV_MAP!r}")
             ob.data.update()
 
 
@@ -273,9 +272,9 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
                 if not name or name not in me.uv_layers or name == UV_MAP:
                     raise UnwrapError(f"object {ob.name!r} has no UV map {name or '(render UV map)'!r} to copy; "
                                       f"choose another method")
-                src = np.empty(len(me.loops) * 2, np.float32)
-                me.uv_layers[name].uv.foreach_get("vector", src)
-                prtt_layer(me).uv.foreach_set("vector", src)
+                src = read(me.uv_layers[name].uv, "vector", 2, expect=len(me.loops),
+                           what=f"{ob.name}: UV map {name!r}")
+                write(prtt_layer(me).uv, "vector", src, 2, what=f"{ob.name}: UV map {UV_MAP!r}")
                 me.update()
         elif method == "SMART":
             # Objects edited together are packed together: one call per object
@@ -298,19 +297,18 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
             for group in groups:
                 if _overlap_of(group, resolution, atlas) and all(_editable(o) for o in group):
                     _separate_and_pack(context, group, margin)
-    return {ob.name: overlap_texels(ob, resolution) for ob in objects}
+        # Counted before the mode is put back: in Edit Mode the map reads as empty.
+        return {ob.name: overlap_texels(ob, resolution) for ob in objects}
 
 
 def _tri_uvs(ob) -> np.ndarray:
     """(T, 3, 2) float64 corner UVs of the object's PRTT map, clipped to [0, 1]."""
     me = ob.data
     me.calc_loop_triangles()
-    T = len(me.loop_triangles)
-    loops = np.empty(T * 3, np.int32)
-    me.loop_triangles.foreach_get("loops", loops)
-    uv = np.empty(len(me.loops) * 2, np.float32)
-    me.uv_layers[UV_MAP].uv.foreach_get("vector", uv)
-    return np.clip(uv.reshape(-1, 2).astype(np.float64)[loops].reshape(T, 3, 2), 0.0, 1.0)
+    loops = read(me.loop_triangles, "loops", 3, np.int32)
+    uv = read(me.uv_layers[UV_MAP].uv, "vector", 2, expect=len(me.loops),
+              what=f"{ob.name}: UV map {UV_MAP!r} (is the mesh in Edit Mode?)")
+    return np.clip(uv.astype(np.float64)[loops], 0.0, 1.0)
 
 
 def overlap_texels(ob, resolution: int) -> int:

@@ -33,6 +33,7 @@ from ...core.sh.envmap import compose_light
 from ...core.shading.model import light_hash
 from ..export.materials import image_array, parse_material
 from ..export.scene import GENERATED_UVS, apply_tile, output_folder
+from ..rna_arrays import read
 from ..ui.properties import UV_MAP
 from ..export.scene_objects import scene_geometry
 from ..export.world import WorldLightError, project_setup, world_setup
@@ -190,21 +191,13 @@ def materials_signature(scene) -> str:
                                 sort_keys=True, default=str).encode())
         me = ob.data if ob.type == "MESH" else None
         if me is not None and len(me.polygons):
-            mi = np.empty(len(me.polygons), np.int32)
-            me.polygons.foreach_get("material_index", mi)
-            h.update(mi.tobytes())
+            h.update(read(me.polygons, "material_index", 1, np.int32).tobytes())
     sig = h.hexdigest()
     _SIGNATURES[scene.name] = (gen, sig)
     return sig
 
 
 # --- meshes ---------------------------------------------------------------------------
-
-def _foreach(coll, attr, n, width, dtype=np.float32):
-    a = np.empty(n * width, dtype)
-    coll.foreach_get(attr, a)
-    return a.reshape(n, width) if width > 1 else a
-
 
 def _vertex_table(path: str) -> np.ndarray | None:
     try:
@@ -229,14 +222,15 @@ def mesh_corners(ob_eval, table: _MaterialTable) -> tuple[dict, np.ndarray, list
         if T == 0:
             return {}, np.zeros(0, np.int64), []
         nl = len(mesh.loops)
-        loops = _foreach(mesh.loop_triangles, "loops", T, 3, np.int32)
-        verts = _foreach(mesh.loop_triangles, "vertices", T, 3, np.int32)
-        slot_of = _foreach(mesh.loop_triangles, "material_index", T, 1, np.int32)
-        co = _foreach(mesh.vertices, "co", len(mesh.vertices), 3)
-        corners = {"positions": co[verts], "normals": _foreach(mesh.corner_normals, "vector", nl, 3)[loops]}
+        loops = read(mesh.loop_triangles, "loops", 3, np.int32)
+        verts = read(mesh.loop_triangles, "vertices", 3, np.int32)
+        slot_of = read(mesh.loop_triangles, "material_index", 1, np.int32)
+        co = read(mesh.vertices, "co", 3)
+        normals = read(mesh.corner_normals, "vector", 3, expect=nl, what=f"{ob_eval.name}: corner normals")
+        corners = {"positions": co[verts], "normals": normals[loops]}
         uvl = mesh.uv_layers.get(UV_MAP)
         if uvl is not None:
-            corners["uv"] = _foreach(uvl.uv, "vector", nl, 2)[loops]
+            corners["uv"] = read(uvl.uv, "vector", 2, expect=nl, what=f"{ob_eval.name}: UV map {UV_MAP!r}")[loops]
         slots = [s.material for s in ob_eval.material_slots] or [None]
         slot_of = np.clip(slot_of, 0, len(slots) - 1)
         render_uv = next((u.name for u in mesh.uv_layers if u.active_render), None)
@@ -248,15 +242,16 @@ def mesh_corners(ob_eval, table: _MaterialTable) -> tuple[dict, np.ndarray, list
         def uv_of(name):
             if name not in uv_cache:
                 layer = mesh.uv_layers.get(name) if name else None
-                uv_cache[name] = None if layer is None else _foreach(layer.uv, "vector", nl, 2)
+                uv_cache[name] = None if layer is None else read(layer.uv, "vector", 2, expect=nl,
+                                                                  what=f"{ob_eval.name}: UV map {name!r}")
             return uv_cache[name]
 
         def tangents_of(name):
             if name not in tan_cache:
                 try:
                     mesh.calc_tangents(uvmap=name)
-                    tan_cache[name] = np.concatenate([_foreach(mesh.loops, "tangent", nl, 3),
-                                                      _foreach(mesh.loops, "bitangent_sign", nl, 1)[:, None]], 1)
+                    tan_cache[name] = np.concatenate([read(mesh.loops, "tangent", 3),
+                                                      read(mesh.loops, "bitangent_sign")[:, None]], 1)
                 except RuntimeError:
                     tan_cache[name] = None
             return tan_cache[name]

@@ -1,10 +1,10 @@
 """PRTT's operators: Unwrap, Bake Transfer (modal in the UI, blocking headless), Cancel."""
 import bpy
-import numpy as np
 
 from ..bake import run as bake_run
 from ..export.scene import ExportError
 from ..export.unwrap import UnwrapError, bake_downscale, unwrap_objects
+from ..rna_arrays import RnaArrayError, write_pixels
 from ..preview.render import RenderError, exposure_of, render_scene
 from .panels import draw_progress
 from .properties import PREVIEW_MODES
@@ -44,7 +44,7 @@ class PRTT_OT_unwrap(bpy.types.Operator):
                                       padding=st.padding, atlas=st.texture_sets == "ATLAS",
                                       source_map=st.existing_uv_map, dilate=st.dilate,
                                       bounce_downscale=bake_downscale(st))
-        except (UnwrapError, RuntimeError) as exc:
+        except (UnwrapError, RnaArrayError, RuntimeError) as exc:
             self.report({"ERROR"}, f"PRTT: {exc}")
             return {"CANCELLED"}
         bad = {k: v for k, v in overlaps.items() if v}
@@ -214,7 +214,7 @@ class PRTT_OT_render_preview(bpy.types.Operator):
             img = bpy.data.images.new("PRTT Preview", w, h, float_buffer=True, alpha=True)
         px = pixels.copy()
         px[..., :3] *= exposure_of(context.scene)
-        img.pixels.foreach_set(np.ascontiguousarray(px, np.float32).ravel())   # bottom row first, like ours
+        write_pixels(img, px)                     # bottom row first, like ours
         bake_run.keep_image(img)
         for level, text in status.messages:
             if level != "INFO":
