@@ -189,6 +189,17 @@ class CheckedValue(argparse.Action):
         setattr(namespace, self.dest, v)
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    """``WxH`` -> (W, H), both at least 1 (argparse reports anything else, exit 2)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 1920x1080, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"width and height must be at least 1, got {text!r}")
+    return w, h
+
+
 def int_range(lo: int, hi: int):
     """Converter: an integer lo..hi."""
     def convert(text: str) -> int:

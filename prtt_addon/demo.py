@@ -34,6 +34,8 @@ import numpy as np
 from . import register
 from .bench.scenes import ROOM_MATERIALS, room_objects
 from .bench.texture_error import image_error
+from .cli_options import CheckedValue, int_range, parse_size
+from .core.bake import settings_schema as schema
 from .core.bake.context import bounce_seconds
 from .core.bake.settings_schema import BY_NAME as _SETTINGS
 from .core.io.image_write import srgb_encode, write_image
@@ -182,6 +184,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
 
     # The Blender side needs bpy: this module loads without it (the CLI's parser).
     from .blender.bake.run import bake_blocking  # needs bpy (see above)
+    from .blender.blendfile import blend_relative  # needs bpy (see above)
     from .blender.preview.render import exposure_of, render_scene  # needs bpy (see above)
     from .blender.ui.properties import UV_MAP  # needs bpy (see above)
     t_all = time.perf_counter()
@@ -238,6 +241,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         f"[transfer {sec.get('trace', 0) + sec.get('gbuffer', 0) + sec.get('dilate', 0):.1f} s, "
         f"vertex {sec.get('vertex', 0):.1f} s, bounce {sec.get('bounce_trace', 0) + sec.get('bounce_write', 0):.1f} s]")
     blend = os.path.join(out_dir, "prtt_demo.blend")
+    st.output_dir = blend_relative(bpy.path.abspath(st.output_dir), blend)   # //textures/: the folder can move
     bpy.ops.wm.save_as_mainfile(filepath=blend)
 
     w, h = size
@@ -281,7 +285,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
     log(f"single images: {', '.join(os.path.relpath(f) for f in files)}")
     log(f"the .blend:    {os.path.relpath(blend)}   (open it in Blender with PRTT installed: "
         f"Sidebar > PRTT > Preview)")
-    log(f"textures:      {os.path.relpath(st.output_dir)}/ ({', '.join(m['files'])})")
+    log(f"textures:      {os.path.relpath(bpy.path.abspath(st.output_dir))}/ ({', '.join(m['files'])})")
     log("stage times: " + ", ".join(f"{k} {v:.1f} s" for k, v in times.items()))
     return {"image": image, "files": files, "blend": blend, "times": times, "manifest": m, "shots": shots,
             "relight": rl}
@@ -295,12 +299,25 @@ def _gpu_name() -> str:
         return "the GPU"
 
 
+#: The smallest atlas the demo bakes: a Smart UV Project of the room with its
+#: island margins needs some texels per island.
+MIN_DEMO_RESOLUTION = 16
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The demo's options, each checked here (exit 2 naming the option) before
+    any work: the ranges are the bake's (core/bake/settings_schema.py)."""
+    def checked(name, lo=None):
+        s = schema.get(name)
+        lo = s.lo if lo is None else lo
+        return dict(action=CheckedValue, convert=int_range(lo, s.hi), metavar="N",
+                    help=f"{s.help} ({lo}..{s.hi} {s.unit})")
     p.add_argument("--out", default=os.path.join(ROOT, "out", "demo"), help="output folder (default out/demo)")
-    p.add_argument("--resolution", type=int, default=1024, help="atlas texels per side")
-    p.add_argument("--rays", type=int, default=256, help="transfer rays per texel")
-    p.add_argument("--bounce-rays", type=int, default=None, help="default: the bake default")
-    p.add_argument("--size", default="960x540", help="each preview image, WxH")
+    p.add_argument("--resolution", default=1024, **checked("resolution", MIN_DEMO_RESOLUTION))
+    p.add_argument("--rays", default=256, **checked("rays"))
+    p.add_argument("--bounce-rays", default=None, **checked("bounce_rays"))
+    p.add_argument("--size", default=(960, 540), type=parse_size, metavar="WxH",
+                   help="each preview image, WxH pixels (default 960x540)")
     p.add_argument("--no-relight", dest="relight", action="store_false",
                    help="skip step 5 (relightable bounces, the World turned by 90 degrees)")
 
@@ -319,7 +336,7 @@ def run_args(args) -> int:
         print("prtt: error: the demo needs Blender as a Python module (pip install bpy==5.0.1; "
               "./prtt.sh demo installs it)", file=sys.stderr)
         return 1
-    w, h = (int(v) for v in args.size.lower().split("x"))
+    w, h = args.size
     print("PRTT demo: room-class scene, unwrap, bake (transfer + 1 bounce), TPFL vs vertex-TPFL preview")
     try:
         run(args.out, resolution=args.resolution, rays=args.rays, bounce_rays=args.bounce_rays, size=(w, h),

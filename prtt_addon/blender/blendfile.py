@@ -4,6 +4,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import tempfile
 
 import bpy
 
@@ -35,6 +36,42 @@ def blender_log_muted(mute: bool = True):
         os.close(saved)
 
 
+#: Lines Blender's native code writes to stderr that say nothing to a user:
+#: Mesa's EGL answers EGL_BAD_MATCH to the context versions Blender tries
+#: before the one it gets, on every GPU start-up (the GPU then works).
+HARMLESS_STDERR = ("EGL Error (0x3009): EGL_BAD_MATCH",)
+
+
+@contextlib.contextmanager
+def native_stderr_filtered(drop=HARMLESS_STDERR):
+    """Run the block with file descriptor 2 captured (native code writes there,
+    past Python's sys.stderr); afterwards write back every line but those
+    starting with one of ``drop``."""
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    with tempfile.TemporaryFile() as capture:
+        os.dup2(capture.fileno(), 2)
+        try:
+            yield
+        finally:
+            try:
+                sys.stderr.flush()
+            except (OSError, ValueError):
+                pass
+            os.dup2(saved, 2)
+            os.close(saved)
+            capture.seek(0)
+            kept = [ln for ln in capture.read().decode("utf-8", "replace").splitlines(keepends=True)
+                    if not ln.startswith(tuple(drop))]
+            if kept:
+                sys.stderr.write("".join(kept))
+                sys.stderr.flush()
+
+
 def open_scene(blend: str, scene_name: str | None, *, quiet: bool = False):
     """Open a .blend and return its scene (the named one, else the active one),
     or None after printing why not. ``quiet``: without Blender's "Read blend" line."""
@@ -48,6 +85,22 @@ def open_scene(blend: str, scene_name: str | None, *, quiet: bool = False):
     if scene is None:
         print(f"prtt: error: no scene {scene_name!r} in {blend}", file=sys.stderr)
     return scene
+
+
+def blend_relative(folder: str, blend: str) -> str:
+    """``folder`` as Blender's ``//``-relative path from the .blend ``blend``
+    (``//textures/``), so that the project folder can move or be copied with
+    its .blend; ``folder`` itself (absolute) when the .blend is not saved yet
+    or lives on another drive (Windows)."""
+    folder = os.path.abspath(folder)
+    if not blend:
+        return folder
+    try:
+        rel = os.path.relpath(folder, os.path.dirname(os.path.abspath(blend)))
+    except ValueError:                      # another drive: no relative path exists
+        return folder
+    rel = rel.replace(os.sep, "/")
+    return "//" if rel == "." else f"//{rel}/"
 
 
 def save_blend(path: str | None, *, quiet: bool = False) -> str:

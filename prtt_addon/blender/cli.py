@@ -11,6 +11,7 @@ both call :func:`bake_file`, which opens the .blend and runs the same
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import sys
@@ -22,7 +23,8 @@ from ..cli_options import (ConsoleProgress, add_dask_option, add_output_options,
                            given_settings)
 from ..core.bake import settings_schema as schema
 from .bake.run import bake_blocking
-from .blendfile import open_scene, save_blend
+from .blendfile import blend_relative, open_scene, save_blend
+from .export.scene import output_folder
 from .export.unwrap import UnwrapError, bake_downscale, needs_user_unwrap, unwrap_objects
 from .rna_arrays import RnaArrayError
 from .preview.render import render_file
@@ -45,7 +47,10 @@ def bake_parser(prog: str) -> argparse.ArgumentParser:
         epilog="Exit status: 0 baked (or nothing to do), 1 failed (the message says why), 2 bad options, "
                "3 cancelled (SIGINT/SIGTERM; the .blend and the previous textures unchanged).")
     p.add_argument("blend", help="the .blend file")
-    p.add_argument("--out", help="output folder (default: the file's PRTT setting, //prtt/)")
+    p.add_argument("--out", help="output folder (default: the file's PRTT setting, //prtt/); stored in the "
+                                 ".blend relative to it (//textures/), so the project folder can move")
+    p.add_argument("--absolute-out", action="store_true",
+                   help="store --out in the .blend as an absolute path (what earlier PRTT did)")
     p.add_argument("--scene", help="scene name (default: the file's active scene)")
     in_scene = schema.of_scope("job") + [s for s in schema.SETTINGS if schema.has_ui(s) and s.scope != "job"]
     once = [s for s in schema.core_settings() if not schema.has_ui(s)]
@@ -95,6 +100,24 @@ def _cancel_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, interrupt)
 
 
+def _saved_state(st) -> str:
+    """What a bake can change in the .blend's PRTT settings and bake record,
+    less the record's time stamp: equal before and after a bake that found
+    nothing to do, unless an option changed a setting."""
+    record = {}
+    if st.last_bake:
+        try:
+            record = json.loads(st.last_bake)
+        except ValueError:
+            record = {"raw": st.last_bake}
+    record.pop("time", None)
+    settings = {p.identifier: getattr(st, p.identifier) for p in st.bl_rna.properties
+                if p.identifier not in ("rna_type", "last_bake", "status", "progress", "baking")
+                and not p.is_readonly and p.type in {"BOOLEAN", "INT", "FLOAT", "STRING", "ENUM"}
+                and not getattr(p, "is_array", False)}
+    return json.dumps([settings, record], sort_keys=True, default=str)
+
+
 def bake_file(argv, prog="prtt bake") -> int:
     """Open a .blend, bake it and save it (unless --no-save). Returns an exit
     status (0 ok, 1 failed, 2 usage, 3 cancelled: SIGINT/SIGTERM at any stage,
@@ -115,8 +138,12 @@ def _bake_file(args) -> int:
     if bpy.context.window is not None:
         bpy.context.window.scene = scene
     st = scene.prtt
+    before = _saved_state(st)
+    unwrapped = False
     if args.out:
-        st.output_dir = os.path.abspath(args.out)
+        # Stored relative to the .blend (Blender's //), so the project can move.
+        out = os.path.abspath(args.out)
+        st.output_dir = out if args.absolute_out else blend_relative(out, bpy.data.filepath)
     # Ranges were checked by the options (the properties' hard limits are the same).
     props, overrides = schema.ui_from_values(given_settings(args, schema.SETTINGS))
     for name, v in props.items():
@@ -130,6 +157,7 @@ def _bake_file(args) -> int:
             try:
                 for objects, method in ((editable, args.unwrap), (hidden, "XATLAS")):
                     if objects:
+                        unwrapped = True
                         unwrap_objects(ctx, objects, method=method, resolution=st.resolution,
                                        padding=st.padding, atlas=st.texture_sets == "ATLAS",
                                        source_map=st.existing_uv_map, dilate=st.dilate,
@@ -154,6 +182,17 @@ def _bake_file(args) -> int:
     if not args.save:
         print(outcome.message, flush=True)
         return code
+    if outcome.status == "skipped" and not unwrapped and not args.save_as and _saved_state(st) == before:
+        # Nothing in the file changed: saving would only rotate a .blend1 backup.
+        print(f"{outcome.message}; {os.path.basename(bpy.data.filepath)} unchanged, not saved", flush=True)
+        return code
+    if args.save_as and not args.absolute_out and st.output_dir.startswith("//"):
+        # relative to the file that holds it: the copy saved elsewhere
+        st.output_dir = blend_relative(output_folder(scene), os.path.abspath(args.save_as))
+        record = json.loads(st.last_bake) if st.last_bake else {}
+        if str(record.get("out_dir", "")).startswith("//"):
+            record["out_dir"] = st.output_dir
+            st.last_bake = json.dumps(record)
     try:
         where = save_blend(args.save_as, quiet=args.quiet)
     except OSError as exc:

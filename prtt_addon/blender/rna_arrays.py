@@ -46,12 +46,12 @@ def write(coll, attr: str, values, width: int = 1, dtype=np.float32, *, what: st
 
 def read_pixels(image) -> np.ndarray:
     """An image's pixels as (H, W, C) float32, bottom row first (Blender's
-    order). RnaArrayError when the image holds no pixels of its size (its
-    file missing or unreadable)."""
+    order; 0 x 0 for an image Blender could not load). RnaArrayError when
+    the image holds other than its size's pixels."""
     w, h = (int(s) for s in image.size)
     c = int(image.channels)
     n = len(image.pixels)
-    if n == 0 or n != w * h * c:
+    if n != w * h * c:
         raise RnaArrayError(f"image {image.name!r} has no pixel data of its size {w}x{h}x{c} "
                             f"(its file {image.filepath!r} missing or unreadable?)")
     px = np.empty(n, np.float32)

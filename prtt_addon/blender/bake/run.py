@@ -123,7 +123,9 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
         return
     m = outcome.manifest
     write_generated_uvs(prepared.out_dir, prepared.export.generated_uvs)
-    summary = {"out_dir": prepared.out_dir, "files": m["files"], "input_hash": m["input_hash"],
+    # Relative to the .blend when the setting is (//textures/): the record moves with the project.
+    raw = st.output_dir or "//prtt/"
+    summary = {"out_dir": raw if raw.startswith("//") else prepared.out_dir, "files": m["files"], "input_hash": m["input_hash"],
                "settings": m["settings"], "set_objects": prepared.export.set_objects,
                "bounce": None if not m.get("bounce") else {k: m["bounce"][k] for k in
                                                           ("levels", "light_hash", "materials_hash", "files")},

@@ -141,7 +141,9 @@ def parse_material(mat, warn) -> MaterialExport:
 
 def image_array(image, *, linearise: bool) -> np.ndarray:
     """(H, W, C) float32 pixels in file order (top row first)."""
-    if not image.has_data:
+    # A packed image loads from its packed bytes when its pixels are read;
+    # reload() would look for a file (Blender: 'Image "" not available').
+    if not image.has_data and not image.packed_file:
         try:
             image.reload()
         except RuntimeError:

@@ -27,12 +27,12 @@ import time
 import bpy
 import numpy as np
 
-from ...cli_options import choice_option
+from ...cli_options import choice_option, parse_size
+from ..blendfile import native_stderr_filtered, open_scene
 from ...core.bake.memory import GiB, available_bytes
 from ...core.io.atomic import TMP_PREFIX
 from ...core.io.image_write import WRITE_BYTES_PER_PIXEL, ImageWriteError, write_image
 from ...core.preview.shader_source import MODES
-from ..blendfile import open_scene
 from . import renderer as gpu_preview, scene as preview_scene
 from .shaders import ShaderError
 
@@ -77,7 +77,8 @@ def ensure_gpu() -> None:
         scene.render.engine = "BLENDER_WORKBENCH"
         scene.render.resolution_x = scene.render.resolution_y = 8
         scene.render.resolution_percentage = 100
-        bpy.ops.render.render(scene=scene.name)
+        with native_stderr_filtered():
+            bpy.ops.render.render(scene=scene.name)
     finally:
         bpy.data.objects.remove(cam)
         bpy.data.cameras.remove(cam_data)
@@ -225,17 +226,6 @@ def render_scene(context, *, mode: str = "tpfl", camera: str | None = None, size
     if stats.skipped:           # a texture changed on disk since prepare()
         raise RenderError(undrawable_message(mode, stats.skipped))
     return pixels, stats, status, time.perf_counter() - t
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """``WxH`` -> (W, H), both at least 1 (argparse reports anything else, exit 2)."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must look like 1920x1080, got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"width and height must be at least 1, got {text!r}")
-    return w, h
 
 
 def render_parser(prog: str) -> argparse.ArgumentParser:

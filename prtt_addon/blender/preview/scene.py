@@ -92,10 +92,16 @@ def last_bake(scene) -> dict | None:
 
 
 def bake_folder(scene, info: dict) -> str:
+    """The folder of the last bake: as recorded (relative to the .blend when
+    the Output Folder was, //textures/, so it moves with the project), else
+    the scene's Output Folder (a record of earlier PRTT holds an absolute
+    folder, gone when the project moved)."""
     d = info.get("out_dir", "")
+    if d.startswith("//"):
+        d = bpy.path.abspath(d) if bpy.data.filepath else ""
     if d and os.path.isdir(d):
-        return d
-    return output_folder(scene)            # the .blend moved: its relative folder
+        return os.path.abspath(d)
+    return output_folder(scene)
 
 
 # --- light ----------------------------------------------------------------------------

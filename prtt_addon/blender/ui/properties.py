@@ -8,6 +8,9 @@ from ...core.sh.envmap import builtin_environments
 
 #: Name of the UV map PRTT bakes into; unwrapping writes only this map.
 UV_MAP = "PRTT"
+#: Blender 4.5+ warns when a path property without this option is given a
+#: "//"-relative path (PRTT stores its Output Folder relative to the .blend).
+RELATIVE_PATH_OPTIONS = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
 
 
 _ENV_ITEMS: list = []
@@ -84,7 +87,8 @@ def _scene_annotations() -> dict:
             items=[("OBJECT", "Per Object", "One texture per object"),
                    ("ATLAS", "One Atlas", "Every object in one shared texture")]),
         "output_dir": StringProperty(name="Output Folder", default="//prtt/", subtype="DIR_PATH",
-                                     description="Where the textures go ('//' = next to the .blend)"),
+                                     description="Where the textures go ('//' = next to the .blend)",
+                                     **RELATIVE_PATH_OPTIONS),
         "dask_scheduler": StringProperty(
             name="Dask Scheduler", default="",
             description="Run the bake's ray work on a Dask cluster: local or local:N (worker processes on this "
