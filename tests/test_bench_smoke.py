@@ -17,8 +17,8 @@ def bench(*args):
     return r.stdout
 
 
-def test_bake_bench():
-    out = bench("bake", "--resolution", "256", "--rays", "64", "--repeat", "2")
+def test_bake_bench(tmp_path):
+    out = bench("bake", "--resolution", "256", "--rays", "64", "--repeat", "2", "--json", str(tmp_path / "b.json"))
     assert "ratio end-to-end / raw Embree" in out and "texel-samples/s/core" in out
     assert "pair 1:" in out and "pair 2:" in out and "fastest of 2" in out
 

@@ -1,7 +1,9 @@
 """``python -m prtt_addon.bench bake``: the transfer bake against raw Embree.
 
-Bakes the room-class scene (1024^2 atlas, 5 bands, 256 rays per texel by
-default) through the real pipeline (``core.bake.runner.bake_scene``: G-buffer,
+Bakes the transfer of the room-class scene (1024^2 atlas, 5 bands, 256 rays
+per texel by default; ``bounces = 0``: the bounce has its own benchmark,
+``bench bounce``, and its rays are not the transfer rays the ratio divides)
+through the real pipeline (``core.bake.runner.bake_scene``: G-buffer,
 analytic test, rays, projection, dilation, EXR writing) and prints seconds per
 stage and rays/s end to end (``--dask``: the bake on a Dask cluster against
 the local one instead, bench/dask_bench.py). Then, in the same run, it regenerates the *same
@@ -14,6 +16,10 @@ raw run that happen to meet different noise give a ratio off by as much. So
 the two are interleaved ``--repeat`` times (bake, raw, bake, raw, ...) and
 each side's fastest run is compared (the usual best-of-N of ``timeit``); every
 pair's own ratio is printed too.
+
+The settings measured are printed first and written, with the date, the
+machine and every figure printed, to ``docs/bench/bake.json`` (``--json``);
+``python -m prtt_addon.bench figures`` writes the README's table from it.
 
 Also reported: texel-samples per second per core (texels x rays per texel, the
 unit of the C++ SH-lightmap baker reference, 1.5 M/s/core on this class of
@@ -34,7 +40,7 @@ from ..core.texels.gbuffer import build_gbuffer
 from ..core.bake.raytrace import RayScene
 from ..core.bake.sampling import pattern_bank
 from ..core.bake.transfer import chunk_frames, chunk_plan
-from . import dask_bench, scenes
+from . import dask_bench, figures, scenes
 
 #: Reference: an open C++ SH-lightmap baker on Embree 4, per core (issue 3).
 CPP_REFERENCE_TEXEL_SAMPLES_PER_CORE = 1.5e6
@@ -109,14 +115,19 @@ def main(argv=None) -> int:
                         "with --dask: local / cluster pairs, default 2)")
     p.add_argument("--scaling", action="store_true",
                    help="also print the 21K -> 1.3M triangles and 256^2 -> 2048^2 tables")
+    p.add_argument("--json", default=figures.bench_path("bake.json"),
+                   help="where the run's settings and figures go (default docs/bench/bake.json; '' for none)")
     dask_bench.add_arguments(p)
     args = p.parse_args(argv)
     if args.dask:
         args.repeat = 2 if args.repeat is None else args.repeat
         return dask_bench.run(args)
     args.repeat = 5 if args.repeat is None else args.repeat
-    st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads)
+    # Transfer only: bounces (on by default) are bench bounce's, and their rays
+    # are not the transfer rays that the ratio to raw Embree counts.
+    st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads, bounces=0)
     cores = st.n_threads
+    print("settings: " + figures.settings_line(st, BakeSettings()))
 
     t = time.perf_counter()
     sc = scenes.room_scene(args.resolution, atlas=not args.per_object)
@@ -161,8 +172,22 @@ def main(argv=None) -> int:
           f"target >= 0.8)")
     print(f"texture bytes: {m['output_bytes']:,} on disk (half, ZIP); "
           f"{args.bands ** 2 * 2} B/texel in memory as half, {args.bands ** 2 * 4} B as float")
+    record = {"scene": {"triangles": int(sc.n_triangles), "sets": int(sc.n_sets), "resolution": args.resolution},
+              "settings": figures.settings_dict(st), "threads": cores, "repeat": len(runs),
+              "seconds": {k: float(sec[k]) for k in ("bvh", "analytic_test", "gbuffer", "trace", "dilate", "write",
+                                                      "total")},
+              "texels": int(tot["texels"]), "rays_traced": int(tot["rays_traced"]),
+              "rays_naive": int(tot["rays_naive"]),
+              "mrays_per_s_end_to_end": e2e / 1e6, "mrays_per_s_trace": m["rays_per_second_trace"] / 1e6,
+              "raw_mrays_per_s": raw / 1e6, "raw_mrays_per_s_1_thread": raw_1 / 1e6,
+              "ratio": e2e / raw, "ratio_pairs": pair, "ratio_trace": m["rays_per_second_trace"] / raw,
+              "texel_samples_per_s_per_core": texel_samples / sec["total"] / cores,
+              "output_bytes": int(m["output_bytes"]),
+              "pairs": [{"total_s": float(r["seconds"]["total"]),
+                         "ratio": r["rays_per_second_end_to_end"] / w} for r, w in zip(runs, raws)]}
 
     if args.scaling:
+        record["scaling_triangles"], record["scaling_resolution"] = [], []
         print("\nscaling with triangles (room atlas 1024^2 + occluder-only subdivided bunnies):")
         print(f"  {'triangles':>10} {'bvh s':>7} {'trace s':>8} {'total s':>8} {'Mrays/s':>8}")
         for target in (21_000, 300_000, 1_300_000):
@@ -170,9 +195,14 @@ def main(argv=None) -> int:
             mm = run_bake(sct, st)
             print(f"  {sct.n_triangles:10d} {mm['seconds']['bvh']:7.2f} {mm['seconds']['trace']:8.2f} "
                   f"{mm['seconds']['total']:8.2f} {mm['rays_per_second_end_to_end'] / 1e6:8.2f}")
+            record["scaling_triangles"].append({"triangles": int(sct.n_triangles),
+                                                **{k: float(mm["seconds"][k]) for k in ("bvh", "trace", "total")}})
         print("scaling with resolution (room, same settings):")
         print(f"  {'texels':>10} {'total s':>8} {'Mrays/s':>8}")
         for res in (256, 512, 1024, 2048):
             mm = run_bake(scenes.room_scene(res, atlas=True), st)
             print(f"  {res:>5}^2     {mm['seconds']['total']:8.2f} {mm['rays_per_second_end_to_end'] / 1e6:8.2f}")
+            record["scaling_resolution"].append({"resolution": res, "total": float(mm["seconds"]["total"])})
+    if args.json:
+        print(f"\nwrote {figures.write_record(args.json, 'bench bake', argv, record)}")
     return 0

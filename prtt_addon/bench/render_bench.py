@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from . import scenes
+from . import figures, scenes
 
 MODES = ("tpfl", "tp", "diffuse", "vertex-tpfl", "vertex-tp")
 BUNNIES = {"21K": 0, "300K": 4, "1.3M": 18}
@@ -125,6 +125,9 @@ def main(argv=None) -> int:
             wr.writeheader()
             wr.writerows(rows)
         print(f"wrote {args.csv}")
+        # the date, machine and GPU beside it, for bench figures
+        figures.write_record(f"{args.csv}.meta.json", "bench render", argv,
+                             {"gpu": f"{gpu.platform.renderer_get()} ({gpu.platform.backend_type_get()})"})
     return 0
 
 

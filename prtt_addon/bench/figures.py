@@ -1,0 +1,244 @@
+"""``python -m prtt_addon.bench figures [--check]``: the docs' benchmark
+figures, written from the benchmarks' output files.
+
+A benchmark that feeds the docs writes a record (``write_record``: the
+command, its date, the machine, the settings it measured and every figure it
+printed) under ``docs/bench/``. Each generated block of a page sits between
+``<!-- figures:NAME -->`` and ``<!-- /figures:NAME -->`` and is made here
+from those records only, so a figure in the README is the last run's, with
+its date and machine, never a number copied by hand. ``--check`` (run by the
+tests) fails when a page's block differs from what its record gives.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import datetime
+import importlib.metadata
+import json
+import os
+import platform
+import re
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def bench_path(name: str) -> str:
+    """A file under docs/bench/ of this checkout."""
+    return os.path.join(ROOT, "docs", "bench", name)
+
+
+# --- records ------------------------------------------------------------------------------
+
+def machine() -> dict:
+    """What ran the benchmark: CPU model, cores, memory, OS, Python and the
+    versions of the libraries the timings depend on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+    mem = None
+    try:
+        mem = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2 ** 30, 1)
+    except (ValueError, OSError, AttributeError):
+        pass
+    system = f"{platform.system()} {platform.release()}"
+    try:
+        with open("/etc/os-release", encoding="utf-8") as f:
+            system = next((ln.split("=", 1)[1].strip().strip('"') for ln in f if ln.startswith("PRETTY_NAME=")),
+                          system)
+    except OSError:
+        pass
+    versions = {}
+    for dist in ("numpy", "embreex", "OpenEXR", "numba", "bpy"):
+        try:
+            versions[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gib": mem, "os": system,
+            "python": platform.python_version(), "versions": versions}
+
+
+def settings_dict(settings) -> dict:
+    """A settings dataclass as JSON values."""
+    return {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings)
+            if isinstance(getattr(settings, f.name), (int, float, str, bool, type(None)))}
+
+
+#: Settings every benchmark line names, changed or not.
+HEADLINE = ("rays", "bands", "bounces", "bounce_mode", "tuning", "sampler", "estimator", "storage", "threads")
+
+
+def settings_line(settings, defaults) -> str:
+    """The settings a run measured, as one line: the headline ones, then every
+    other one that differs from ``defaults`` (with the default it replaces)."""
+    now, base = settings_dict(settings), settings_dict(defaults)
+    parts = []
+    for k in list(HEADLINE) + sorted(set(now) - set(HEADLINE)):
+        if k not in now:
+            continue
+        changed = now[k] != base.get(k)
+        if k in HEADLINE or changed:
+            parts.append(f"{k}={now[k]}" + (f" (default {base.get(k)})" if changed else ""))
+    return ", ".join(parts) + "; every other setting at its default"
+
+
+def write_record(path: str, command: str, argv, record: dict) -> str:
+    """Write ``record`` with the command line (``command``: "bench bake"), the
+    date and the machine as JSON at ``path`` (atomically). Returns the path."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    out = {"command": f"python -m prtt_addon.{command} {' '.join(argv)}".strip(),
+           "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"),
+           "machine": machine(), **record}
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp-{os.getpid()}"
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(out, f, indent=1, sort_keys=False)
+        f.write("\n")
+    os.replace(tmp, path)
+    return path
+
+
+def machine_text(m: dict) -> str:
+    v = m.get("versions", {})
+    libs = ", ".join(f"{k} {v[k]}" for k in ("embreex", "numpy", "numba") if k in v)
+    mem = f", {m['memory_gib']:g} GiB" if m.get("memory_gib") else ""
+    return f"{m.get('cpu', '?')}, {m.get('cores', '?')} cores{mem}, {m.get('os', '?')}, Python {m.get('python', '?')}" \
+           + (f", {libs}" if libs else "")
+
+
+# --- blocks -------------------------------------------------------------------------------
+
+def _load(name: str) -> dict:
+    with open(bench_path(name), encoding="utf-8") as f:
+        return json.load(f)
+
+
+def _si(n: float) -> str:
+    return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.0f}K"
+
+
+def bake_block() -> str:
+    """README: the transfer bake's figures (docs/bench/bake.json, bench bake)."""
+    r = _load("bake.json")
+    s, st, sc = r["seconds"], r["settings"], r["scene"]
+    pairs = r["ratio_pairs"]
+    skipped = 100 * (1 - r["rays_traced"] / max(r["rays_naive"], 1))
+    lines = [
+        f"`{r['command']}`, {r['date']}, on {machine_text(r['machine'])}. Room-class scene, "
+        f"{_si(sc['triangles'])} triangles, {'one' if sc['sets'] == 1 else sc['sets']} {sc['resolution']}² atlas ({r['texels']:,} texels), "
+        f"{st['bands']} bands, {st['rays']} rays per texel, transfer only (bounces = {st['bounces']}; "
+        f"`bench bounce` times the bounce), {r['threads']} threads, every other setting at its default:",
+        "",
+        "| | measured |",
+        "|---|---|",
+        f"| whole transfer bake (BVH, G-buffer, {_si(r['rays_traced'])} rays, dilation, EXR) | "
+        f"**{s['total']:.1f} s** (fastest of {r['repeat']}; stages: BVH {s['bvh']:.2f}, analytic test "
+        f"{s['analytic_test']:.2f}, G-buffer {s['gbuffer']:.2f}, trace {s['trace']:.2f}, dilate {s['dilate']:.2f}, "
+        f"write {s['write']:.2f} s) |",
+        f"| end to end | {r['mrays_per_s_end_to_end']:.1f} Mrays/s on {r['threads']} threads (trace stage alone "
+        f"{r['mrays_per_s_trace']:.1f}) |",
+        f"| end-to-end / raw embreex on the same rays ({r['raw_mrays_per_s']:.1f} Mrays/s) | "
+        f"**{r['ratio']:.3f}** (fastest of each of {r['repeat']} interleaved pairs; single pairs "
+        f"{min(pairs):.3f}–{max(pairs):.3f}); trace stage alone {r['ratio_trace']:.3f}; target ≥ 0.8 |",
+        f"| texel-samples per second per core | {r['texel_samples_per_s_per_core'] / 1e6:.1f} M (C++ SH-lightmap "
+        f"baker reference: 1.5 M) |",
+        f"| rays skipped (analytic texels, below-horizon rays) | {skipped:.1f} % |",
+        f"| transfer texture on disk (half, ZIP) | {r['output_bytes'] / 1e6:.1f} MB |",
+    ]
+    if r.get("scaling_triangles"):
+        lines += ["", "| triangles (same atlas + occluder-only bunnies) | BVH s | trace s | total s |",
+                  "|---|---|---|---|"]
+        lines += [f"| {_si(t['triangles'])} | {t['bvh']:.2f} | {t['trace']:.1f} | {t['total']:.1f} |"
+                  for t in r["scaling_triangles"]]
+    if r.get("scaling_resolution"):
+        lines += ["", "| resolution (room) | total s |", "|---|---|"]
+        lines += [f"| {t['resolution']}² | {t['total']:.2f} |" for t in r["scaling_resolution"]]
+    return "\n".join(lines)
+
+
+def render_block() -> str:
+    """README: preview frame times at 1920 x 1080 (docs/bench/render_llvmpipe.csv,
+    bench render --csv, with its .meta.json when the run wrote one)."""
+    with open(bench_path("render_llvmpipe.csv"), newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    meta_path = bench_path("render_llvmpipe.csv.meta.json")
+    if os.path.isfile(meta_path):
+        with open(meta_path, encoding="utf-8") as f:
+            meta = json.load(f)
+        head = (f"`{meta['command']}`, {meta['date']}, {meta.get('gpu', '')} on {machine_text(meta['machine'])}; "
+                f"ms per frame at 1920 × 1080:")
+    else:
+        head = ("`python -m prtt_addon.bench render --csv docs/bench/render_llvmpipe.csv`, Mesa llvmpipe on "
+                "2 CPU cores (a run before 2026-11-25, which recorded no date or machine); ms per frame "
+                "at 1920 × 1080:")
+    full = [r for r in rows if (r["width"], r["height"]) == ("1920", "1080")]
+    scenes = list(dict.fromkeys(r["scene"] for r in full))
+    names = {"tpfl": "TPFL, fragment (PRTT)", "vertex-tpfl": "TPFL, vertex (baseline)", "tp": "TP, fragment",
+             "diffuse": "diffuse", "vertex-tp": "TP, vertex"}
+    lines = [head, "", "| mode | " + " | ".join(f"{s} triangles" for s in scenes) + " |",
+             "|---|" + "---|" * len(scenes)]
+    for mode in ("tpfl", "vertex-tpfl", "tp"):
+        ms = {r["scene"]: float(r["frame_ms"]) for r in full if r["mode"] == mode}
+        lines.append(f"| {names[mode]} | " + " | ".join(f"{ms[s]:.0f}" for s in scenes if s in ms) + " |")
+    tri = {r["scene"]: int(r["triangles"]) for r in full}
+    first, last = scenes[0], scenes[-1]
+    grow = {mode: next(float(r["frame_ms"]) for r in full if r["mode"] == mode and r["scene"] == last)
+            / next(float(r["frame_ms"]) for r in full if r["mode"] == mode and r["scene"] == first)
+            for mode in ("tpfl", "vertex-tpfl")}
+    lines += ["", f"{tri[last] / tri[first]:.0f} × more triangles: the fragment method's frame × {grow['tpfl']:.1f} "
+                  f"(triangle setup on the CPU), the per-vertex baseline's × {grow['vertex-tpfl']:.0f}."]
+    return "\n".join(lines)
+
+
+#: Generated blocks: name -> (pages, maker).
+BLOCKS = {"bake": (("README.md",), bake_block), "render": (("README.md",), render_block)}
+
+
+def _pattern(name: str):
+    return re.compile(rf"<!-- figures:{name} -->\n(.*?)\n?<!-- /figures:{name} -->", re.S)
+
+
+def stale_blocks(write: bool = False) -> list:
+    """(page, block) pairs whose text differs from their record's; with
+    ``write``, rewritten."""
+    stale = []
+    for name, (pages, make) in BLOCKS.items():
+        text = make()
+        for page in pages:
+            path = os.path.join(ROOT, page)
+            with open(path, encoding="utf-8") as f:
+                doc = f.read()
+            m = _pattern(name).search(doc)
+            if m is None:
+                stale.append((page, f"{name} (no <!-- figures:{name} --> block)"))
+                continue
+            if m.group(1) != text:
+                stale.append((page, name))
+                if write:
+                    doc = doc[:m.start()] + f"<!-- figures:{name} -->\n{text}\n<!-- /figures:{name} -->" \
+                        + doc[m.end():]
+                    with open(path, "w", encoding="utf-8") as f:
+                        f.write(doc)
+    return stale
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m prtt_addon.bench figures", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--check", action="store_true", help="only report stale blocks (exit 1 if any)")
+    args = p.parse_args(argv)
+    stale = stale_blocks(write=not args.check)
+    for page, name in stale:
+        print(f"{page}: figures block {name} {'is stale' if args.check else 'rewritten'}")
+    if not stale:
+        print("every figures block matches its benchmark record")
+    return 1 if args.check and stale else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
