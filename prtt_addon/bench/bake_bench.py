@@ -115,10 +115,14 @@ def main(argv=None) -> int:
                         "with --dask: local / cluster pairs, default 2)")
     p.add_argument("--scaling", action="store_true",
                    help="also print the 21K -> 1.3M triangles and 256^2 -> 2048^2 tables")
-    p.add_argument("--json", default=figures.bench_path("bake.json"),
-                   help="where the run's settings and figures go (default docs/bench/bake.json; '' for none)")
+    p.add_argument("--json", default=None,
+                   help="where the run's settings and figures go (default docs/bench/bake.json, with --dask "
+                        "docs/bench/dask.json; '' for none)")
     dask_bench.add_arguments(p)
     args = p.parse_args(argv)
+    args.argv = argv
+    if args.json is None:
+        args.json = figures.bench_path("dask.json" if args.dask else "bake.json")
     if args.dask:
         args.repeat = 2 if args.repeat is None else args.repeat
         return dask_bench.run(args)

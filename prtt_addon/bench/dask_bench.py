@@ -39,7 +39,7 @@ import time
 from ..cli import env_light
 from ..core.bake.distributed import parse_spec
 from ..core.bake.runner import BakeSettings, bake_scene
-from . import scenes
+from . import figures, scenes
 
 #: A farm's client link: 10 GbE.
 DEFAULT_BANDWIDTH = 1.25e9
@@ -86,6 +86,9 @@ def run(args) -> int:
     spec = parse_spec(args.dask)
     light = env_light("forest", 5)
     st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads)
+    print("settings: " + figures.settings_line(st, BakeSettings()))
+    record = {"settings": figures.settings_dict(st), "cluster": spec.describe(), "resolution": args.resolution,
+              "repeat": max(1, args.repeat), "scenes": []}
     todo = [("room", lambda: scenes.room_scene(args.resolution, atlas=True, materials=True))]
     if args.big:
         todo.append(("room + bunnies (1.3M triangles)",
@@ -117,6 +120,13 @@ def run(args) -> int:
             print(f"  {p['what']:9s} {p['tasks']:5d} {p['rays']:12,d} {p['task_seconds']:7.2f} {p['wall_seconds']:7.2f} "
                   f"{1e9 * p['task_seconds'] / max(p['rays'], 1):11.1f} {p['sent_bytes'] / 1e6:8.1f} "
                   f"{p['result_bytes'] / max(p['rays'], 1):12.2f} {100 * p['overhead']:7.1f}%")
+        rec = {"name": name, "triangles": int(sc.n_triangles), "local_s": wl, "cluster_s": wd,
+               "start_s": sm["start_seconds"], "overhead": sm["overhead"], "scene_bytes": sm["scene_bytes"],
+               "rays": sm["rays"], "tasks": sm["tasks"], "task_s": sm["task_seconds"],
+               "result_bytes": sm["result_bytes"], "pairs": [[a, c[0]] for a, c in zip(locals_, clusters)],
+               "passes": [{k: p[k] for k in ("what", "tasks", "rays", "task_seconds", "wall_seconds", "sent_bytes",
+                                             "result_bytes", "overhead")} for p in sm["passes"]]}
+        record["scenes"].append(rec)
         print(f"  scene scattered to every worker: {sm['scene_bytes'] / 1e6:.1f} MB; per unit: "
               f"{sm['rays'] / max(sm['tasks'], 1):,.0f} rays, {sm['task_seconds'] / max(sm['tasks'], 1):.3f} s, "
               f"{sm['result_bytes'] / max(sm['tasks'], 1) / 1e3:.0f} kB of results")
@@ -135,6 +145,11 @@ def run(args) -> int:
             for w in (1, 8, 64):
                 print(f"  farm, {w:2d} workers, {args.bandwidth / 1e9:.2f} GB/s client link: "
                       f"{model(fit, w, args.bandwidth):7.2f} s")
+            rec["model"] = {"fit_on_local_1_s": w1, **fit,
+                            "farm_s": {str(w): model(fit, w, args.bandwidth) for w in (1, 8, 64)},
+                            "bandwidth": args.bandwidth}
+    if args.json:
+        print(f"\nwrote {figures.write_record(args.json, 'bench bake', args.argv, record)}")
     return 0
 
 

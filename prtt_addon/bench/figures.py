@@ -195,8 +195,72 @@ def render_block() -> str:
     return "\n".join(lines)
 
 
+def dask_block() -> str:
+    """docs/distributed.md: the bake on a local Dask cluster against the local
+    bake, per scene and per pass (docs/bench/dask.json, bench bake --dask)."""
+    r = _load("dask.json")
+    st = r["settings"]
+    lines = [
+        f"`{r['command']}`, {r['date']}, on {machine_text(r['machine'])}. The default bake (transfer "
+        f"{st['rays']} rays + {st['bounces']} {st['bounce_mode']} bounce of {st['bounce_rays']} rays, tuning "
+        f"{st['tuning']}, forest HDRI), {r['resolution']}² atlas, cluster {r['cluster']}, fastest of {r['repeat']} "
+        f"interleaved runs, textures checked identical every run:",
+        "",
+        "| scene | local bake | cluster | speed-up | cluster overhead |",
+        "|---|---|---|---|---|"]
+    for s in r["scenes"]:
+        lines.append(f"| {s['name'].split(' (')[0]}, {_si(s['triangles'])} triangles | {s['local_s']:.2f} s | {s['cluster_s']:.2f} s "
+                     f"(start {s['start_s']:.2f} s) | {s['local_s'] / s['cluster_s']:.2f} | "
+                     f"{100 * s['overhead']:.1f} % |")
+    lines += ["", "| scene | pass | tasks | rays | task s | wall s | core ns/ray | sent to each worker | "
+                  "result B/ray | overhead |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for s in r["scenes"]:
+        for p in s["passes"]:
+            rays = max(p["rays"], 1)
+            lines.append(f"| {_si(s['triangles'])} | {p['what']} | {p['tasks']} | {p['rays'] / 1e6:.1f} M | "
+                         f"{p['task_seconds']:.2f} | {p['wall_seconds']:.2f} | {1e9 * p['task_seconds'] / rays:.1f} | "
+                         f"{p['sent_bytes'] / 1e6:.1f} MB | {p['result_bytes'] / rays:.2f} | "
+                         f"{100 * p['overhead']:.1f} % |")
+    lines.append("")
+    lines.append("The scene goes to every worker once: " + ", ".join(
+        f"{s['scene_bytes'] / 1e6:.1f} MB ({_si(s['triangles'])} triangles)" for s in r["scenes"]) +
+        ". A unit is on average " + ", ".join(
+        f"{s['rays'] / max(s['tasks'], 1) / 1e6:.1f} M rays and {s['task_s'] / max(s['tasks'], 1):.2f} s of a core, "
+        f"returning {s['result_bytes'] / max(s['tasks'], 1) / 1e6:.1f} MB ({_si(s['triangles'])})"
+        for s in r["scenes"]) + ".")
+    return "\n".join(lines)
+
+
+def dask_model_block() -> str:
+    """docs/distributed.md: the farm model fitted on a local:1 run and checked
+    on the cluster run (docs/bench/dask.json)."""
+    r = _load("dask.json")
+    models = [s for s in r["scenes"] if s.get("model")]
+    if not models:
+        return f"(the last run, `{r['command']}`, fitted no model: run it without --no-model)"
+    from .dask_bench import model  # the model's one formula (loads the bake's modules: only here)
+    local = re.search(r"--dask local:(\d+)", r["command"])
+    bw = models[0]["model"]["bandwidth"]
+    lines = [f"From `{r['command']}`, {r['date']}; links of B = {bw / 1e9:.2f} GB/s:", "",
+             "| scene | fitted on `local:1` | cluster: predicted / measured | 1 worker | 8 workers | 64 workers |",
+             "|---|---|---|---|---|---|"]
+    for s in models:
+        m = s["model"]
+        pred = model(m, int(local.group(1)), float("inf")) if local else None
+        check = (f"{pred:.2f} / {s['cluster_s']:.2f} s ({100 * (pred / s['cluster_s'] - 1):+.0f} %)"
+                 if pred else "not a local cluster")
+        lines.append(f"| {_si(s['triangles'])} triangles | {m['fit_on_local_1_s']:.2f} s: start {m['start']:.2f}, "
+                     f"client {m['client']:.2f}, BVH {m['bvh']:.2f}, ray work {m['work']:.2f} core-s, "
+                     f"{m['tasks']} tasks × {1e3 * m['tau']:.1f} ms, "
+                     f"{(m['scene_bytes'] + m['sent_bytes']) / 1e6:.0f} MB to each worker, "
+                     f"{m['result_bytes'] / 1e6:.0f} MB back | {check} | "
+                     + " | ".join(f"{m['farm_s'][w]:.1f} s" for w in ("1", "8", "64")) + " |")
+    return "\n".join(lines)
+
+
 #: Generated blocks: name -> (pages, maker).
-BLOCKS = {"bake": (("README.md",), bake_block), "render": (("README.md",), render_block)}
+BLOCKS = {"bake": (("README.md",), bake_block), "render": (("README.md",), render_block),
+          "dask": (("docs/distributed.md",), dask_block), "dask-model": (("docs/distributed.md",), dask_model_block)}
 
 
 def _pattern(name: str):
