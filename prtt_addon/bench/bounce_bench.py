@@ -19,7 +19,7 @@ from ..core import jit
 from ..cli import env_light
 from ..core.bake.context import bounce_seconds
 from ..core.bake.runner import BakeSettings, bake_scene
-from . import scenes
+from . import figures, scenes
 
 
 def demo_scene(resolution: int):
@@ -67,6 +67,7 @@ def main(argv=None) -> int:
         light = env_light(args.env, 5)
     st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_mode="baked", bounce_rays=args.bounce_rays,
                       bounce_denoise=args.bounce_denoise, tuning=args.tuning)
+    print("settings: " + figures.settings_line(st, BakeSettings()))
     print(f"{args.scene} scene: {sc.n_triangles} triangles, {args.resolution}^2 atlas, "
           f"{len(sc.materials)} materials, light '{args.env}'; transfer {args.rays} rays, "
           f"{args.bounces} bounce(s) x {args.bounce_rays} rays, denoise {args.bounce_denoise}, "

@@ -195,6 +195,27 @@ def render_block() -> str:
     return "\n".join(lines)
 
 
+def preview_block() -> str:
+    """docs/preview.md: every mode's frame time at 1920 x 1080 and its growth
+    from the smallest to the largest scene (docs/bench/render_llvmpipe.csv)."""
+    with open(bench_path("render_llvmpipe.csv"), newline="", encoding="utf-8") as f:
+        full = [r for r in csv.DictReader(f) if (r["width"], r["height"]) == ("1920", "1080")]
+    scenes = list(dict.fromkeys(r["scene"] for r in full))
+    names = {"tpfl": "TPFL (fragment)", "tp": "TP (fragment)", "diffuse": "diffuse (fragment)",
+             "vertex-tpfl": "TPFL (vertex)", "vertex-tp": "TP (vertex)"}
+    lines = ["| 1920 × 1080, ms per frame | " + " | ".join(scenes) + " | growth |",
+             "|---|" + "---|" * (len(scenes) + 1)]
+    for mode, label in names.items():
+        ms = {r["scene"]: float(r["frame_ms"]) for r in full if r["mode"] == mode}
+        if not ms:
+            continue
+        grow = ms[scenes[-1]] / ms[scenes[0]]
+        lines.append(f"| {label} | " + " | ".join(f"{ms[s]:.0f}" for s in scenes) +
+                     f" | × {grow:.1f} |" if grow < 10 else f"| {label} | " +
+                     " | ".join(f"{ms[s]:.0f}" for s in scenes) + f" | × {grow:.0f} |")
+    return "\n".join(lines)
+
+
 def dask_block() -> str:
     """docs/distributed.md: the bake on a local Dask cluster against the local
     bake, per scene and per pass (docs/bench/dask.json, bench bake --dask)."""
@@ -260,6 +281,7 @@ def dask_model_block() -> str:
 
 #: Generated blocks: name -> (pages, maker).
 BLOCKS = {"bake": (("README.md",), bake_block), "render": (("README.md",), render_block),
+          "preview": (("docs/preview.md",), preview_block),
           "dask": (("docs/distributed.md",), dask_block), "dask-model": (("docs/distributed.md",), dask_model_block)}
 
 

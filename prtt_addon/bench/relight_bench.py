@@ -39,7 +39,7 @@ from ..core.bake.context import bounce_seconds
 from ..core.bake.runner import BakeSettings, bake_scene
 from ..core.io import meshgen as mg
 from ..core.sh.rotation import rotate_zyz
-from . import scenes
+from . import figures, scenes
 from .sweep import Previewer, write_csv
 from .texture_error import image_error
 
@@ -126,6 +126,9 @@ def save_figure(path: str, images: dict, degrees: float, err: float) -> str:
 
 def run_scene(name: str, sc, camera: dict, light, size, angles, tmp: str, figure: str | None = None) -> list:
     rl, bk = os.path.join(tmp, f"{name}-relight"), os.path.join(tmp, f"{name}-baked")
+    for mode in ("relightable", "baked"):
+        print(f"{name} settings, {mode}: " + figures.settings_line(BakeSettings(bounces=1, bounce_mode=mode),
+                                                                    BakeSettings()))
     bake_scene(sc, rl, BakeSettings(bounces=0), light=light)
     bake_scene(sc, bk, BakeSettings(bounces=0), light=light)
     # One untimed bounce bake of each mode first: a process's first level loads its kernels.

@@ -39,9 +39,9 @@ def baked_preview(bunnies: int, light, *, bands: int = 5, rays: int = 32):
     sc = scenes.with_room_materials(sc)
     out = os.path.join(scenes.CACHE, f"render-{bunnies}")
     t = time.perf_counter()
-    bake_scene(sc, out, BakeSettings(bands=bands, rays=rays, vertex_mode=True, bounces=1, bounce_rays=16,
-                                       bounce_mode="baked"),
-               light=light)
+    st = BakeSettings(bands=bands, rays=rays, vertex_mode=True, bounces=1, bounce_rays=16, bounce_mode="baked")
+    print("settings of the bake drawn: " + figures.settings_line(st, BakeSettings()))
+    bake_scene(sc, out, st, light=light)
     seconds = time.perf_counter() - t
     return from_core_scene(sc, out, light, bands), sc.n_triangles, seconds
 
