@@ -3,7 +3,7 @@
 The options and the progress display both command lines share are in
 prtt_addon/cli_options.py (their names stay importable from here). The
 Blender-side commands (``bake``, ``render``) hand their arguments to
-prtt_addon/blender/cli.py inside bpy.
+prtt_addon/blender/commands.py inside bpy.
 """
 from __future__ import annotations
 
@@ -12,12 +12,20 @@ import sys
 import threading
 
 from . import register
-from .cli_options import (  # noqa: F401  (CheckedValue ... given_settings: importable from here too)
-    CheckedValue, ConsoleProgress, add_dask_option, add_output_options, add_setting_options, choice_option, given_settings,
-    int_range, number_range, one_of)
-from .core.bake import settings_schema as schema
-from .core.bake.memory import MemoryLimitError
-from .core.sh.envmap import environment_light as env_light  # (the benchmarks import it from here)
+from .cli_options import (
+    CheckedValue,
+    ConsoleProgress,
+    add_dask_option,
+    add_output_options,
+    add_setting_options,
+    choice_option,
+    given_settings,
+    int_range,
+    number_range,
+)
+from .core import settings_schema as schema
+from .core.base.memory import MemoryLimitError
+from .core.light.envmap import environment_light as env_light  # (the benchmarks import it from here)
 from .env_report import report
 
 
@@ -54,7 +62,11 @@ def add_bake_options(p: argparse.ArgumentParser) -> None:
 
 def _cmd_bake_job(args) -> int:
     from .worker import (  # not at module level: importing it sets BLAS thread limits, for bake-job only
-        EXIT_CANCELLED, finish, install_cancel_handlers, run_job)
+        EXIT_CANCELLED,
+        finish,
+        install_cancel_handlers,
+        run_job,
+    )
     cancel = threading.Event()
     progress = ConsoleProgress(quiet=args.quiet)
     watchdog = install_cancel_handlers(cancel, progress)
@@ -91,7 +103,7 @@ def _cmd_bake_blend(args) -> int:
     """``python -m prtt_addon bake scene.blend ...``: the add-on's own code path in bpy."""
     if not _bpy_ready("blender -c prtt bake scene.blend"):
         return 1
-    from .blender.cli import bake_file  # needs bpy, which only this command and render load
+    from .blender.commands import bake_file  # needs bpy, which only this command and render load
     return bake_file(args.rest, prog="python -m prtt_addon bake")
 
 
@@ -99,7 +111,7 @@ def _cmd_render_blend(args) -> int:
     """``python -m prtt_addon render scene.blend --out img ...``: the viewport's draw code, offscreen."""
     if not _bpy_ready("blender -c prtt render scene.blend --out image.png"):
         return 1
-    from .blender.preview.render import render_file  # needs bpy, which only this command and bake load
+    from .blender.preview.offscreen import render_file  # needs bpy, which only this command and bake load
     return render_file(args.rest, prog="python -m prtt_addon render")
 
 

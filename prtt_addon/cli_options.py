@@ -1,5 +1,5 @@
 """Command-line pieces both command lines share: ``python -m prtt_addon``
-(prtt_addon/cli.py) and Blender's ``blender -c prtt`` (prtt_addon/blender/cli.py).
+(prtt_addon/cli.py) and Blender's ``blender -c prtt`` (prtt_addon/blender/commands.py).
 
 Checked option values (a refusal is a usage error naming the option, the
 value and what it must be), options generated from the settings schema, and
@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 
-from .core.bake.settings_schema import _num
+from .core.settings_schema import format_number
 
 
 class ConsoleProgress:
@@ -215,7 +215,7 @@ def int_range(lo: int, hi: int):
 
 def number_range(lo: float, hi: float, *, above: bool = False):
     """Converter: a finite number lo..hi (``above``: strictly greater than lo)."""
-    where = f"> {_num(lo)} and <= {_num(hi)}" if above else f"{_num(lo)}..{_num(hi)}"
+    where = f"> {format_number(lo)} and <= {format_number(hi)}" if above else f"{format_number(lo)}..{format_number(hi)}"
 
     def convert(text: str) -> float:
         try:
@@ -245,7 +245,7 @@ def one_of(values):
     return convert
 
 
-def choice_option(p, *names, values, help=None, default=None, dest=None):
+def choice_option(p, *names, values, help=None, default=None, dest=None):  # noqa: A002 (argparse's own name)
     """add_argument for a case-insensitive choice (see :func:`one_of`)."""
     kw = {"dest": dest} if dest else {}
     return p.add_argument(*names, action=CheckedValue, convert=one_of(values), default=default,
@@ -253,7 +253,7 @@ def choice_option(p, *names, values, help=None, default=None, dest=None):
 
 
 def add_setting_options(group, settings, *, defaults: dict | None = None) -> None:
-    """Options for schema settings (core/bake/settings_schema.py): ``dest`` is the
+    """Options for schema settings (core/settings_schema.py): ``dest`` is the
     setting's name and every default is None (not given: the job's, the
     scene's or the schema's default applies). ``defaults``: {name: what
     applies when the option is not given}, where that is not the schema's."""
@@ -276,8 +276,8 @@ def add_setting_options(group, settings, *, defaults: dict | None = None) -> Non
         unit = f" {s.unit}" if s.unit else ""
         convert = int_range(s.lo, s.hi) if s.kind == "int" else number_range(s.lo, s.hi)
         group.add_argument(s.option, dest=s.name, action=CheckedValue, convert=convert, default=None,
-                           metavar=s.metavar, help=f"{s.help} ({_num(s.lo)}..{_num(s.hi)}{unit}; "
-                                                   f"{default_text or 'default ' + _num(s.default)})")
+                           metavar=s.metavar, help=f"{s.help} ({format_number(s.lo)}..{format_number(s.hi)}{unit}; "
+                                                   f"{default_text or 'default ' + format_number(s.default)})")
 
 
 def given_settings(args, settings) -> dict:
@@ -292,8 +292,8 @@ def add_output_options(p: argparse.ArgumentParser) -> None:
 
 def dask_spec(value: str) -> str:
     """``--dask``'s value, checked (argparse type: a bad one is a usage error naming it)."""
-    from .core.bake.context import BakeError  # deferred: the option module loads before numpy
-    from .core.bake.distributed import parse_spec  # deferred: as above
+    from .core.bake.executors.dask_cluster import parse_spec  # deferred: as above
+    from .core.base.errors import BakeError  # deferred: the option module loads before numpy
     try:
         parse_spec(value)
     except BakeError as exc:

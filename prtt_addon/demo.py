@@ -32,14 +32,14 @@ import time
 import numpy as np
 
 from . import register
-from .bench.scenes import ROOM_MATERIALS, room_objects
+from .bench.scene_library import ROOM_MATERIALS, room_objects
 from .bench.texture_error import image_error
 from .cli_options import CheckedValue, int_range, parse_size
-from .core.bake import settings_schema as schema
-from .core.bake.context import bounce_seconds
-from .core.bake.settings_schema import BY_NAME as _SETTINGS
+from .core import settings_schema as schema
+from .core.bake.pipeline.context import bounce_seconds
 from .core.io.image_write import srgb_encode, write_image
-from .core.sh.envmap import builtin_environment_path
+from .core.light.envmap import builtin_environment_path
+from .core.settings_schema import BY_NAME as _SETTINGS
 
 _BOUNCE_RAYS_DEFAULT = _SETTINGS["bounce_rays"].default
 
@@ -140,7 +140,7 @@ def relight_step(bpy, out_dir: str, size, exposure: float, log=print) -> dict:
     World back afterwards. Returns the picture, the two renders, their
     relative RMSE and each mode's bounce seconds (the bake's stages)."""
     from .blender.bake.run import bake_blocking  # needs bpy (see run)
-    from .blender.preview.render import render_scene  # needs bpy (see run)
+    from .blender.preview.offscreen import render_scene  # needs bpy (see run)
     st = bpy.context.scene.prtt
     world = bpy.context.scene.world
     mapping = next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping"), None) if world else None
@@ -185,8 +185,8 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
     # The Blender side needs bpy: this module loads without it (the CLI's parser).
     from .blender.bake.run import bake_blocking  # needs bpy (see above)
     from .blender.blendfile import blend_relative  # needs bpy (see above)
-    from .blender.preview.render import exposure_of, render_scene  # needs bpy (see above)
-    from .blender.ui.properties import UV_MAP  # needs bpy (see above)
+    from .blender.preview.offscreen import exposure_of, render_scene  # needs bpy (see above)
+    from .blender.shared import UV_MAP  # needs bpy (see above)
     t_all = time.perf_counter()
     times = {}
     n = 5 if relight else 4                  # steps
@@ -306,7 +306,7 @@ MIN_DEMO_RESOLUTION = 16
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The demo's options, each checked here (exit 2 naming the option) before
-    any work: the ranges are the bake's (core/bake/settings_schema.py)."""
+    any work: the ranges are the bake's (core/settings_schema.py)."""
     def checked(name, lo=None):
         s = schema.get(name)
         lo = s.lo if lo is None else lo

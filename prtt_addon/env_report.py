@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 
-from .core.sh import envmap
 from .core import sh
+from .core.light import envmap
 
 
 def fibonacci_dirs(n: int) -> np.ndarray:

@@ -114,9 +114,9 @@ def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
     # Deferred imports (start-up): the worker installs its signal handlers
     # before numpy, Embree and the bake load, so a SIGTERM during start-up is a
     # clean cancel (exit 3), not a kill.
-    from .core.bake.runner import bake_memory_bytes  # deferred (start-up)
-    from .core.bake.memory import GiB, check_fits  # deferred (start-up)
-    from .core.io.scene import MAX_RESOLUTION  # deferred (start-up)
+    from .core.bake.pipeline.plan import bake_memory_bytes  # deferred (start-up)
+    from .core.base.memory import GiB, check_fits  # deferred (start-up)
+    from .core.model.scene import MAX_RESOLUTION  # deferred (start-up)
     res = job.set_resolution() if resolution is None else np.full((len(job.set_resolution()), 2), resolution)
     # An out-of-range resolution fails validation with its own message; here it
     # must not fail first as an absurd memory need: such sets count as 1 texel.
@@ -134,16 +134,18 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
     """Load a job and bake it, reporting through ``emit``. Returns an exit status.
 
     The job's headers, settings and memory need are checked before any array
-    is read (core.io.scene.JobFile); ``cancel`` is honoured while loading too.
+    is read (core.io.jobfile.JobFile); ``cancel`` is honoured while loading too.
     ``dask``: bake_scene's (trace on a Dask cluster).
     """
     # Deferred imports (start-up): the worker installs its signal handlers
     # before numpy, Embree and the bake load, so a SIGTERM during start-up is a
     # clean cancel (exit 3), not a kill.
-    from .core.bake.runner import BakeError, BakeSettings, bake_scene  # deferred (start-up)
-    from .core.bake.memory import MemoryLimitError  # deferred (start-up)
-    from .core.io.scene import JobFile, SceneError, validate  # deferred (start-up)
-    from .core.bake.transfer import Cancelled  # deferred (start-up)
+    from .core.bake.pipeline.context import BakeSettings  # deferred (start-up)
+    from .core.bake.pipeline.runner import bake_scene  # deferred (start-up)
+    from .core.base.errors import BakeError, Cancelled  # deferred (start-up)
+    from .core.base.memory import MemoryLimitError  # deferred (start-up)
+    from .core.io.jobfile import JobFile  # deferred (start-up)
+    from .core.model.scene import SceneError, validate  # deferred (start-up)
     from .core.texels.unwrap import UnwrapError  # deferred (start-up)
 
     try:

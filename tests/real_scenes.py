@@ -6,7 +6,7 @@ Each builder works on the current (empty) scene and returns the objects it made.
 
 
 def cube_mesh(bpy, name="cube", size=1.0):
-    import bmesh                        # importable only once bpy is
+    import bmesh  # importable only once bpy is
     me = bpy.data.meshes.new(name)
     bm = bmesh.new()
     bmesh.ops.create_cube(bm, size=size)

@@ -2,7 +2,7 @@
 import numpy as np
 
 from prtt_addon.core.io import meshgen as mg
-from prtt_addon.core.io.scene import Scene
+from prtt_addon.core.model.scene import Scene
 
 
 def planar_uvs(m: mg.Mesh, axes=(0, 1)) -> np.ndarray:
@@ -16,7 +16,7 @@ def planar_uvs(m: mg.Mesh, axes=(0, 1)) -> np.ndarray:
 def scene_from(objects, resolution=64) -> Scene:
     """objects: list of (name, Mesh, uvs (F, 3, 2)); one texture set per object."""
     pos, nrm, uv, sid = [], [], [], []
-    for i, (name, m, u) in enumerate(objects):
+    for i, (_name, m, u) in enumerate(objects):
         pos.append(m.corner_positions())
         nrm.append(m.corner_normals())
         uv.append(u)
@@ -39,7 +39,7 @@ def floor_and_box_with_every_part(res=8) -> Scene:
     """floor_and_box with every optional part of the job format: a normal map on
     two triangles (strength 0.7), tangents, a material with a base-colour
     texture, material UVs. Validated."""
-    from prtt_addon.core.io.scene import NormalMap, validate
+    from prtt_addon.core.model.scene import NormalMap, validate
     sc = floor_and_box(res=res)
     T = sc.n_triangles
     sc.normal_maps = [NormalMap(np.full((4, 4, 3), 0.5, np.float32), 0.7)]

@@ -8,10 +8,13 @@ import threading
 import numpy as np
 import pytest
 
-from prtt_addon.core.io import exr_io, meshgen as mg
-from prtt_addon.core.bake.runner import BakeError, BakeSettings, bake_scene
-from prtt_addon.core.bake.memory import MemoryLimitError
-from prtt_addon.core.bake.transfer import Cancelled, unoccluded_transfer
+from prtt_addon.core.bake.estimators.transfer import unoccluded_transfer
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene
+from prtt_addon.core.base.errors import BakeError, Cancelled
+from prtt_addon.core.base.memory import MemoryLimitError
+from prtt_addon.core.io import exr_io
+from prtt_addon.core.io import meshgen as mg
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -296,7 +299,7 @@ def test_atomic_writes_get_normal_permissions(tmp_path):
 
 
 def _hugepage_advice_now() -> bool:
-    from prtt_addon.core.bake.memory import _numpy_hugepage_switch
+    from prtt_addon.core.base.memory import _numpy_hugepage_switch
     switch = _numpy_hugepage_switch()
     now = switch(True)
     switch(now)
@@ -307,7 +310,7 @@ def test_hugepage_advice_off_for_streamed_stages_only(tmp_path):
     """Transfer stages (G-buffer .. EXR) run without numpy's huge-page advice,
     the bounce stage with the caller's setting, and the bake restores it
     (memory.numpy_hugepage_advice: both measured to be faster that way)."""
-    from prtt_addon.core.bake.memory import numpy_hugepage_advice
+    from prtt_addon.core.base.memory import numpy_hugepage_advice
     with numpy_hugepage_advice(False):
         with numpy_hugepage_advice(True):
             assert _hugepage_advice_now() is True
@@ -331,7 +334,7 @@ def test_hugepage_advice_off_for_streamed_stages_only(tmp_path):
 _TRIM_PROBE = """
 import sys, threading
 import numpy as np
-from prtt_addon.core.bake.memory import release_free_memory
+from prtt_addon.core.base.memory import release_free_memory
 def rss():
     return next(int(l.split()[1]) for l in open('/proc/self/status') if l.startswith('VmRSS')) / 1024
 keep = []
@@ -350,7 +353,7 @@ print(ran, before, after)
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc; malloc_trim is glibc's")
 def test_release_free_memory_returns_a_helper_threads_freed_arena():
     """What the G-buffer's helper threads free stays in their glibc arenas
-    (RSS) until core.bake.memory.release_free_memory hands it back."""
+    (RSS) until core.base.memory.release_free_memory hands it back."""
     r = subprocess.run([sys.executable, "-c", _TRIM_PROBE], capture_output=True, text=True, timeout=120,
                        env=dict(os.environ, PYTHONPATH=ROOT))
     ran, before, after = r.stdout.split()

@@ -6,11 +6,12 @@ import os
 import numpy as np
 import pytest
 
-from prtt_addon.core.bake import bounce_stage, stages
-from prtt_addon.core.bake.context import BakeContext
-from prtt_addon.core.bake.plan import plan_bake
-from prtt_addon.core.bake.runner import BakeSettings, bake_scene, check_out_dir
-from prtt_addon.core.io import exr_io, meshgen as mg
+from prtt_addon.core.bake.pipeline import bounce_stage, stages
+from prtt_addon.core.bake.pipeline.context import BakeContext, BakeSettings
+from prtt_addon.core.bake.pipeline.plan import plan_bake
+from prtt_addon.core.bake.pipeline.runner import bake_scene, check_out_dir
+from prtt_addon.core.io import exr_io
+from prtt_addon.core.io import meshgen as mg
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 from tests.test_bounce import corner_scene, sky
 
@@ -110,7 +111,9 @@ def test_plan_reuse_decisions(tmp_path, context):
     st = BakeSettings(rays=16, bounces=1, bounce_rays=8, bounce_mode="baked").validate()
     bake_scene(sc, tmp_path, st, light=sky())
 
-    def plan(settings=st, light=sky(), **kw):
+    default_light = sky()
+
+    def plan(settings=st, light=default_light, **kw):
         return plan_bake(context(sc, str(tmp_path), settings, light=light), **kw)
 
     p = plan()

@@ -1,8 +1,8 @@
-"""The BLAS thread limit the bake runs its chunks under (core/bake/blas.py)."""
+"""The BLAS thread limit the bake runs its chunks under (core/base/blas.py)."""
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from prtt_addon.core.bake.blas import single_threaded_blas
+from prtt_addon.core.base.blas import single_threaded_blas
 
 
 def _blas_threads():

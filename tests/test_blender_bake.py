@@ -58,7 +58,7 @@ def test_cancel_or_kill_mid_bake_keeps_everything(tmp_path, how):
     assert snapshot_files(out) == before_files
     assert st.last_bake == before_meta and not st.baking
     after_uv = uv_snapshot(bpy)
-    for name, (maps, sel) in before_uv.items():
+    for name, (maps, _sel) in before_uv.items():
         for m, (data, *_flags) in maps.items():
             np.testing.assert_array_equal(after_uv[name][0][m][0], data)
 
@@ -133,7 +133,7 @@ def test_three_headless_entry_points_agree(tmp_path):
     a = snapshot_files(tmp_path / "prtt_out")
     r2 = subprocess.run([sys.executable, "-c",
                          "import sys, bpy, prtt_addon; prtt_addon.register(); "
-                         "from prtt_addon.blender.cli import _cli; "
+                         "from prtt_addon.blender.commands import _cli; "
                          f"sys.exit(_cli(['bake', {blend!r}, '--out', {str(tmp_path / 'cli')!r}]))"],
                         capture_output=True, text=True, env=env, timeout=300)
     assert r2.returncode == 0, r2.stdout + r2.stderr

@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from prtt_addon.core.sh import envmap
 from prtt_addon.core import sh
+from prtt_addon.core.light import envmap
 from tests.blender_util import addon_bpy, cycles_looker, new_float_image
 
 pytestmark = pytest.mark.blender

@@ -5,14 +5,16 @@ import os
 import numpy as np
 import pytest
 
-from prtt_addon.core.io import exr_io, meshgen as mg
 from prtt_addon.core import sh
-from prtt_addon.core.bake.runner import BakeSettings, bake_scene
+from prtt_addon.core.bake.estimators.raytrace import RAY_EPSILON, RayScene
+from prtt_addon.core.bake.estimators.sampling import sobol2, to_hemisphere
+from prtt_addon.core.bake.estimators.transfer import Points, TransferSettings, bake_points
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene
+from prtt_addon.core.io import exr_io
+from prtt_addon.core.io import meshgen as mg
 from prtt_addon.core.shading.materials import eval_materials
-from prtt_addon.core.bake.raytrace import RAY_EPSILON, RayScene
-from prtt_addon.core.bake.sampling import sobol2, to_hemisphere
-from prtt_addon.core.shading.model import shade
-from prtt_addon.core.bake.transfer import Points, TransferSettings, bake_points
+from prtt_addon.core.shading.shade import shade
 from tests.scenes_util import planar_uvs, scene_from
 
 
@@ -31,7 +33,7 @@ def corner_scene(wall_material, res=32):
     sc = scene_from([("floor", floor, planar_uvs(floor)), ("wall", wall, planar_uvs(wall, (1, 2)))], res)
     sc.materials = [{"name": "floor", "base_color": [0.5, 0.5, 0.5]}, wall_material]
     sc.material_id = np.array([0, 0, 1, 1], np.int32)
-    from prtt_addon.core.io.scene import validate
+    from prtt_addon.core.model.scene import validate
     validate(sc)
     return sc
 
@@ -101,7 +103,7 @@ def test_energy_decreases_with_bounces_and_stays_finite(tmp_path):
     sc = scene_from([("box", inner, uv)], 64)
     sc.materials = [{"name": "white", "base_color": [0.8, 0.8, 0.8], "roughness": 0.6}]
     sc.material_id = np.zeros(sc.n_triangles, np.int32)
-    from prtt_addon.core.io.scene import validate
+    from prtt_addon.core.model.scene import validate
     validate(sc)
     bake_scene(sc, tmp_path, BakeSettings(rays=128, bounces=3, bounce_rays=256, half=False,
                                           bounce_mode="baked"), light=sky())

@@ -7,17 +7,26 @@ import math
 import numpy as np
 import pytest
 
+from prtt_addon.core.bake.estimators import hit_kernel
+from prtt_addon.core.bake.estimators.bounce import (
+    ExitShader,
+    IncidentSet,
+    block_mean_incident,
+    exit_textures,
+    glossy_triangles,
+    incident_at,
+    incident_dc_at,
+    level_energy,
+    surface_texels,
+)
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene
+from prtt_addon.core.base import jit
 from prtt_addon.core.io import exr_io
-from prtt_addon.core import jit
-from prtt_addon.core.bake import hit_kernel
-from prtt_addon.core.bake.runner import BakeSettings, bake_scene
-from prtt_addon.core.bake.bounce import (ExitShader, IncidentSet, block_mean_incident, exit_textures,
-                                         glossy_triangles, incident_at, incident_dc_at, level_energy,
-                                         surface_texels)
 from prtt_addon.core.sh.gaunt import tpfl_matrix
-from prtt_addon.core.texels.gbuffer import build_gbuffer
 from prtt_addon.core.shading.materials import ShadingParams
-from prtt_addon.core.shading.model import outgoing
+from prtt_addon.core.shading.shade import outgoing
+from prtt_addon.core.texels.gbuffer import build_gbuffer
 from tests.test_bounce import corner_scene, sky
 
 GLOSSY_WALL = {"name": "glossy", "base_color": [0.2, 0.3, 0.9], "roughness": 0.3, "specular": 1.0,
@@ -273,7 +282,7 @@ def test_numba_can_be_switched_off(tmp_path, monkeypatch):
     import subprocess
     import sys
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    code = ("import sys; from prtt_addon.core.bake import hit_kernel; "
+    code = ("import sys; from prtt_addon.core.bake.estimators import hit_kernel; "
             "print(hit_kernel.available(), hit_kernel.usable('baked', 5), 'numba' in sys.modules)")
     for value, want in (("1", "False False False"), ("0", "True True True")):
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root,
@@ -289,7 +298,7 @@ def test_numba_can_be_switched_off(tmp_path, monkeypatch):
 def test_a_numba_that_cannot_compile_the_loops_falls_back_to_numpy(tmp_path, monkeypatch):
     """numba imports but fails to compile (a numba or llvmlite this code was
     not written for): the bake shades with numpy, says so in the manifest and
-    in core.jit.failures, and does not try again."""
+    in core.base.jit.failures, and does not try again."""
     calls = []
 
     def refuse(*args):
@@ -303,7 +312,7 @@ def test_a_numba_that_cannot_compile_the_loops_falls_back_to_numpy(tmp_path, mon
     for k in (1, 2):
         m = bake_scene(sc, str(tmp_path / str(k)), BakeSettings(rays=16, bounces=1, bounce_rays=8), light=sky())
         assert m["bounce"]["files"] and {r["hit_shading"] for r in m["bounce"]["sets"]} == {"numpy"}
-    assert "prefetch" in jit.failures["prtt_addon.core.bake.hit_jit"]
+    assert "prefetch" in jit.failures["prtt_addon.core.bake.estimators.hit_jit"]
     assert len(calls) == 1                                     # tried once per process
 
 

@@ -3,8 +3,9 @@ the island check, the grid choice, and bakes on it."""
 import numpy as np
 import pytest
 
-from prtt_addon.core.bake import bounce_stage
-from prtt_addon.core.bake.runner import BakeSettings, bake_scene
+from prtt_addon.core.bake.pipeline import bounce_stage
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.io import exr_io
 from prtt_addon.core.preview.pack import PreviewSet
 from prtt_addon.core.texels.islands import block_labels, coarse_grid_conflicts, island_labels
@@ -171,6 +172,7 @@ def test_bounce_bands_follow_the_phong_lobe(roughness, bands):
     glossy = bounce_stage.glossy_triangles(sc)
     got, _ = bounce_stage.choose_bounce_bands(sc, 1, glossy, 5)
     from numpy.polynomial.legendre import leggauss, legval
+
     from prtt_addon.core.shading.materials import phong_exponent
     s = float(phong_exponent(np.array([roughness]))[0])
     x, w = leggauss(200)
@@ -210,8 +212,9 @@ def test_tuning_auto_stores_higher_bands_with_six_mantissa_bits(tmp_path):
     """Tuning auto: the transfer's DC channel is fixed's, bit for bit, and
     bands l >= 1 are fixed's rounded to 6 mantissa bits (same rays); bounce
     textures likewise; the header says so; fixed writes all 10 bits as before."""
-    from prtt_addon.core.io.exr_io import quantize_half
     import OpenEXR
+
+    from prtt_addon.core.io.exr_io import quantize_half
     sc = corner_scene({"name": "wall", "base_color": [0.9, 0.2, 0.1], "roughness": 0.3}, res=32)
     light = sky()
     out = {}

@@ -15,7 +15,8 @@ import sys
 
 import pytest
 
-from prtt_addon.cli import ConsoleProgress, build_parser
+from prtt_addon.cli import build_parser
+from prtt_addon.cli_options import ConsoleProgress
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = dict(os.environ, PYTHONPATH=ROOT, PYTHONUNBUFFERED="1")
@@ -49,7 +50,7 @@ def subparser(name):
     (["-m", "prtt_addon", "bake", "-h"], "--unwrap"),
     (["-m", "prtt_addon", "render", "-h"], "--mode"),
     (["-m", "prtt_addon.worker", "-h"], "out_dir"),
-    (["-m", "prtt_addon.core.bake.settings_schema", "-h"], "--write"),
+    (["-m", "prtt_addon.core.settings_schema", "-h"], "--write"),
 ])
 def test_dash_h_on_every_subcommand(args, says, tmp_path):
     if args[2:3] in (["bake"], ["render"], ["demo"]):
@@ -65,7 +66,7 @@ def test_dash_h_through_blender_c_prtt(capsys):
     (argparse's SystemExit never reaches Blender)."""
     from tests.blender_util import addon_bpy
     addon_bpy()
-    from prtt_addon.blender.cli import _cli
+    from prtt_addon.blender.commands import _cli
     for argv, usage in ((["-h"], "usage: blender -c prtt bake"), (["bake", "-h"], "usage: blender -c prtt bake"),
                         (["bake", "--help"], "usage: blender -c prtt bake"),
                         (["render", "-h"], "usage: blender -c prtt render")):
@@ -92,8 +93,8 @@ def test_choices_are_case_insensitive():
 @pytest.mark.blender
 def test_blender_choices_are_case_insensitive():
     pytest.importorskip("bpy")
-    from prtt_addon.blender.cli import bake_parser
-    from prtt_addon.blender.preview.render import render_parser
+    from prtt_addon.blender.commands import bake_parser
+    from prtt_addon.blender.preview.offscreen import render_parser
     b = bake_parser("prtt bake")
     for given, value in (("smart", "SMART"), ("Xatlas", "XATLAS"), ("EXISTING", "EXISTING")):
         assert b.parse_args(["s.blend", "--unwrap", given]).unwrap == value
@@ -153,7 +154,7 @@ def test_blender_bake_range_errors_come_before_the_file(tmp_path):
 def test_prtt_sh_keeps_the_callers_folder(tmp_path):
     """./prtt.sh runs the project's Python in the caller's folder: a relative job
     file and --out are the caller's (they used to resolve against the repository)."""
-    from prtt_addon.core.io.scene import save_scene
+    from prtt_addon.core.io.jobfile import save_scene
     from tests.scenes_util import floor_and_box
     work = tmp_path / "work"
     work.mkdir()
@@ -289,7 +290,7 @@ def test_final_lines_can_be_left_to_the_caller():
 
 
 def test_bake_job_progress_lines_end_to_end(tmp_path):
-    from prtt_addon.core.io.scene import save_scene
+    from prtt_addon.core.io.jobfile import save_scene
     from tests.scenes_util import floor_and_box
     save_scene(floor_and_box(res=8), tmp_path / "job.npz")
     r = py("-m", "prtt_addon", "bake-job", "job.npz", "--out", "o", "--rays", "8", "--bounces", "0",

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from prtt_addon.core.bake.denoise import edge_aware, oidn_available, oidn_sh
-from prtt_addon.core import jit
+from prtt_addon.core.bake.estimators.denoise import edge_aware, oidn_available, oidn_sh
+from prtt_addon.core.base import jit
 from prtt_addon.core.texels.islands import island_labels, island_labels_numpy
 
 
@@ -124,7 +124,9 @@ def test_oidn_sh_restores_normalisation_and_keeps_empty_texels():
 
 
 def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
-    from prtt_addon.core.bake.runner import BakeError, BakeSettings, bake_scene
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.runner import bake_scene
+    from prtt_addon.core.base.errors import BakeError
     from prtt_addon.core.io import exr_io
     from tests.test_bounce import corner_scene, sky
     sc = corner_scene({"name": "w", "base_color": [0.6, 0.5, 0.4], "specular": 0.0}, res=24)
@@ -150,7 +152,7 @@ def test_bake_option_filters_bounces_within_islands(tmp_path, monkeypatch):
     many = bake_scene(sc, tmp_path / "many", BakeSettings(bounce_denoise="auto", **dict(st, bounce_rays=128)),
                       light=sky())
     assert not any("denoise" in r for r in many["bounce"]["sets"])
-    import prtt_addon.core.bake.denoise as dn
+    import prtt_addon.core.bake.estimators.denoise as dn
     monkeypatch.setattr(dn, "oidn_available", lambda: False)
     with pytest.raises(BakeError, match="needs the optional package pyoidn"):
         bake_scene(sc, tmp_path / "o", BakeSettings(bounce_denoise="oidn", **st), light=sky())

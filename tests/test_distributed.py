@@ -1,4 +1,4 @@
-"""The bake on a Dask cluster (core/bake/distributed.py, issue #17): the same
+"""The bake on a Dask cluster (core/bake/executors/dask_cluster.py, issue #17): the same
 bits as the local bake, a lost worker costs only its chunks, a lost
 scheduler is a clear error, cancellation stops the cluster, and every entry
 point passes ``--dask`` through.
@@ -21,13 +21,14 @@ import numpy as np
 import psutil
 import pytest
 
-from prtt_addon.bench import scenes
+from prtt_addon.bench import scene_library
 from prtt_addon.cli import env_light
-from prtt_addon.core.bake import distributed as dd
-from prtt_addon.core.bake.context import BakeError, BakeSettings
-from prtt_addon.core.bake.runner import bake_scene
-from prtt_addon.core.bake.transfer import Cancelled, Chunk
-from prtt_addon.core.io.scene import save_scene
+from prtt_addon.core.bake.estimators.transfer import Chunk
+from prtt_addon.core.bake.executors import dask_cluster as dd
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene
+from prtt_addon.core.base.errors import BakeError, Cancelled
+from prtt_addon.core.io.jobfile import save_scene
 from tests.scenes_util import floor_and_box
 
 pytest.importorskip("distributed")
@@ -82,7 +83,7 @@ def no_workers_left(timeout=10.0) -> bool:
 
 @pytest.fixture(scope="module")
 def room():
-    return scenes.room_scene(64, atlas=False, materials=True), env_light("forest", 5, 1.0, 0.0)
+    return scene_library.room_scene(64, atlas=False, materials=True), env_light("forest", 5, 1.0, 0.0)
 
 
 @pytest.fixture

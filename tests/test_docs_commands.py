@@ -251,7 +251,7 @@ def test_demo_runs_as_written(page, line, cmd, comment, tmp_path):
                          ids=_ids([c for c in RUN if _runner(c[2]) == "dask-local"]))
 def test_dask_local_bake_runs_as_written(page, line, cmd, comment, tmp_path):
     pytest.importorskip("distributed")
-    from prtt_addon.core.io.scene import save_scene
+    from prtt_addon.core.io.jobfile import save_scene
     from tests.scenes_util import floor_and_box
     save_scene(floor_and_box(res=16), tmp_path / "JOB.npz", extra={"settings": {"rays": 16, "bounces": 0}})
     r = _run(cmd.replace("local:4", "local:2"), tmp_path)

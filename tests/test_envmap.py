@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from prtt_addon.core.sh import envmap
 from prtt_addon.core import sh
 from prtt_addon.core.io.image_io import ImageReadError, read_hdr_image
+from prtt_addon.core.light import envmap
 from tests.conftest import random_dirs
 
 

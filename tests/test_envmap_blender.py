@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from prtt_addon.core.sh import envmap
 from prtt_addon.core.io.image_io import read_hdr_image
+from prtt_addon.core.light import envmap
 from tests.blender_util import cycles_looker, fresh_bpy, new_float_image
 
 pytestmark = pytest.mark.blender

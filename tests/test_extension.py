@@ -3,6 +3,7 @@ into a fresh Blender user folder, then bake with the installed copy.
 (Blender's validator on every platform's zip: test_validator.py.)"""
 import importlib.util
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -68,16 +69,30 @@ def test_zip_layout(extension_zip):
     assert {w[2:] for w in wheels} == {n for n in names if n.startswith("wheels/")}
 
 
+def documented_install_snippet(zip_name: str) -> str:
+    """docs/addon.md's headless install snippet, verbatim; the zip it names
+    must be the one the build makes (name and version)."""
+    with open(os.path.join(ROOT, "docs", "addon.md"), encoding="utf-8") as f:
+        doc = f.read()
+    m = re.search(r"```python\n(import os, bpy\nbpy\.ops\.extensions\.package_install_files\(.*?)```", doc, re.S)
+    assert m, "docs/addon.md has no install snippet"
+    named = re.search(r'"dist/(prtt_addon-[^"]+\.zip)"', m.group(1)).group(1)
+    if _host_platform() == "linux-x64":
+        assert named == zip_name, (named, zip_name)
+    return m.group(1).replace(named, zip_name)
+
+
 def test_install_enable_and_bake(extension_zip, tmp_path):
+    # The docs' snippet as written, run where `dist/` holds the zip (the
+    # snippet's relative path, made absolute as package_install_files wants).
+    install = documented_install_snippet(os.path.basename(extension_zip))
     script = textwrap.dedent(f"""
         import os, sys
         import bpy
         import importlib.util
         assert importlib.util.find_spec("prtt_addon") is None   # only the installed copy
         bpy.ops.wm.read_factory_settings(use_empty=True)
-        r = bpy.ops.extensions.package_install_files(filepath={extension_zip!r}, repo="user_default",
-                                                     enable_on_install=True)
-        assert r == {{"FINISHED"}}, r
+        INSTALL
         assert "bl_ext.user_default.prtt_addon" in bpy.context.preferences.addons
         for op in ("unwrap", "bake_transfer", "cancel_bake"):
             assert hasattr(bpy.ops.prtt, op), op
@@ -104,11 +119,11 @@ def test_install_enable_and_bake(extension_zip, tmp_path):
         assert bpy.ops.prtt.render_preview() == {{"FINISHED"}}
         img = bpy.data.images["PRTT Preview"]
         print("PREVIEW", tuple(img.size), max(list(img.pixels)[3::4]))
-    """)
+    """).replace("INSTALL", install.rstrip())
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["BLENDER_USER_RESOURCES"] = str(tmp_path / "blender-user")
     r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env,
-                       cwd=str(tmp_path), timeout=600)
+                       cwd=os.path.dirname(os.path.dirname(extension_zip)), timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "FILES ['Plane.transfer.exr', 'Suzanne.transfer.exr', 'manifest.json']" in r.stdout
     assert "PREVIEW (32, 24) 1.0" in r.stdout

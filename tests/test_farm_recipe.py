@@ -291,7 +291,7 @@ def test_farm_recipe_bakes_the_local_bits(installed, farm, tmp_path):
     for byte, and the workers ran the installed prtt_addon."""
     from distributed import Client
 
-    from prtt_addon.core.io.scene import save_scene
+    from prtt_addon.core.io.jobfile import save_scene
     from tests.scenes_util import floor_and_box
 
     base, site, env = installed

@@ -3,9 +3,9 @@
 import numpy as np
 
 from prtt_addon.core.io import meshgen as mg
+from prtt_addon.core.model.scene import NormalMap
 from prtt_addon.core.texels.gbuffer import build_gbuffer
 from prtt_addon.core.texels.raster import rasterize
-from prtt_addon.core.io.scene import NormalMap
 from tests.scenes_util import planar_uvs, scene_from
 
 
@@ -21,7 +21,7 @@ def supersampled_touch(uvs, W, H, n=32):
         for j in range(max(y0, 0), min(y1, H)):
             for i in range(max(x0, 0), min(x1, W)):
                 px, py = np.meshgrid(i + g, j + g)
-                def e(a, b):
+                def e(a, b, px=px, py=py):
                     return (b[0] - a[0]) * (py - a[1]) - (b[1] - a[1]) * (px - a[0])
                 e0, e1, e2 = e(t[1], t[2]), e(t[2], t[0]), e(t[0], t[1])
                 inside = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
@@ -143,7 +143,7 @@ def normal_mapped_floor(tangent_space_normal, res, strength=1.0):
     sc.tangents = np.zeros((T, 3, 4), np.float32)
     sc.tangents[..., 0] = 1.0
     sc.tangents[..., 3] = 1.0
-    from prtt_addon.core.io.scene import validate
+    from prtt_addon.core.model.scene import validate
     validate(sc)
     return sc
 

@@ -1,10 +1,12 @@
 """The zero-ray analytic path's triangle test vs brute force, and occluder-only triangles."""
 import numpy as np
 
+from prtt_addon.core.bake.estimators.hemisphere_clear import PLANE_EPSILON, clear_triangles
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene
+from prtt_addon.core.bake.pipeline.stages import scene_face_data
 from prtt_addon.core.io import meshgen as mg
-from prtt_addon.core.bake.runner import BakeSettings, bake_scene, scene_face_data
 from prtt_addon.core.texels.gbuffer import face_normals
-from prtt_addon.core.bake.hemisphere_clear import PLANE_EPSILON, clear_triangles
 from tests.scenes_util import floor_and_box
 
 
@@ -58,7 +60,7 @@ def test_occluder_only_triangles_cast_shadows_without_texels(tmp_path):
     sc = floor_and_box(res=16)
     bake_scene(sc, tmp_path / "a", BakeSettings(rays=64, bounce_mode="baked"))
     sc.set_id[sc.set_id == 1] = -1                     # the box: occluder only
-    from prtt_addon.core.io.scene import validate
+    from prtt_addon.core.model.scene import validate
     sc.set_names, sc.set_resolution = ["floor"], sc.set_resolution[:1]
     validate(sc)
     m = bake_scene(sc, tmp_path / "b", BakeSettings(rays=64, bounce_mode="baked"))

@@ -13,8 +13,8 @@ printed (pytest -s) and written to the test's tmp folder as fuzz_summary.json.
 """
 import io
 import json
-import re
 import os
+import re
 import subprocess
 import sys
 import time
@@ -23,7 +23,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from prtt_addon.core.io.scene import MAX_MEMBERS, MAX_NAME_LENGTH, save_scene
+from prtt_addon.core.io.jobfile import MAX_MEMBERS, save_scene
+from prtt_addon.core.model.scene import MAX_NAME_LENGTH
 from tests.scenes_util import floor_and_box_with_every_part
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

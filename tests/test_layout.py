@@ -187,7 +187,7 @@ def test_function_level_imports_say_why():
     for m, (p, k) in mods.items():
         if m.startswith(DEV_ONLY):
             continue
-        for target, line, inside, src in _package_imports(m, p, k, mods):
+        for _target, line, inside, src in _package_imports(m, p, k, mods):
             if inside and "#" not in src:
                 bare.append(f"{os.path.relpath(p, ROOT)}:{line}: {src.strip()}")
     assert not bare, "\n".join(bare)
@@ -197,10 +197,124 @@ def test_architecture_page_names_every_module():
     """docs/architecture.md is the newcomer's map: every runtime module is on it."""
     doc = open(os.path.join(ROOT, "docs", "architecture.md"), encoding="utf-8").read()
     missing = []
-    for dotted, (path, is_pkg) in _modules().items():
+    for dotted, (_path, is_pkg) in _modules().items():
         if is_pkg or dotted.startswith(DEV_ONLY):
             continue
         stem = dotted.rsplit(".", 1)[1]
         if f"`{stem}`" not in doc and not re.search(rf"`{stem}[.(` ]", doc) and f", `{stem}`" not in doc:
             missing.append(dotted)
     assert not missing, missing
+
+
+#: The floors of docs/architecture.md, lowest first. A module may import from
+#: its own floor and from any floor below; never from a floor above
+#: (function-level imports included). Each entry is a module or a package.
+FLOORS = [
+    ("ground", ["prtt_addon.version", "prtt_addon.core.base", "prtt_addon.core.settings_schema"]),
+    ("SH", ["prtt_addon.core.sh"]),
+    ("domain types", ["prtt_addon.core.model"]),
+    ("texels", ["prtt_addon.core.texels"]),
+    ("shading", ["prtt_addon.core.shading"]),
+    ("files", ["prtt_addon.core.io"]),
+    ("light", ["prtt_addon.core.light"]),
+    ("estimators", ["prtt_addon.core.bake.estimators"]),
+    ("executors", ["prtt_addon.core.bake.executors"]),
+    ("pipeline", ["prtt_addon.core.bake.pipeline"]),
+    ("preview core", ["prtt_addon.core.preview"]),
+    ("command-line helpers", ["prtt_addon.cli_options", "prtt_addon.env_report"]),
+    ("worker", ["prtt_addon.worker"]),
+    ("Blender ground", ["prtt_addon.blender.shared", "prtt_addon.blender.rna_arrays", "prtt_addon.blender.blendfile"]),
+    ("Blender export", ["prtt_addon.blender.export"]),
+    ("Blender preview", ["prtt_addon.blender.preview"]),
+    ("Blender bake", ["prtt_addon.blender.bake"]),
+    ("Blender UI", ["prtt_addon.blender.ui"]),
+    ("Blender entry points", ["prtt_addon.blender.commands", "prtt_addon.blender.registration",
+                              "prtt_addon.blender"]),
+    ("entry points", ["prtt_addon.cli", "prtt_addon.__main__", "prtt_addon"]),
+]
+#: Packages whose ``__init__`` only names them (a docstring): on no floor.
+CONTAINERS = ("prtt_addon.core", "prtt_addon.core.bake")
+
+
+def _floor(mod):
+    """The index of the floor that holds ``mod`` (its longest matching entry), or None."""
+    best = None
+    for i, (_, entries) in enumerate(FLOORS):
+        for e in entries:
+            if (mod == e or mod.startswith(e + ".")) and (best is None or len(e) > best[1]):
+                best = (i, len(e))
+    return None if best is None else best[0]
+
+
+def test_every_module_has_a_floor():
+    mods = [m for m in _modules() if not m.startswith(DEV_ONLY) and m not in CONTAINERS]
+    assert not [m for m in mods if _floor(m) is None], [m for m in mods if _floor(m) is None]
+
+
+def test_imports_only_go_down_the_floors():
+    """docs/architecture.md's order, enforced: an import reaches its own floor
+    or one below, never one above (function-level imports count: they are
+    the same arrow, only later)."""
+    mods = _modules()
+    up = []
+    for m, (p, k) in mods.items():
+        if m.startswith(DEV_ONLY) or m in CONTAINERS:
+            continue
+        here = _floor(m)
+        for target, line, _inside, src in _package_imports(m, p, k, mods):
+            if target in CONTAINERS or target == m:
+                continue
+            if target.startswith(DEV_ONLY):
+                if m != "prtt_addon.cli":            # `python -m prtt_addon demo` starts the dev-only demo
+                    up.append(f"{os.path.relpath(p, ROOT)}:{line}: dev-only {target}: {src.strip()}")
+                continue
+            there = _floor(target)
+            if there is None or there > here:
+                up.append(f"{os.path.relpath(p, ROOT)}:{line}: {FLOORS[here][0]} -> "
+                          f"{FLOORS[there][0] if there is not None else target}: {src.strip()}")
+    assert not up, "imports against docs/architecture.md's floors:\n" + "\n".join(up)
+
+
+def test_ruff_finds_nothing():
+    """The pinned ruff with pyproject.toml's rules (bugs, not style) over the
+    package, the tests and the tools."""
+    import shutil
+    ruff = shutil.which("ruff", path=os.path.dirname(sys.executable)) or shutil.which("ruff")
+    assert ruff, "ruff is not installed: ./prtt.sh installs requirements.txt's pin"
+    r = subprocess.run([ruff, "check", "prtt_addon", "tests", "tools"], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_module_names_are_unique():
+    """One name per concept: no two modules of the package share a name."""
+    stems = {}
+    for dotted, (_path, is_pkg) in _modules().items():
+        if not is_pkg:
+            stems.setdefault(dotted.rsplit(".", 1)[1], []).append(dotted)
+    assert not {k: v for k, v in stems.items() if len(v) > 1 and k != "__main__"}
+
+
+def test_no_private_name_is_used_outside_its_module():
+    """``from m import _x`` or ``m._x`` across modules (self/cls aside)."""
+    bad = []
+    for dotted, (path, _is_pkg) in _modules().items():
+        tree = ast.parse(open(path, encoding="utf-8").read())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                bad += [f"{dotted}:{node.lineno}: {a.name}" for a in node.names
+                        if a.name.startswith("_") and not a.name.startswith("__")]
+            elif (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+                  and isinstance(node.value, ast.Name) and node.value.id not in ("self", "cls", "np", "sys", "os")):
+                bad.append(f"{dotted}:{node.lineno}: {node.value.id}.{node.attr}")
+    assert not bad, bad
+
+
+def test_docstrings_carry_no_timings_of_a_machine():
+    """Timings belong in docs/benchmarks.md (they go stale in a docstring)."""
+    pat = re.compile(r"\d+ ?(ns|µs) per|on the 2-core VM|measured on the VM")
+    hits = []
+    for dotted, (path, _is_pkg) in _modules().items():
+        for i, line in enumerate(open(path, encoding="utf-8"), 1):
+            if pat.search(line):
+                hits.append(f"{dotted}:{i}: {line.strip()}")
+    assert not hits, hits

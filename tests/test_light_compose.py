@@ -1,4 +1,4 @@
-"""The one light composition (core.sh.envmap.compose_light and friends), against
+"""The one light composition (core.light.envmap.compose_light and friends), against
 independent computations, and both of its callers (the job CLI, the World export)."""
 import math
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from prtt_addon.core import sh
-from prtt_addon.core.sh import envmap
+from prtt_addon.core.light import envmap
 
 
 def _image(H=32, W=64, seed=0):

@@ -23,7 +23,7 @@ def run(args, timeout=300):
 
 
 def test_python_m_render_matches_in_process(blend, tmp_path):
-    from prtt_addon.blender.preview.render import render_scene
+    from prtt_addon.blender.preview.offscreen import render_scene
     from prtt_addon.core.io.image_write import read_exr_rgba
     out = str(tmp_path / "tpfl.exr")
     r = run(["-m", "prtt_addon", "render", blend, "--out", out, "--mode", "tpfl", "--size", "64x48"])
@@ -39,7 +39,7 @@ def test_python_m_render_matches_in_process(blend, tmp_path):
 def test_blender_c_prtt_render_writes_png(blend, tmp_path):
     out = str(tmp_path / "vertex.png")
     code = ("import sys, bpy, prtt_addon; prtt_addon.register(); "
-            "from prtt_addon.blender.cli import _cli; "
+            "from prtt_addon.blender.commands import _cli; "
             f"sys.exit(_cli(['render', {blend!r}, '--out', {out!r}, '--mode', 'vertex-tpfl', '--size', '40x30']))")
     r = run(["-c", code])
     assert r.returncode == 0, r.stdout + r.stderr
@@ -82,6 +82,7 @@ def test_relightable_chain_bake_render_turn_the_world_render_bake(blend, tmp_pat
     and turn the World, render again (the bounce light follows, no stale
     warning, no rebake), bake again (nothing to do)."""
     import shutil
+
     from prtt_addon.core.io.image_write import read_exr_rgba
     scene = str(tmp_path / "scene.blend")
     shutil.copy(blend, scene)

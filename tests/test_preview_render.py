@@ -3,7 +3,7 @@
 Real Blender, real GLSL on Mesa llvmpipe (one tiny Workbench render
 initialises the gpu module), offscreen float32 targets. The reference
 (core/preview/reference.py) finds each pixel's surface by Embree ray casting
-and shades it with core.shading.model in float64.
+and shades it with core.shading.shade in float64.
 """
 import math
 
@@ -25,8 +25,8 @@ def blend(tmp_path_factory):
 
 
 def frame(bpy, bounces=True):
-    from prtt_addon.blender.preview.render import camera_view, ensure_gpu
-    from prtt_addon.blender.preview.scene import collect
+    from prtt_addon.blender.preview.drawlist import collect
+    from prtt_addon.blender.preview.offscreen import camera_view, ensure_gpu
     ensure_gpu()
     ps, status = collect(bpy.context, use_bounces=bounces)
     assert ps is not None, status.messages
@@ -119,9 +119,9 @@ def test_bounces_add_light_and_vertex_modes_miss_the_contact_shadow(blend):
 def test_world_rotation_is_an_sh_rotation_of_a_cached_projection(blend):
     """Turning the environment must not re-project it, and must equal an
     independent projection of the turned image (90 deg = a quarter roll)."""
-    from prtt_addon.blender.preview import scene as preview_scene
-    from prtt_addon.core.sh import envmap
+    from prtt_addon.blender.preview import drawlist as preview_scene
     from prtt_addon.core.io.image_io import read_hdr_image
+    from prtt_addon.core.light import envmap
     bpy = open_blend(blend)
     scene = bpy.context.scene
     mapping = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
@@ -142,7 +142,7 @@ def test_world_rotation_is_an_sh_rotation_of_a_cached_projection(blend):
 
 
 def test_stale_and_moved_warnings(blend):
-    from prtt_addon.blender.preview.scene import collect
+    from prtt_addon.blender.preview.drawlist import collect
     bpy = open_blend(blend)
     scene = bpy.context.scene
 
@@ -220,8 +220,8 @@ def test_relightable_bounces_follow_the_world(relit_blend, mode):
     """Relightable bounces: a turned or brighter World is no staleness, the
     frame follows it, and the GPU still matches the reference pixel by pixel
     (its bounce light under the World as it is now); a material change is."""
+    from prtt_addon.blender.preview.drawlist import collect
     from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
-    from prtt_addon.blender.preview.scene import collect
     from prtt_addon.core.preview.reference import reference_image, relative_error
     bpy = open_blend(relit_blend)
     scene = bpy.context.scene

@@ -16,8 +16,8 @@ W, H = 64, 48
 
 
 def stress_scene(tmp_path, light, bands=5):
-    from prtt_addon.core.preview import pack as pp
     from prtt_addon.core.io.exr_io import write_sh_exr
+    from prtt_addon.core.preview import pack as pp
     rng = np.random.default_rng(0)
     K = bands * bands
     # Six triangles in a row facing the camera (+Y towards -Y camera), each with a problem.
@@ -60,7 +60,7 @@ def stress_scene(tmp_path, light, bands=5):
 
 
 def lights(bands=5):
-    from prtt_addon.core.sh.envmap import project_equirect
+    from prtt_addon.core.light.envmap import project_equirect
     sun = np.zeros((64, 128, 3), np.float32)
     sun[20, 40] = 1.0e5                                 # a tiny, very bright sun
     K = bands * bands
@@ -71,8 +71,8 @@ def lights(bands=5):
 @pytest.mark.parametrize("light", ["black", "sun", "huge"])
 def test_every_mode_renders_finite_pixels(tmp_path, light):
     addon_bpy()
+    from prtt_addon.blender.preview.offscreen import ensure_gpu
     from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
-    from prtt_addon.blender.preview.render import ensure_gpu
     from prtt_addon.core.preview.reference import look_at, perspective, reference_image, relative_error
     ensure_gpu()
     ps = stress_scene(tmp_path, lights()[light])

@@ -31,7 +31,7 @@ def _by_name(exp):
 
 def test_instances_geometry_nodes_curves_text_and_faceless_all_bake(tmp_path):
     bpy = addon_bpy()
-    st = _settings(bpy, tmp_path)
+    _settings(bpy, tmp_path)
     _floor_with_map(bpy)
     src = rs.source_collection(bpy)                                   # excluded from the view layer
     outer = bpy.data.collections.new("Outer")
@@ -55,7 +55,7 @@ def test_instances_geometry_nodes_curves_text_and_faceless_all_bake(tmp_path):
     eye_hidden.prtt.bake = False                                      # an occluder the viewport hides
     eye_hidden.hide_set(True)
     before = uv_snapshot(bpy)
-    from prtt_addon.blender.export.scene import export_scene
+    from prtt_addon.blender.export.job import export_scene
     exp = export_scene(bpy.context, with_light=False)
     recs = _by_name(exp)
     # every instance has texels of its own: 2 of Src (A, B nested), 1 linked, 3 geometry-nodes
@@ -149,7 +149,7 @@ def test_each_instance_has_its_own_texels_in_bake_and_preview(tmp_path):
 
     assert tile_dc(a) < 0.9 * tile_dc(b)
     # the preview draws each instance with its own texels: the roofed cube is darker
-    from prtt_addon.blender.preview.render import render_scene
+    from prtt_addon.blender.preview.offscreen import render_scene
     pixels, stats, status, _ = render_scene(bpy.context, mode="diffuse", size=(64, 32))
     assert sorted(stats.drawn) == ["A/SrcCube", "B/SrcCube"], (stats.drawn, status.messages)
     lum = pixels[..., :3].mean(axis=2)                     # row 0 = bottom; x -4..4 over 64 px
@@ -180,7 +180,7 @@ def test_more_kinds_metaball_surface_skinned_particles_linked_object(tmp_path):
             col.hide_render = True
         else:
             bpy.context.view_layer.layer_collection.children[cname].exclude = True
-    from prtt_addon.blender.export.scene import export_scene
+    from prtt_addon.blender.export.job import export_scene
     exp = export_scene(bpy.context, with_light=False)
     recs = exp.objects
     kinds = {"Mball": "generated", "SurfSphere": "generated", "Skinned": "map", "Emitter": "map",
@@ -206,8 +206,8 @@ def test_preview_of_generated_uvs_fails_clearly_when_they_are_gone(tmp_path):
     _instances_under_roof(bpy, tmp_path)
     from prtt_addon.blender.bake.run import bake_blocking
     assert bake_blocking(bpy.context).status == "done"
-    from prtt_addon.blender.preview import scene as preview_scene
-    from prtt_addon.blender.preview.render import RenderError, render_scene
+    from prtt_addon.blender.preview import drawlist as preview_scene
+    from prtt_addon.blender.preview.offscreen import RenderError, render_scene
     for damage in (b"", b"not a zip"):
         (tmp_path / "out" / "generated_uvs.npz").write_bytes(damage)
         preview_scene.clear_caches()
@@ -220,8 +220,8 @@ def test_unwrap_has_no_overlapping_texels(tmp_path, method):
     """Every unwrap method: zero overlapping texels at the chosen resolution on
     Suzanne and the room; an Array stack gets a layout per copy at export."""
     bpy = addon_bpy()
-    st = _settings(bpy, tmp_path, res=1024)
-    from prtt_addon.blender.export.unwrap import overlap_texels, unwrap_objects
+    _settings(bpy, tmp_path, res=1024)
+    from prtt_addon.blender.export.uv_maps import overlap_texels, unwrap_objects
     bpy.ops.mesh.primitive_monkey_add()
     suzanne = bpy.context.active_object
     stack = rs.add_object(bpy, "Stack", rs.cube_mesh(bpy, "stack"), location=(4, 0, 0.5))
@@ -229,7 +229,7 @@ def test_unwrap_has_no_overlapping_texels(tmp_path, method):
     got = unwrap_objects(bpy.context, [suzanne, stack], method=method, resolution=1024, padding=4, dilate=3)
     assert got == {"Suzanne": 0, "Stack": 0}
     assert overlap_texels(suzanne, 1024) == 0
-    from prtt_addon.blender.export.scene import export_scene
+    from prtt_addon.blender.export.job import export_scene
     exp = export_scene(bpy.context, with_light=False)
     assert exp.objects["Stack"]["uv"] == "generated" and exp.objects["Suzanne"]["uv"] == "map"
     from prtt_addon.core.texels.raster import rasterize
@@ -243,10 +243,10 @@ def test_unwrap_has_no_overlapping_texels(tmp_path, method):
 def test_unwrap_room_has_no_overlapping_texels(tmp_path):
     bpy = addon_bpy()
     _settings(bpy, tmp_path, res=1024)
-    from prtt_addon.bench.scenes import room_objects
     from prtt_addon.bench.scene_build import mesh_object
+    from prtt_addon.bench.scene_library import room_objects
     objects = [mesh_object(name, mesh) for name, mesh in room_objects()]
-    from prtt_addon.blender.export.unwrap import unwrap_objects
+    from prtt_addon.blender.export.uv_maps import unwrap_objects
     for method in ("SMART", "LIGHTMAP", "XATLAS"):
         got = unwrap_objects(bpy.context, objects, method=method, resolution=1024, padding=4, dilate=3, atlas=True)
         assert set(got.values()) == {0}, (method, got)
@@ -258,6 +258,6 @@ def test_preview_of_a_bake_with_more_bands_than_it_draws_says_so(tmp_path):
     st.bands, st.rays = 9, 16
     from prtt_addon.blender.bake.run import bake_blocking
     assert bake_blocking(bpy.context).status == "done"
-    from prtt_addon.blender.preview.render import RenderError, render_scene
+    from prtt_addon.blender.preview.offscreen import RenderError, render_scene
     with pytest.raises(RenderError, match="this bake has 9 SH bands; the preview draws up to 8"):
         render_scene(bpy.context, mode="diffuse", size=(16, 8))

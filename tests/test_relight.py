@@ -8,8 +8,10 @@ import os
 import numpy as np
 import pytest
 
-from prtt_addon.core.bake import relight, relight_stage
-from prtt_addon.core.bake.runner import BakeSettings, bake_scene
+from prtt_addon.core.bake.estimators import relightable
+from prtt_addon.core.bake.pipeline import relightable_stage as relight_stage
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.io import exr_io
 from prtt_addon.core.preview.pack import PreviewSet
 from prtt_addon.core.sh.rotation import rotate_zyz
@@ -89,7 +91,7 @@ def test_band_limited_glossy_rows_hold_bands_0_to_2(tmp_path):
     light = sky()
     bake_scene(sc, str(tmp_path), _settings(bounces=1, bounce_mode="relightable"), light=light)
     dc, gl, attrs = exr_io.read_relight_exr(str(tmp_path / "wall.relight.exr"))
-    assert attrs["kind"] == "relight" and attrs["glossy_bands"] == relight.GLOSSY_BANDS == 3
+    assert attrs["kind"] == "relight" and attrs["glossy_bands"] == relightable.GLOSSY_BANDS == 3
     assert dc.shape[2:] == (3, 25) and gl.shape[2:] == (3, 8, 9)
     _, gl_floor, _ = exr_io.read_relight_exr(str(tmp_path / "floor.relight.exr"))
     assert gl_floor is None                                   # diffuse: no glossy rows
@@ -146,15 +148,15 @@ def test_relightable_bakes_without_a_light_and_refuses_denoising(tmp_path):
     sc = _scene(DIFFUSE_WALL, res=16)
     m = bake_scene(sc, str(tmp_path / "a"), _settings(bounces=1, bounce_mode="relightable"), light=None)
     assert m["bounce"]["files"] and not m.get("warnings")
-    from prtt_addon.core.bake.context import BakeError
+    from prtt_addon.core.base.errors import BakeError
     with pytest.raises(BakeError, match="relightable"):
         bake_scene(sc, str(tmp_path / "b"), _settings(bounces=1, bounce_mode="relightable",
                                                       bounce_denoise="edge-aware"), light=None)
 
 
 def test_memory_estimate_counts_the_relightable_operator():
-    from prtt_addon.core.bake.memory import bounce_resident_bytes, relight_resident_bytes
-    from prtt_addon.core.bake.plan import bake_memory_bytes
+    from prtt_addon.core.bake.pipeline.memory_plan import bounce_resident_bytes, relight_resident_bytes
+    from prtt_addon.core.bake.pipeline.plan import bake_memory_bytes
     res = np.array([[1024, 1024]])
     for tuning, colours in (("fixed", 3), ("auto", 1)):
         baked = bake_memory_bytes(res, BakeSettings(bounces=1, tuning=tuning,
@@ -201,8 +203,8 @@ def test_compiled_relight_projection_equals_the_numpy_path(tmp_path, monkeypatch
     colours; level 2: one per colour) of glossy and diffuse sets, flat ones
     (one frame per chunk) and a ball (a frame per texel), with glossy rows per
     colour and shared; the manifest says which path ran."""
-    from prtt_addon.core import jit
     from prtt_addon.bench.relight_bench import ball_scene
+    from prtt_addon.core.base import jit
     assert jit.available(), "numba is pinned in requirements.txt"
     monkeypatch.setattr(relight_stage, "relight_shared_colour", lambda st: shared)
     sc = _scene(GLOSSY_WALL, res=16) if scene == "corner" else ball_scene(32)[0]
@@ -228,8 +230,8 @@ def test_local_to_world_shared_frame_equals_per_texel_frames():
     """ChunkHits.local_to_world of a shared-frame chunk (one rotation matrix)
     equals the per-texel rotation of the same frame, and to_world(rows) equals
     local_to_world(rows @ table), both ways."""
-    from prtt_addon.core.bake.bounce import ChunkHits
-    from prtt_addon.core.bake.transfer import ChunkFrames
+    from prtt_addon.core.bake.estimators.bounce import ChunkHits
+    from prtt_addon.core.bake.estimators.transfer import ChunkFrames
     rng = np.random.default_rng(3)
     n, per, S, kg = 5, 4, 16, 9
     a, b, g = rng.uniform(0, 2 * np.pi), rng.uniform(0, np.pi), rng.uniform(0, 2 * np.pi)
@@ -378,10 +380,11 @@ def test_vector_intrinsics_equal_numpy():
     """hit_jit's LLVM vector operations (axpy, rows_combine, outer_acc) against
     numpy in float64, at offsets inside longer arrays and for the lengths the
     relightable loops use (9, 16, 25, 36), neighbours untouched."""
-    from prtt_addon.core import jit
+    from prtt_addon.core.base import jit
     assert jit.available(), "numba is pinned in requirements.txt"
     import numba
-    from prtt_addon.core.bake.hit_jit import axpy, outer_acc, rows_combine
+
+    from prtt_addon.core.bake.estimators.hit_jit import axpy, outer_acc, rows_combine
 
     @numba.njit
     def run(dst, src, y, x, tile, big, a):
@@ -412,7 +415,7 @@ def test_band_specialised_relight_loops_equal_the_numpy_path(tmp_path, monkeypat
     """Level 1's vector loop is compiled once per transfer band count
     (hit_jit.LEVEL1_BY_BANDS); each equals the numpy path to float32
     rounding (the default 5 bands: test_compiled_relight_projection_equals_the_numpy_path)."""
-    from prtt_addon.core.bake import hit_jit
+    from prtt_addon.core.bake.estimators import hit_jit
     assert hit_jit.relight_for(bands, 3, True) is hit_jit.LEVEL1_BY_BANDS[bands]
     sc = _scene(GLOSSY_WALL, res=12)
     out = {}

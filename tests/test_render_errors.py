@@ -238,7 +238,7 @@ def test_write_error_names_the_given_path(tmp_path):
 
 
 def test_help(baked, tmp_path, capsys):
-    from prtt_addon.blender.preview.render import render_file
+    from prtt_addon.blender.preview.offscreen import render_file
     with pytest.raises(SystemExit) as e:          # blender -c prtt render -h lands here
         render_file(["-h"], prog="blender -c prtt render")
     assert e.value.code == 0

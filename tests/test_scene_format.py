@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from prtt_addon.core.io.scene import Scene, SceneError, load_scene, save_scene, scene_hash
+from prtt_addon.core.io.jobfile import load_scene, save_scene
+from prtt_addon.core.model.scene import Scene, SceneError, scene_hash
 from tests.scenes_util import floor_and_box, floor_and_box_with_every_part
 
 
@@ -81,7 +82,8 @@ def test_load_refuses_before_allocating(tmp_path):
     truncated job names its path."""
     import io
     import zipfile
-    from prtt_addon.core.io.scene import JobFile
+
+    from prtt_addon.core.io.jobfile import JobFile
     save_scene(floor_and_box(res=8), tmp_path / "job.npz")
     with np.load(tmp_path / "job.npz") as z:
         arrays = {k: z[k] for k in z.files}
@@ -112,7 +114,8 @@ def test_load_refuses_before_allocating(tmp_path):
 def test_degenerate_3d_triangles_are_handled(tmp_path):
     """Zero-area triangles in 3D (but with UV area) still bake: their texels use
     the shading normal; a triangle whose normals also vanish loses its texels."""
-    from prtt_addon.core.bake.runner import BakeSettings, bake_scene
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.runner import bake_scene
     sc = floor_and_box(res=16)
     sc.positions[0] = sc.positions[0, 0]          # collapse triangle 0 of the floor to a point
     m = bake_scene(sc, tmp_path / "a", BakeSettings(rays=16))

@@ -1,4 +1,4 @@
-"""One declaration of the bake settings (core/bake/settings_schema.py) and the four
+"""One declaration of the bake settings (core/settings_schema.py) and the four
 places generated from it: the core dataclasses, the bake-job command line, the
 Blender command line and scene.prtt's properties, plus docs/format.md §5.
 
@@ -11,9 +11,9 @@ import os
 
 import pytest
 
-from prtt_addon.core.bake import settings_schema as schema
-from prtt_addon.core.bake.runner import BAKE_INT_LIMITS, BakeSettings
-from prtt_addon.core.bake.transfer import ADAPTIVE_TOL_LIMITS, INT_LIMITS, TransferSettings
+from prtt_addon.core import settings_schema as schema
+from prtt_addon.core.bake.estimators.transfer import ADAPTIVE_TOL_LIMITS, INT_LIMITS, TransferSettings
+from prtt_addon.core.bake.pipeline.context import BAKE_INT_LIMITS, BakeSettings
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TYPES = {"int": "int", "float": "float", "bool": "bool", "choice": "str"}
@@ -22,7 +22,7 @@ TYPES = {"int": "int", "float": "float", "bool": "bool", "choice": "str"}
 #: bake runs, not what it makes; the outputs are the same bits).
 BAKE_JOB_OTHER = {"-h", "--help", "--out", "--force", "--env", "--env-strength", "--env-rotation", "-q", "--quiet",
                   "--dask"}
-BLENDER_OTHER = {"-h", "--help", "--out", "--scene", "--atlas", "--unwrap", "--force", "--no-save", "--save-as",
+BLENDER_OTHER = {"-h", "--help", "--out", "--absolute-out", "--scene", "--atlas", "--unwrap", "--force", "--no-save", "--save-as",
                  "-q", "--quiet", "--dask"}
 #: scene.prtt properties that are not bake settings (layout, light, preview, state, where the bake runs).
 SCENE_OTHER = {"unwrap_method", "existing_uv_map", "texture_sets", "output_dir", "selection_only", "light_source",
@@ -75,17 +75,20 @@ def test_validate_enforces_the_schema():
 
 
 def test_derived_limits_and_shared_constants():
-    from prtt_addon.core.bake import sampling, transfer
-    from prtt_addon.core.io import scene
+    from prtt_addon.core.bake.estimators import sampling
+    from prtt_addon.core.model import scene
     from prtt_addon.core.preview.shader_source import MAX_PREVIEW_BANDS
     ints = {s.name: (s.lo, s.hi) for s in schema.core_settings() if s.kind == "int"}
     assert {k: v[:2] for k, v in {**INT_LIMITS, **BAKE_INT_LIMITS}.items()} == ints
     assert ADAPTIVE_TOL_LIMITS == (schema.get("adaptive_tol").lo, schema.get("adaptive_tol").hi)
     assert schema.MAX_RESOLUTION == scene.MAX_RESOLUTION == schema.get("resolution").hi
     assert schema.PREVIEW_MAX_BANDS == MAX_PREVIEW_BANDS
-    assert schema.get("sampler").values == sampling.SAMPLERS
-    assert schema.get("distribution").values == sampling.DISTRIBUTIONS
-    assert schema.get("estimator").values == transfer.ESTIMATORS
+    # the estimators accept every value the schema offers, and refuse others
+    for sampler in schema.get("sampler").values:
+        for dist in schema.get("distribution").values:
+            assert sampling.pattern_bank(1, 8, 2, sampler, dist, 1)[0].shape[-1] == 3
+    with pytest.raises(ValueError):
+        sampling.pattern_bank(1, 8, 2, "halton", "cosine", 1)
 
 
 def test_schema_is_coherent():
@@ -141,7 +144,7 @@ def check_options(parser, settings, other, base, capsys, *, help_of=lambda s: s.
             continue
         assert opts[s.option].help.startswith(help_of(s)), s.option
         if s.name in defaults:                  # the help says what applies without the option
-            assert opts[s.option].help.endswith(f"; default {schema._num(s.default)})"), opts[s.option].help
+            assert opts[s.option].help.endswith(f"; default {schema.format_number(s.default)})"), opts[s.option].help
         if s.kind == "choice":
             for v in s.values:
                 for text in (v, v.upper(), v.title()):
@@ -173,7 +176,7 @@ def test_bake_job_options_are_the_schema(capsys):
 @pytest.mark.blender
 def test_blender_bake_options_are_the_schema(capsys):
     pytest.importorskip("bpy")
-    from prtt_addon.blender.cli import bake_parser
+    from prtt_addon.blender.commands import bake_parser
     check_options(bake_parser("prtt bake"), list(schema.SETTINGS), BLENDER_OTHER, ["scene.blend"], capsys)
 
 
@@ -206,7 +209,7 @@ def test_scene_properties_are_the_schema():
     for s in schema.SETTINGS:                   # tooltips: the help, with the range and its unit
         if s.ui is not None and s.kind in ("int", "float"):
             d = rna[s.ui.prop].description
-            assert d.lower().startswith(s.help.lower()) and f"{schema._num(s.lo)} to {schema._num(s.hi)}" in d
+            assert d.lower().startswith(s.help.lower()) and f"{schema.format_number(s.lo)} to {schema.format_number(s.hi)}" in d
             assert s.unit in d, s.name
     ob = bpy.types.Object.bl_rna.properties["prtt"].fixed_type.properties["resolution"]
     assert (ob.hard_min, ob.hard_max) == (0, schema.MAX_RESOLUTION)
@@ -242,7 +245,7 @@ def test_format_md_table_is_generated():
     with open(os.path.join(ROOT, "docs", "format.md"), encoding="utf-8") as f:
         text = f.read()
     assert schema.doc_section(text) == schema.settings_table(), \
-        "docs/format.md's settings table is stale: python -m prtt_addon.core.bake.settings_schema --write"
+        "docs/format.md's settings table is stale: python -m prtt_addon.core.settings_schema --write"
     table = schema.settings_table()
     for s in schema.SETTINGS:                   # every setting has its row
         assert f"| `{s.name}` |" in table

@@ -52,7 +52,7 @@ def run_harness(test: int, bands: int, inputs, groups: int = 1) -> np.ndarray:
     import gpu
     from gpu_extras.batch import batch_for_shader
 
-    from prtt_addon.blender.preview.render import ensure_gpu
+    from prtt_addon.blender.preview.offscreen import ensure_gpu
     from prtt_addon.core.preview.shader_source import read_source
     ensure_gpu()
     n = inputs[0].shape[0]
@@ -113,8 +113,8 @@ def test_sh_eval_matches_basis(bands):
 
 
 def test_phong_factors_and_exponent():
-    from prtt_addon.core.shading.materials import phong_exponent
     from prtt_addon.core.sh.zonal import phong_factors
+    from prtt_addon.core.shading.materials import phong_exponent
     s = np.array([0.0, 0.5, 1.0, 7.5, 61.0, 499.5, 5000.0, 10000.0])
     got = run_harness(1, 8, [np.c_[s, np.zeros((len(s), 3))]], groups=2)
     got = got.transpose(1, 0, 2).reshape(len(s), -1)[:, :8]
@@ -142,7 +142,7 @@ def test_normal_mapping_matches_gbuffer():
 def test_glossy_weights_and_material():
     from prtt_addon.core.sh.basis import eval_basis
     from prtt_addon.core.shading.materials import derive
-    from prtt_addon.core.shading.model import lobe_factors, reflect
+    from prtt_addon.core.shading.shade import lobe_factors, reflect
     n = unit_dirs(50, 2).astype(np.float64)
     v = unit_dirs(50, 5).astype(np.float64)
     s = np.linspace(0.0, 2000.0, len(n))

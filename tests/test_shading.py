@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from prtt_addon.core import sh
-from prtt_addon.core.shading.materials import Material, ShadingParams, derive, phong_exponent
-from prtt_addon.core.shading.model import incident_tp, incident_tpfl, outgoing, reflect, shade
+from prtt_addon.core.model.material import Material
+from prtt_addon.core.shading.materials import ShadingParams, derive, phong_exponent
+from prtt_addon.core.shading.shade import incident_tp, incident_tpfl, outgoing, reflect, shade
 from tests.conftest import random_dirs
 
 BANDS = 5

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from prtt_addon.core import sh
-from prtt_addon.core.bake.raytrace import RayScene
-from prtt_addon.core.bake.transfer import Points, TransferSettings, bake_points, unoccluded_transfer
+from prtt_addon.core.bake.estimators.raytrace import RayScene
+from prtt_addon.core.bake.estimators.transfer import Points, TransferSettings, bake_points, unoccluded_transfer
 from tests.conftest import random_dirs
 
 

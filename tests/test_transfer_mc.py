@@ -6,10 +6,17 @@ import math
 import numpy as np
 import pytest
 
-from prtt_addon.core.bake.runner import BakeSettings, bake_points_input, scene_face_data
+from prtt_addon.core.bake.estimators.raytrace import RayScene
+from prtt_addon.core.bake.estimators.transfer import (
+    Points,
+    TransferSettings,
+    bake_points,
+    chunk_plan,
+    unoccluded_transfer,
+)
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.stages import bake_points_input, scene_face_data
 from prtt_addon.core.texels.gbuffer import build_gbuffer
-from prtt_addon.core.bake.raytrace import RayScene
-from prtt_addon.core.bake.transfer import (Points, TransferSettings, bake_points, chunk_plan, unoccluded_transfer)
 from tests.scenes_util import floor_and_box
 from tests.test_transfer_analytic import floor_points, hemisphere_integral, quad
 
@@ -152,7 +159,7 @@ def test_threads_use_both_cores():
 @pytest.mark.parametrize("hi", [7, 70_000])
 def test_chunk_plan_ordering_equals_stable_argsort(hi):
     """The radix path (keys < 2^16) and the fallback both give numpy's stable order."""
-    from prtt_addon.core.bake.transfer import _stable_order
+    from prtt_addon.core.bake.estimators.transfer import _stable_order
     rng = np.random.default_rng(hi)
     major, minor = rng.integers(0, hi, 50_000), rng.integers(0, 64, 50_000)
     assert np.array_equal(_stable_order(major, minor), np.argsort(major * 64 + minor, kind="stable"))

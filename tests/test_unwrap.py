@@ -42,7 +42,7 @@ def test_assemble_sets_and_obj_loading():
     spot = mg.load_obj(mg.asset_path("spot.obj"))
     assert spot.n_faces == 5856 and spot.uvs is not None and spot.normals is not None
     # spot's own UVs reach -0.052 .. 1.0007: refused with a clear message ...
-    from prtt_addon.core.io.scene import SceneError
+    from prtt_addon.core.model.scene import SceneError
     with pytest.raises(SceneError, match="10 triangles of set.* spot have UVs outside"):
         mg.assemble([("spot", spot)], resolution=128, keep_uvs=True)
     # ... and fine once re-unwrapped.

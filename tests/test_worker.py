@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from prtt_addon.core.io.scene import save_scene
+from prtt_addon.core.io.jobfile import save_scene
 from tests.scenes_util import floor_and_box
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -1,6 +1,6 @@
 """SIGTERM/SIGINT stop the worker within 2 s at every stage, exit 3, and leave
 the previous outputs byte-identical with no temporaries (worker.Watchdog,
-core/bake/runner.py's cancel checks, core/io/atomic.py).
+core/bake/pipeline/runner.py's cancel checks, core/io/atomic.py).
 
 Each test starts ``python -m prtt_addon.worker`` on a job that spends a few
 seconds in one stage (natural inputs: a 2M-triangle floor for loading, BVH and
@@ -19,7 +19,7 @@ import time
 import pytest
 
 from prtt_addon.core.io import meshgen as mg
-from prtt_addon.core.io.scene import save_scene
+from prtt_addon.core.io.jobfile import save_scene
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -20,7 +20,7 @@ def test_clamped_cosine_analytic_values():
 def test_power_cosine_integrals_vs_quad(a):
     I = sh.power_cosine_integrals(a, 12)
     for l in range(12):
-        ref, _ = quad(lambda t: t ** a * eval_legendre(l, t), 0, 1, epsabs=1e-14, epsrel=1e-12, limit=200)
+        ref, _ = quad(lambda t, l=l: t ** a * eval_legendre(l, t), 0, 1, epsabs=1e-14, epsrel=1e-12, limit=200)
         assert abs(I[l] - ref) < 1e-11, (a, l)
 
 
@@ -31,7 +31,7 @@ def test_phong_lobe_normalised(s):
     assert sh.phong_factors(s, 6)[0] == pytest.approx(1.0, abs=1e-15)
     A = sh.phong_factors(s, 6)
     for l in range(6):
-        ref, _ = quad(lambda t: (s + 1) * t ** s * eval_legendre(l, t), 0, 1, epsabs=1e-13, limit=400)
+        ref, _ = quad(lambda t, l=l: (s + 1) * t ** s * eval_legendre(l, t), 0, 1, epsabs=1e-13, limit=400)
         assert abs(A[l] - ref) < 1e-9
 
 

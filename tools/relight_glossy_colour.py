@@ -26,15 +26,15 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from prtt_addon.bench import scenes                                    # noqa: E402
-from prtt_addon.bench.relight_bench import turned                      # noqa: E402
-from prtt_addon.bench.sweep import Previewer                           # noqa: E402
-from prtt_addon.bench.texture_error import image_error                 # noqa: E402
-from prtt_addon.cli import env_light                                   # noqa: E402
-from prtt_addon.core.bake import relight_stage                         # noqa: E402
-from prtt_addon.core.bake.runner import BakeSettings, bake_scene      # noqa: E402
-from prtt_addon.core.io.exr_io import (expand_shared_glossy, read_relight_exr, relight_channel_names,  # noqa: E402
-                                       write_sh_planes)
+from prtt_addon.bench import scene_library  # noqa: E402
+from prtt_addon.bench.relight_bench import turned  # noqa: E402
+from prtt_addon.bench.sweep import Previewer  # noqa: E402
+from prtt_addon.bench.texture_error import image_error  # noqa: E402
+from prtt_addon.cli import env_light  # noqa: E402
+from prtt_addon.core.bake.pipeline import relightable_stage as relight_stage  # noqa: E402
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene  # noqa: E402
+from prtt_addon.core.io.exr_io import expand_shared_glossy, read_relight_exr, relight_channel_names, write_sh_planes
 
 
 def main() -> int:
@@ -42,7 +42,7 @@ def main() -> int:
     # wrote before it shared them); the shared form is made from it below.
     relight_stage.relight_shared_colour = lambda st: False
     light = env_light("forest", 5)
-    sc = scenes.room_scene(1024, atlas=True, materials=True)
+    sc = scene_library.room_scene(1024, atlas=True, materials=True)
     name = sc.set_names[0]
     with tempfile.TemporaryDirectory(prefix="prtt-glossy-colour-") as tmp:
         rl, sh, dco, bk = (os.path.join(tmp, d) for d in ("relight", "shared", "dc-only", "baked"))

@@ -31,9 +31,10 @@ import shutil
 
 import numpy as np
 
-from ..core.bake.runner import BakeSettings, bake_scene
+from ..core.bake.pipeline.context import BakeSettings
+from ..core.bake.pipeline.runner import bake_scene
 from ..core.texels.gbuffer import build_gbuffer
-from . import scenes
+from . import scene_library
 from .denoise_sweep import bounce_planes
 
 SEEDS = (11, 29)
@@ -61,7 +62,7 @@ def sweep_adaptive_bound(cfg, light, tmp: str) -> list:
     """Rows: per bounce ray count, the oracle gain (fewer rays at equal error)."""
     res = 64 if cfg.quick else cfg.sweep_res
     rays_list = (16,) if cfg.quick else (32, 64, 128)
-    sc = scenes.room_scene(res, atlas=True, materials=True)
+    sc = scene_library.room_scene(res, atlas=True, materials=True)
     name = sc.set_names[0]
     rows = []
     for rays in rays_list:

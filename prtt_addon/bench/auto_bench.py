@@ -29,13 +29,13 @@ import time
 import numpy as np
 
 from ..cli import env_light
-from ..core.bake.context import bounce_seconds
-from ..core.bake.runner import BakeSettings, bake_scene
-from . import scenes
+from ..core.bake.pipeline.context import BakeSettings, bounce_seconds
+from ..core.bake.pipeline.runner import bake_scene
+from . import scene_library
 from .sweep import Previewer, write_csv
 from .texture_error import image_error
 
-DOCS_BENCH = os.path.join(scenes.ROOT, "docs", "bench")
+DOCS_BENCH = os.path.join(scene_library.ROOT, "docs", "bench")
 
 
 def texture_bytes(out_dir: str, manifest: dict) -> int:
@@ -43,10 +43,10 @@ def texture_bytes(out_dir: str, manifest: dict) -> int:
 
 
 def reference_dir(name: str, sc, light, res: int, rays: int, bounce_rays: int) -> str:
-    d = os.path.join(scenes.CACHE, f"auto-ref-{name}-{res}-{rays}-{bounce_rays}")
+    d = os.path.join(scene_library.CACHE, f"auto-ref-{name}-{res}-{rays}-{bounce_rays}")
     if not os.path.isfile(os.path.join(d, "manifest.json")):
         print(f"converged reference of {name}: {rays} transfer rays, {bounce_rays} bounce rays (once; cached in "
-              f"{os.path.relpath(d, scenes.ROOT)})", flush=True)
+              f"{os.path.relpath(d, scene_library.ROOT)})", flush=True)
         t = time.perf_counter()
         bake_scene(sc, d, BakeSettings(rays=rays, bounces=1, bounce_rays=bounce_rays, half=False, seed=4242,
                                        tuning="fixed", bounce_mode="baked"), light=light, skip_if_unchanged=False)
@@ -62,7 +62,7 @@ VARIANTS = (
     ("auto", {"tuning": "auto"}),
 )
 #: The room (its materials, one atlas) and the paper's other scene classes
-#: (bench/scenes.py: plants in one atlas, trm and dragon a set per object).
+#: (bench/scene_library.py: plants in one atlas, trm and dragon a set per object).
 SCENES = ("room", "plants", "trm", "dragon")
 #: Converged references: transfer rays, bounce rays (the room's since #18; the
 #: larger classes at half, whose noise then adds ~12 % to both bakes' errors).
@@ -74,8 +74,8 @@ def scene_and_camera(name: str, res: int):
     """The scene and the Previewer's camera keywords (the room's own camera;
     others framed from their bounds, looking from -Y and above)."""
     if name == "room":
-        return scenes.room_scene(res, atlas=True, materials=True), {}
-    sc = scenes.paper_scene(name, res)
+        return scene_library.room_scene(res, atlas=True, materials=True), {}
+    sc = scene_library.paper_scene(name, res)
     p = sc.positions.reshape(-1, 3)
     lo, hi = p.min(axis=0), p.max(axis=0)
     c = 0.5 * (lo + hi)
@@ -165,7 +165,7 @@ def main(argv=None) -> int:
                     continue
                 d = os.path.join(tmp, variant.replace(" ", "_").replace("/", "-"))
                 # Cold, the first variant (fixed) paid the process's set-up.
-                scenes.warm_up(os.path.join(tmp, "warm"), BakeSettings(bounces=1, bounce_mode="baked", **extra), light)
+                scene_library.warm_up(os.path.join(tmp, "warm"), BakeSettings(bounces=1, bounce_mode="baked", **extra), light)
                 r = {"scene": name, "variant": variant, **bake_variant(sc, d, light, extra, view, ref_img)}
                 rows.append(r)
                 shutil.rmtree(d, ignore_errors=True)

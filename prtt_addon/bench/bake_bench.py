@@ -3,7 +3,7 @@
 Bakes the transfer of the room-class scene (1024^2 atlas, 5 bands, 256 rays
 per texel by default; ``bounces = 0``: the bounce has its own benchmark,
 ``bench bounce``, and its rays are not the transfer rays the ratio divides)
-through the real pipeline (``core.bake.runner.bake_scene``: G-buffer,
+through the real pipeline (``core.bake.pipeline.runner.bake_scene``: G-buffer,
 analytic test, rays, projection, dilation, EXR writing) and prints seconds per
 stage and rays/s end to end (``--dask``: the bake on a Dask cluster against
 the local one instead, bench/dask_bench.py). Then, in the same run, it regenerates the *same
@@ -35,12 +35,14 @@ import time
 
 import numpy as np
 
-from ..core.bake.runner import BakeSettings, bake_points_input, bake_scene, scene_face_data
+from ..core.bake.estimators.raytrace import RayScene
+from ..core.bake.estimators.sampling import pattern_bank
+from ..core.bake.estimators.transfer import chunk_frames, chunk_plan
+from ..core.bake.pipeline.context import BakeSettings
+from ..core.bake.pipeline.runner import bake_scene
+from ..core.bake.pipeline.stages import bake_points_input, scene_face_data
 from ..core.texels.gbuffer import build_gbuffer
-from ..core.bake.raytrace import RayScene
-from ..core.bake.sampling import pattern_bank
-from ..core.bake.transfer import chunk_frames, chunk_plan
-from . import dask_bench, figures, scenes
+from . import dask_bench, figures, scene_library
 
 #: Reference: an open C++ SH-lightmap baker on Embree 4, per core (issue 3).
 CPP_REFERENCE_TEXEL_SAMPLES_PER_CORE = 1.5e6
@@ -134,7 +136,7 @@ def main(argv=None) -> int:
     print("settings: " + figures.settings_line(st, BakeSettings()))
 
     t = time.perf_counter()
-    sc = scenes.room_scene(args.resolution, atlas=not args.per_object)
+    sc = scene_library.room_scene(args.resolution, atlas=not args.per_object)
     t_scene = time.perf_counter() - t
     print(f"room-class scene: {sc.n_triangles} triangles, {sc.n_sets} texture set(s) at "
           f"{args.resolution}^2, {args.bands} bands, {args.rays} rays/texel, {cores} threads "
@@ -195,7 +197,7 @@ def main(argv=None) -> int:
         print("\nscaling with triangles (room atlas 1024^2 + occluder-only subdivided bunnies):")
         print(f"  {'triangles':>10} {'bvh s':>7} {'trace s':>8} {'total s':>8} {'Mrays/s':>8}")
         for target in (21_000, 300_000, 1_300_000):
-            sct = scenes.triangle_scaling_scene(target, 1024)
+            sct = scene_library.triangle_scaling_scene(target, 1024)
             mm = run_bake(sct, st)
             print(f"  {sct.n_triangles:10d} {mm['seconds']['bvh']:7.2f} {mm['seconds']['trace']:8.2f} "
                   f"{mm['seconds']['total']:8.2f} {mm['rays_per_second_end_to_end'] / 1e6:8.2f}")
@@ -204,7 +206,7 @@ def main(argv=None) -> int:
         print("scaling with resolution (room, same settings):")
         print(f"  {'texels':>10} {'total s':>8} {'Mrays/s':>8}")
         for res in (256, 512, 1024, 2048):
-            mm = run_bake(scenes.room_scene(res, atlas=True), st)
+            mm = run_bake(scene_library.room_scene(res, atlas=True), st)
             print(f"  {res:>5}^2     {mm['seconds']['total']:8.2f} {mm['rays_per_second_end_to_end'] / 1e6:8.2f}")
             record["scaling_resolution"].append({"resolution": res, "total": float(mm["seconds"]["total"])})
     if args.json:

@@ -15,19 +15,20 @@ import os
 import tempfile
 import time
 
-from ..core import jit
 from ..cli import env_light
-from ..core.bake.context import bounce_seconds
-from ..core.bake.runner import BakeSettings, bake_scene
-from . import figures, scenes
+from ..core.bake.pipeline.context import BakeSettings, bounce_seconds
+from ..core.bake.pipeline.runner import bake_scene
+from ..core.base import jit
+from . import figures, scene_library
 
 
 def demo_scene(resolution: int):
     """The demo's scene (prtt_addon.demo) built and unwrapped in Blender and
     exported as the add-on does: (core Scene, the World's light as SH)."""
     import bpy  # Blender as a module: only this scene needs it
+
     from .. import demo, register
-    from ..blender.export.scene import export_scene  # needs bpy
+    from ..blender.export.job import export_scene  # needs bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if not hasattr(bpy.types.Scene, "prtt"):
         register()
@@ -63,7 +64,7 @@ def main(argv=None) -> int:
     if args.scene == "demo":
         sc, light = demo_scene(args.resolution)
     else:
-        sc = scenes.room_scene(args.resolution, atlas=True, materials=True)
+        sc = scene_library.room_scene(args.resolution, atlas=True, materials=True)
         light = env_light(args.env, 5)
     st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_mode="baked", bounce_rays=args.bounce_rays,
                       bounce_denoise=args.bounce_denoise, tuning=args.tuning)
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
           f"tuning {args.tuning}")
     with tempfile.TemporaryDirectory(prefix="prtt-bench-") as d:
         # Cold, the transfer-only bake that the ratios divide by carried the process's set-up.
-        scenes.warm_up(os.path.join(d, "warm"), st, light)
+        scene_library.warm_up(os.path.join(d, "warm"), st, light)
         t = time.perf_counter()
         bake_scene(sc, d, BakeSettings(rays=args.rays, bounces=0, tuning=args.tuning), light=light)
         t_transfer = time.perf_counter() - t

@@ -26,9 +26,9 @@ import time
 import numpy as np
 
 from ..core.io import meshgen as mg
-from . import scenes
+from . import scene_library
 
-ROOT = scenes.ROOT
+ROOT = scene_library.ROOT
 DOCS_IMAGES = os.path.join(ROOT, "docs", "images")
 
 FLOOR_MATERIAL = {"base_color": [0.75, 0.72, 0.68], "roughness": 0.4}
@@ -37,7 +37,7 @@ BOX_MATERIAL = {"base_color": [0.3, 0.45, 0.7], "roughness": 0.3}
 
 
 def _objects(floor_subdiv: int):
-    bunny, uv = scenes._bunny_unwrapped(256)
+    bunny, uv = scene_library.bunny_unwrapped(256)
     bunny = mg.Mesh(bunny.vertices * 1.6, bunny.faces, bunny.normals)         # 0.8 m tall
     bunny.uvs = uv
     box = mg.box((0.5, 0.5, 0.5), (0.75, 0.45, 0.25)).transformed(rotate_z=0.4)
@@ -45,7 +45,7 @@ def _objects(floor_subdiv: int):
 
 
 def build(floor_subdiv: int, resolution: int):
-    from ..core.io.scene import validate
+    from ..core.model.scene import validate
     objs = _objects(floor_subdiv)
     sc = mg.assemble(objs, resolution=resolution, keep_uvs=True,
                      resolutions={"bunny": 256, "box": 128})
@@ -66,10 +66,11 @@ def camera(width: int, height: int):
 def experiment(width: int = 480, height: int = 320, *, resolution: int = 512, rays: int = 256,
                ref_rays: int = 1024, dense: int = 32, env: str = "city", work_dir: str | None = None) -> dict:
     """Render the three pictures and the ground truth; returns images and errors."""
+    from ..blender.preview.offscreen import ensure_gpu
     from ..blender.preview.renderer import Renderer, render_offscreen
-    from ..blender.preview.render import ensure_gpu
     from ..cli import env_light
-    from ..core.bake.runner import BakeSettings, bake_scene
+    from ..core.bake.pipeline.context import BakeSettings
+    from ..core.bake.pipeline.runner import bake_scene
     from ..core.preview.pack import from_core_scene
     from ..core.preview.reference import trace_pixels, traced_reference
     ensure_gpu()

@@ -31,9 +31,9 @@ import time
 
 import numpy as np
 
-from . import scenes
+from . import scene_library
 
-DOCS_BENCH = os.path.join(scenes.ROOT, "docs", "bench")
+DOCS_BENCH = os.path.join(scene_library.ROOT, "docs", "bench")
 
 
 def band_limited_environment(path: str, bands: int = 5, source: str = "city", height: int = 256) -> np.ndarray:
@@ -41,7 +41,7 @@ def band_limited_environment(path: str, bands: int = 5, source: str = "city", he
     import OpenEXR
 
     from ..core.io.atomic import atomic_write
-    from ..core.sh.envmap import project_equirect, reconstruct_equirect
+    from ..core.light.envmap import project_equirect, reconstruct_equirect
     from ..core.sh.zonal import convolve, window_factors
     L = convolve(project_equirect(source, bands), window_factors(bands, "hanning"))
     img = reconstruct_equirect(L, height).astype(np.float32)          # (H, 2H, 3), row 0 = top
@@ -58,8 +58,8 @@ def build(bpy, env_path: str, out_dir: str, *, resolution: int, rays: int, bounc
           bounce_mode: str = "baked"):
     """The diffuse room in the current (empty) file, unwrapped and baked with the add-on."""
     from . import scene_build as sb
-    for name, mesh in scenes.room_objects():
-        colour = tuple(scenes.ROOM_MATERIALS.get(name, {"base_color": [0.6, 0.6, 0.6]})["base_color"])
+    for name, mesh in scene_library.room_objects():
+        colour = tuple(scene_library.ROOM_MATERIALS.get(name, {"base_color": [0.6, 0.6, 0.6]})["base_color"])
         sb.mesh_object(name, mesh, material=sb.principled(f"{name}_diffuse", base_color=colour, diffuse=True))
     scene = bpy.context.scene
     scene.world = sb.environment_world("BandLimited", env_path, strength=1.0)
@@ -120,8 +120,8 @@ def compare(size=(320, 180), *, samples: int = 1024, resolution: int = 1024, ray
     import bpy
 
     from .. import register
-    from ..blender.preview.render import camera_view, render_scene
-    from ..blender.preview.scene import collect
+    from ..blender.preview.drawlist import collect
+    from ..blender.preview.offscreen import camera_view, render_scene
     from ..core.preview.reference import trace_pixels
     tmp = tempfile.TemporaryDirectory(prefix="prtt-cycles-") if work_dir is None else None
     d = work_dir or tmp.name
@@ -242,5 +242,5 @@ def main(argv=None) -> int:
     print("  per object (mean ratio - 1): " + ", ".join(f"{k} {100 * v:+.1f} %"
                                                         for k, v in res["per_object_mean_ratio_minus_1"].items()))
     print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in res["seconds"].items()))
-    print(f"wrote {os.path.relpath(fig, scenes.ROOT)} and {tag}.json")
+    print(f"wrote {os.path.relpath(fig, scene_library.ROOT)} and {tag}.json")
     return 0

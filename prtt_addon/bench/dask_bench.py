@@ -32,14 +32,15 @@ to 8 and 64 workers.
 """
 from __future__ import annotations
 
-import math
 import tempfile
 import time
 
 from ..cli import env_light
-from ..core.bake.distributed import parse_spec
-from ..core.bake.runner import BakeSettings, bake_scene
-from . import figures, scenes
+from ..core.bake.executors.dask_cluster import parse_spec
+from ..core.bake.pipeline.context import BakeSettings
+from ..core.bake.pipeline.runner import bake_scene
+from . import figures, scene_library
+from .farm_model import model
 
 #: A farm's client link: 10 GbE.
 DEFAULT_BANDWIDTH = 1.25e9
@@ -56,19 +57,6 @@ def _bake(sc, st, light, dask):
     files = {f: info["sha256"] for f, info in m["file_info"].items() if f.endswith(".exr")}
     summary = next((e["dask"] for e in events if e.get("type") == "info" and "dask" in e), None)
     return wall, m, files, summary
-
-
-def model(fit: dict, workers: int, bandwidth: float) -> float:
-    """Predicted bake seconds on ``workers`` one-thread workers (module docstring)."""
-    rounds = math.ceil(math.log(workers, 3) - 1e-9) if workers > 1 else 0
-    link = ((fit["scene_bytes"] + fit["sent_bytes"]) * (1 + 2 * rounds) + fit["result_bytes"]) / bandwidth
-    tasks = max(fit["tasks"], dask_units_per_thread() * workers * fit["passes"])
-    return fit["start"] + fit["client"] + fit["bvh"] + fit["work"] / workers + tasks * fit["tau"] / workers + link
-
-
-def dask_units_per_thread() -> int:
-    from ..core.bake.distributed import UNITS_PER_THREAD
-    return UNITS_PER_THREAD
 
 
 def fit_of(wall: float, m: dict, sm: dict) -> dict:
@@ -89,10 +77,10 @@ def run(args) -> int:
     print("settings: " + figures.settings_line(st, BakeSettings()))
     record = {"settings": figures.settings_dict(st), "cluster": spec.describe(), "resolution": args.resolution,
               "repeat": max(1, args.repeat), "scenes": []}
-    todo = [("room", lambda: scenes.room_scene(args.resolution, atlas=True, materials=True))]
+    todo = [("room", lambda: scene_library.room_scene(args.resolution, atlas=True, materials=True))]
     if args.big:
         todo.append(("room + bunnies (1.3M triangles)",
-                     lambda: scenes.with_room_materials(scenes.triangle_scaling_scene(1_300_000, args.resolution))))
+                     lambda: scene_library.with_room_materials(scene_library.triangle_scaling_scene(1_300_000, args.resolution))))
     for name, make in todo:
         sc = make()
         print(f"\n{name}: {sc.n_triangles:,} triangles, {args.resolution}^2 atlas, transfer {st.rays} rays + "

@@ -16,12 +16,13 @@ import time
 
 import numpy as np
 
-from ..core.bake.denoise import edge_aware, oidn_available, oidn_sh
-from ..core.bake.runner import BakeSettings, bake_scene
+from ..core.bake.estimators.denoise import edge_aware, oidn_available, oidn_sh
+from ..core.bake.pipeline.context import BakeSettings
+from ..core.bake.pipeline.runner import bake_scene
 from ..core.io.exr_io import read_sh_exr
 from ..core.texels.gbuffer import build_gbuffer
 from ..core.texels.islands import island_labels
-from . import scenes
+from . import scene_library
 from .texture_error import load_set_textures, texel_error
 
 REF_BOUNCE_RAYS = 2048
@@ -52,11 +53,11 @@ def sweep_bounce_denoise(cfg, light, tmp: str, *, with_denoise: bool = True) -> 
     res = 64 if cfg.quick else cfg.sweep_res
     rays_list = (8, 32) if cfg.quick else (16, 32, 64, 128, 256)
     ref_rays = 128 if cfg.quick else REF_BOUNCE_RAYS
-    sc = scenes.room_scene(res, atlas=True, materials=True)
+    sc = scene_library.room_scene(res, atlas=True, materials=True)
     name = sc.set_names[0]
     work = os.path.join(tmp, "bounce")
     bake_scene(sc, work, BakeSettings(rays=256, bounces=0, half=False), light=light)
-    cache = os.path.join(scenes.ROOT, ".cache", "bench", f"bounce_ref_{res}_{ref_rays}.npy")
+    cache = os.path.join(scene_library.ROOT, ".cache", "bench", f"bounce_ref_{res}_{ref_rays}.npy")
     if os.path.isfile(cache) and not cfg.quick:
         ref = np.load(cache)
     else:
@@ -136,7 +137,7 @@ def sweep_transfer_denoise(cfg, sc, tmp: str) -> list:
     blurs shows up in it)."""
     rays_list = (16, 64) if cfg.quick else (32, 64, 128, 256, 512)
     ref_rays = 1024 if cfg.quick else REF_TRANSFER_RAYS
-    ref_dir = os.path.join(scenes.CACHE, f"denoise-ref-{cfg.sweep_res}-{ref_rays}")
+    ref_dir = os.path.join(scene_library.CACHE, f"denoise-ref-{cfg.sweep_res}-{ref_rays}")
     if not os.path.isfile(os.path.join(ref_dir, "manifest.json")):
         print(f"  transfer reference ({ref_rays} rays per texel, cached) ...", flush=True)
         bake_scene(sc, ref_dir, BakeSettings(rays=ref_rays, bands=5, half=False, bounces=0, seed=777),

@@ -259,7 +259,7 @@ def dask_model_block() -> str:
     models = [s for s in r["scenes"] if s.get("model")]
     if not models:
         return f"(the last run, `{r['command']}`, fitted no model: run it without --no-model)"
-    from .dask_bench import model  # the model's one formula (loads the bake's modules: only here)
+    from .farm_model import model  # the one formula of the model (loads the bake's modules: only here)
     local = re.search(r"--dask local:(\d+)", r["command"])
     bw = models[0]["model"]["bandwidth"]
     lines = [f"From `{r['command']}`, {r['date']}; links of B = {bw / 1e9:.2f} GB/s:", "",

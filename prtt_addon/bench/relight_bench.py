@@ -35,15 +35,15 @@ import time
 import numpy as np
 
 from ..cli import env_light
-from ..core.bake.context import bounce_seconds
-from ..core.bake.runner import BakeSettings, bake_scene
+from ..core.bake.pipeline.context import BakeSettings, bounce_seconds
+from ..core.bake.pipeline.runner import bake_scene
 from ..core.io import meshgen as mg
 from ..core.sh.rotation import rotate_zyz
-from . import figures, scenes
+from . import figures, scene_library
 from .sweep import Previewer, write_csv
 from .texture_error import image_error
 
-DOCS_BENCH = os.path.join(scenes.ROOT, "docs", "bench")
+DOCS_BENCH = os.path.join(scene_library.ROOT, "docs", "bench")
 FLOOR = {"name": "floor", "base_color": [0.55, 0.5, 0.45], "roughness": 0.3, "specular": 0.5}
 BALL = {"name": "ball", "base_color": [0.9, 0.6, 0.2], "roughness": 0.35, "metallic": 0.4}
 BOX = {"name": "box", "base_color": [0.2, 0.7, 0.3], "specular": 0.0}
@@ -51,7 +51,7 @@ BOX = {"name": "box", "base_color": [0.2, 0.7, 0.3], "specular": 0.0}
 
 def ball_scene(resolution: int):
     """The floor-and-ball scene: floor at ``resolution``, ball and box at half."""
-    from ..core.io.scene import validate
+    from ..core.model.scene import validate
     objs = [("floor", mg.plane(4.0, 4.0)),
             ("ball", mg.uv_sphere(0.6, 48, 24).transformed(translate=(-0.5, 0.2, 0.65))),
             ("box", mg.box((0.7, 0.7, 0.7), (0.8, -0.4, 0.35)).transformed(rotate_z=0.5))]
@@ -196,7 +196,7 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="toy sizes (a smoke test)")
     p.add_argument("--out", default=DOCS_BENCH, help="folder for relight.csv (default docs/bench)")
-    p.add_argument("--figure", default=os.path.join(scenes.ROOT, "docs", "images", "relight_room_90.png"),
+    p.add_argument("--figure", default=os.path.join(scene_library.ROOT, "docs", "images", "relight_room_90.png"),
                    help="the room at 90 deg: relit beside rebaked (with --quick: not written)")
     args = p.parse_args(argv)
     light = env_light("forest", 5)
@@ -209,7 +209,7 @@ def main(argv=None) -> int:
         sc, cam = ball_scene(res // 2)
         print(f"floor and ball: {sc.n_triangles} triangles, {sc.n_sets} sets", flush=True)
         rows += run_scene("ball", sc, cam, light, size, angles, tmp)
-        sc = scenes.room_scene(res, atlas=True, materials=True)
+        sc = scene_library.room_scene(res, atlas=True, materials=True)
         print(f"room: {sc.n_triangles} triangles, {res}^2 atlas", flush=True)
         rows += run_scene("room", sc, {}, light, size, angles, tmp, figure=None if args.quick else args.figure)
     if not args.quick:

@@ -1,7 +1,7 @@
 """``python -m prtt_addon.bench render``: preview frame time per mode vs
 triangles and resolution.
 
-Scenes (bench/scenes.py): the room-class scene (21K triangles) alone and with
+Scenes (bench/scene_library.py): the room-class scene (21K triangles) alone and with
 4 and 18 copies of the 69K-triangle bunny (~300K and ~1.27M triangles, every
 one drawn, each copy with its own 256^2 texture set), baked once with 32 rays,
 per-vertex transfer and one bounce (cached in .cache/bench/render-*).
@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from . import figures, scenes
+from . import figures, scene_library
 
 MODES = ("tpfl", "tp", "diffuse", "vertex-tpfl", "vertex-tp")
 BUNNIES = {"21K": 0, "300K": 4, "1.3M": 18}
@@ -33,11 +33,12 @@ BUNNIES = {"21K": 0, "300K": 4, "1.3M": 18}
 
 def baked_preview(bunnies: int, light, *, bands: int = 5, rays: int = 32):
     """(PreviewScene, triangles, bake seconds) of the scaling scene with ``bunnies`` copies."""
-    from ..core.bake.runner import BakeSettings, bake_scene
+    from ..core.bake.pipeline.context import BakeSettings
+    from ..core.bake.pipeline.runner import bake_scene
     from ..core.preview.pack import from_core_scene
-    sc = scenes.render_scaling_scene(bunnies)
-    sc = scenes.with_room_materials(sc)
-    out = os.path.join(scenes.CACHE, f"render-{bunnies}")
+    sc = scene_library.render_scaling_scene(bunnies)
+    sc = scene_library.with_room_materials(sc)
+    out = os.path.join(scene_library.CACHE, f"render-{bunnies}")
     t = time.perf_counter()
     st = BakeSettings(bands=bands, rays=rays, vertex_mode=True, bounces=1, bounce_rays=16, bounce_mode="baked")
     print("settings of the bake drawn: " + figures.settings_line(st, BakeSettings()))
@@ -64,7 +65,7 @@ def time_frames(renderer, ps, mode, width, height, frames):
     try:
         with off.bind():
             fb = gpu.state.active_framebuffer_get()
-            for i in range(frames + 1):
+            for _ in range(frames + 1):
                 t = time.perf_counter()
                 fb.clear(color=(0.0, 0.0, 0.0, 0.0), depth=1.0)
                 stats = renderer.draw(ps, mode, vp, cam)
@@ -90,8 +91,8 @@ def main(argv=None) -> int:
     import bpy  # noqa: F401  (Blender as a module provides gpu)
     import gpu
 
+    from ..blender.preview.offscreen import ensure_gpu
     from ..blender.preview.renderer import Renderer
-    from ..blender.preview.render import ensure_gpu
     from ..cli import env_light
     ensure_gpu()
     print(f"GPU: {gpu.platform.renderer_get()} ({gpu.platform.backend_type_get()}), {os.cpu_count()} CPU cores")

@@ -1,6 +1,6 @@
 """``python -m prtt_addon.bench stress``: numerical stress cases, each checked.
 
-Every case bakes a small scene through the real pipeline (core.bake.runner.bake_scene:
+Every case bakes a small scene through the real pipeline (core.bake.pipeline.runner.bake_scene:
 G-buffer, Embree, projection, dilation, EXR) and checks its textures against
 what must hold: finite values, the analytic transfer where it is known,
 scale invariance, the documented bounds, and the warnings PRTT promises where
@@ -23,12 +23,13 @@ import tempfile
 
 import numpy as np
 
+from ..core.bake.estimators.transfer import unoccluded_transfer
+from ..core.bake.pipeline.context import BakeSettings
+from ..core.bake.pipeline.runner import bake_scene
 from ..core.io import meshgen as mg
-from ..core.bake.runner import BakeSettings, bake_scene
-from ..core.sh.basis import eval_basis
 from ..core.io.exr_io import read_sh_exr
-from ..core.io.scene import Scene
-from ..core.bake.transfer import unoccluded_transfer
+from ..core.model.scene import Scene
+from ..core.sh.basis import eval_basis
 
 T0_MAX = math.sqrt(math.pi) / 2.0            # DC of max(0, n.w) with nothing in the way
 
@@ -296,7 +297,7 @@ def case_half_overflow_and_sun(d):
     The pixel (64 x 128 equirect, ~2e-3 sr) carries ~2e6 times the energy of a
     unit sky, enough to push the one-bounce radiance past 65504.
     """
-    from ..core.sh.envmap import project_equirect
+    from ..core.light.envmap import project_equirect
     res = {"failures": []}
     env = np.zeros((64, 128, 3), np.float32)
     env[10, 30] = 1.0e9                                    # one pixel, a tiny very bright sun

@@ -50,14 +50,15 @@ import time
 
 import numpy as np
 
-from ..core.bake.runner import BakeSettings, bake_scene
-from ..core.io.scene import save_scene
-from . import scenes
+from ..core.bake.pipeline.context import BakeSettings
+from ..core.bake.pipeline.runner import bake_scene
+from ..core.io.jobfile import save_scene
+from . import scene_library
 from .adaptive_bound import sweep_adaptive_bound
 from .denoise_sweep import print_rays_needed, sweep_bounce_denoise, sweep_transfer_denoise
 from .texture_error import image_error, load_set_textures, texel_error
 
-OUT = os.path.join(scenes.ROOT, "docs", "bench")
+OUT = os.path.join(scene_library.ROOT, "docs", "bench")
 
 STRATEGIES = {
     "uniform": dict(sampler="random", distribution="uniform", estimator="plain"),
@@ -110,7 +111,7 @@ def bake_subprocess(sc, out_dir: str, args: list) -> tuple[dict, float]:
     job = os.path.join(out_dir, "job.npz")
     os.makedirs(out_dir, exist_ok=True)
     save_scene(sc, job)
-    env = dict(os.environ, PYTHONPATH=scenes.ROOT)
+    env = dict(os.environ, PYTHONPATH=scene_library.ROOT)
     r = subprocess.run([sys.executable, "-c", _CHILD, "bake-job", job, "--out", out_dir, "--force",
                         "--bounces", "0", *args], capture_output=True, text=True, env=env)
     if r.returncode != 0:
@@ -137,7 +138,7 @@ class Previewer:
     def __init__(self, sc, light, size, *, bounces: bool = False, eye=(0.0, -5.6, 2.3), target=(0.0, 0.6, 0.7)):
         import bpy  # noqa: F401  (provides gpu)
 
-        from ..blender.preview.render import ensure_gpu
+        from ..blender.preview.offscreen import ensure_gpu
         from ..blender.preview.renderer import Renderer
         from ..core.preview.reference import look_at, perspective
         ensure_gpu()
@@ -167,10 +168,10 @@ class Previewer:
 
 def reference(cfg: Config, sc) -> tuple[str, dict]:
     """The converged reference of the sweep scene (cached): folder and textures."""
-    d = os.path.join(scenes.CACHE, f"sweep-ref-{cfg.sweep_res}-{cfg.ref_rays}-b{cfg.ref_bands}")
+    d = os.path.join(scene_library.CACHE, f"sweep-ref-{cfg.sweep_res}-{cfg.ref_rays}-b{cfg.ref_bands}")
     if not os.path.isfile(os.path.join(d, "manifest.json")):
         print(f"  converged reference: {cfg.ref_rays} stratified rays per texel, {cfg.ref_bands} bands "
-              f"(once; cached in {os.path.relpath(d, scenes.ROOT)})", flush=True)
+              f"(once; cached in {os.path.relpath(d, scene_library.ROOT)})", flush=True)
         t = time.perf_counter()
         bake_scene(sc, d, BakeSettings(bands=cfg.ref_bands, rays=cfg.ref_rays, sampler="stratified",
                                        estimator="plain", half=False, seed=12345, bounces=0), skip_if_unchanged=False)
@@ -182,7 +183,7 @@ def sweep_rays(cfg, sc, ref, ref_img, previewer, tmp) -> list:
     rows = []
     todo = [(name, dict(kw), r) for name, kw in STRATEGIES.items() for r in cfg.rays]
     todo += [("adaptive", dict(adaptive_tol=tol, min_rays=16), max(cfg.rays)) for tol in cfg.tols]
-    tiny = scenes.paper_scene("room", 64)
+    tiny = scene_library.paper_scene("room", 64)
     for name, kw, rays in todo:
         d = os.path.join(tmp, "rays")
         st = BakeSettings(bands=5, rays=rays, half=False, bounces=0, **kw)
@@ -204,7 +205,7 @@ def sweep_resolution(cfg, light, tmp) -> list:
     rows = []
     truth = None
     for res in cfg.resolutions:
-        sc = scenes.with_room_materials(scenes.paper_scene("room", res))
+        sc = scene_library.with_room_materials(scene_library.paper_scene("room", res))
         d = os.path.join(tmp, f"res{res}")
         m, rss = bake_subprocess(sc, d, ["--rays", "256"])
         pv = Previewer(sc, light, cfg.image)
@@ -263,7 +264,7 @@ def sweep_storage(cfg, sc, ref, previewer, tmp) -> list:
 def sweep_scenes(cfg, tmp) -> list:
     rows = []
     for name in cfg.scenes:
-        sc = scenes.paper_scene(name, cfg.scene_res)
+        sc = scene_library.paper_scene(name, cfg.scene_res)
         d = os.path.join(tmp, f"scene-{name}")
         m, rss = bake_subprocess(sc, d, ["--rays", "256"])
         texels = m["totals"]["texels"]
@@ -414,7 +415,7 @@ def main(argv=None) -> int:
     parts = args.only.split(",")
     from ..cli import env_light
     light_fn = lambda n: env_light("forest", n)          # noqa: E731
-    sc = scenes.with_room_materials(scenes.paper_scene("room", cfg.sweep_res))
+    sc = scene_library.with_room_materials(scene_library.paper_scene("room", cfg.sweep_res))
     results, part_seconds, t_all = {}, {}, time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="prtt-sweep-") as tmp:
         if {"rays", "bands", "storage"} & set(parts):

@@ -1,9 +1,9 @@
 """register()/unregister() of every Blender class and property PRTT adds."""
 
 
-from . import cli
-from .ui import operators, panels, properties
+from . import commands
 from .preview import draw as preview_draw
+from .ui import operators, panels, properties
 
 _MODULES = (properties, operators, panels, preview_draw)
 
@@ -11,11 +11,11 @@ _MODULES = (properties, operators, panels, preview_draw)
 def register():
     for m in _MODULES:
         m.register()
-    cli.register()
+    commands.register()
 
 
 def unregister():
-    cli.unregister()
+    commands.unregister()
     for m in reversed(_MODULES):
         m.unregister()
 

@@ -18,15 +18,17 @@ import uuid
 import bpy
 import numpy as np
 
-from ...core.bake.runner import BakeError, BakeSettings, check_out_dir
-from ...core.bake.settings_schema import core_from_ui
+from ...core.bake.pipeline.context import BakeSettings
+from ...core.bake.pipeline.runner import check_out_dir
+from ...core.base.errors import BakeError
 from ...core.io.atomic import atomic_write, temp_prefix
 from ...core.io.exr_io import read_sh_exr
-from ...core.io.scene import save_scene
-from ..export.scene import GENERATED_UVS, ExportError, export_scene, output_folder
-from ..preview.scene import materials_signature
+from ...core.io.jobfile import save_scene
+from ...core.settings_schema import core_from_ui
+from ..export.job import GENERATED_UVS, ExportError, export_scene, output_folder
+from ..preview.drawlist import materials_signature
 from ..rna_arrays import write_pixels
-from ..ui.properties import redraw_viewports
+from ..shared import redraw_viewports
 from .worker_job import WorkerJob
 
 EXIT_CANCELLED = 3
@@ -62,7 +64,7 @@ class Outcome:
 
 def bake_settings(scene) -> dict:
     """The scene's bake settings as a BakeSettings dict: the settings scene.prtt
-    holds, mapped by core/bake/settings_schema.py (Storage -> half, Adaptive +
+    holds, mapped by core/settings_schema.py (Storage -> half, Adaptive +
     Tolerance -> adaptive_tol, Vertex Transfer -> vertex_mode, ...); the
     others at their defaults."""
     st = scene.prtt

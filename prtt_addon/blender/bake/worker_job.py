@@ -1,7 +1,7 @@
 """Running ``python -m prtt_addon.worker`` as a child of Blender's Python.
 
 The child is started with Blender's own interpreter and search path
-(core/child.py). Reader threads move its JSON lines into a queue, so the UI
+(core/base/child.py). Reader threads move its JSON lines into a queue, so the UI
 polls without blocking; ``cancel`` sends SIGTERM (the worker stops and leaves
 the previous textures untouched).
 """
@@ -14,7 +14,7 @@ import signal
 import subprocess
 import threading
 
-from ...core.child import child_env, python_executable
+from ...core.base.child import child_env, python_executable
 
 
 class WorkerJob:

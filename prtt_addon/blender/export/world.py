@@ -12,13 +12,13 @@ node, or to the panel's studio HDRI):
   (byte sRGB images are linearised).
 * Background strength multiplies the light.
 * The Mapping node's rotation (Euler XYZ, types Point and Texture) turns the
-  light by an SH rotation (core.sh.envmap.compose_light states the
+  light by an SH rotation (core.light.envmap.compose_light states the
   conventions: lookups turn by R, so the image's SH rotates by R^T).
   Location and scale do not change a direction lookup's result for
   rotation-only use and are ignored (scale must be uniform).
 
 The numbers (projection, strength, rotation, a constant colour's SH) are
-core.sh.envmap's, shared with ``python -m prtt_addon bake-job --env``.
+core.light.envmap's, shared with ``python -m prtt_addon bake-job --env``.
 """
 from __future__ import annotations
 
@@ -28,8 +28,8 @@ import os
 import numpy as np
 
 from ...core.io.image_io import read_hdr_image
-from ...core.sh import envmap
-from .materials import image_array
+from ...core.light import envmap
+from .material_nodes import image_array
 
 
 class WorldLightError(ValueError):

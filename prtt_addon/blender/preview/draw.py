@@ -16,9 +16,10 @@ import atexit
 import bpy
 from bpy.app.handlers import persistent
 
-from ..ui.properties import PREVIEW_MODES
-from . import renderer as gpu_preview, scene as preview_scene
-from .render import exposure_of, region_view
+from ..shared import PREVIEW_MODES
+from . import drawlist
+from . import renderer as gpu_preview
+from .offscreen import exposure_of, region_view
 
 #: NDC depth bias towards the eye: our copy of a surface must win against
 #: Blender's own depth of the same surface (24-bit depth: ~80 steps).
@@ -39,7 +40,7 @@ def draw_view(context, region_data, visible=None):
     global _RENDERER
     scene = context.scene
     st = scene.prtt
-    ps, status = preview_scene.collect(context, visible=visible, use_bounces=st.preview_bounces)
+    ps, status = drawlist.collect(context, visible=visible, use_bounces=st.preview_bounces)
     last_status["status"] = status
     if ps is None:
         return None
@@ -79,12 +80,12 @@ atexit.register(free_gpu)
 
 @persistent
 def _on_depsgraph(scene, depsgraph):
-    preview_scene.note_depsgraph_updates(depsgraph)
+    drawlist.note_depsgraph_updates(depsgraph)
 
 
 @persistent
 def _on_reset(*_args):
-    preview_scene.clear_caches()
+    drawlist.clear_caches()
 
 
 _APP_HANDLERS = (("depsgraph_update_post", _on_depsgraph), ("load_post", _on_reset),

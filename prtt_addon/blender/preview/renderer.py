@@ -32,8 +32,8 @@ import gpu
 import numpy as np
 from gpu_extras.batch import batch_for_shader
 
-from ...core.preview import pack as pp
 from ...core.io.exr_io import TextureError
+from ...core.preview import pack as pp
 from ...core.preview.shader_source import FRAGMENT_MODES, GAUNT_WIDTH, MODES, VERTEX_MODES
 from . import shaders as gpu_shaders
 

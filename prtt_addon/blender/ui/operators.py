@@ -1,14 +1,14 @@
 """PRTT's operators: Unwrap, Bake Transfer (modal in the UI, blocking headless), Cancel."""
 import bpy
 
+from ...core.texels.unwrap import UnwrapError
 from ..bake import run as bake_run
-from ..export.scene import ExportError
-from ..export.unwrap import UnwrapError, bake_downscale, unwrap_objects
+from ..export.job import ExportError
+from ..export.uv_maps import bake_downscale, unwrap_objects
+from ..preview.offscreen import RenderError, exposure_of, render_scene
 from ..rna_arrays import RnaArrayError, write_pixels
-from ..preview.render import RenderError, exposure_of, render_scene
+from ..shared import PREVIEW_MODES
 from .panels import draw_progress
-from .properties import PREVIEW_MODES
-
 
 #: Scenes whose running bake the Cancel button asked to stop (read by the modal operator).
 _CANCEL_REQUESTS: set = set()

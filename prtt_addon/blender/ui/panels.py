@@ -4,7 +4,8 @@ import json
 import bpy
 from bpy.app.handlers import persistent
 
-from ..preview import draw as preview_draw, scene as preview_scene
+from ..preview import draw as preview_draw
+from ..preview import drawlist
 
 
 class _PRTTPanel:
@@ -159,7 +160,7 @@ class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
             col.label(text="Bake Transfer first", icon="INFO")
             return
         try:
-            _, status = preview_scene.collect(context, use_bounces=st.preview_bounces, with_meshes=False)
+            _, status = drawlist.collect(context, use_bounces=st.preview_bounces, with_meshes=False)
         except Exception as exc:          # a panel must draw whatever happens
             col.label(text=f"{type(exc).__name__}: {exc}", icon="ERROR")
             return

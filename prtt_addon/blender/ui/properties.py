@@ -1,17 +1,10 @@
 """Settings stored in the .blend: ``scene.prtt`` and ``object.prtt``."""
 import bpy
-from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
-                       StringProperty)
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ...core.bake import settings_schema
-from ...core.sh.envmap import builtin_environments
-
-#: Name of the UV map PRTT bakes into; unwrapping writes only this map.
-UV_MAP = "PRTT"
-#: Blender 4.5+ warns when a path property without this option is given a
-#: "//"-relative path (PRTT stores its Output Folder relative to the .blend).
-RELATIVE_PATH_OPTIONS = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
-
+from ...core import settings_schema
+from ...core.light.envmap import builtin_environments
+from ..shared import RELATIVE_PATH_OPTIONS, redraw_viewports
 
 _ENV_ITEMS: list = []
 
@@ -26,22 +19,8 @@ def _builtin_env_items(self, context):
     return _ENV_ITEMS
 
 
-def redraw_viewports(context) -> None:
-    """Ask every 3D viewport to redraw (no-op in background mode: no windows)."""
-    wm = context.window_manager
-    for window in (wm.windows if wm is not None else []):
-        for area in window.screen.areas:
-            if area.type == "VIEW_3D":
-                area.tag_redraw()
-
-
 def _redraw(self, context):
     redraw_viewports(context)
-
-
-#: Property value of each preview mode -> shader mode name.
-PREVIEW_MODES = {"TPFL": "tpfl", "TP": "tp", "VERTEX_TPFL": "vertex-tpfl", "VERTEX_TP": "vertex-tp",
-                 "DIFFUSE": "diffuse"}
 
 
 def schema_property(p):
@@ -64,7 +43,7 @@ def schema_property(p):
 def _scene_annotations() -> dict:
     """scene.prtt's properties. The bake settings (resolution, bands, rays, adaptive,
     tolerance, bounces, bounce rays, vertex transfer, normal maps, dilation, storage,
-    margin, texel density) come from core/bake/settings_schema.py: their ranges, soft
+    margin, texel density) come from core/settings_schema.py: their ranges, soft
     limits, defaults and tooltips are declared there once."""
     unwrap = {
         "unwrap_method": EnumProperty(

@@ -1,6 +1,6 @@
-"""Objects' triangles -> one bake :class:`~prtt_addon.core.io.scene.Scene`.
+"""Objects' triangles -> one bake :class:`~prtt_addon.core.io.jobfile.Scene`.
 
-The one assembly path of the Blender export (prtt_addon/blender/export/scene.py)
+The one assembly path of the Blender export (prtt_addon/blender/export/job.py)
 and of :func:`prtt_addon.core.io.meshgen.assemble`: each object (or instance)
 is a :class:`MeshPart` in world space, already laid out in its texture set;
 :func:`assemble_parts` concatenates them in order (object ids follow the
@@ -12,7 +12,7 @@ import dataclasses
 
 import numpy as np
 
-from .scene import NormalMap, Scene
+from ..model.scene import NormalMap, Scene
 
 
 @dataclasses.dataclass
@@ -63,7 +63,7 @@ def assemble_parts(parts: list[MeshPart], set_names: list, set_resolution, *, ma
     ``set_index`` refers to. ``materials``: material specs (docs/format.md);
     None leaves the scene without materials (every triangle the default
     one). ``textures`` and ``normal_maps``: the images materials and
-    ``nm_index`` refer to. Raises SceneError (core.io.scene.validate) for an
+    ``nm_index`` refer to. Raises SceneError (core.model.scene.validate) for an
     inconsistent result.
     """
     normal_maps = list(normal_maps or [])

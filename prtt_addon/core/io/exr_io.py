@@ -23,8 +23,8 @@ import os
 
 import numpy as np
 
-from .atomic import atomic_write
 from ..sh.basis import bands_of
+from .atomic import atomic_write
 
 #: Version of the texture format described in docs/format.md.
 TEXTURE_FORMAT_VERSION = 1

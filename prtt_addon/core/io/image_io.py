@@ -12,7 +12,7 @@ import re
 
 import numpy as np
 
-from ..bake.memory import check_fits
+from ..base.memory import check_fits
 
 # Environment images come from users and the web: their headers are checked
 # against these before any pixel memory is allocated.

@@ -1,5 +1,5 @@
 """Meshes without Blender: procedural primitives, OBJ loading, and assembling
-them into a bake :class:`~prtt_addon.core.io.scene.Scene`.
+them into a bake :class:`~prtt_addon.core.io.jobfile.Scene`.
 
 Used by the tests, the benchmark scenes and the demo. Units are metres, Z up.
 A :class:`Mesh` is indexed: vertices (V, 3), faces (F, 3); ``normals`` are
@@ -14,9 +14,9 @@ import os
 
 import numpy as np
 
+from ..model.scene import Scene
 from ..texels.unwrap import unwrap
 from .assembly import MeshPart, assemble_parts
-from .scene import Scene
 
 
 @dataclasses.dataclass

@@ -78,7 +78,7 @@ class FolderLock:
                 other = _read_json_fd(fd)
                 os.close(fd)
                 raise FolderBusyError(f"output folder {self.folder} is in use by another bake "
-                                      f"({_describe(other)}); wait for it to finish or cancel it")
+                                      f"({_describe(other)}); wait for it to finish or cancel it") from None
             # The holder before us may have unlinked the file between our open()
             # and flock(): then we locked an orphan inode; try again.
             try:

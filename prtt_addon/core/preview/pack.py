@@ -2,7 +2,7 @@
 
 The preview's GPU code (blender/preview/renderer.py) and its numpy reference
 (core/preview/reference.py) consume the same :class:`PreviewScene`, built
-from a Blender scene (blender/preview/scene.py) or from a core Scene and its
+from a Blender scene (blender/preview/drawlist.py) or from a core Scene and its
 bake (benchmarks, tests).
 
 Layouts (core/preview/shader_source.py documents the GPU side):
@@ -26,10 +26,11 @@ import os
 import numpy as np
 
 from ..io.exr_io import read_relight_exr, read_sh_exr
+from ..model.material import DEFAULT
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
-from ..shading.materials import DEFAULT, dielectric_f0
-from ..shading.model import light_hash
-from ..shading.relight import apply_light
+from ..shading.materials import dielectric_f0
+from ..shading.relit import apply_light
+from ..shading.shade import light_hash
 
 #: Width of the per-vertex transfer texture.
 VERTEX_TEXTURE_WIDTH = 4096

@@ -1,9 +1,9 @@
 """A numpy reference for the viewport preview: the same picture, computed per
-pixel by ray casting and the reference shading model (core/shading/model.py).
+pixel by ray casting and the reference shading model (core/shading/shade.py).
 
 Independent of the GPU path where it matters: visibility comes from Embree
 rays through the pixel centres instead of rasterisation, attributes from the
-hit's barycentrics in float64, shading from ``core.shading.model`` and
+hit's barycentrics in float64, shading from ``core.shading.shade`` and
 ``core.shading.materials``, texture reads from ``core.texels.texsample`` / ``gbuffer``.
 Shared with the GPU path: the PreviewScene (the same meshes, materials and
 texture values) and the documented conventions.
@@ -24,10 +24,10 @@ import math
 
 import numpy as np
 
-from ..bake.raytrace import RayScene
-from ..bake.transfer import Points, TransferSettings, bake_points
+from ..bake.estimators.raytrace import RayScene
+from ..bake.estimators.transfer import Points, TransferSettings, bake_points
 from ..shading.materials import ShadingParams, derive_from_f0
-from ..shading.model import shade
+from ..shading.shade import shade
 from ..texels.gbuffer import perturb_normals
 from ..texels.texsample import bilinear, bilinear_repeat
 from . import pack as pp
@@ -248,7 +248,7 @@ def traced_reference(ps: pp.PreviewScene, view_projection, camera, width: int, h
                      rays: int = 1024, exposure: float = 1.0, hits: PixelHits | None = None,
                      extra_occluders=None, seed: int = 7) -> tuple[np.ndarray, PixelHits]:
     """Ground truth without textures or vertices: at every pixel's surface point
-    the transfer is ray traced (``rays`` Sobol rays, core.bake.transfer) and shaded
+    the transfer is ray traced (``rays`` Sobol rays, core.bake.estimators.transfer) and shaded
     with TPFL (the model is exact in T, so this is "PRT with infinitely fine
     transfer sampling"; no bounce light). Returns (H, W, 4) and the hits."""
     hits = hits or trace_pixels(ps, view_projection, width, height)

@@ -132,7 +132,7 @@ def as_directions(dirs, *, normalize: bool = False, dtype=np.float64,
     return np.ascontiguousarray(a64, dtype=dtype)
 
 
-def _sectoral_constants(n: int) -> np.ndarray:
+def sectoral_constants(n: int) -> np.ndarray:
     """Pbar_m^m for m = 0..n-1 (they do not depend on z), float64."""
     c = np.empty(n)
     c[0] = math.sqrt(1.0 / (4.0 * math.pi))
@@ -177,7 +177,7 @@ def basis_unchecked(d: np.ndarray, n: int, dtype=np.float64, *, coeff_major: boo
     x, y, z = d if isinstance(d, tuple) else (d[:, 0], d[:, 1], d[:, 2])
     N = x.shape[0]
     out = np.empty((n * n, N), dtype=dtype)
-    sect = _sectoral_constants(n).astype(dtype)
+    sect = sectoral_constants(n).astype(dtype)
     sqrt2 = dtype.type(math.sqrt(2.0))
     cm = np.ones_like(x)   # Re (x + i y)^m
     sm = np.zeros_like(x)  # Im (x + i y)^m

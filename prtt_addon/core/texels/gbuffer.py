@@ -21,7 +21,7 @@ import dataclasses
 
 import numpy as np
 
-from ..io.scene import Scene
+from ..model.scene import Scene
 from .raster import rasterize
 from .texsample import bilinear_repeat
 

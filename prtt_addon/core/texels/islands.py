@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import jit
+from ..base import jit
 
 _OFFSETS8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 
@@ -24,7 +24,7 @@ def island_labels(mask: np.ndarray) -> np.ndarray:
     Min-label propagation with pointer jumping: each round every texel takes
     the smallest label among its covered neighbours, then follows labels to
     their own label; rounds repeat until nothing changes (a few dozen for
-    islands hundreds of texels long). With numba (core/jit.py) a compiled
+    islands hundreds of texels long). With numba (core/base/jit.py) a compiled
     union-find gives the same labels (islands_jit)."""
     name = "prtt_addon.core.texels.islands_jit"
     fast = jit.load(name)

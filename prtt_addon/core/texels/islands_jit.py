@@ -1,8 +1,9 @@
-"""numba-compiled UV island labels (imported through core/jit.py).
+"""numba-compiled UV island labels (imported through core/base/jit.py).
 
-islands.island_labels' numpy rounds of min-label propagation took 0.84 s of
-the bounce's 1.15 s exit stage on the room's 1024² atlas (its critical path);
-a union-find pass over the texels gives the same labels in milliseconds.
+islands.island_labels' numpy rounds of min-label propagation were most of the
+bounce's exit stage on the room's 1024² atlas (its critical path;
+docs/benchmarks.md); a union-find pass over the texels gives the same labels
+in milliseconds.
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ import dataclasses
 
 import numpy as np
 
-from ..bake.parallel import Cancelled
+from ..base.errors import Cancelled
 
 #: Twice the signed area (in texel units) below which a UV triangle is degenerate.
 ZERO_AREA = 1e-10

@@ -21,7 +21,7 @@ import tempfile
 
 import numpy as np
 
-from ..child import child_env, python_executable
+from ..base.child import child_env, python_executable
 
 
 class UnwrapError(RuntimeError):
@@ -237,7 +237,7 @@ def unwrap_here(meshes, resolution, padding, max_tries, uv_mesh=False, keep: lis
         raise UnwrapError(f"xatlas could not fit the charts into one {resolution}x{resolution} atlas "
                           f"(padding {padding}); raise the resolution")
     out = []
-    for mi, (v, f) in enumerate(meshes):
+    for mi, (_v, f) in enumerate(meshes):
         vmap, idx, uv = atlas[mi]
         # xatlas returns UVs normalised by its own width/height; rescale to ours.
         uv = uv.astype(np.float64) * np.array([w / resolution, h / resolution])

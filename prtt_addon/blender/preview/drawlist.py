@@ -1,0 +1,455 @@
+"""The Blender scene -> a PreviewScene (core/preview/pack.py), cheaply, every frame.
+
+What is drawn: every object of the last bake (``scene.prtt.last_bake``) that
+still exists and is visible, with its *current* transform and evaluated mesh,
+its set's transfer / bounce / per-vertex textures from the bake's folder, its
+materials (Principled values and textures, parsed like the bake's export) and
+the World light at the bake's band count.
+
+Caches (module level, so the draw handler stays fast): meshes per object
+(rebuilt when the depsgraph reports a geometry change), material images, the
+World's unrotated SH projection (turning the environment or changing its
+strength only rotates/scales coefficients), the per-vertex corner tables.
+``clear_caches`` runs on file load and undo, when object pointers change.
+
+Checks reported with the scene (``PreviewStatus``): objects moved or edited
+since the bake, missing files, and stale bounce textures (the World light or
+any material changed since they were baked).
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import zipfile
+
+import bpy
+import numpy as np
+
+from ...core.light.envmap import compose_light
+from ...core.preview import pack as pp
+from ...core.preview.shader_source import MAX_PREVIEW_BANDS
+from ...core.shading.shade import light_hash
+from ..export.job import GENERATED_UVS, apply_tile, output_folder
+from ..export.material_nodes import image_array, parse_material
+from ..export.scene_objects import scene_geometry
+from ..export.world import WorldLightError, project_setup, world_setup
+from ..rna_arrays import read
+from ..shared import UV_MAP
+
+_MESHES: dict = {}          # object name -> (signature, DrawMesh)
+_IMAGES: dict = {}          # image key -> array
+_PROJECTIONS: dict = {}     # (world key, bands) -> (K, 3)
+_VERTEX_TABLES: dict = {}   # (path, mtime) -> corner_vertex
+_GEOMETRY_GEN: dict = {}    # object name -> counter bumped on geometry updates
+_MATERIALS_GEN = [0]        # bumped on material/image/object updates
+_SIGNATURES: dict = {}      # scene name -> (generation, signature)
+_GENERATED: dict = {}       # generated_uvs.npz path -> ((path, mtime), {uv group: UVs})
+
+
+def clear_caches() -> None:
+    for c in (_MESHES, _IMAGES, _VERTEX_TABLES, _SIGNATURES, _GENERATED):
+        c.clear()
+    _MATERIALS_GEN[0] += 1
+
+
+def note_depsgraph_updates(depsgraph) -> None:
+    """depsgraph_update_post: remember what changed (no work here)."""
+    for u in depsgraph.updates:
+        idb = u.id
+        if isinstance(idb, bpy.types.Object):
+            if u.is_updated_geometry:
+                name = idb.original.name if idb.original is not None else idb.name
+                _GEOMETRY_GEN[name] = _GEOMETRY_GEN.get(name, 0) + 1
+                _MATERIALS_GEN[0] += 1            # slots and assignments live with the geometry
+        elif isinstance(idb, (bpy.types.Material, bpy.types.Image, bpy.types.NodeTree)):
+            _MATERIALS_GEN[0] += 1
+            if isinstance(idb, bpy.types.Image):
+                for k in [k for k in _IMAGES if k[0] == idb.name]:
+                    del _IMAGES[k]
+
+
+@dataclasses.dataclass
+class PreviewStatus:
+    bake: dict | None = None
+    messages: list = dataclasses.field(default_factory=list)    # (level, text): level INFO/WARNING/ERROR
+    bounce_stale: list = dataclasses.field(default_factory=list)
+    light_description: str = ""
+
+    def add(self, level: str, text: str) -> None:
+        self.messages.append((level, text))
+
+
+def last_bake(scene) -> dict | None:
+    raw = scene.prtt.last_bake
+    if not raw:
+        return None
+    try:
+        return json.loads(raw)
+    except ValueError:
+        return None
+
+
+def bake_folder(scene, info: dict) -> str:
+    """The folder of the last bake: as recorded (relative to the .blend when
+    the Output Folder was, //textures/, so it moves with the project), else
+    the scene's Output Folder (a record of earlier PRTT holds an absolute
+    folder, gone when the project moved)."""
+    d = info.get("out_dir", "")
+    if d.startswith("//"):
+        d = bpy.path.abspath(d) if bpy.data.filepath else ""
+    if d and os.path.isdir(d):
+        return os.path.abspath(d)
+    return output_folder(scene)
+
+
+# --- light ----------------------------------------------------------------------------
+
+def current_light(scene, bands: int) -> tuple[np.ndarray, str]:
+    """The World light at ``bands`` bands, with its projection cached."""
+    st = scene.prtt
+    setup = world_setup(scene, source=st.light_source, builtin=st.builtin_environment or "forest")
+    key = (setup.key, bands)
+    proj = _PROJECTIONS.get(key)
+    if proj is None:
+        if len(_PROJECTIONS) > 8:
+            _PROJECTIONS.clear()
+        proj = _PROJECTIONS[key] = project_setup(setup, bands)
+    return compose_light(proj, setup.strength, setup.rotation), setup.description
+
+
+# --- materials ------------------------------------------------------------------------
+
+def _image_key(img, linear: bool) -> tuple:
+    return (img.name, linear, img.filepath, tuple(img.size), img.colorspace_settings.name)
+
+
+class _MaterialTable:
+    """Materials and images of one frame, each once."""
+
+    def __init__(self, normal_maps: bool):
+        self.materials: list = []
+        self.images: list = []
+        self.image_keys: list = []
+        self._mat_index: dict = {}
+        self._img_index: dict = {}
+        self.normal_maps = normal_maps
+        self.exports: list = []
+
+    def _image(self, img, linear: bool) -> int:
+        key = _image_key(img, linear)
+        i = self._img_index.get(key)
+        if i is None:
+            arr = _IMAGES.get(key)
+            if arr is None:
+                arr = _IMAGES[key] = image_array(img, linearise=linear)
+            i = self._img_index[key] = len(self.images)
+            self.images.append(arr)
+            self.image_keys.append("|".join(map(str, key)))
+        return i
+
+    def index(self, mat) -> int:
+        key = mat.name if mat is not None else None
+        i = self._mat_index.get(key)
+        if i is None:
+            ex = parse_material(mat, lambda _msg: None)
+            spec = dict(ex.spec)
+            spec.pop("name", None)
+            base = self._image(ex.base_image, True) if ex.base_image is not None else -1
+            rough = self._image(ex.rough_image, False) if ex.rough_image is not None else -1
+            normal = -1
+            if ex.normal_image is not None and self.normal_maps:
+                normal = self._image(ex.normal_image, False)
+            m = pp.PreviewMaterial.from_spec(spec, normal_texture=normal, normal_strength=ex.normal_strength)
+            m = dataclasses.replace(m, base_texture=base, roughness_texture=rough)
+            i = self._mat_index[key] = len(self.materials)
+            self.materials.append(m)
+            self.exports.append(ex)
+        return i
+
+
+def materials_signature(scene) -> str:
+    """A hash of what the bounce bake took from materials: every render-visible
+    object's and instance source's slots (Principled values, image names and
+    sizes, normal maps) and which faces use them. Cached until a material,
+    image or geometry changes."""
+    gen = _MATERIALS_GEN[0]
+    got = _SIGNATURES.get(scene.name)
+    if got is not None and got[0] == gen:
+        return got[1]
+    h = hashlib.sha256()
+    done = set()
+    view_layer = bpy.context.view_layer if bpy.context.scene == scene else scene.view_layers[0]
+    depsgraph = bpy.context.evaluated_depsgraph_get() if bpy.context.scene == scene else None
+    owners = ([f.source or f.owner for f in scene_geometry(depsgraph, scene, view_layer)]
+              if depsgraph is not None else [o for o in scene.objects if o.visible_get()])
+    for ob in sorted(owners, key=lambda o: o.name_full):
+        if ob.name_full in done:
+            continue
+        done.add(ob.name_full)
+        h.update(ob.name_full.encode())
+        for slot in ob.material_slots:
+            ex = parse_material(slot.material, lambda _msg: None)
+            imgs = [(i.name, tuple(i.size)) if i is not None else None
+                    for i in (ex.base_image, ex.rough_image, ex.normal_image)]
+            h.update(json.dumps([ex.spec, imgs, ex.normal_strength, ex.texture_uv, ex.normal_uv],
+                                sort_keys=True, default=str).encode())
+        me = ob.data if ob.type == "MESH" else None
+        if me is not None and len(me.polygons):
+            h.update(read(me.polygons, "material_index", 1, np.int32).tobytes())
+    sig = h.hexdigest()
+    _SIGNATURES[scene.name] = (gen, sig)
+    return sig
+
+
+# --- meshes ---------------------------------------------------------------------------
+
+def _vertex_table(path: str) -> np.ndarray | None:
+    try:
+        key = (path, os.stat(path).st_mtime_ns)
+    except OSError:
+        return None
+    t = _VERTEX_TABLES.get(key)
+    if t is None:
+        with np.load(path, allow_pickle=False) as z:
+            t = _VERTEX_TABLES[key] = np.asarray(z["corner_vertex"], np.int64)
+    return t
+
+
+def mesh_corners(ob_eval, table: _MaterialTable) -> tuple[dict, np.ndarray, list]:
+    """Per-corner object-space arrays (T, 3, C) of an evaluated object, the
+    material slot of each triangle (slots past the last one count as the last)
+    and the slots' materials."""
+    mesh = ob_eval.to_mesh()
+    try:
+        mesh.calc_loop_triangles()
+        T = len(mesh.loop_triangles)
+        if T == 0:
+            return {}, np.zeros(0, np.int64), []
+        nl = len(mesh.loops)
+        loops = read(mesh.loop_triangles, "loops", 3, np.int32)
+        verts = read(mesh.loop_triangles, "vertices", 3, np.int32)
+        slot_of = read(mesh.loop_triangles, "material_index", 1, np.int32)
+        co = read(mesh.vertices, "co", 3)
+        normals = read(mesh.corner_normals, "vector", 3, expect=nl, what=f"{ob_eval.name}: corner normals")
+        corners = {"positions": co[verts], "normals": normals[loops]}
+        uvl = mesh.uv_layers.get(UV_MAP)
+        if uvl is not None:
+            corners["uv"] = read(uvl.uv, "vector", 2, expect=nl, what=f"{ob_eval.name}: UV map {UV_MAP!r}")[loops]
+        slots = [s.material for s in ob_eval.material_slots] or [None]
+        slot_of = np.clip(slot_of, 0, len(slots) - 1)
+        render_uv = next((u.name for u in mesh.uv_layers if u.active_render), None)
+        mat_uv = np.zeros((T, 3, 2), np.float32)
+        nm_uv = np.zeros((T, 3, 2), np.float32)
+        tangents = np.tile(np.array([1.0, 0.0, 0.0, 1.0], np.float32), (T, 3, 1))
+        uv_cache, tan_cache = {}, {}
+
+        def uv_of(name):
+            if name not in uv_cache:
+                layer = mesh.uv_layers.get(name) if name else None
+                uv_cache[name] = None if layer is None else read(layer.uv, "vector", 2, expect=nl,
+                                                                  what=f"{ob_eval.name}: UV map {name!r}")
+            return uv_cache[name]
+
+        def tangents_of(name):
+            if name not in tan_cache:
+                try:
+                    mesh.calc_tangents(uvmap=name)
+                    tan_cache[name] = np.concatenate([read(mesh.loops, "tangent", 3),
+                                                      read(mesh.loops, "bitangent_sign")[:, None]], 1)
+                except RuntimeError:
+                    tan_cache[name] = None
+            return tan_cache[name]
+
+        for k in np.unique(slot_of):
+            sel = slot_of == k
+            mi = table.index(slots[k])
+            ex, pm = table.exports[mi], table.materials[mi]
+            if pm.base_texture >= 0 or pm.roughness_texture >= 0:
+                uv = uv_of(ex.texture_uv or render_uv)
+                if uv is not None:
+                    mat_uv[sel] = uv[loops[sel]]
+            if pm.normal_texture >= 0:
+                name = ex.normal_uv or render_uv
+                uv, tan = uv_of(name), tangents_of(name)
+                if uv is not None and tan is not None:
+                    nm_uv[sel] = uv[loops[sel]]
+                    tangents[sel] = tan[loops[sel]]
+        corners.update(mat_uv=mat_uv, nm_uv=nm_uv, tangents=tangents)
+        return corners, slot_of, slots
+    finally:
+        ob_eval.to_mesh_clear()
+
+
+def _generated_uvs(out_dir: str) -> dict:
+    """{uv group: (T, 3, 2) float32} from the bake's generated_uvs.npz (cached by mtime)."""
+    path = os.path.join(out_dir, GENERATED_UVS)
+    try:
+        key = (path, os.stat(path).st_mtime_ns)
+    except OSError:
+        return {}
+    got = _GENERATED.get(path)
+    if got is None or got[0] != key:
+        with np.load(path, allow_pickle=False) as z:
+            keys = [str(k) for k in z["keys"]]
+            got = _GENERATED[path] = (key, {k: np.asarray(z[f"uv_{i}"], np.float32) for i, k in enumerate(keys)})
+    return got[1]
+
+
+def _draw_mesh(found, rec: dict, pset: pp.PreviewSet, table, status, generated: dict) -> pp.DrawMesh | None:
+    """The DrawMesh of a baked object or instance (cached per part), its UVs
+    the bake's (the PRTT map or generated ones, in its tile), its ranges mapped
+    to this frame's materials."""
+    ob_eval = found.evaluated
+    name = rec["_name"]
+    data = getattr(ob_eval, "data", None)
+    slot_names = tuple(s.material.name_full if s.material else "" for s in ob_eval.material_slots)
+    sig = (data.name_full if data is not None else "", _GEOMETRY_GEN.get(found.owner.name, 0),
+           _GEOMETRY_GEN.get(found.source_name, 0), pset.name, pset.key, table.normal_maps, slot_names,
+           rec.get("uv", "map"), tuple(rec.get("tile") or ()), id(generated.get(rec.get("uv_group"))))
+    got = _MESHES.get(found.key)
+    if got is not None and got[0] == sig:
+        mesh = got[1]
+    else:
+        corners, slot_of, _slots = mesh_corners(ob_eval, table)
+        if not corners:
+            return None
+        T = corners["positions"].shape[0]
+        if rec.get("uv") == "generated":
+            uv = generated.get(rec.get("uv_group"))
+            if uv is None or uv.shape[0] != T:
+                status.add("ERROR", f"{name}: its generated UVs ({GENERATED_UVS} in the bake folder) are "
+                                    f"missing or no longer match its mesh; not drawn: bake again")
+                return None
+            corners["uv"] = uv
+        elif "uv" not in corners:
+            status.add("ERROR", f"{name}: no '{UV_MAP}' UV map any more; not drawn: unwrap and bake again")
+            return None
+        if rec.get("tile"):
+            corners["uv"] = apply_tile(np.asarray(corners["uv"], np.float64), rec["tile"]).astype(np.float32)
+        if pset.vertex:
+            try:
+                table_cv = _vertex_table(pset.vertex)
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+                status.add("ERROR", f"{name}: cannot read {pset.vertex} ({exc}); bake again")
+                table_cv = None
+            if table_cv is not None and rec.get("triangles") == T:
+                o = int(rec.get("offset", 0))
+                corners["vidx"] = table_cv[o:o + T].astype(np.float32)
+        # Ranges hold material *slots*; each frame maps them to its own table.
+        mesh = pp.build_mesh(name, pset.name, corners, slot_of, key=f"{found.key}|{hash(sig)}")
+        _MESHES[found.key] = (sig, mesh)
+    slots = [s.material for s in ob_eval.material_slots] or [None]
+    ranges = [(table.index(slots[min(k, len(slots) - 1)]), f, c) for k, f, c in mesh.ranges]
+    return dataclasses.replace(mesh, ranges=ranges)
+
+
+def _parts_by_key(info: dict) -> dict:
+    """{identity key: record} of the bake's parts (records of bakes before
+    instances had no key: they were objects, keyed by name)."""
+    out = {}
+    for name, rec in info.get("objects", {}).items():
+        rec = dict(rec, _name=name)
+        out[rec.get("key") or f"object:{name}"] = rec
+    recorded = set(info.get("objects", {}))
+    for set_name, names in info.get("set_objects", {}).items():     # objects without a record
+        for name in names:
+            if name not in recorded:
+                out[f"object:{name}"] = {"_name": name, "set": set_name}
+    return out
+
+
+# --- the frame --------------------------------------------------------------------------
+
+def collect(context, *, visible=None, use_bounces: bool = True,
+            with_meshes: bool = True) -> tuple[pp.PreviewScene | None, PreviewStatus]:
+    """The PreviewScene of ``context.scene``'s last bake, and what to tell the user.
+
+    visible(ob) -> bool decides visibility (default: ``ob.visible_get()``);
+    with_meshes=False only checks (the panel): no mesh is read."""
+    scene = context.scene
+    status = PreviewStatus()
+    info = last_bake(scene)
+    status.bake = info
+    if info is None:
+        status.add("INFO", "nothing baked yet: Bake Transfer first")
+        return None, status
+    bands = int(info["settings"]["bands"])
+    if bands > MAX_PREVIEW_BANDS:
+        status.add("ERROR", f"this bake has {bands} SH bands; the preview draws up to {MAX_PREVIEW_BANDS}: "
+                            f"bake with {MAX_PREVIEW_BANDS} or fewer bands to preview it (the textures "
+                            f"themselves are valid)")
+        return None, status
+    try:
+        out_dir = bake_folder(scene, info)
+    except ValueError as exc:
+        status.add("ERROR", str(exc))
+        return None, status
+    files = set(info.get("files", []))
+    bounce_files = (info.get("bounce") or {}).get("files", [])
+    sets = {}
+    for set_name in info.get("set_objects", {}):
+        transfer = os.path.join(out_dir, f"{set_name}.transfer.exr")
+        if not os.path.isfile(transfer):
+            status.add("ERROR", f"texture set {set_name!r}: {transfer} is missing; bake again")
+            continue
+        bounces = tuple(os.path.join(out_dir, f) for f in bounce_files
+                        if f.startswith(f"{set_name}.bounce") and os.path.isfile(os.path.join(out_dir, f)))
+        vfile = f"{set_name}.vertex.npz"
+        vertex = os.path.join(out_dir, vfile) if vfile in files and os.path.isfile(os.path.join(out_dir, vfile)) else None
+        rfile = f"{set_name}.relight.exr"
+        relight = os.path.join(out_dir, rfile) if rfile in bounce_files and os.path.isfile(
+            os.path.join(out_dir, rfile)) else None
+        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight)
+    try:
+        light, status.light_description = current_light(scene, bands)
+    except (WorldLightError, OSError, ValueError) as exc:
+        status.add("ERROR", f"light: {exc}")
+        return None, status
+    normal_maps = bool(info["settings"].get("normal_maps", True))
+    table = _MaterialTable(normal_maps)
+    depsgraph = context.evaluated_depsgraph_get()
+    visible = visible or (lambda ob: ob.visible_get())
+    parts = _parts_by_key(info)
+    generated = {}
+    if any(r.get("uv") == "generated" for r in parts.values()):
+        try:
+            generated = _generated_uvs(out_dir)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            status.add("ERROR", f"cannot read {os.path.join(out_dir, GENERATED_UVS)} ({exc}); bake again")
+    meshes, moved, edited = [], [], []
+    for found in scene_geometry(depsgraph, scene, context.view_layer, visible=visible):
+        rec = parts.get(found.key)
+        if rec is None or rec["set"] not in sets:
+            continue
+        name = rec["_name"]
+        M = found.matrix
+        if "matrix" in rec and not np.allclose(M, np.asarray(rec["matrix"]), rtol=0, atol=1e-6):
+            moved.append(name)
+        if not with_meshes:
+            continue
+        mesh = _draw_mesh(found, rec, sets[rec["set"]], table, status, generated)
+        if mesh is None:
+            continue
+        meshes.append(dataclasses.replace(mesh, matrix=M))
+        if rec.get("triangles") not in (None, mesh.triangles):
+            edited.append(name)
+    if moved:
+        status.add("WARNING", f"moved since the bake (its shadows are where it was): {', '.join(moved[:4])}")
+    if edited:
+        status.add("WARNING", f"mesh edited since the bake: {', '.join(edited[:4])}")
+    b = info.get("bounce")
+    if b and use_bounces:
+        if b.get("light_hash") and light_hash(light) != b["light_hash"]:
+            status.bounce_stale.append("the World light changed")
+        sig = info.get("materials_signature")
+        if sig and materials_signature(scene) != sig:
+            status.bounce_stale.append("materials changed")
+        if status.bounce_stale:
+            status.add("WARNING", "bounce textures are stale (" + ", ".join(status.bounce_stale)
+                       + "): Bake again to update them")
+    ps = pp.PreviewScene(bands=bands, meshes=meshes, materials=table.materials, sets=sets, light=light,
+                         images=table.images, image_keys=table.image_keys, use_bounces=use_bounces,
+                         normal_maps=normal_maps)
+    return ps, status

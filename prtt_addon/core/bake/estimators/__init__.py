@@ -1,0 +1,1 @@
+"""The bake's estimators and kernels: transfer, bounces, sampling, ray tracing, denoising."""

@@ -1,0 +1,1 @@
+"""The bake's pipeline: plan, context, stages, commit and runner."""

@@ -1,0 +1,199 @@
+"""The bake's first stage: what its inputs are, what of the folder it may reuse,
+whether it fits in memory.
+
+Work the inputs do not need is skipped: an identical bake is not repeated,
+and when only the light or the materials changed, only the bounce textures
+are re-baked (from the transfer textures on disk). "Identical" is checked on
+the files themselves: the manifest records each output's size and sha256
+(``file_info``), and a missing, truncated or replaced output is re-baked.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+
+import numpy as np
+
+from ...base.errors import BakeError
+from ...base.memory import check_fits
+from ...io.outdir import verify_files
+from ...model.scene import geometry_hash
+from ...shading.materials import materials_hash
+from ...shading.shade import light_hash
+from ..estimators import denoise
+from ..estimators.relightable import GLOSSY_BANDS, relight_shared_colour
+from .context import MANIFEST, BakeContext, BakeSettings
+from .memory_plan import bounce_resident_bytes, bvh_bytes, relight_resident_bytes, set_bytes
+
+
+def settings_hash(settings: BakeSettings) -> str:
+    """sha256 hex of the settings that change the transfer textures (BakeSettings.result_key)."""
+    return hashlib.sha256(json.dumps(settings.result_key(), sort_keys=True).encode()).hexdigest()
+
+
+def read_manifest(out_dir) -> dict | None:
+    """The folder's manifest as a dict, or None (missing, unreadable, not an object)."""
+    try:
+        with open(os.path.join(out_dir, MANIFEST), encoding="utf-8") as f:
+            m = json.load(f)
+    except (OSError, ValueError, RecursionError):
+        return None
+    return m if isinstance(m, dict) else None
+
+
+def manifest_dicts(x) -> list:
+    """The dict entries of a manifest list (anything else in it is ignored)."""
+    return [d for d in x if isinstance(d, dict)] if isinstance(x, list) else []
+
+
+def plain_names(names) -> bool:
+    """A list of bare file names (a manifest is read from disk: no paths out of the folder)."""
+    return isinstance(names, list) and all(
+        isinstance(n, str) and n and os.path.basename(n) == n and not n.startswith(".") for n in names)
+
+
+def outputs_changed(m: dict, out_dir, files) -> str | None:
+    """Why ``files`` in ``out_dir`` are not the ones manifest ``m`` recorded (a
+    file missing, of another size or content, or a manifest without file_info),
+    or None when every one checks out (size and sha256)."""
+    if not plain_names(files):
+        return "the manifest's file list is not a list of file names"
+    return verify_files(out_dir, files, m.get("file_info"))
+
+
+def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: str,
+               st: BakeSettings) -> str:
+    """Identity of the bounce textures: transfer, light (not for relightable
+    bounces, which do not depend on it), materials, bounce settings."""
+    relightable = st.bounce_mode == "relightable"
+    if relightable:
+        light = None
+    h = hashlib.sha256("|".join([in_hash, set_hash, light_hash(light) if light is not None else "-",
+                                 mat_hash, str(st.bounces), str(st.bounce_rays),
+                                 repr(float(st.bounce_tolerance)), st.bounce_denoise]
+                                + ([f"downscale={st.bounce_downscale}"] if st.bounce_downscale != 1 else [])
+                                + ([f"tuning={st.tuning}"] if st.tuning != "fixed" else [])
+                                + (["mode=relightable"] if relightable else [])).encode())
+    return h.hexdigest()
+
+
+def bake_memory_bytes(set_resolution, st: BakeSettings, *, n_triangles: int, bouncing: bool) -> int:
+    """Peak bytes a bake adds to its scene's arrays: Embree's BVH, the largest
+    set (memory_plan.set_bytes) and, with bounces, every set's resident textures.
+    ``set_resolution`` (S, 2) (width, height)."""
+    K = st.bands ** 2
+    per_set = resident = 0
+    for w, h in np.asarray(set_resolution).reshape(-1, 2).tolist():
+        per_set = max(per_set, set_bytes(int(w), int(h), K, threads=st.n_threads, chunk_rays=st.chunk_rays,
+                                         rays=st.rays))
+        if bouncing and st.bounce_mode == "relightable":
+            kg = min(GLOSSY_BANDS, st.bands) ** 2
+            resident += relight_resident_bytes(int(w), int(h), K, kg, 1 if relight_shared_colour(st) else 3)
+        elif bouncing:
+            resident += bounce_resident_bytes(int(w), int(h), K)
+    return bvh_bytes(n_triangles) + per_set + resident
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BakePlan:
+    """What a bake will do (plan_bake): its input hashes and reuse decisions.
+
+    Hashes are sha256 hex digests. A distributed runner computes this once and
+    hands it to every stage that writes files (their attributes name the inputs).
+    """
+
+    input_hash: str              # scene.geometry_hash: every array that changes the transfer
+    settings_hash: str           # settings_hash(settings)
+    light_hash: str | None       # shading.model.light_hash of the prepared light; None without a light
+    materials_hash: str          # shading.materials.materials_hash(scene)
+    bouncing: bool               # bounce levels will be baked (bounces > 0, textures on, a light given)
+    bounce_key: str | None       # bounce_key(...) when bouncing, else None
+    old_manifest: dict | None    # the folder's manifest before this bake (read_manifest)
+    transfer_reused: bool        # the transfer outputs on disk are this bake's: read, not traced
+    bounce_reused: bool          # the bounce outputs on disk are this bake's (or none are wanted nor there)
+
+    @property
+    def skipped(self) -> bool:
+        """Nothing to bake: every output on disk is this bake's."""
+        return self.transfer_reused and self.bounce_reused
+
+    def exr_attrs(self, st: BakeSettings) -> dict:
+        """Header attributes every texture of this bake carries (stages add their own)."""
+        return {"rays": st.rays, "seed": st.seed, "sampler": st.sampler,
+                "estimator": st.estimator, "input_hash": self.input_hash}
+
+
+def plan_bake(ctx: BakeContext, *, skip_if_unchanged: bool = True) -> BakePlan:
+    """Hash the inputs and decide what the folder's outputs let this bake reuse.
+
+    Warns when bounces are asked for without a light (they are skipped) and
+    when recorded outputs no longer match their manifest (re-baked); raises
+    BakeError when the oidn denoiser is asked for but pyoidn is missing.
+    ``skip_if_unchanged`` False: reuse nothing.
+    """
+    sc, st = ctx.scene, ctx.settings
+    in_hash = geometry_hash(sc)
+    set_hash = settings_hash(st)
+    bouncing = st.bounces > 0 and st.textures
+    if bouncing and ctx.light is None and st.bounce_mode != "relightable":
+        ctx.warn("no light given: bounce textures (which bake the light in) are skipped")
+        bouncing = False
+    if bouncing and st.bounce_mode == "relightable" and denoise.resolve_filter(st.bounce_denoise,
+                                                                            st.bounce_rays) != "none":
+        raise BakeError("bounce denoising is not available for relightable bounces (bounce_mode relightable); "
+                        "use --bounce-denoise none or --bounce-mode baked")
+    if bouncing and st.bounce_denoise == "oidn" and not denoise.oidn_available():
+        raise BakeError("bounce denoiser 'oidn' needs the optional package pyoidn (pip install pyoidn); "
+                        "or use --bounce-denoise edge-aware or none")
+    l_hash = light_hash(ctx.light) if ctx.light is not None else None
+    m_hash = materials_hash(sc)
+    b_key = bounce_key(in_hash, set_hash, ctx.light, m_hash, st) if bouncing else None
+    old = read_manifest(ctx.out_dir)
+    transfer_ok, bounce_ok = reusable(ctx, old, in_hash, set_hash, b_key, bouncing=bouncing,
+                                      skip_if_unchanged=skip_if_unchanged)
+    return BakePlan(input_hash=in_hash, settings_hash=set_hash, light_hash=l_hash, materials_hash=m_hash,
+                    bouncing=bouncing, bounce_key=b_key, old_manifest=old,
+                    transfer_reused=transfer_ok, bounce_reused=bounce_ok)
+
+
+def reusable(ctx: BakeContext, old: dict | None, in_hash: str, set_hash: str, b_key: str | None, *,
+             bouncing: bool, skip_if_unchanged: bool) -> tuple[bool, bool]:
+    """(transfer outputs reusable, bounce outputs reusable) per the old manifest,
+    with every file checked against its recorded size and sha256. A mismatch is
+    reported as a warning and that part is re-baked."""
+    if not (skip_if_unchanged and old):
+        return False, False
+    same_inputs = old.get("input_hash") == in_hash and old.get("settings_hash") == set_hash
+    transfer_ok = False
+    if same_inputs:
+        why = outputs_changed(old, ctx.out_dir, old.get("transfer_files", old.get("files", [])))
+        transfer_ok = why is None
+        if why:
+            ctx.warn(f"re-baking the transfer: {why}")
+    old_bounce = old.get("bounce") or {}
+    if not bouncing:
+        return transfer_ok, not old_bounce.get("files")
+    if old_bounce.get("key") != b_key:
+        return transfer_ok, False
+    why = outputs_changed(old, ctx.out_dir, old_bounce.get("files", []))
+    if why:
+        ctx.warn(f"re-baking the bounce textures: {why}")
+    return transfer_ok, why is None
+
+
+def check_memory(ctx: BakeContext, plan: BakePlan) -> None:
+    """MemoryLimitError unless each set (with the BVH) fits, and, when bouncing,
+    every set's textures that stay resident until the last level. Before
+    anything of the bake is allocated."""
+    sc, st, K = ctx.scene, ctx.settings, ctx.n_coeffs
+    resident = 0
+    for s in ctx.set_ids:
+        w, h = (int(v) for v in sc.set_resolution[s])
+        check_fits(set_bytes(w, h, K, threads=st.n_threads, chunk_rays=st.chunk_rays, rays=st.rays,
+                             bounce=plan.bouncing) + bvh_bytes(sc.n_triangles),
+                   f"texture set {sc.set_names[s]!r} at {w}x{h}, {st.bands} bands")
+        resident += bounce_resident_bytes(w, h, K) if plan.bouncing else 0
+    if resident:
+        check_fits(resident, f"bouncing light between {len(ctx.set_ids)} texture sets (all stay in memory)")

@@ -1,0 +1,126 @@
+"""The bounce stage under ``bounce_mode = "relightable"``: levels 1..bounces of
+every set as linear maps of the light (relight.py), summed into one texture
+per set, ``<set>.relight.exr`` (kind "relight": exr_io.relight_channel_names).
+
+The same inputs, grids, rays, seeds and skips as the baked levels
+(bounce_stage.bounce_inputs, bounce.trace_bounce_level); the light is not
+needed. Levels stop early by the energy under a uniform white light
+(relight.uniform_energy), so what is stored does not depend on any light.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ...base.memory import numpy_hugepage_advice
+from ...io.exr_io import expand_shared_glossy, relight_channel_names
+from ...texels.dilate import dilate
+from ..estimators.bounce import bounce_settings
+from ..estimators.relightable import (
+    GLOSSY_BANDS,
+    RelightRows,
+    RelightShader,
+    bake_relight_set,
+    later_exit,
+    level1_exit,
+    relight_shared_colour,
+    uniform_energy,
+)
+from .bounce_stage import BounceResult, bounce_inputs, early_stop, set_level_plan, skipped_set
+from .context import BakeContext
+from .plan import BakePlan
+from .stages import BounceSource, Geometry, write_planes
+
+
+def relight_glossy_bands(st) -> int:
+    """Bands of the relightable glossy part, in and out (relight.GLOSSY_BANDS, at most the bake's)."""
+    return min(GLOSSY_BANDS, st.bands)
+
+
+def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list[BounceSource]) -> BounceResult:
+    """Bake the relightable bounce light of every set in ``sources`` and stage
+    one ``<set>.relight.exr`` per set that any level reached."""
+    st, sc = ctx.settings, ctx.scene
+    K = st.bands ** 2
+    gbands = relight_glossy_bands(st)
+    kg = gbands * gbands
+    shared = relight_shared_colour(st)
+    bst = bounce_settings(st, st.bounce_rays)
+    inputs, T = bounce_inputs(ctx, sources, geo, lit=False)
+    glossy_sets = {s.index: bool(inputs.glossy_tri[sc.triangles_of_set(s.index)].any()) for s in inputs.sources}
+    sums: dict[int, list] = {}
+    reports, stopped, rows = [], None, {}
+    for level in range(1, st.bounces + 1):
+        ctx.check_cancel()
+        t = time.perf_counter()
+        if level == 1:
+            exits = {i: level1_exit(inputs.surface[i], v, gbands, fine=inputs.level1_diffuse.get(i))
+                     for i, v in T.items()}
+        else:
+            exits = {i: later_exit(inputs.surface[i], r, gbands) for i, r in rows.items()}
+        shader = RelightShader(sc, exits, st.bands, gbands, inputs.glossy_tri)
+        ctx.seconds["bounce_exit"] += time.perf_counter() - t
+        nxt, energy = {}, 0.0
+        for src in inputs.sources:
+            ctx.check_cancel()
+            gb, skip = src.gbuffer, inputs.skip[src.index]
+            if skip.all():
+                reports.append(skipped_set(src, level))
+                continue
+            t = time.perf_counter()
+            lbst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
+            planes, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
+                                                   glossy_out=glossy_sets[src.index], shared_colour=shared,
+                                                   progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
+            ctx.seconds["bounce_trace"] += time.perf_counter() - t
+            t = time.perf_counter()
+            H, W = gb.height, gb.width
+            flat = planes
+            planes = planes.reshape(-1, H, W)
+            with numpy_hugepage_advice(False):
+                # Dilation is linear with one mask: dilating each level equals dilating the sum.
+                dilate(planes, mask, st.dilate, executor=ctx.helpers)
+            # The early stop reads only the DC responses to the light's DC (channels c K).
+            energy += uniform_energy(flat[0:3 * K:K][:, gb.texel].T[:, :, None])
+            if src.index in sums:
+                sums[src.index][1] += planes
+            else:
+                sums[src.index] = [src, planes, lbst.rays]
+            if level < st.bounces:
+                valid = inputs.surface[src.index].valid
+                M = valid.size
+                dc_rows = np.ascontiguousarray(flat[:3 * K, valid].T.reshape(M, 3, K))
+                g_rows = None
+                if flat.shape[0] > 3 * K and shared:
+                    # The next level reads what is stored: the shared rows, tinted per colour.
+                    g_rows = expand_shared_glossy(dc_rows, flat[3 * K:, valid].T.reshape(M, kg - 1, kg))
+                elif flat.shape[0] > 3 * K:
+                    g_rows = np.ascontiguousarray(flat[3 * K:, valid].T.reshape(M, 3, kg - 1, kg))
+                nxt[src.index] = RelightRows(dc_rows, g_rows)
+            stats.update(name=src.name, level=level, file=f"{src.name}.relight.exr", rays=lbst.rays, **extra)
+            if shared and glossy_sets[src.index]:
+                stats["glossy_colour"] = "shared: tuning auto stores the glossy rows once, tinted per colour on reading"
+            reports.append(stats)
+            ctx.seconds["bounce_write"] += time.perf_counter() - t
+        rows = nxt
+        if not rows:
+            break
+        stopped = early_stop(ctx, level, energy, inputs.direct, "uniform white light")
+        if stopped:
+            break
+    files = []
+    for i, (src, planes, rays) in sums.items():
+        t = time.perf_counter()
+        g = glossy_sets[i]
+        fname = f"{src.name}.relight.exr"
+        attrs = dict(plan.exr_attrs(st), levels=max(r["level"] for r in reports if r["name"] == src.name),
+                     rays=rays, materials_hash=plan.materials_hash, texels=int(src.gbuffer.n),
+                     glossy_bands=gbands if g else 0, bounce_mode="relightable")
+        if g and shared:
+            attrs["glossy_colour"] = "shared"
+        write_planes(ctx, fname, planes, "relight", attrs, rgb=False,
+                     names=relight_channel_names(K, kg if g else 0, g and shared), bands=st.bands)
+        files.append(fname)
+        ctx.seconds["bounce_write"] += time.perf_counter() - t
+    return BounceResult(reports, files, stopped)

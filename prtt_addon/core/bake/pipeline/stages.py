@@ -1,0 +1,455 @@
+"""The transfer stages of a bake, each callable alone (e.g. on a worker machine).
+
+After plan.plan_bake:
+
+1. geometry   :func:`build_geometry` -> :class:`Geometry` (Embree BVH, per-face
+   data); :func:`start_gbuffer` / :func:`start_tables` overlap it with the
+   first G-buffer and the ray tables on helper threads.
+2. per texture set (:func:`transfer_set` chains these):
+   :func:`gbuffer_stage` -> texels.gbuffer.GBuffer;
+   :func:`check_gbuffer` -> the set's report (warnings, empty sets);
+   :func:`trace_set` -> :class:`SetRows` (transfer rows of the covered texels);
+   :func:`project_rows` -> :class:`SetPlanes` (channel planes + coverage mask);
+   :func:`mip_and_dilate` (mips from the undilated planes, then dilation);
+   :func:`write_set` -> :class:`SetFiles` (staged EXRs).
+   A bounce-only re-bake reads the transfer instead: :func:`load_transfer_set`.
+3. vertex transfer: :func:`vertex_stage` -> :class:`VertexResult`.
+
+Then bounce_stage.bounce_levels and commit.make_manifest / commit_bake.
+
+Conventions: SH coefficient index k = l² + l + m, K = bands² per colour. A
+transfer coefficient is dimensionless (the SH projection of visibility x
+max(0, cos θ) over the sphere: lit by radiance SH L it gives irradiance
+T · L). Texel index = row * W + column, row 0 at the bottom (v up); channel
+planes are (C, H, W) float32, texel rows (N, C) float32 in ``gb.texel`` order.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import dataclasses
+import os
+import time
+
+import numpy as np
+
+from ...base.errors import BakeError, Cancelled
+from ...base.memory import release_free_memory
+from ...io import exr_io
+from ...model.scene import Scene
+from ...texels.dilate import dilate, mip_chain
+from ...texels.gbuffer import GBuffer, build_gbuffer, face_normals
+from ...texels.texsample import pixel_major, planes_from_rows
+from ..estimators.bounce import IncidentSet
+from ..estimators.hemisphere_clear import FLAT_COS, clear_triangles
+from ..estimators.raytrace import RayScene
+from ..estimators.transfer import SAME_NORMAL, Points, bake_points, warm_tables
+from .context import BakeContext
+from .plan import BakePlan
+
+# --- per-face data and the kernel's input ------------------------------------------------
+
+def scene_face_data(sc: Scene, *, analytic: bool = True,
+                    cancel=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Per-triangle data every set of a bake needs.
+
+    Returns (face normals (T, 3) turned to the shaded side (the mean corner
+    normal), zero for degenerate faces; normal group (T,) int64, equal for
+    faces whose oriented normals agree to 1e-9, -1 for degenerate ones;
+    clear (T,) bool from hemisphere_clear; its stats).
+    """
+    def check():
+        if cancel is not None and cancel.is_set():
+            raise Cancelled()
+
+    fn, _ = face_normals(sc.positions)
+    mean_n = sc.normals.astype(np.float64).sum(axis=1)
+    fn = np.where((np.einsum("tc,tc->t", fn, mean_n) < 0)[:, None], -fn, fn)
+    baked = np.flatnonzero((sc.set_id >= 0) & np.any(fn != 0, axis=1))
+    normal_group = np.full(sc.n_triangles, -1, np.int64)
+    check()
+    if baked.size:
+        _, inv = np.unique(np.round(fn[baked], 9), axis=0, return_inverse=True)
+        normal_group[baked] = inv.reshape(-1)
+    check()
+    clear = np.zeros(sc.n_triangles, bool)
+    stats = {}
+    if analytic:
+        clear, stats = clear_triangles(sc.positions, fn, candidates=np.flatnonzero(sc.set_id >= 0),
+                                       cancel=cancel)
+    return fn, normal_group, clear, stats
+
+
+def bake_points_input(sc: Scene, set_index: int, gb: GBuffer, fn: np.ndarray, clear: np.ndarray,
+                      normal_group: np.ndarray) -> Points:
+    """The transfer kernel's input for one set's G-buffer.
+
+    Texels use the zero-ray analytic path where their triangle is clear, flat
+    shaded and not normal-mapped; flat-shaded texels of faces with a common
+    normal form frame groups (see transfer.py, "Shared frames"). Point ids are
+    the texel index tagged with the set, so patterns never repeat across sets.
+    """
+    cos = np.einsum("nc,nc->n", gb.normal, gb.geo_normal)
+    same_side = np.einsum("nc,nc->n", gb.geo_normal, fn[gb.tri]) > 0
+    analytic = clear[gb.tri] & (cos >= FLAT_COS) & ~gb.normal_mapped & same_side
+    flat = (cos >= 1.0 - SAME_NORMAL) & ~gb.normal_mapped & same_side
+    group = np.where(flat, normal_group[gb.tri], -1)
+    return Points(gb.position, gb.normal, gb.geo_normal,
+                  gb.texel + (np.int64(set_index) << 40), analytic, group)
+
+
+# --- stage 1: geometry -------------------------------------------------------------------
+
+@dataclasses.dataclass(eq=False)
+class Geometry:
+    """What every set traces against (build_geometry). T = scene triangles."""
+
+    rays: RayScene | None          # Embree BVH of every triangle (normalised scene units); None when a
+                                   # Dask cluster traces (ctx.remote: each worker builds its own)
+    face_normal: np.ndarray        # (T, 3) float64 unit, turned to the shaded side; zero where degenerate
+    normal_group: np.ndarray       # (T,) int64: equal for faces with the same normal (1e-9); -1 degenerate
+    clear: np.ndarray              # (T,) bool: no geometry above the face (hemisphere_clear)
+    clear_stats: dict              # hemisphere_clear's stats (the manifest's "analytic_test")
+
+    def points(self, sc: Scene, set_index: int, gb: GBuffer) -> Points:
+        """The transfer kernel's input for set ``set_index``'s G-buffer (bake_points_input)."""
+        return bake_points_input(sc, set_index, gb, self.face_normal, self.clear, self.normal_group)
+
+
+def build_set_gbuffer(ctx: BakeContext, set_index: int) -> GBuffer:
+    """Set ``set_index``'s G-buffer, its row bands built on the helper pool
+    (stops when the bake is cancelled or fails)."""
+    st = ctx.settings
+    return build_gbuffer(ctx.scene, set_index, normal_maps=st.normal_maps, executor=ctx.helpers,
+                         bands=max(2, st.n_threads), cancel=ctx.stop)
+
+
+def start_gbuffer(ctx: BakeContext, set_index: int) -> cf.Future:
+    """Start set ``set_index``'s G-buffer on a helper (it overlaps the BVH build);
+    pass the future to :func:`gbuffer_stage`."""
+    return ctx.helpers.submit(build_set_gbuffer, ctx, set_index)
+
+
+def start_tables(ctx: BakeContext) -> None:
+    """Compute the ray patterns and estimator tables on a helper while the cores
+    are not tracing (ctx.tables; ctx.wait_tables() before tracing)."""
+    ctx.tables = ctx.helpers.submit(warm_tables, ctx.settings, ctx.stop)
+
+
+def build_geometry(ctx: BakeContext) -> Geometry:
+    """Build the BVH (not with a Dask cluster) and the per-face data (progress
+    stages "bvh", "analytic-test")."""
+    st = ctx.settings
+    ctx.emit(type="progress", stage="bvh", fraction=0.0)
+    t = time.perf_counter()
+    # With a cluster every ray is traced on the workers: the client needs no BVH.
+    rs = RayScene(ctx.scene.positions, cancel=ctx.cancel) if ctx.remote is None else None
+    ctx.seconds["bvh"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if st.analytic:
+        ctx.emit(type="progress", stage="analytic-test", fraction=0.0)
+    fn, normal_group, clear, clear_stats = scene_face_data(ctx.scene, analytic=st.analytic, cancel=ctx.cancel)
+    ctx.seconds["analytic_test"] = time.perf_counter() - t
+    return Geometry(rs, fn, normal_group, clear, clear_stats)
+
+
+# --- stage 2: one texture set ------------------------------------------------------------
+
+def gbuffer_stage(ctx: BakeContext, set_index: int, pending: cf.Future | None = None) -> GBuffer:
+    """Set ``set_index``'s G-buffer (progress stage "gbuffer"): ``pending``'s
+    result when start_gbuffer began it, else built now."""
+    t = time.perf_counter()
+    ctx.check_cancel()
+    ctx.emit(type="progress", stage="gbuffer", set=ctx.scene.set_names[set_index], fraction=0.0)
+    gb = ctx.wait(pending) if pending is not None else build_set_gbuffer(ctx, set_index)
+    release_free_memory()       # the rasteriser's temporaries, freed on helper threads
+    ctx.seconds["gbuffer"] += time.perf_counter() - t
+    return gb
+
+
+def check_gbuffer(ctx: BakeContext, gb: GBuffer) -> dict:
+    """The set's report so far (name, resolution [W, H], the G-buffer's stats).
+    Warns about overlapping UV islands (BakeError with settings.overlap
+    "error"), zero-area UV triangles and a set without texels (then the
+    report has ``skipped: True`` and the set is not traced)."""
+    name = ctx.scene.set_names[gb.set_index]
+    rep = {"name": name, "resolution": [gb.width, gb.height], **gb.stats}
+    if gb.stats["overlap_texels"]:
+        msg = (f"set {name!r}: {gb.stats['overlap_texels']} texels are covered by overlapping "
+               f"UV islands (objects: {', '.join(gb.stats['overlap_objects'])}); each keeps "
+               f"one surface, the others are wrong there. Re-unwrap without overlaps.")
+        if ctx.settings.overlap == "error":
+            raise BakeError(msg)
+        ctx.warn(msg)
+    if gb.stats["zero_area_uv_triangles"]:
+        ctx.warn(f"set {name!r}: {gb.stats['zero_area_uv_triangles']} triangles have zero UV area "
+                 f"and get no texels (they still cast shadows)")
+    if gb.n == 0:
+        ctx.warn(f"set {name!r}: no texel is covered by its UV layout; skipped")
+        rep["skipped"] = True
+    return rep
+
+
+@dataclasses.dataclass(eq=False)
+class SetRows:
+    """One set's traced transfer (trace_set). N = covered texels, K = bands²."""
+
+    gbuffer: GBuffer
+    points: Points | None          # the kernel's input (N points); None once released
+    rows: np.ndarray | None        # (N, K) float32, row i = texel gbuffer.texel[i]; None once projected
+    info: dict                     # transfer.bake_points' stats (rays_traced, analytic_points, ...)
+
+    def release_surface(self) -> None:
+        """Drop the points and the G-buffer's surface arrays (a set that does not bounce)."""
+        self.points = None
+        self.gbuffer.release_surface()
+
+
+def trace_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, *, position: int = 0) -> SetRows:
+    """Trace the transfer of ``gb``'s covered texels (progress stage "trace";
+    ``position`` = the set's place among ctx.set_ids, reported as set_index).
+    Waits for the ray tables first. Needs gb.n > 0."""
+    name = ctx.scene.set_names[gb.set_index]
+    pts = geo.points(ctx.scene, gb.set_index, gb)
+    ctx.wait_tables()
+    t = time.perf_counter()
+
+    def on_progress(done, total, rays):
+        ctx.emit(type="progress", stage="trace", set=name, fraction=done / max(total, 1), rays=rays,
+                 rays_per_s=rays / max(time.perf_counter() - t, 1e-9), set_index=position,
+                 sets=len(ctx.set_ids))
+
+    # Chunks write whole rows (N, K) (a chunk's texels are scattered over the
+    # atlas; K separate plane writes per texel cost more than the trace glue).
+    rows, info = bake_points(geo.rays, pts, ctx.settings, progress=on_progress, cancel=ctx.cancel,
+                             remote=ctx.remote)
+    ctx.seconds["trace"] += time.perf_counter() - t
+    return SetRows(gb, pts, rows, info)
+
+
+@dataclasses.dataclass(eq=False)
+class SetPlanes:
+    """One set's transfer texture (project_rows, then mip_and_dilate).
+
+    ``mips`` (empty until mip_and_dilate, and without settings.mips): level k =
+    1, 2, .. as (planes (K, H_k, W_k) float32, coverage weight (H_k, W_k)
+    float64), sizes halving (rounded up) down to 1 x 1 (texels.dilate.mip_chain).
+    """
+
+    planes: np.ndarray             # (K, H, W) float32 channel planes, zero where no texel (until dilated)
+    mask: np.ndarray               # (H, W) bool: covered texels
+    mips: list[tuple[np.ndarray, np.ndarray]] = dataclasses.field(default_factory=list)
+
+
+def project_rows(ctx: BakeContext, traced: SetRows, *, keep_rows: bool = True) -> SetPlanes:
+    """The set's channel planes holding its texel rows, zero elsewhere.
+
+    keep_rows False (a set that does not bounce): the points and the
+    G-buffer's surface are dropped before the planes are allocated and the
+    rows after, so the peak stays below G-buffer + planes (traced.points and
+    traced.rows become None)."""
+    t = time.perf_counter()
+    if not keep_rows:
+        traced.release_surface()
+    gb = traced.gbuffer
+    texel = gb.texel
+    tex = planes_from_rows(texel, traced.rows, gb.height * gb.width,
+                           executor=ctx.helpers).reshape(ctx.n_coeffs, gb.height, gb.width)
+    if not keep_rows:
+        traced.rows = None
+    mask = np.zeros(gb.height * gb.width, bool)
+    mask[texel] = True
+    ctx.seconds["dilate"] += time.perf_counter() - t
+    return SetPlanes(tex, mask.reshape(gb.height, gb.width))
+
+
+def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer) -> SetPlanes:
+    """With settings.mips, the coverage-weighted mip levels of the undilated
+    planes (weights: gb.coverage); then settings.dilate rings of dilation, in
+    place. Returns ``sp``."""
+    st = ctx.settings
+    t = time.perf_counter()
+    if st.mips:
+        cov = np.zeros(gb.height * gb.width, np.float32)
+        cov[gb.texel] = gb.coverage
+        sp.mips = mip_chain(sp.planes, cov.reshape(gb.height, gb.width))
+    dilate(sp.planes, sp.mask, st.dilate, executor=ctx.helpers)
+    ctx.seconds["dilate"] += time.perf_counter() - t
+    return sp
+
+
+def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, attrs: dict, *, rgb: bool,
+                 half: bool | None = None, names: list[str] | None = None, bands: int | None = None) -> bool:
+    """Write ``planes`` (C, H, W) as staged output ``fname`` (progress stage
+    "write"); half precision (settings.half unless given) unless values
+    overflow it (a warning, then float32). Returns whether it was written as half."""
+    ctx.check_cancel()
+    ctx.emit(type="progress", stage="write", file=fname, fraction=0.0)
+    half = ctx.settings.half if half is None else half
+    rng = exr_io.value_range(planes, ctx.helpers)
+    over = exr_io.half_overflow(planes, rng) if half else 0
+    if over:
+        ctx.warn(f"{fname}: {over} values exceed the half-float range; stored as float32")
+        half = False
+    # Tuning auto rounds the half coefficients of bands l >= 1 (context.AUTO_MANTISSA_BITS),
+    # and every relightable channel but the DC-to-DC one.
+    exr_io.write_sh_planes(ctx.staging.path(fname), planes, kind=kind, half=half, rgb=rgb,
+                           attrs=attrs, atomic=False, executor=ctx.helpers, rng=rng, names=names, bands=bands,
+                           mantissa_bits=ctx.settings.storage_bits(),
+                           full_bits=None if names is None else exr_io.relight_full_bits(names))
+    return half
+
+
+@dataclasses.dataclass
+class SetFiles:
+    """What write_set staged: ``<set>.transfer.exr`` then ``<set>.transfer.mip<k>.exr``."""
+
+    files: list[str]               # file names in the output folder
+    half: bool                     # stored as float16 (all of the set's files alike)
+
+
+def write_set(ctx: BakeContext, plan: BakePlan, gb: GBuffer, sp: SetPlanes, info: dict) -> SetFiles:
+    """Stage the set's transfer texture and its mips (the mips in the texture's precision)."""
+    st = ctx.settings
+    name = ctx.scene.set_names[gb.set_index]
+    t = time.perf_counter()
+    attrs = dict(plan.exr_attrs(st), kind_detail="visibility*cosine", dilate=st.dilate,
+                 texels=int(gb.n), analytic_texels=info["analytic_points"])
+    fname = f"{name}.transfer.exr"
+    ctx.check_cancel()
+    half = write_planes(ctx, fname, sp.planes, "transfer", attrs, rgb=False)
+    files = [fname]
+    for lvl, (mt, _) in enumerate(sp.mips, start=1):
+        mname = f"{name}.transfer.mip{lvl}.exr"
+        write_planes(ctx, mname, mt, "transfer", dict(attrs, mip_level=lvl), rgb=False, half=half)
+        files.append(mname)
+    ctx.seconds["write"] += time.perf_counter() - t
+    return SetFiles(files, half)
+
+
+@dataclasses.dataclass(eq=False)
+class BounceSource:
+    """What the bounce levels need of one set's transfer (bounce_stage)."""
+
+    index: int                     # scene set index
+    name: str
+    gbuffer: GBuffer               # with its surface arrays
+    points: Points                 # the transfer kernel's input (N points)
+    rows: np.ndarray               # (N, K) float32 transfer of the covered texels
+    incident: IncidentSet | None   # the dilated transfer texture, pixel-major (H * W, K) float32;
+                                   # None once the level-1 incident radiance is computed
+    storage: str = "float32"       # precision of rows: "float32" (traced now) or "half" (read from disk)
+
+
+@dataclasses.dataclass(eq=False)
+class SetResult:
+    """One set's part of the bake: its manifest report and staged files."""
+
+    index: int                     # scene set index
+    name: str
+    report: dict                   # the manifest's "sets" entry
+    files: list[str]               # staged file names ([] when skipped or reused)
+    bounce: BounceSource | None = None   # when the bake bounces and the set has texels
+
+
+def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *, position: int = 0,
+                 keep_for_bounce: bool = False) -> SetResult:
+    """Stage 2 for one set from its G-buffer: check, trace, project, mips and
+    dilation, write; with ``keep_for_bounce`` the result carries a BounceSource."""
+    rep = check_gbuffer(ctx, gb)
+    name = rep["name"]
+    if rep.get("skipped"):
+        return SetResult(gb.set_index, name, rep, [])
+    traced = trace_set(ctx, geo, gb, position=position)
+    sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=keep_for_bounce), gb)
+    info = traced.info
+    written = write_set(ctx, plan, gb, sp, info)
+    rep.update(file=written.files[0], storage="half" if written.half else "float",
+               analytic_texels=info["analytic_points"], traced_texels=info["traced_points"],
+               rays_traced=info["rays_traced"], rays_naive=info["rays_naive"],
+               rays_below_horizon_skipped=info["rays_below_horizon_skipped"],
+               adaptive_early_stops=info["adaptive_early_stops"],
+               threads=info["threads"], trace_seconds=info["seconds"])
+    res = SetResult(gb.set_index, name, rep, written.files)
+    if keep_for_bounce:
+        # Normal pages (the runner's advice): the exit radiance reads it in
+        # texel order, and huge pages cost ~6x more to fault in here.
+        incident = IncidentSet(pixel_major(sp.planes), gb.width, gb.height)
+        res.bounce = BounceSource(gb.set_index, name, gb, traced.points, traced.rows, incident)
+    return res
+
+
+def load_transfer_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, old_report: dict) -> SetResult:
+    """Bounce-only re-bake: the set's transfer as written (what renders), read
+    from ``<set>.transfer.exr`` in the output folder; ``old_report`` is the
+    set's entry of the previous manifest (kept as it is)."""
+    name = ctx.scene.set_names[gb.set_index]
+    data, attrs = exr_io.read_sh_exr(os.path.join(ctx.out_dir, f"{name}.transfer.exr"))
+    if data.shape[:2] != (gb.height, gb.width):
+        raise BakeError(f"{name}.transfer.exr is {data.shape[1]}x{data.shape[0]}, the set is "
+                        f"{gb.width}x{gb.height}: bake the transfer again")
+    pm = data.reshape(gb.height * gb.width, -1)    # (H, W, K) rows are already pixel-major
+    incident = IncidentSet(pm, gb.width, gb.height)
+    src = BounceSource(gb.set_index, name, gb, geo.points(ctx.scene, gb.set_index, gb), pm[gb.texel], incident,
+                       storage=attrs.get("storage", "half"))
+    return SetResult(gb.set_index, name, old_report, [], bounce=src)
+
+
+# --- stage 3: vertex transfer ------------------------------------------------------------
+
+def vertex_points(sc: Scene, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unique render vertices of triangles ``tris`` (indices into the scene).
+
+    Returns (positions (V, 3) float64, unit normals (V, 3) float64 (+Z where
+    the corner normal is zero), corner_vertex (len(tris), 3) int32: each
+    corner's vertex). Vertices are unique by (object, position, normal)."""
+    P = sc.positions[tris].reshape(-1, 3)
+    Nn = sc.normals[tris].reshape(-1, 3).astype(np.float64)
+    obj = np.repeat(sc.object_id[tris], 3).astype(np.float64)[:, None]
+    key = np.concatenate([obj, P, Nn], axis=1)
+    uniq, inverse = np.unique(key, axis=0, return_inverse=True)
+    n = uniq[:, 4:7]
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(ln > 1e-6, n / np.where(ln > 0, ln, 1), [0.0, 0.0, 1.0])
+    return uniq[:, 1:4], n, inverse.reshape(-1, 3).astype(np.int32)
+
+
+def bake_vertex_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, set_index: int) -> dict:
+    """Trace the transfer at set ``set_index``'s vertices (no analytic path) and
+    stage ``<set>.vertex.npz`` (docs/format.md: positions, normals (V, 3)
+    float32; coeffs (V, K) float32; corner_vertex (F, 3) int32; triangles
+    (F,) int64). Returns the manifest's "vertex" entry (progress stage "vertex")."""
+    sc, st = ctx.scene, ctx.settings
+    name = sc.set_names[set_index]
+    tris = sc.triangles_of_set(set_index)
+    vp, vn, corner = vertex_points(sc, tris)
+    ctx.check_cancel()
+    ctx.emit(type="progress", stage="vertex", set=name, fraction=0.0)
+    ctx.wait_tables()
+    pts = Points(vp, vn, vn, np.arange(vp.shape[0], dtype=np.int64) + (np.int64(set_index) << 40)
+                 + (np.int64(1) << 62), np.zeros(vp.shape[0], bool))
+    vc, info = bake_points(geo.rays, pts, dataclasses.replace(st, analytic=False), cancel=ctx.cancel,
+                           remote=ctx.remote)
+    vname = f"{name}.vertex.npz"
+    ctx.check_cancel()
+    with open(ctx.staging.path(vname), "wb") as f:
+        np.savez(f, format=np.array("prtt-vertex-transfer"), version=np.array(1),
+                 bands=np.array(st.bands), positions=vp.astype(np.float32),
+                 normals=vn.astype(np.float32), coeffs=vc, corner_vertex=corner,
+                 triangles=tris.astype(np.int64), input_hash=np.array(plan.input_hash))
+    return {"name": name, "file": vname, "vertices": int(vp.shape[0]), "rays_traced": info["rays_traced"]}
+
+
+@dataclasses.dataclass
+class VertexResult:
+    """The vertex stage's manifest entries and staged files (one per set)."""
+
+    reports: list[dict]
+    files: list[str]
+
+
+def vertex_stage(ctx: BakeContext, geo: Geometry, plan: BakePlan) -> VertexResult:
+    """Vertex transfer of every set being baked (settings.vertex_mode)."""
+    t = time.perf_counter()
+    reports = [bake_vertex_set(ctx, geo, plan, s) for s in ctx.set_ids]
+    ctx.seconds["vertex"] = time.perf_counter() - t
+    return VertexResult(reports, [r["file"] for r in reports])

@@ -1,0 +1,1 @@
+"""Light: environment maps (images, built-in HDRIs, Blender Worlds' settings) projected to SH."""
