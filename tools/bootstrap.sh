@@ -50,6 +50,21 @@ if [[ ! -x .venv/bin/python ]] || [[ "$(cat "$stamp" 2>/dev/null)" != "$want" ]]
     echo "$want" > "$stamp"
 fi
 
+# --- independent readers (npm) ------------------------------------------------
+# tools/js/package-lock.json pins the JavaScript readers the tests check PRTT's
+# files against (ktx-parse for KTX2). Installed again when the lock changes.
+js_want="$(sha256sum tools/js/package-lock.json | cut -d' ' -f1)"
+js_stamp="tools/js/node_modules/.lock.sha256"
+if [[ "$(cat "$js_stamp" 2>/dev/null)" != "$js_want" ]]; then
+    if command -v npm >/dev/null; then
+        say "installing tools/js (npm ci: ktx-parse)"
+        npm ci --prefix tools/js --no-audit --no-fund --loglevel=error >/dev/null
+        echo "$js_want" > "$js_stamp"
+    else
+        say "WARNING: npm not found: tests/test_ktx2.py needs Node.js 20 and npm (ktx-parse)"
+    fi
+fi
+
 # --- extension wheels --------------------------------------------------------
 # The runtime wheels of every platform's extension zip, fetched now so that
 # building the zip (and the tests that do) never needs the network. Cached in

@@ -1,0 +1,220 @@
+"""KTX 2.0 files of float 2D array textures: PRTT's SH planes for glTF and the web.
+
+PyPI has no writer of float KTX2 arrays, so this is a small one: one format,
+``VK_FORMAT_R16G16B16A16_SFLOAT`` (RGBA16F, 8 bytes a texel), a 2D array
+texture of ``layers`` layers (four SH coefficients per layer: coefficient
+k = 4 * layer + channel, k = l² + l + m), one or more mip levels, no
+supercompression or Zstandard per level (scheme 2). Layout as the KTX 2.0
+specification (Khronos, 2020-2023) gives it: identifier, header, index, level
+index, the Data Format Descriptor (one basic block, four float samples, linear
+transfer, BT.709 primaries), key/value data (``KTXorientation`` "rd": the
+first row is the top, ``KTXwriter``, and the caller's keys), then the levels'
+data, smallest level first, each level's layers in order, each layer's rows
+top first. tests/test_ktx2.py checks files against ktx-parse (npm), an
+independent parser.
+
+:func:`read_ktx2` reads back what :func:`write_ktx2` writes, for tests and the
+export's checks; it bounds every size before allocating (files from outside
+are untrusted) and refuses any other format with :class:`KTX2Error`.
+"""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from ..base.memory import check_fits
+from .atomic import atomic_write
+
+IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
+VK_FORMAT_R16G16B16A16_SFLOAT = 97
+SUPERCOMPRESSION = {"none": 0, "zstd": 2}
+#: Largest side and layer count accepted (a 16384² array of 16 layers of
+#: RGBA16F is 32 GiB: beyond what a browser or a GPU takes).
+MAX_SIDE = 16384
+MAX_LAYERS = 2048
+MAX_LEVELS = 15
+#: Key/value data and Data Format Descriptor sizes a reader accepts.
+MAX_KVD_BYTES = 1 << 20
+_HEADER = struct.Struct("<12s9I")          # identifier + 9 uint32: vkFormat ... supercompressionScheme
+_INDEX = struct.Struct("<4I2Q")            # dfd offset/length, kvd offset/length, sgd offset/length
+_LEVEL = struct.Struct("<3Q")              # byteOffset, byteLength, uncompressedByteLength
+
+
+class KTX2Error(ValueError):
+    """A KTX2 file this module cannot write or read; the message says why."""
+
+
+def _dfd_rgba16f() -> bytes:
+    """The Data Format Descriptor of linear RGBA16F: its total size, then one
+    basic descriptor block (24 bytes) with four 16-byte samples."""
+    samples = b""
+    for i, channel in enumerate((0, 1, 2, 15)):             # KHR_DF_CHANNEL_RGBSDA_R, G, B, ALPHA
+        qualifiers = 0x80 | 0x40                            # FLOAT | SIGNED (a float's sign bit)
+        samples += struct.pack("<HBB4B2I", 16 * i, 16 - 1, channel | qualifiers, 0, 0, 0, 0,
+                               0xBF800000, 0x3F800000)      # sampleLower -1.0f, sampleUpper 1.0f
+    block = struct.pack("<IHH4B4B8B", 0, 2, 24 + len(samples),
+                        1, 1, 1, 0,                         # RGBSDA model, BT.709 primaries, linear, straight alpha
+                        0, 0, 0, 0,                         # one texel a block
+                        8, 0, 0, 0, 0, 0, 0, 0) + samples  # bytes in plane 0
+    return struct.pack("<I", 4 + len(block)) + block
+
+
+def _kvd(entries: dict) -> bytes:
+    """Key/value data, keys sorted by their bytes, each entry padded to 4."""
+    out = b""
+    for key in sorted(entries, key=lambda k: k.encode("utf-8")):
+        value = entries[key]
+        value = value if isinstance(value, bytes) else str(value).encode("utf-8") + b"\0"
+        kv = key.encode("utf-8") + b"\0" + value
+        out += struct.pack("<I", len(kv)) + kv + b"\0" * (-len(kv) % 4)
+    return out
+
+
+def _check_levels(levels) -> list:
+    """Levels as C-contiguous float16 (layers, H, W, 4) arrays, each half the
+    one before (rounded down, at least 1)."""
+    if not levels or len(levels) > MAX_LEVELS:
+        raise KTX2Error(f"a KTX2 file needs 1..{MAX_LEVELS} mip levels, got {len(levels)}")
+    out = []
+    for i, lv in enumerate(levels):
+        a = np.asarray(lv)
+        if a.ndim != 4 or a.shape[3] != 4:
+            raise KTX2Error(f"level {i}: expected (layers, height, width, 4), got {a.shape}")
+        if a.dtype != np.float16:
+            if not np.issubdtype(a.dtype, np.floating):
+                raise KTX2Error(f"level {i}: expected floats, got {a.dtype}")
+            a = a.astype(np.float16)
+        out.append(np.ascontiguousarray(a))
+    L, H, W = out[0].shape[:3]
+    if not (1 <= L <= MAX_LAYERS and 1 <= H <= MAX_SIDE and 1 <= W <= MAX_SIDE):
+        raise KTX2Error(f"{L} layers of {W}x{H}: at most {MAX_LAYERS} layers and {MAX_SIDE} texels a side")
+    for i, a in enumerate(out[1:], 1):
+        want = (L, max(1, H >> i), max(1, W >> i), 4)
+        if a.shape != want:
+            raise KTX2Error(f"level {i}: expected shape {want}, got {a.shape}")
+    return out
+
+
+def write_ktx2(path, levels, *, supercompression: str = "none", keys: dict | None = None,
+               zstd_level: int = 10) -> dict:
+    """Write mip ``levels`` (level 0 first, each (layers, H, W, 4), float16 or
+    converted to it) as a KTX2 2D array texture at ``path``, atomically.
+    ``supercompression``: "none" or "zstd" (each level on its own, as
+    KTX2 requires). ``keys``: extra key/value pairs (str -> str). Returns
+    {"bytes": file size, "level_bytes": [(stored, uncompressed) per level]}."""
+    if supercompression not in SUPERCOMPRESSION:
+        raise KTX2Error(f"supercompression must be one of {sorted(SUPERCOMPRESSION)}, got {supercompression!r}")
+    levels = _check_levels(levels)
+    L, H, W = levels[0].shape[:3]
+    raw = [lv.tobytes() for lv in levels]
+    if supercompression == "zstd":
+        import zstandard  # optional at import: only zstd files need it
+        cctx = zstandard.ZstdCompressor(level=zstd_level)
+        stored = [cctx.compress(b) for b in raw]
+    else:
+        stored = raw
+    dfd = _dfd_rgba16f()
+    kvd = _kvd({"KTXorientation": "rd", "KTXwriter": "PRTT (prtt_addon.core.io.ktx2)", **(keys or {})})
+    n = len(levels)
+    level_index_at = _HEADER.size + _INDEX.size
+    dfd_at = level_index_at + n * _LEVEL.size
+    kvd_at = dfd_at + len(dfd)
+    data_at = kvd_at + len(kvd)
+    # Levels in the file smallest first; uncompressed ones aligned to lcm(8, 4).
+    align = 8 if supercompression == "none" else 1
+    offsets, pos, body = [0] * n, data_at, b""
+    for i in reversed(range(n)):
+        pad = -pos % align
+        body += b"\0" * pad
+        pos += pad
+        offsets[i] = pos
+        body += stored[i]
+        pos += len(stored[i])
+    header = _HEADER.pack(IDENTIFIER, VK_FORMAT_R16G16B16A16_SFLOAT, 2, W, H, 0, L, 1, n,
+                          SUPERCOMPRESSION[supercompression])
+    index = _INDEX.pack(dfd_at, len(dfd), kvd_at, len(kvd), 0, 0)
+    level_index = b"".join(_LEVEL.pack(offsets[i], len(stored[i]), len(raw[i])) for i in range(n))
+    blob = header + index + level_index + dfd + kvd + body
+    with atomic_write(str(path)) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(blob)
+    return {"bytes": len(blob), "level_bytes": [(len(s), len(r)) for s, r in zip(stored, raw)]}
+
+
+def read_ktx2(path, *, max_bytes: int | None = None) -> tuple[list, dict]:
+    """(levels [(layers, H, W, 4) float16], key/value dict) of a KTX2 file in
+    the one format :func:`write_ktx2` writes. Every size is checked against
+    the file's own length and the limits above before anything is allocated;
+    anything else is a KTX2Error naming the file."""
+    with open(path, "rb") as f:
+        data = f.read(max_bytes + 1 if max_bytes else -1)
+    if max_bytes and len(data) > max_bytes:
+        raise KTX2Error(f"{path}: larger than {max_bytes} bytes")
+
+    def fail(why):
+        raise KTX2Error(f"{path}: {why}")
+
+    if len(data) < _HEADER.size + _INDEX.size or not data.startswith(IDENTIFIER):
+        fail("not a KTX 2.0 file")
+    _, vk, type_size, W, H, depth, L, faces, n, scheme = _HEADER.unpack_from(data)
+    if vk != VK_FORMAT_R16G16B16A16_SFLOAT or type_size != 2:
+        fail(f"vkFormat {vk} (typeSize {type_size}); only RGBA16F ({VK_FORMAT_R16G16B16A16_SFLOAT}) is read")
+    if depth != 0 or faces != 1 or not (1 <= L <= MAX_LAYERS) or not (1 <= W <= MAX_SIDE and 1 <= H <= MAX_SIDE):
+        fail(f"{W}x{H}x{depth}, {L} layers, {faces} faces: not a 2D array within the limits")
+    if not 1 <= n <= MAX_LEVELS or n > 1 + max(W, H).bit_length():
+        fail(f"{n} mip levels for {W}x{H}")
+    if scheme not in SUPERCOMPRESSION.values():
+        fail(f"supercompression scheme {scheme} (only none and zstd)")
+    dfd_at, dfd_len, kvd_at, kvd_len, sgd_at, sgd_len = _INDEX.unpack_from(data, _HEADER.size)
+    if sgd_len:
+        fail("supercompression global data is not expected for these schemes")
+    for what, at, ln in (("DFD", dfd_at, dfd_len), ("key/value data", kvd_at, kvd_len)):
+        if ln > MAX_KVD_BYTES or at + ln > len(data):
+            fail(f"{what} of {ln} bytes at {at} runs past the file")
+    if data[dfd_at:dfd_at + dfd_len] != _dfd_rgba16f():
+        fail("its Data Format Descriptor is not linear RGBA16F")
+    keys, p, end = {}, kvd_at, kvd_at + kvd_len
+    while p + 4 <= end:
+        (ln,) = struct.unpack_from("<I", data, p)
+        if ln == 0 or p + 4 + ln > end:
+            fail("a key/value entry runs past its data")
+        kv = data[p + 4:p + 4 + ln]
+        key, sep, value = kv.partition(b"\0")
+        if not sep:
+            fail("a key without its terminating NUL")
+        keys[key.decode("utf-8", "replace")] = value.rstrip(b"\0").decode("utf-8", "replace")
+        p += 4 + ln + (-ln % 4)
+    level_index_at = _HEADER.size + _INDEX.size
+    if level_index_at + n * _LEVEL.size > len(data):
+        fail("its level index runs past the file")
+    total = sum(L * max(1, H >> i) * max(1, W >> i) * 8 for i in range(n))
+    check_fits(2 * total, f"reading {path}")
+    levels = []
+    for i in range(n):
+        off, ln, raw_len = _LEVEL.unpack_from(data, level_index_at + i * _LEVEL.size)
+        shape = (L, max(1, H >> i), max(1, W >> i), 4)
+        want = int(np.prod(shape)) * 2
+        if raw_len != want or off + ln > len(data) or (scheme == 0 and ln != want):
+            fail(f"level {i}: {ln} bytes at {off} ({raw_len} uncompressed) for {shape} RGBA16F")
+        chunk = data[off:off + ln]
+        if scheme == 2:
+            import zstandard  # optional at import: only zstd files need it
+            try:
+                chunk = zstandard.ZstdDecompressor().decompress(chunk, max_output_size=want)
+            except zstandard.ZstdError as exc:
+                fail(f"level {i}: its Zstandard data is corrupt ({exc})")
+            if len(chunk) != want:
+                fail(f"level {i}: {len(chunk)} bytes after Zstandard, {want} expected")
+        levels.append(np.frombuffer(chunk, np.float16).reshape(shape).copy())
+    return levels, keys
+
+
+def sh_layers(planes: np.ndarray) -> np.ndarray:
+    """(K, H, W) SH planes (k = l² + l + m, rows top first) as (ceil(K/4), H, W, 4)
+    layers: coefficient k in layer k // 4, channel k % 4; the last layer's
+    unused channels are 0."""
+    K, H, W = planes.shape
+    out = np.zeros(((K + 3) // 4 * 4, H, W), planes.dtype)
+    out[:K] = planes
+    return np.ascontiguousarray(out.reshape(-1, 4, H, W).transpose(0, 2, 3, 1))

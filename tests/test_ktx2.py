@@ -1,0 +1,118 @@
+"""The KTX2 writer (core/io/ktx2.py, issue 34) against an independent
+implementation: ktx-parse (npm, tools/js) parses every file, and its own
+writer, given the container it parsed, lays out the very same bytes."""
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from prtt_addon.core.io.ktx2 import KTX2Error, read_ktx2, sh_layers, write_ktx2
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+JS = os.path.join(ROOT, "tools", "js")
+
+
+def node(script, *args):
+    exe = shutil.which("node")
+    assert exe and os.path.isdir(os.path.join(JS, "node_modules", "ktx-parse")), \
+        "Node.js and tools/js/node_modules (ktx-parse) are needed: ./prtt.sh installs them (npm ci)"
+    r = subprocess.run([exe, os.path.join(JS, script), *map(str, args)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def chain(rng, layers, h, w, levels):
+    out = []
+    for i in range(levels):
+        out.append((rng.standard_normal((layers, max(1, h >> i), max(1, w >> i), 4)) * 10).astype(np.float16))
+    return out
+
+
+CASES = [(1, 1, 1, 1, "none"), (7, 8, 16, 2, "none"), (7, 5, 3, 3, "zstd"), (4, 33, 17, 6, "none"),
+         (9, 64, 64, 1, "zstd")]
+
+
+@pytest.mark.parametrize("layers, h, w, n, scheme", CASES)
+def test_ktx_parse_reads_it_and_writes_the_same_bytes(tmp_path, rng, layers, h, w, n, scheme):
+    levels = chain(rng, layers, h, w, n)
+    path = tmp_path / "t.ktx2"
+    info = write_ktx2(path, levels, supercompression=scheme, keys={"PRTTkind": "transfer"})
+    data = path.read_bytes()
+    assert info["bytes"] == len(data)
+    c = json.loads(node("ktx_info.mjs", path))
+    assert (c["vkFormat"], c["typeSize"], c["pixelWidth"], c["pixelHeight"], c["pixelDepth"], c["layerCount"],
+            c["faceCount"]) == (97, 2, w, h, 0, layers, 1)
+    assert c["supercompressionScheme"] == {"none": 0, "zstd": 2}[scheme]
+    (dfd,) = c["dfd"]
+    assert (dfd["colorModel"], dfd["colorPrimaries"], dfd["transferFunction"], dfd["bytesPlane"][0]) == (1, 1, 1, 8)
+    assert [(s["bitOffset"], s["bitLength"], s["channelType"]) for s in dfd["samples"]] == \
+        [(0, 15, 0xC0), (16, 15, 0xC1), (32, 15, 0xC2), (48, 15, 0xCF)]
+    assert c["keyValue"]["KTXorientation"] == "rd" and c["keyValue"]["PRTTkind"] == "transfer"
+    assert len(c["levels"]) == n
+    for lv, mine, (stored, raw) in zip(c["levels"], levels, info["level_bytes"]):
+        assert lv["uncompressed"] == raw == mine.nbytes and lv["bytes"] == stored
+        if scheme == "none":
+            assert lv["sha256"] == hashlib.sha256(mine.tobytes()).hexdigest()
+    node("ktx_rewrite.mjs", path, tmp_path / "again.ktx2")
+    assert (tmp_path / "again.ktx2").read_bytes() == data
+    back, keys = read_ktx2(path)
+    assert keys["PRTTkind"] == "transfer"
+    for a, b in zip(back, levels):
+        assert a.dtype == np.float16 and np.array_equal(a.view(np.uint16), b.view(np.uint16))
+
+
+def test_sh_layers_put_coefficient_k_in_layer_k_over_4():
+    K, H, W = 25, 3, 5
+    planes = np.arange(K * H * W, dtype=np.float32).reshape(K, H, W)
+    L = sh_layers(planes)
+    assert L.shape == (7, H, W, 4)
+    for k in range(K):
+        assert np.array_equal(L[k // 4, :, :, k % 4], planes[k])
+    assert not L[6, :, :, 1:].any()
+
+
+def test_half_storage_error_is_within_its_bound(rng):
+    """float16 keeps 11 significant bits: relative error <= 2^-11 over the
+    normal half range (6.1e-5 .. 65504)."""
+    x = np.exp(rng.uniform(np.log(6.2e-5), np.log(6.5e4), 100_000)) * rng.choice([-1.0, 1.0], 100_000)
+    rel = np.abs(x.astype(np.float16).astype(np.float64) - x) / np.abs(x)
+    assert rel.max() <= 2.0 ** -11
+
+
+@pytest.mark.parametrize("levels, message", [
+    ([], "1..15 mip levels"),
+    ([np.zeros((2, 4, 4, 3), np.float16)], "expected (layers, height, width, 4)"),
+    ([np.zeros((2, 4, 4, 4), np.int32)], "expected floats"),
+    ([np.zeros((2, 4, 4, 4)), np.zeros((2, 4, 4, 4))], "level 1: expected shape (2, 2, 2, 4)"),
+    ([np.zeros((3000, 1, 1, 4))], "at most 2048 layers"),
+])
+def test_bad_levels_are_refused_and_nothing_is_written(tmp_path, levels, message):
+    with pytest.raises(KTX2Error, match=message.replace("(", r"\(").replace(")", r"\)")):
+        write_ktx2(tmp_path / "x.ktx2", levels)
+    assert not os.listdir(tmp_path)
+
+
+def test_reader_refuses_damaged_files(tmp_path, rng):
+    path = tmp_path / "ok.ktx2"
+    write_ktx2(path, chain(rng, 3, 8, 8, 2))
+    data = path.read_bytes()
+    bad = tmp_path / "bad.ktx2"
+    cases = {
+        "truncated": data[:len(data) // 2],
+        "header only": data[:40],
+        "not ktx": b"PNG" + data[3:],
+        "other format": data[:12] + (37).to_bytes(4, "little") + data[16:],
+        "huge layers": data[:32] + (10 ** 9).to_bytes(4, "little") + data[36:],
+        "two faces": data[:36] + (2).to_bytes(4, "little") + data[40:],
+        "level past the end": data[:80] + (len(data) + 10).to_bytes(8, "little") + data[88:],
+    }
+    for what, blob in cases.items():
+        bad.write_bytes(blob)
+        with pytest.raises(KTX2Error, match="bad.ktx2"):
+            read_ktx2(bad)
+        assert what
