@@ -62,7 +62,7 @@ def test_dash_h_on_every_subcommand(args, says, tmp_path):
 
 @pytest.mark.blender
 def test_dash_h_through_blender_c_prtt(capsys):
-    """``blender -c prtt ...`` lands in blender/cli._cli, which returns the status
+    """``blender -c prtt ...`` lands in blender/commands._cli, which returns the status
     (argparse's SystemExit never reaches Blender)."""
     from tests.blender_util import addon_bpy
     addon_bpy()

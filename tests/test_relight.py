@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from prtt_addon.core.bake.estimators import relightable
-from prtt_addon.core.bake.pipeline import relightable_stage as relight_stage
+from prtt_addon.core.bake.pipeline import relightable_stage
 from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.io import exr_io
@@ -68,7 +68,7 @@ def test_diffuse_relightable_under_L_equals_baked_under_L(tmp_path, levels):
 def test_glossy_relightable_with_all_bands_equals_baked(tmp_path, monkeypatch):
     """With the glossy part at the bake's bands (no band limit) every
     coefficient of the glossy wall's and the floor's bounce light matches."""
-    monkeypatch.setattr(relight_stage, "GLOSSY_BANDS", 5)
+    monkeypatch.setattr(relightable_stage, "GLOSSY_BANDS", 5)
     sc = _scene(GLOSSY_WALL, res=16)
     light = sky()
     K = light.shape[0]
@@ -206,7 +206,7 @@ def test_compiled_relight_projection_equals_the_numpy_path(tmp_path, monkeypatch
     from prtt_addon.bench.relight_bench import ball_scene
     from prtt_addon.core.base import jit
     assert jit.available(), "numba is pinned in requirements.txt"
-    monkeypatch.setattr(relight_stage, "relight_shared_colour", lambda st: shared)
+    monkeypatch.setattr(relightable_stage, "relight_shared_colour", lambda st: shared)
     sc = _scene(GLOSSY_WALL, res=16) if scene == "corner" else ball_scene(32)[0]
     paths = {}
     for path, off in (("compiled", "0"), ("numpy", "1")):
@@ -274,7 +274,7 @@ def _bake_both(tmp_path, monkeypatch, sc, levels):
     """(per-colour folder, shared folder) of the same relightable bake."""
     out = {}
     for shared in (False, True):
-        monkeypatch.setattr(relight_stage, "relight_shared_colour", lambda st, v=shared: v)
+        monkeypatch.setattr(relightable_stage, "relight_shared_colour", lambda st, v=shared: v)
         out[shared] = tmp_path / ("shared" if shared else "per-colour")
         bake_scene(sc, str(out[shared]), _settings(bounces=levels, bounce_mode="relightable"), light=sky())
     return out[False], out[True]
@@ -285,7 +285,7 @@ def test_shared_colour_glossy_rows_are_exact_off_grey_surfaces(tmp_path, monkeyp
     every colour, so the shared rows (one set, tinted back by the DC
     response) equal the per-colour ones and, at full bands, the baked bounce
     texture, for two levels (level 2 reads the shared rows of level 1)."""
-    monkeypatch.setattr(relight_stage, "GLOSSY_BANDS", 5)
+    monkeypatch.setattr(relightable_stage, "GLOSSY_BANDS", 5)
     sc = _scene(GREY_GLOSSY, res=16)
     sc.materials[0] = GREY_FLOOR
     light = sky()
@@ -344,14 +344,14 @@ def test_the_next_level_reads_the_tinted_shared_rows(tmp_path, monkeypatch):
     sc = _scene(GLOSSY_WALL, res=16)
     sc.materials[0] = GLOSSY_FLOOR
     seen = []
-    real = relight_stage.later_exit
+    real = relightable_stage.later_exit
 
     def spy(surf, rows, glossy_bands):
         seen.append(rows)
         return real(surf, rows, glossy_bands)
 
-    monkeypatch.setattr(relight_stage, "relight_shared_colour", lambda st: True)
-    monkeypatch.setattr(relight_stage, "later_exit", spy)
+    monkeypatch.setattr(relightable_stage, "relight_shared_colour", lambda st: True)
+    monkeypatch.setattr(relightable_stage, "later_exit", spy)
     bake_scene(sc, str(tmp_path), _settings(bounces=2, bounce_mode="relightable"), light=sky())
     glossy = [r for r in seen if r.glossy is not None]
     assert glossy

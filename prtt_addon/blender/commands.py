@@ -1,6 +1,6 @@
 """``blender -c prtt <command> ...`` and the shared headless entry points.
 
-``render`` (preview/render.py render_file) draws the viewport preview of a
+``render`` (preview/offscreen.py render_file) draws the viewport preview of a
 baked .blend offscreen into a PNG/EXR.
 
 ``blender -c prtt bake scene.blend [--out DIR] [options]`` and

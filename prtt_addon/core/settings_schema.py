@@ -8,7 +8,7 @@ checks that each of them still agrees with it):
   ``INT_LIMITS`` / ``BAKE_INT_LIMITS`` / ``ADAPTIVE_TOL_LIMITS``;
 * the options of ``python -m prtt_addon bake-job`` (``cli.add_bake_options``);
 * the options of ``blender -c prtt bake`` and ``python -m prtt_addon bake``
-  (``blender/cli.bake_parser``, through the same ``cli.add_setting_options``);
+  (``blender/commands.bake_parser``, through the same ``cli_options.add_setting_options``);
 * the bake properties of ``scene.prtt`` (``blender/ui/properties.py`` builds its
   annotations from :func:`ui_properties`), and ``blender/bake_run.bake_settings``
   (:func:`core_from_ui`);

@@ -94,7 +94,7 @@ def usable(kind: str, bands: int, transfer_bands: int = 0) -> bool:
     """The compiled loops of ``kind`` for ``bands`` bands (for "relight" the
     glossy part's, with a transfer of ``transfer_bands``) load and run (once
     per process, cached): False when numba is off or missing, fails to
-    import, or fails to compile them (then recorded in core/jit.failures and
+    import, or fails to compile them (then recorded in core/base/jit.failures and
     never tried again: the bake shades with numpy)."""
     key = (kind, bands, transfer_bands)
     if key in _probed:

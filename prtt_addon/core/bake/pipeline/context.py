@@ -70,7 +70,7 @@ class BakeSettings(TransferSettings):
     bounce_denoise: str = _d("bounce_denoise")        # "auto", "none", "edge-aware", "oidn" (core/bake/estimators/denoise.py)
     bounce_downscale: int = _d("bounce_downscale")    # bounce textures at 1/N resolution per side (bounce_stage.py)
     tuning: str = _d("tuning")                        # "fixed" | "auto": per-set choices (bounce_stage.py)
-    bounce_mode: str = _d("bounce_mode")              # "baked" | "relightable" (relight_stage.py)
+    bounce_mode: str = _d("bounce_mode")              # "baked" | "relightable" (relightable_stage.py)
 
     def validate(self) -> "BakeSettings":
         """Check every field's type and range (ValueError "name must be ..., got ...")."""

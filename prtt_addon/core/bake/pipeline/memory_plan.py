@@ -45,7 +45,7 @@ def bounce_resident_bytes(width: int, height: int, n_coeffs: int) -> int:
 
 def relight_resident_bytes(width: int, height: int, n_coeffs: int, glossy_coeffs: int,
                            glossy_colours: int = 3) -> int:
-    """bounce_resident_bytes for relightable bounces (relight_stage.py): per
+    """bounce_resident_bytes for relightable bounces (relightable_stage.py): per
     texel C = 3K + g (Kg - 1) Kg floats of stored operator (g = glossy_colours:
     3, or 1 for glossy rows shared between colours), held twice (the sum over
     levels, the level being baked), and C3 (g = 3) twice more (the next

@@ -106,7 +106,7 @@ class BakePlan:
 
     input_hash: str              # scene.geometry_hash: every array that changes the transfer
     settings_hash: str           # settings_hash(settings)
-    light_hash: str | None       # shading.model.light_hash of the prepared light; None without a light
+    light_hash: str | None       # shading.shade.light_hash of the prepared light; None without a light
     materials_hash: str          # shading.materials.materials_hash(scene)
     bouncing: bool               # bounce levels will be baked (bounces > 0, textures on, a light given)
     bounce_key: str | None       # bounce_key(...) when bouncing, else None
