@@ -379,3 +379,38 @@ def test_bake_job_dask_option_end_to_end(tmp_path):
     time.sleep(1.0)
     assert not [k for k in kids if k.is_running() and k.status() != psutil.STATUS_ZOMBIE]
     assert files(tmp_path / "local") == files(tmp_path / "dask")
+
+
+@pytest.mark.parametrize("mode, half", [("baked", True), ("relightable", False)])
+def test_cluster_bake_does_not_depend_on_the_order_units_finish(tmp_path, room, small_units, monkeypatch, mode,
+                                                                half):
+    """Issue 38: the client handles the units of every pass in a forced,
+    shuffled order (all of a pass's units finish first, then are handed over
+    in a seeded random order, twice with different seeds): the files stay the
+    local bake's, byte for byte."""
+    import random
+
+    import distributed
+    sc, light = room
+    st = BakeSettings(rays=64, bounces=1, bounce_rays=32, bounce_tolerance=0.0, bounce_mode=mode, half=half)
+    bake_scene(sc, tmp_path / "local", st, light=light)
+    real_wait = distributed.wait
+    for seed in (1, 2):
+        rng = random.Random(seed)
+        seen = []
+
+        def shuffled_wait(futures, timeout=None, return_when="ALL_COMPLETED", rng=rng, seen=seen):
+            done, _ = real_wait(futures, return_when="ALL_COMPLETED")
+            done = sorted(done, key=lambda f: f.key)
+            rng.shuffle(done)
+            seen.append([f.key for f in done])
+            return done, set()
+
+        monkeypatch.setattr(distributed, "wait", shuffled_wait)
+        out = tmp_path / f"dask{seed}"
+        bake_scene(sc, out, st, light=light, dask="local:2")
+        monkeypatch.setattr(distributed, "wait", real_wait)
+        assert any(len(keys) > 2 and keys != sorted(keys, key=lambda k: int(k.rsplit("-", 1)[1]))
+                   for keys in seen), seen                      # the order was truly not the submission order
+        assert files(tmp_path / "local") == files(out)
+    assert no_workers_left()
