@@ -15,6 +15,16 @@ def register():
     registration.register()
 
 
+class glTF2ExportUserExtension:  # noqa: N801 (the name Blender's glTF exporter looks for)
+    """Blender's glTF exporter instantiates this on every export of an enabled
+    add-on; its hooks act only while ``prtt export`` runs
+    (blender/gltf/export.hook), so the user's own glTF exports are untouched."""
+
+    def __getattr__(self, name):
+        from .blender.gltf import export  # bpy-dependent: only inside Blender, only on a glTF export
+        return export.hook(name)
+
+
 def unregister():
     from .blender import registration  # bpy-dependent: only inside Blender
     registration.unregister()

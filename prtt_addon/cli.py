@@ -115,6 +115,14 @@ def _cmd_render_blend(args) -> int:
     return render_file(args.rest, prog="python -m prtt_addon render")
 
 
+def _cmd_export_blend(args) -> int:
+    """``python -m prtt_addon export scene.blend --out room.glb``: glTF with PRTT's textures."""
+    if not _bpy_ready("blender -c prtt export scene.blend --out room.glb"):
+        return 1
+    from .blender.gltf.export import export_file  # needs bpy, which only the .blend commands load
+    return export_file(args.rest, prog="python -m prtt_addon export")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m prtt_addon",
                                 description="PRTT: precomputed radiance transfer textures")
@@ -144,6 +152,11 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("rest", nargs=argparse.REMAINDER)
     rn.set_defaults(func=_cmd_render_blend)
 
+    ex = sub.add_parser("export", help="export a baked .blend as a .glb with PRTT's textures (bpy)",
+                        add_help=False)
+    ex.add_argument("rest", nargs=argparse.REMAINDER)
+    ex.set_defaults(func=_cmd_export_blend)
+
     try:
         from .demo import add_arguments as demo_arguments  # dev-only: the extension zip leaves it out
     except ImportError:
@@ -156,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: Commands whose options the add-on's own parser (inside bpy) reads: every
 #: argument after the command goes to it unparsed, "-h" included.
-_BPY_COMMANDS = {"bake": _cmd_bake_blend, "render": _cmd_render_blend}
+_BPY_COMMANDS = {"bake": _cmd_bake_blend, "render": _cmd_render_blend, "export": _cmd_export_blend}
 
 
 def main(argv=None) -> int:

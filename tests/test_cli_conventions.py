@@ -69,7 +69,8 @@ def test_dash_h_through_blender_c_prtt(capsys):
     from prtt_addon.blender.commands import _cli
     for argv, usage in ((["-h"], "usage: blender -c prtt bake"), (["bake", "-h"], "usage: blender -c prtt bake"),
                         (["bake", "--help"], "usage: blender -c prtt bake"),
-                        (["render", "-h"], "usage: blender -c prtt render")):
+                        (["render", "-h"], "usage: blender -c prtt render"),
+                        (["export", "-h"], "usage: blender -c prtt export")):
         assert _cli(argv) == 0, argv
         assert capsys.readouterr().out.startswith(usage), argv
     assert _cli(["bake", "x.blend", "--rays", "0"]) == 2

@@ -227,6 +227,7 @@ FLOORS = [
     ("Blender export", ["prtt_addon.blender.export"]),
     ("Blender preview", ["prtt_addon.blender.preview"]),
     ("Blender bake", ["prtt_addon.blender.bake"]),
+    ("Blender glTF export", ["prtt_addon.blender.gltf"]),
     ("Blender UI", ["prtt_addon.blender.ui"]),
     ("Blender entry points", ["prtt_addon.blender.commands", "prtt_addon.blender.registration",
                               "prtt_addon.blender"]),

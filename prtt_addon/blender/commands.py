@@ -33,6 +33,7 @@ from .bake.run import bake_blocking
 from .blendfile import blend_relative, open_scene, save_blend
 from .export.job import output_folder
 from .export.uv_maps import bake_downscale, needs_user_unwrap, unwrap_objects
+from .gltf.export import export_file
 from .preview.offscreen import render_file
 from .rna_arrays import RnaArrayError
 
@@ -217,7 +218,8 @@ def _cli(argv) -> int:
         print("usage: blender -c prtt bake FILE.blend [--out DIR] [options]\n"
               "       blender -c prtt render FILE.blend --out IMAGE.png|exr [--mode tpfl|tp|vertex-tpfl|"
               "vertex-tp|diffuse] [--camera NAME] [--size WxH]\n"
-              "       blender -c prtt bake|render --help")
+              "       blender -c prtt export FILE.blend --out ROOM.glb\n"
+              "       blender -c prtt bake|render|export --help")
         return 0 if argv else 2
     cmd, rest = argv[0], argv[1:]
     try:
@@ -225,9 +227,11 @@ def _cli(argv) -> int:
             return bake_file(rest, prog="blender -c prtt bake")
         if cmd == "render":
             return render_file(rest, prog="blender -c prtt render")
+        if cmd == "export":
+            return export_file(rest, prog="blender -c prtt export")
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
-    print(f"prtt: unknown command {cmd!r}; use bake or render", file=sys.stderr)
+    print(f"prtt: unknown command {cmd!r}; use bake, render or export", file=sys.stderr)
     return 2
 
 

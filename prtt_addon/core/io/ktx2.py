@@ -96,13 +96,23 @@ def _check_levels(levels) -> list:
     return out
 
 
-def write_ktx2(path, levels, *, supercompression: str = "none", keys: dict | None = None,
-               zstd_level: int = 10) -> dict:
-    """Write mip ``levels`` (level 0 first, each (layers, H, W, 4), float16 or
-    converted to it) as a KTX2 2D array texture at ``path``, atomically.
-    ``supercompression``: "none" or "zstd" (each level on its own, as
-    KTX2 requires). ``keys``: extra key/value pairs (str -> str). Returns
+def write_ktx2(path, levels, **kw) -> dict:
+    """Write :func:`ktx2_bytes` of ``levels`` at ``path``, atomically. Returns
     {"bytes": file size, "level_bytes": [(stored, uncompressed) per level]}."""
+    blob, level_bytes = ktx2_bytes(levels, **kw)
+    with atomic_write(str(path)) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(blob)
+    return {"bytes": len(blob), "level_bytes": level_bytes}
+
+
+def ktx2_bytes(levels, *, supercompression: str = "none", keys: dict | None = None,
+               zstd_level: int = 10) -> tuple[bytes, list]:
+    """Mip ``levels`` (level 0 first, each (layers, H, W, 4), float16 or
+    converted to it) as the bytes of a KTX2 2D array texture, and
+    [(stored, uncompressed) bytes per level]. ``supercompression``: "none" or
+    "zstd" (each level on its own, as KTX2 requires). ``keys``: extra
+    key/value pairs (str -> str)."""
     if supercompression not in SUPERCOMPRESSION:
         raise KTX2Error(f"supercompression must be one of {sorted(SUPERCOMPRESSION)}, got {supercompression!r}")
     levels = _check_levels(levels)
@@ -136,10 +146,7 @@ def write_ktx2(path, levels, *, supercompression: str = "none", keys: dict | Non
     index = _INDEX.pack(dfd_at, len(dfd), kvd_at, len(kvd), 0, 0)
     level_index = b"".join(_LEVEL.pack(offsets[i], len(stored[i]), len(raw[i])) for i in range(n))
     blob = header + index + level_index + dfd + kvd + body
-    with atomic_write(str(path)) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(blob)
-    return {"bytes": len(blob), "level_bytes": [(len(s), len(r)) for s, r in zip(stored, raw)]}
+    return blob, [(len(s), len(r)) for s, r in zip(stored, raw)]
 
 
 def read_ktx2(path, *, max_bytes: int | None = None) -> tuple[list, dict]:
@@ -151,6 +158,11 @@ def read_ktx2(path, *, max_bytes: int | None = None) -> tuple[list, dict]:
         data = f.read(max_bytes + 1 if max_bytes else -1)
     if max_bytes and len(data) > max_bytes:
         raise KTX2Error(f"{path}: larger than {max_bytes} bytes")
+    return parse_ktx2(data, str(path))
+
+
+def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
+    """:func:`read_ktx2` of bytes in memory (``path`` names them in errors)."""
 
     def fail(why):
         raise KTX2Error(f"{path}: {why}")
