@@ -157,3 +157,19 @@ def test_the_users_own_gltf_exports_are_untouched(baked, tmp_path):
         prefs.addons.remove(added)
     doc, _ = glb(tmp_path / "plain.glb")
     assert NAME not in doc.get("extensionsUsed", []) and "extensions" not in doc
+
+
+def test_panel_export_button(baked, tmp_path):
+    """The Preview panel's Export glTF (PRTT): the operator the button runs,
+    with the file browser's path; the same file as the command line's."""
+    work = tmp_path / "p"
+    shutil.copytree(baked, work)
+    bpy = addon_bpy()
+    bpy.ops.wm.open_mainfile(filepath=str(work / "scene.blend"))
+    before = digest(work / "scene.blend")
+    assert bpy.ops.prtt.export_gltf(filepath=str(work / "panel.glb")) == {"FINISHED"}
+    assert run("export", "scene.blend", "--out", "cli.glb", cwd=work).returncode == 0
+    a, _ = glb(work / "panel.glb")
+    b, _ = glb(work / "cli.glb")
+    assert a["extensions"][NAME] == b["extensions"][NAME]
+    assert digest(work / "scene.blend") == before

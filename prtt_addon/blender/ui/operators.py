@@ -1,10 +1,12 @@
 """PRTT's operators: Unwrap, Bake Transfer (modal in the UI, blocking headless), Cancel."""
 import bpy
+from bpy_extras.io_utils import ExportHelper
 
 from ...core.texels.unwrap import UnwrapError
 from ..bake import run as bake_run
 from ..export.job import ExportError
 from ..export.uv_maps import bake_downscale, unwrap_objects
+from ..gltf.export import GltfExportError, export_glb
 from ..preview.offscreen import RenderError, exposure_of, render_scene
 from ..rna_arrays import RnaArrayError, write_pixels
 from ..shared import PREVIEW_MODES
@@ -224,7 +226,39 @@ class PRTT_OT_render_preview(bpy.types.Operator):
         return {"FINISHED"}
 
 
-_CLASSES = (PRTT_OT_unwrap, PRTT_OT_bake_transfer, PRTT_OT_cancel_bake, PRTT_OT_render_preview)
+class PRTT_OT_export_gltf(bpy.types.Operator, ExportHelper):
+    """Export the baked scene as a .glb: Blender's glTF with PRTT's transfer textures (the .blend is not changed)"""
+
+    bl_idname = "prtt.export_gltf"
+    bl_label = "Export glTF (PRTT)"
+    filename_ext = ".glb"
+    filter_glob: bpy.props.StringProperty(default="*.glb", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        if not context.scene.prtt.last_bake:
+            cls.poll_message_set("Nothing baked yet: Bake Transfer first")
+            return False
+        if context.scene.prtt.baking:
+            cls.poll_message_set("A bake is running")
+            return False
+        return True
+
+    def execute(self, context):
+        try:
+            summary = export_glb(context, self.filepath)
+        except (GltfExportError, ValueError, OSError) as exc:
+            self.report({"ERROR"}, f"PRTT: {exc}")
+            return {"CANCELLED"}
+        for note in summary["notes"]:
+            self.report({"WARNING"}, f"PRTT: {note}")
+        self.report({"INFO"}, f"PRTT: exported {summary['objects']} object(s), {summary['bytes']:,} bytes "
+                              f"to {self.filepath}")
+        return {"FINISHED"}
+
+
+_CLASSES = (PRTT_OT_unwrap, PRTT_OT_bake_transfer, PRTT_OT_cancel_bake, PRTT_OT_render_preview,
+            PRTT_OT_export_gltf)
 
 
 def register():

@@ -156,6 +156,7 @@ class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
         row.prop(st, "preview_mode", text="")
         col.prop(st, "preview_bounces")
         col.operator("prtt.render_preview", icon="RENDER_RESULT")
+        col.operator("prtt.export_gltf", icon="EXPORT")
         if not st.last_bake:
             col.label(text="Bake Transfer first", icon="INFO")
             return
