@@ -51,13 +51,14 @@ if [[ ! -x .venv/bin/python ]] || [[ "$(cat "$stamp" 2>/dev/null)" != "$want" ]]
 fi
 
 # --- independent readers (npm) ------------------------------------------------
-# tools/js/package-lock.json pins the JavaScript readers the tests check PRTT's
-# files against (ktx-parse for KTX2). Installed again when the lock changes.
+# tools/js/package-lock.json pins the JavaScript PRTT uses: ktx-parse (the
+# tests' independent KTX2 reader, and the web viewer's) and three.js (viewer/).
+# Installed again when the lock changes.
 js_want="$(sha256sum tools/js/package-lock.json | cut -d' ' -f1)"
 js_stamp="tools/js/node_modules/.lock.sha256"
 if [[ "$(cat "$js_stamp" 2>/dev/null)" != "$js_want" ]]; then
     if command -v npm >/dev/null; then
-        say "installing tools/js (npm ci: ktx-parse)"
+        say "installing tools/js (npm ci: ktx-parse, three)"
         npm ci --prefix tools/js --no-audit --no-fund --loglevel=error >/dev/null
         echo "$js_want" > "$js_stamp"
     else

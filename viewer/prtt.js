@@ -1,0 +1,130 @@
+// PRTT's web viewer: a .glb exported by `prtt export` (docs/gltf.md), drawn
+// with three.js, its PRTT_radiance_transfer data shading each baked object:
+// diffuse PRT per pixel, radiance = albedo / pi * sum_k T_k(uv) L_k, the
+// transfer T read from the set's KTX2 array texture (RGBA16F, coefficient k
+// in layer k / 4, channel k % 4) at the object's PRTT UVs, L the light's SH.
+// The same formula as the Blender preview's diffuse mode (shaders/prtt_shade.glsl).
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { ZSTDDecoder } from 'three/addons/libs/zstddec.module.js';
+import { read as readKTX2 } from 'ktx-parse';
+
+export const NAME = 'PRTT_radiance_transfer';
+const VK_FORMAT_R16G16B16A16_SFLOAT = 97;
+
+/** A set's transfer texture from its KTX2 bytes (checked: the one format PRTT writes). */
+function transferTexture(bytes, zstd, what) {
+  const c = readKTX2(bytes);
+  if (c.vkFormat !== VK_FORMAT_R16G16B16A16_SFLOAT || c.layerCount < 1 || c.levels.length < 1) {
+    throw new Error(`${what}: not an RGBA16F array texture (vkFormat ${c.vkFormat})`);
+  }
+  const level = c.levels[0];
+  let data = level.levelData;
+  if (c.supercompressionScheme === 2) data = zstd.decode(data, level.uncompressedByteLength);
+  else if (c.supercompressionScheme !== 0) throw new Error(`${what}: supercompression ${c.supercompressionScheme}`);
+  const want = c.pixelWidth * c.pixelHeight * c.layerCount * 8;
+  if (data.byteLength !== want) throw new Error(`${what}: ${data.byteLength} bytes, ${want} expected`);
+  const half = new Uint16Array(data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength));
+  const tex = new THREE.DataArrayTexture(half, c.pixelWidth, c.pixelHeight, c.layerCount);
+  tex.type = THREE.HalfFloatType;
+  tex.format = THREE.RGBAFormat;
+  tex.minFilter = tex.magFilter = THREE.LinearFilter;
+  tex.wrapS = tex.wrapT = THREE.ClampToEdgeWrapping;
+  tex.generateMipmaps = false;
+  tex.flipY = false;                 // the KTX2's first row is glTF's v = 0
+  tex.colorSpace = THREE.NoColorSpace;
+  tex.needsUpdate = true;
+  return tex;
+}
+
+const VERTEX = /* glsl */ `
+in vec2 prttUv;
+out vec2 vUv;
+void main() {
+  vUv = prttUv;
+  gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
+}`;
+
+const FRAGMENT = /* glsl */ `
+precision highp float;
+precision highp sampler2DArray;
+uniform sampler2DArray transfer;
+uniform vec3 light[K];
+uniform vec3 albedo;
+uniform float exposure;
+in vec2 vUv;
+out highp vec4 fragColor;   // GLSL3: three declares no output of its own
+vec3 srgb(vec3 c) {
+  c = clamp(c, 0.0, 1.0);
+  return mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), c));
+}
+void main() {
+  vec3 e = vec3(0.0);
+  for (int q = 0; q < LAYERS; q++) {
+    vec4 t = textureLod(transfer, vec3(vUv, float(q)), 0.0);
+    for (int c = 0; c < 4; c++) {
+      int k = 4 * q + c;
+      if (k < K) e += t[c] * light[k];
+    }
+  }
+  fragColor = vec4(srgb(max(albedo / 3.14159265358979 * e, vec3(0.0)) * exposure), 1.0);
+}`;
+
+function prttMaterial(tex, light, K, layers, source) {
+  const color = source && source.color ? source.color.clone() : new THREE.Color(0.8, 0.8, 0.8);
+  const metal = source && source.metalness !== undefined ? source.metalness : 0.0;
+  return new THREE.ShaderMaterial({
+    glslVersion: THREE.GLSL3,
+    defines: { K, LAYERS: layers },
+    uniforms: {
+      transfer: { value: tex },
+      light: { value: light },
+      albedo: { value: new THREE.Vector3(color.r, color.g, color.b).multiplyScalar(1.0 - metal) },
+      exposure: { value: 1.0 },
+    },
+    vertexShader: VERTEX,
+    fragmentShader: FRAGMENT,
+  });
+}
+
+/** Load a PRTT .glb; returns {scene, camera, ext, shaded} (shaded: meshes given PRTT materials). */
+export async function loadPRTT(url) {
+  const gltf = await new GLTFLoader().loadAsync(url);
+  const parser = gltf.parser;
+  const ext = parser.json.extensions && parser.json.extensions[NAME];
+  if (!ext) throw new Error(`${url}: no ${NAME} extension (export it with prtt export)`);
+  const zstd = new ZSTDDecoder();
+  await zstd.init();
+  const K = ext.sh.coefficients;
+  const light = ext.light.rgb.map((c) => new THREE.Vector3(c[0], c[1], c[2]));
+  const sets = [];
+  for (const s of ext.sets) {
+    const buf = await parser.getDependency('bufferView', s.transfer.bufferView);
+    sets.push(transferTexture(new Uint8Array(buf), zstd, `set ${s.name}`));
+  }
+  const nodes = parser.json.nodes || [];
+  const meshes = parser.json.meshes || [];
+  let shaded = 0;
+  gltf.scene.traverse((obj) => {
+    const assoc = parser.associations.get(obj);
+    if (!assoc || assoc.nodes === undefined) return;
+    const nodeExt = (nodes[assoc.nodes].extensions || {})[NAME];
+    if (!nodeExt) return;
+    const tex = sets[nodeExt.set];
+    obj.traverse((m) => {
+      if (!m.isMesh) return;
+      const a = parser.associations.get(m) || {};
+      const prim = meshes[a.meshes] && meshes[a.meshes].primitives[a.primitives || 0];
+      const primExt = prim && (prim.extensions || {})[NAME];
+      if (!primExt) return;
+      const name = primExt.texCoord === 0 ? 'uv' : `uv${primExt.texCoord}`;
+      const uv = m.geometry.getAttribute(name);
+      if (!uv) throw new Error(`mesh ${m.name}: no TEXCOORD_${primExt.texCoord}`);
+      m.geometry.setAttribute('prttUv', uv);
+      m.material = prttMaterial(tex, light, K, tex.image.depth, m.material);
+      shaded += 1;
+    });
+  });
+  const camera = gltf.cameras[0] || null;
+  return { scene: gltf.scene, camera, ext, shaded };
+}
