@@ -87,8 +87,32 @@ function prttMaterial(tex, light, K, layers, source) {
   });
 }
 
-/** Load a PRTT .glb; returns {scene, camera, ext, shaded} (shaded: meshes given PRTT materials). */
-export async function loadPRTT(url) {
+/**
+ * The light's SH (K RGB coefficients, k = l*l + l + m, bake frame, Z up) as
+ * the World turned by ``degrees`` about Z sees it: what Blender's preview
+ * shows when the World's Mapping node has that Z rotation (its lookups turn
+ * by the angle, the environment the other way). A rotation about Z mixes each
+ * band's (m, -m) pairs: c'(l, m) = cos(m a) c(l, m) + sin(m a) c(l, -m),
+ * c'(l, -m) = -sin(m a) c(l, m) + cos(m a) c(l, -m).
+ */
+export function turnLight(light, degrees) {
+  const a = degrees * Math.PI / 180;
+  const out = light.map((v) => v.clone());
+  const bands = Math.round(Math.sqrt(light.length));
+  for (let l = 1; l < bands; l++) {
+    for (let m = 1; m <= l; m++) {
+      const p = l * l + l + m, n = l * l + l - m;
+      const c = Math.cos(m * a), s = Math.sin(m * a);
+      out[p] = light[p].clone().multiplyScalar(c).addScaledVector(light[n], s);
+      out[n] = light[n].clone().multiplyScalar(c).addScaledVector(light[p], -s);
+    }
+  }
+  return out;
+}
+
+/** Load a PRTT .glb; returns {scene, camera, ext, shaded} (shaded: meshes given PRTT materials).
+ * ``turn``: degrees the World is turned about Z from the export's (turnLight). */
+export async function loadPRTT(url, { turn = 0 } = {}) {
   const gltf = await new GLTFLoader().loadAsync(url);
   const parser = gltf.parser;
   const ext = parser.json.extensions && parser.json.extensions[NAME];
@@ -96,7 +120,7 @@ export async function loadPRTT(url) {
   const zstd = new ZSTDDecoder();
   await zstd.init();
   const K = ext.sh.coefficients;
-  const light = ext.light.rgb.map((c) => new THREE.Vector3(c[0], c[1], c[2]));
+  const light = turnLight(ext.light.rgb.map((c) => new THREE.Vector3(c[0], c[1], c[2])), turn);
   const sets = [];
   for (const s of ext.sets) {
     const buf = await parser.getDependency('bufferView', s.transfer.bufferView);
