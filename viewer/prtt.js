@@ -110,7 +110,8 @@ export function turnLight(light, degrees) {
   return out;
 }
 
-/** Load a PRTT .glb; returns {scene, camera, ext, shaded} (shaded: meshes given PRTT materials).
+/** Load a PRTT .glb; returns {scene, camera, ext, shaded, setTurn} (shaded: meshes given
+ * PRTT materials; setTurn(degrees) turns the light of all of them, no reload).
  * ``turn``: degrees the World is turned about Z from the export's (turnLight). */
 export async function loadPRTT(url, { turn = 0 } = {}) {
   const gltf = await new GLTFLoader().loadAsync(url);
@@ -120,7 +121,8 @@ export async function loadPRTT(url, { turn = 0 } = {}) {
   const zstd = new ZSTDDecoder();
   await zstd.init();
   const K = ext.sh.coefficients;
-  const light = turnLight(ext.light.rgb.map((c) => new THREE.Vector3(c[0], c[1], c[2])), turn);
+  const baseLight = ext.light.rgb.map((c) => new THREE.Vector3(c[0], c[1], c[2]));
+  const light = turnLight(baseLight, turn);
   const sets = [];
   for (const s of ext.sets) {
     const buf = await parser.getDependency('bufferView', s.transfer.bufferView);
@@ -150,5 +152,10 @@ export async function loadPRTT(url, { turn = 0 } = {}) {
     });
   });
   const camera = gltf.cameras[0] || null;
-  return { scene: gltf.scene, camera, ext, shaded };
+  /** Turn the World to ``degrees`` from the export's: every PRTT material's light at once. */
+  const setTurn = (degrees) => {
+    const turned = turnLight(baseLight, degrees);
+    for (let k = 0; k < light.length; k++) light[k].copy(turned[k]);
+  };
+  return { scene: gltf.scene, camera, ext, shaded, setTurn };
 }
