@@ -36,10 +36,12 @@ def read_png(path) -> np.ndarray:
         bpy.data.images.remove(img)
 
 
-@pytest.fixture(scope="module")
-def exported(tmp_path_factory):
+@pytest.fixture(scope="module", params=[0, 1], ids=["direct", "relightable-bounce"])
+def exported(tmp_path_factory, request):
     """A baked, exported scene: a floor and a box with Principled materials of
-    known colours, the built-in forest light, a camera; room.glb beside it."""
+    known colours, the forest HDRI as the World, a camera; room.glb beside it.
+    Baked with no bounce, and with one relightable bounce (the default mode:
+    the glTF carries its DC rows, the viewer relights them)."""
     from prtt_addon.bench.scene_build import principled
     tmp = tmp_path_factory.mktemp("web")
     bpy = addon_bpy()
@@ -57,7 +59,7 @@ def exported(tmp_path_factory):
     bpy.context.scene.world = environment_world("Forest", builtin_environment_path("forest"))
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
     r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", "--resolution", "64", "--rays", "64",
-            "--bounces", "0", cwd=tmp)
+            "--bounces", str(request.param), "--bounce-rays", "16", cwd=tmp)
     assert r.returncode == 0, r.stderr + r.stdout
     r = run("export", "scene.blend", "--out", "room.glb", cwd=tmp)
     assert r.returncode == 0, r.stderr + r.stdout
@@ -138,6 +140,12 @@ def test_the_browser_draws_what_blender_draws(exported, server, tmp_path):
     assert np.median(diff) == 0 and np.percentile(diff, 99) <= 2, (np.median(diff), np.percentile(diff, 99))
     rel = np.sqrt(np.mean((web - ref)[covered].astype(float) ** 2)) / ref[covered].mean()
     assert rel < 0.01, rel
+    if (exported / "textures" / "Box.relight.exr").exists():
+        # the bounce is in the picture: without it the page is clearly off
+        title = browser_shot(f"{server}/viewer/index.html?glb=/room.glb&w={W}&h={H}&bounces=0", tmp_path / "nb.png")
+        assert title == "ready 2", title
+        _, _, rel_no_bounce = compare(read_png(tmp_path / "nb.png"), ref)
+        assert rel_no_bounce > 4 * max(rel, 0.002), (rel_no_bounce, rel)      # measured 1.34 % vs 0.12 %
 
 
 def compare(web, ref):

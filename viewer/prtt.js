@@ -1,8 +1,9 @@
 // PRTT's web viewer: a .glb exported by `prtt export` (docs/gltf.md), drawn
 // with three.js, its PRTT_radiance_transfer data shading each baked object:
-// diffuse PRT per pixel, radiance = albedo / pi * sum_k T_k(uv) L_k, the
-// transfer T read from the set's KTX2 array texture (RGBA16F, coefficient k
-// in layer k / 4, channel k % 4) at the object's PRTT UVs, L the light's SH.
+// diffuse PRT per pixel, radiance = albedo / pi * (sum_k T_k(uv) L_k + the
+// relightable bounce sqrt(4 pi) sum_k DC_k(uv) L_k), the transfer T read from
+// the set's KTX2 array texture (RGBA16F, coefficient k in layer k / 4,
+// channel k % 4) at the object's PRTT UVs, L the light's SH.
 // The same formula as the Blender preview's diffuse mode (shaders/prtt_shade.glsl).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
@@ -49,6 +50,9 @@ const FRAGMENT = /* glsl */ `
 precision highp float;
 precision highp sampler2DArray;
 uniform sampler2DArray transfer;
+#ifdef BOUNCE
+uniform sampler2DArray relightDC;   // colour c's DC rows from layer c * LAYERS
+#endif
 uniform vec3 light[K];
 uniform vec3 albedo;
 uniform float exposure;
@@ -67,17 +71,32 @@ void main() {
       if (k < K) e += t[c] * light[k];
     }
   }
+#ifdef BOUNCE
+  // the relightable bounce's diffuse radiance: sqrt(4 pi) sum_i DC_c,i L_c,i
+  vec3 dc = vec3(0.0);
+  for (int q = 0; q < LAYERS; q++) {
+    vec4 r = textureLod(relightDC, vec3(vUv, float(q)), 0.0);
+    vec4 g = textureLod(relightDC, vec3(vUv, float(q + LAYERS)), 0.0);
+    vec4 b = textureLod(relightDC, vec3(vUv, float(q + 2 * LAYERS)), 0.0);
+    for (int c = 0; c < 4; c++) {
+      int k = 4 * q + c;
+      if (k < K) dc += vec3(r[c] * light[k].r, g[c] * light[k].g, b[c] * light[k].b);
+    }
+  }
+  e += 3.5449077018110318 * dc;
+#endif
   fragColor = vec4(srgb(max(albedo / 3.14159265358979 * e, vec3(0.0)) * exposure), 1.0);
 }`;
 
-function prttMaterial(tex, light, K, layers, source) {
+function prttMaterial(tex, bounce, light, K, layers, source) {
   const color = source && source.color ? source.color.clone() : new THREE.Color(0.8, 0.8, 0.8);
   const metal = source && source.metalness !== undefined ? source.metalness : 0.0;
   return new THREE.ShaderMaterial({
     glslVersion: THREE.GLSL3,
-    defines: { K, LAYERS: layers },
+    defines: bounce ? { K, LAYERS: layers, BOUNCE: 1 } : { K, LAYERS: layers },
     uniforms: {
       transfer: { value: tex },
+      relightDC: { value: bounce },
       light: { value: light },
       albedo: { value: new THREE.Vector3(color.r, color.g, color.b).multiplyScalar(1.0 - metal) },
       exposure: { value: 1.0 },
@@ -113,7 +132,7 @@ export function turnLight(light, degrees) {
 /** Load a PRTT .glb; returns {scene, camera, ext, shaded, setTurn} (shaded: meshes given
  * PRTT materials; setTurn(degrees) turns the light of all of them, no reload).
  * ``turn``: degrees the World is turned about Z from the export's (turnLight). */
-export async function loadPRTT(url, { turn = 0 } = {}) {
+export async function loadPRTT(url, { turn = 0, useBounces = true } = {}) {
   const gltf = await new GLTFLoader().loadAsync(url);
   const parser = gltf.parser;
   const ext = parser.json.extensions && parser.json.extensions[NAME];
@@ -123,10 +142,16 @@ export async function loadPRTT(url, { turn = 0 } = {}) {
   const K = ext.sh.coefficients;
   const baseLight = ext.light.rgb.map((c) => new THREE.Vector3(c[0], c[1], c[2]));
   const light = turnLight(baseLight, turn);
-  const sets = [];
+  const sets = [], bounces = [];
   for (const s of ext.sets) {
     const buf = await parser.getDependency('bufferView', s.transfer.bufferView);
     sets.push(transferTexture(new Uint8Array(buf), zstd, `set ${s.name}`));
+    if (s.relightDC && useBounces) {
+      const rb = await parser.getDependency('bufferView', s.relightDC.bufferView);
+      bounces.push(transferTexture(new Uint8Array(rb), zstd, `set ${s.name} bounce`));
+    } else {
+      bounces.push(null);
+    }
   }
   const nodes = parser.json.nodes || [];
   const meshes = parser.json.meshes || [];
@@ -136,7 +161,7 @@ export async function loadPRTT(url, { turn = 0 } = {}) {
     if (!assoc || assoc.nodes === undefined) return;
     const nodeExt = (nodes[assoc.nodes].extensions || {})[NAME];
     if (!nodeExt) return;
-    const tex = sets[nodeExt.set];
+    const tex = sets[nodeExt.set], bounce = bounces[nodeExt.set];
     obj.traverse((m) => {
       if (!m.isMesh) return;
       const a = parser.associations.get(m) || {};
@@ -147,7 +172,7 @@ export async function loadPRTT(url, { turn = 0 } = {}) {
       const uv = m.geometry.getAttribute(name);
       if (!uv) throw new Error(`mesh ${m.name}: no TEXCOORD_${primExt.texCoord}`);
       m.geometry.setAttribute('prttUv', uv);
-      m.material = prttMaterial(tex, light, K, tex.image.depth, m.material);
+      m.material = prttMaterial(tex, bounce, light, K, tex.image.depth, m.material);
       shaded += 1;
     });
   });

@@ -16,7 +16,8 @@ The exporter logs and swallows a hook's exception, so afterwards the file is
 read back and refused unless every baked object carries its set. What is not
 exported yet is refused with a message, not skipped: instances and objects
 with UVs generated at bake time (their UVs are not in a mesh the exporter
-writes). Bounce textures are left out with a note (not carried yet). The
+writes). A relightable bounce goes in as its DC rows (the diffuse bounce under
+any light); its glossy rows and baked bounces are left out with a note. The
 .blend is never saved.
 """
 from __future__ import annotations
@@ -31,8 +32,8 @@ import bpy
 import numpy as np
 
 from ...core.io.atomic import atomic_write
-from ...core.io.exr_io import read_sh_exr
-from ...core.io.gltf_prtt import NAME, root_extension, transfer_payload
+from ...core.io.exr_io import read_relight_exr, read_sh_exr
+from ...core.io.gltf_prtt import NAME, relight_dc_payload, root_extension, transfer_payload
 from ..blendfile import native_stderr_filtered, open_scene
 from ..preview.drawlist import bake_folder, collect, last_bake
 from ..shared import UV_MAP
@@ -71,8 +72,9 @@ class _Export:
     def gather_gltf_extensions_hook(self, gltf, export_settings):
         from io_scene_gltf2.io.exp.binary_data import BinaryData  # Blender's bundled exporter
         root = json.loads(json.dumps(self.root))
-        for s, blob in zip(root["sets"], self.blobs):
-            s["transfer"]["bufferView"] = BinaryData(blob)       # the writer turns it into a buffer view index
+        for s, blobs in zip(root["sets"], self.blobs):
+            for key, blob in blobs.items():
+                s[key]["bufferView"] = BinaryData(blob)          # the writer turns it into a buffer view index
         if gltf.extensions is None:
             gltf.extensions = {}
         gltf.extensions[NAME] = _extension(root)
@@ -140,13 +142,22 @@ def export_glb(context, out: str) -> dict:
     folder = bake_folder(scene, info)
     ps, status = collect(context, use_bounces=False, with_meshes=False)
     bands = int(info["settings"]["bands"])
+    bounce = info.get("bounce") or {}
+    relightable = any(f.endswith(".relight.exr") for f in bounce.get("files", []))
     sets, blobs, set_index = [], [], {}
     for i, (set_name, objects) in enumerate(sorted(info["set_objects"].items())):
         data, _ = read_sh_exr(os.path.join(folder, f"{set_name}.transfer.exr"))      # (H, W, K), row 0 at the bottom
         planes = np.ascontiguousarray(data[::-1].transpose(2, 0, 1))               # (K, H, W), top row first
         blob, meta = transfer_payload(planes)
-        sets.append({"name": set_name, "resolution": [meta["width"], meta["height"]], "transfer": meta})
-        blobs.append(blob)
+        entry, payload = {"name": set_name, "resolution": [meta["width"], meta["height"]], "transfer": meta}, {}
+        payload["transfer"] = blob
+        relight = os.path.join(folder, f"{set_name}.relight.exr")
+        if relightable and os.path.isfile(relight):
+            dc, _, _ = read_relight_exr(relight)                   # (H, W, 3, K), row 0 at the bottom
+            payload["relightDC"], entry["relightDC"] = relight_dc_payload(
+                np.ascontiguousarray(dc[::-1].transpose(2, 3, 0, 1)))
+        sets.append(entry)
+        blobs.append(payload)
         for name in objects:
             set_index[name] = i
     root = root_extension(bands=bands, light=ps.light, light_description=status.light_description, sets=sets)
@@ -178,7 +189,12 @@ def export_glb(context, out: str) -> dict:
         _ACTIVE = None
         if added is not None:
             prefs.addons.remove(added)
-    notes = ["bounce textures are not in the glTF yet (the transfer and the light are)"] if info.get("bounce") else []
+    notes = []
+    if bounce and not relightable:
+        notes.append("baked bounce textures are not in the glTF (relightable ones are: --bounce-mode relightable)")
+    elif relightable:
+        notes.append("relightable bounces exported as their diffuse (DC) rows; their glossy rows are not in "
+                     "the glTF yet")
     return {"sets": len(sets), "objects": len(set_index), "bytes": os.path.getsize(out), "notes": notes}
 
 

@@ -38,6 +38,22 @@ def transfer_payload(planes: np.ndarray, *, supercompression: str = "zstd") -> t
                   "bytes": len(blob), "uncompressedBytes": int(level_bytes[0][1])}
 
 
+def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+    """A set's relightable bounce, its DC rows (3, K, H, W): colour c's row over
+    light coefficient i, rows top first, as KTX2 bytes (colour c's rows from
+    layer c * ceil(K / 4), coefficient i in layer i // 4, channel i % 4 of
+    them) and their JSON. The bounce's diffuse radiance under a light L is
+    sqrt(4 pi) * sum_i DC_c,i L_c,i per colour c (docs/shading.md)."""
+    C, K, H, W = dc.shape
+    layers = np.concatenate([sh_layers(np.asarray(dc[c], np.float32)) for c in range(C)])
+    blob, level_bytes = ktx2_bytes([layers], supercompression=supercompression,
+                                   keys={"PRTTkind": "relight-dc", "PRTTcoefficients": str(K)})
+    return blob, {"coefficients": int(K), "colours": int(C), "layersPerColour": int(layers.shape[0] // C),
+                  "layers": int(layers.shape[0]), "width": int(W), "height": int(H), "format": "RGBA16F",
+                  "supercompression": supercompression, "bytes": len(blob),
+                  "uncompressedBytes": int(level_bytes[0][1])}
+
+
 def root_extension(*, bands: int, light: np.ndarray, light_description: str, sets: list) -> dict:
     """The root extension's JSON, ``sets`` each {"name", "resolution",
     "transfer": {..., "bufferView": <filled by the writer>}}. ``light``:
