@@ -9,7 +9,7 @@
  *   phong_factors    <-> prtt_addon.core.sh.zonal.phong_factors
  *   phong_exponent   <-> prtt_addon.core.shading.materials.phong_exponent
  *   glossy_weights,
- *   outgoing         <-> prtt_addon.core.shading.model.outgoing
+ *   outgoing         <-> prtt_addon.core.shading.shade.outgoing
  * Requires the defines SH_BANDS, SH_K (= SH_BANDS^2) and SH_K4 (= ceil(SH_K / 4)).
  */
 
@@ -160,7 +160,7 @@ void derive_material(vec3 base, float metallic, float roughness, float f0,
 
 /* Glossy weights w_k = A_l(s) y_k(r) at the reflection direction r = 2 (n.v) n - v:
  * the normalised Phong lobe's Funk-Hecke factors times the basis, so that the
- * glossy radiance is sum_k w_k Lp_k (core.shading.model.outgoing). */
+ * glossy radiance is sum_k w_k Lp_k (core.shading.shade.outgoing). */
 void glossy_weights(vec3 n, vec3 v, float exponent, out float w[SH_K])
 {
   vec3 r = 2.0 * dot(n, v) * n - v;
@@ -177,7 +177,7 @@ void glossy_weights(vec3 n, vec3 v, float exponent, out float w[SH_K])
 }
 
 /* Outgoing radiance from the incident radiance's DC term Lp_0 and its glossy
- * contraction sum_k w_k Lp_k (core.shading.model.outgoing):
+ * contraction sum_k w_k Lp_k (core.shading.shade.outgoing):
  * B = albedo / pi * sqrt(4 pi) Lp_0 + spec * glossy, clamped at 0 (SH ringing). */
 vec3 outgoing(vec3 dc, vec3 glossy, vec3 albedo, vec3 spec)
 {

@@ -116,3 +116,24 @@ def test_reader_refuses_damaged_files(tmp_path, rng):
         with pytest.raises(KTX2Error, match="bad.ktx2"):
             read_ktx2(bad)
         assert what
+
+
+def test_reader_refuses_lying_sizes_before_allocating(tmp_path):
+    """A header claiming a huge array, and a Zstandard frame declaring 2^50
+    bytes: KTX2Error, never a MemoryError or a memory-limit error from deep
+    inside (found by review)."""
+    import struct
+
+    from prtt_addon.core.io.ktx2 import ktx2_bytes, parse_ktx2
+    blob = bytearray(ktx2_bytes([np.zeros((1, 4, 4, 4), np.float16)], supercompression="zstd")[0])
+    off, ln, raw = struct.unpack_from("<3Q", blob, 80)
+    frame = struct.pack("<I", 0xFD2FB528) + bytes([(3 << 6) | (1 << 5)]) + struct.pack("<Q", 1 << 50) + bytes([1, 0, 0])
+    lying = bytearray(bytes(blob[:off]) + frame)
+    struct.pack_into("<3Q", lying, 80, off, len(frame), raw)
+    with pytest.raises(KTX2Error, match="declares"):
+        parse_ktx2(bytes(lying))
+    huge = bytearray(ktx2_bytes([np.zeros((1, 4, 4, 4), np.float16)])[0])
+    struct.pack_into("<3I", huge, 20, 16384, 16384, 0)          # width, height, depth
+    struct.pack_into("<I", huge, 32, 2048)                      # layers
+    with pytest.raises(KTX2Error):
+        parse_ktx2(bytes(huge))

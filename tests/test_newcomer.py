@@ -109,3 +109,39 @@ def test_demo_refuses_bad_options_before_any_work(tmp_path, args, message):
                        capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=ROOT))
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert not out.exists()
+
+
+def test_every_way_of_saving_elsewhere_keeps_the_bake(blend, tmp_path):
+    """Found by review: after Blender's own Save As to another folder, after
+    `--absolute-out --save-as` without --out, and with an empty Output Folder
+    and --save-as, the copy still renders its bake."""
+    proj = tmp_path / "proj"
+    proj.mkdir()
+    shutil.copy(blend, proj / "scene.blend")
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=proj)
+    assert r.returncode == 0, r.stderr + r.stdout
+    other = tmp_path / "other"
+    other.mkdir()
+    # Blender's own Save As (not PRTT's --save-as): the record's absolute folder finds the textures
+    code = ("import bpy, prtt_addon; prtt_addon.register(); "
+            f"bpy.ops.wm.open_mainfile(filepath={str(proj / 'scene.blend')!r}); "
+            f"bpy.ops.wm.save_as_mainfile(filepath={str(other / 'blender_save_as.blend')!r})")
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, timeout=120,
+                   env=dict(os.environ, PYTHONPATH=ROOT))
+    # --absolute-out without --out, then --save-as
+    r = run("bake", "scene.blend", "--absolute-out", "--save-as", str(other / "absolute.blend"), *BAKE, cwd=proj)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert stored_output_dir(other / "absolute.blend") == str(proj / "textures")
+    # an empty Output Folder (//prtt/ by default), then --save-as
+    code = ("import bpy, prtt_addon; prtt_addon.register(); "
+            f"bpy.ops.wm.open_mainfile(filepath={str(proj / 'scene.blend')!r}); "
+            "bpy.context.scene.prtt.output_dir = ''; "
+            f"bpy.ops.wm.save_as_mainfile(filepath={str(proj / 'empty.blend')!r})")
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, timeout=120,
+                   env=dict(os.environ, PYTHONPATH=ROOT))
+    r = run("bake", "empty.blend", "--save-as", str(other / "empty_copy.blend"), *BAKE, cwd=proj)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert stored_output_dir(other / "empty_copy.blend") == "//../proj/prtt/"
+    for name in ("blender_save_as", "absolute", "empty_copy"):
+        r = run("render", f"{name}.blend", "--out", f"{name}.png", "--size", "48x32", cwd=other)
+        assert r.returncode == 0, (name, r.stderr + r.stdout)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import tempfile
+import threading
 
 import bpy
 
@@ -44,32 +44,44 @@ HARMLESS_STDERR = ("EGL Error (0x3009): EGL_BAD_MATCH",)
 
 @contextlib.contextmanager
 def native_stderr_filtered(drop=HARMLESS_STDERR):
-    """Run the block with file descriptor 2 captured (native code writes there,
-    past Python's sys.stderr); afterwards write back every line but those
-    starting with one of ``drop``."""
+    """Run the block with file descriptor 2 (where native code writes, past
+    Python's sys.stderr) read through a pipe by a thread that passes every
+    line on as it comes, but those starting with one of ``drop``: nothing is
+    held back, so a crash inside the block still leaves its lines."""
     sys.stderr.flush()
     try:
         saved = os.dup(2)
     except OSError:
         yield
         return
-    with tempfile.TemporaryFile() as capture:
-        os.dup2(capture.fileno(), 2)
+    try:
+        r, w = os.pipe()
+    except OSError:
+        os.close(saved)
+        yield
+        return
+    prefixes = tuple(drop)
+
+    def forward():
+        with os.fdopen(r, "rb") as pipe:
+            for line in pipe:
+                if not line.decode("utf-8", "replace").startswith(prefixes):
+                    os.write(saved, line)
+
+    t = threading.Thread(target=forward, name="prtt-stderr", daemon=True)
+    t.start()
+    os.dup2(w, 2)
+    os.close(w)
+    try:
+        yield
+    finally:
         try:
-            yield
-        finally:
-            try:
-                sys.stderr.flush()
-            except (OSError, ValueError):
-                pass
-            os.dup2(saved, 2)
-            os.close(saved)
-            capture.seek(0)
-            kept = [ln for ln in capture.read().decode("utf-8", "replace").splitlines(keepends=True)
-                    if not ln.startswith(tuple(drop))]
-            if kept:
-                sys.stderr.write("".join(kept))
-                sys.stderr.flush()
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        os.dup2(saved, 2)                      # closes the pipe's last write end: the thread ends
+        t.join(timeout=5.0)
+        os.close(saved)
 
 
 def open_scene(blend: str, scene_name: str | None, *, quiet: bool = False):

@@ -119,6 +119,8 @@ def _saved_state(st) -> str:
         except ValueError:
             record = {"raw": st.last_bake}
     record.pop("time", None)
+    if record.get("out_dir_relative"):
+        record.pop("out_dir", None)        # the project folder moved: the relative form says it all
     settings = {p.identifier: getattr(st, p.identifier) for p in st.bl_rna.properties
                 if p.identifier not in ("rna_type", "last_bake", "status", "progress", "baking")
                 and not p.is_readonly and p.type in {"BOOLEAN", "INT", "FLOAT", "STRING", "ENUM"}
@@ -152,6 +154,8 @@ def _bake_file(args) -> int:
         # Stored relative to the .blend (Blender's //), so the project can move.
         out = os.path.abspath(args.out)
         st.output_dir = out if args.absolute_out else blend_relative(out, bpy.data.filepath)
+    elif args.absolute_out:
+        st.output_dir = output_folder(scene)         # the file's folder setting, made absolute
     # Ranges were checked by the options (the properties' hard limits are the same).
     props, overrides = schema.ui_from_values(given_settings(args, schema.SETTINGS))
     for name, v in props.items():
@@ -194,12 +198,12 @@ def _bake_file(args) -> int:
         # Nothing in the file changed: saving would only rotate a .blend1 backup.
         print(f"{outcome.message}; {os.path.basename(bpy.data.filepath)} unchanged, not saved", flush=True)
         return code
-    if args.save_as and not args.absolute_out and st.output_dir.startswith("//"):
+    if args.save_as and (st.output_dir or "//prtt/").startswith("//"):
         # relative to the file that holds it: the copy saved elsewhere
         st.output_dir = blend_relative(output_folder(scene), os.path.abspath(args.save_as))
         record = json.loads(st.last_bake) if st.last_bake else {}
-        if str(record.get("out_dir", "")).startswith("//"):
-            record["out_dir"] = st.output_dir
+        if record.get("out_dir_relative"):
+            record["out_dir_relative"] = st.output_dir
             st.last_bake = json.dumps(record)
     try:
         where = save_blend(args.save_as, quiet=args.quiet)

@@ -52,6 +52,7 @@ class Prepared:
     export: object
     settings: dict
     materials_signature: str = ""     # of the scene as exported (it may change while the worker runs)
+    out_setting: str = ""             # the Output Folder setting as the bake started (//... or absolute)
 
 
 @dataclasses.dataclass
@@ -89,7 +90,7 @@ def prepare(context, overrides: dict | None = None) -> Prepared:
         extra["light"] = {"coeffs": exp.light.tolist(), "description": exp.light_description}
     job = job_path(out_dir)
     save_scene(exp.scene, job, extra=extra)
-    return Prepared(job, out_dir, exp, settings, materials_signature(scene))
+    return Prepared(job, out_dir, exp, settings, materials_signature(scene), scene.prtt.output_dir or "//prtt/")
 
 
 def interpret(job: WorkerJob, code: int) -> Outcome:
@@ -125,9 +126,11 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
         return
     m = outcome.manifest
     write_generated_uvs(prepared.out_dir, prepared.export.generated_uvs)
-    # Relative to the .blend when the setting is (//textures/): the record moves with the project.
-    raw = st.output_dir or "//prtt/"
-    summary = {"out_dir": raw if raw.startswith("//") else prepared.out_dir, "files": m["files"], "input_hash": m["input_hash"],
+    # The folder as written (absolute: found again after Blender's own Save As
+    # elsewhere) and, when the setting was relative to the .blend (//textures/),
+    # that form too (found again after the project folder moved).
+    relative = prepared.out_setting if prepared.out_setting.startswith("//") else None
+    summary = {"out_dir": prepared.out_dir, "out_dir_relative": relative, "files": m["files"], "input_hash": m["input_hash"],
                "settings": m["settings"], "set_objects": prepared.export.set_objects,
                "bounce": None if not m.get("bounce") else {k: m["bounce"][k] for k in
                                                           ("levels", "light_hash", "materials_hash", "files")},

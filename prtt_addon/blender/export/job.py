@@ -22,7 +22,7 @@ What goes in (scene_objects.py decides what the scene shows):
   without the map is an error that says to unwrap it;
 * objects with nothing to bake (no faces, zero area) are skipped with one
   warning naming them;
-* materials per triangle (Principled/Diffuse/Glossy, see materials.py), their
+* materials per triangle (Principled/Diffuse/Glossy, see material_nodes.py), their
   base-colour/roughness textures and tangent-space normal maps (tangents
   from Blender's MikkTSpace ``calc_tangents``);
 * the light: the World (world.py) or a studio HDRI, as RGB SH.

@@ -34,7 +34,7 @@ import numpy as np
 from ...core.io.atomic import atomic_write
 from ...core.io.exr_io import read_relight_exr, read_sh_exr
 from ...core.io.gltf_prtt import NAME, relight_dc_payload, root_extension, transfer_payload
-from ..blendfile import native_stderr_filtered, open_scene
+from ..blendfile import open_scene
 from ..preview.drawlist import bake_folder, collect, last_bake
 from ..shared import UV_MAP
 
@@ -171,10 +171,9 @@ def export_glb(context, out: str) -> dict:
     try:
         with atomic_write(out) as tmp:
             target = tmp if tmp.endswith(".glb") else tmp + ".glb"
-            with native_stderr_filtered(drop=()):
-                r = bpy.ops.export_scene.gltf(filepath=target, export_format="GLB", use_selection=False,
-                                              export_texcoords=True, export_normals=True, export_cameras=True,
-                                              export_lights=True, export_apply=True)
+            r = bpy.ops.export_scene.gltf(filepath=target, export_format="GLB", use_selection=False,
+                                          export_texcoords=True, export_normals=True, export_cameras=True,
+                                          export_lights=True, export_apply=True)
             if r != {"FINISHED"}:
                 raise GltfExportError(f"Blender's glTF exporter did not finish ({r})")
             if target != tmp:

@@ -1,9 +1,9 @@
 """The viewport preview: a POST_VIEW draw handler on every 3D viewport.
 
 Registered with the add-on, except in background mode (there are no
-viewports; offscreen renders use render.py). Draw handlers belong to
+viewports; offscreen renders use offscreen.py). Draw handlers belong to
 the space type, not to a file, so they survive file loads and undo; the
-caches of scene.py are cleared on both (object pointers change) and the
+caches of drawlist.py are cleared on both (object pointers change) and the
 GPU resources no longer used are freed a few frames later.
 
 The handler draws nothing unless Scene > PRTT > Preview is on. Errors are

@@ -92,15 +92,15 @@ def last_bake(scene) -> dict | None:
 
 
 def bake_folder(scene, info: dict) -> str:
-    """The folder of the last bake: as recorded (relative to the .blend when
-    the Output Folder was, //textures/, so it moves with the project), else
-    the scene's Output Folder (a record of earlier PRTT holds an absolute
-    folder, gone when the project moved)."""
-    d = info.get("out_dir", "")
-    if d.startswith("//"):
-        d = bpy.path.abspath(d) if bpy.data.filepath else ""
-    if d and os.path.isdir(d):
-        return os.path.abspath(d)
+    """The folder of the last bake: its //-relative form resolved against the
+    .blend where it holds the bake (the project folder may have moved), else
+    the absolute folder the bake wrote (the .blend saved elsewhere), else the
+    scene's Output Folder."""
+    for d in (info.get("out_dir_relative") or "", info.get("out_dir") or ""):
+        if d.startswith("//"):
+            d = bpy.path.abspath(d) if bpy.data.filepath else ""
+        if d and os.path.isfile(os.path.join(d, "manifest.json")):
+            return os.path.abspath(d)
     return output_folder(scene)
 
 

@@ -1,6 +1,6 @@
 """numba, the optional compiler of PRTT's few per-element loops.
 
-Two loops gain from it: the bounce's per-hit shading (bake/hit_jit.py) and
+Two loops gain from it: the bounce's per-hit shading (bake/estimators/hit_jit.py) and
 the UV island labels (texels/islands_jit.py). Each keeps a numpy path, used
 when numba is not installed (the extension zip does not bundle it: two
 ~45 MB wheels per Python and platform, and a numpy range of its own), when

@@ -23,7 +23,7 @@ import struct
 
 import numpy as np
 
-from ..base.memory import check_fits
+from ..base.memory import MemoryLimitError, check_fits
 from .atomic import atomic_write
 
 IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
@@ -200,22 +200,32 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
     level_index_at = _HEADER.size + _INDEX.size
     if level_index_at + n * _LEVEL.size > len(data):
         fail("its level index runs past the file")
-    total = sum(L * max(1, H >> i) * max(1, W >> i) * 8 for i in range(n))
-    check_fits(2 * total, f"reading {path}")
-    levels = []
+    # Every level's place and size against the file first: only then memory.
+    index = []
     for i in range(n):
         off, ln, raw_len = _LEVEL.unpack_from(data, level_index_at + i * _LEVEL.size)
         shape = (L, max(1, H >> i), max(1, W >> i), 4)
         want = int(np.prod(shape)) * 2
         if raw_len != want or off + ln > len(data) or (scheme == 0 and ln != want):
             fail(f"level {i}: {ln} bytes at {off} ({raw_len} uncompressed) for {shape} RGBA16F")
+        index.append((off, ln, shape, want))
+    try:
+        check_fits(2 * sum(want for *_, want in index), f"reading {path}")
+    except MemoryLimitError as exc:
+        fail(str(exc))
+    levels = []
+    for i, (off, ln, shape, want) in enumerate(index):
         chunk = data[off:off + ln]
         if scheme == 2:
             import zstandard  # optional at import: only zstd files need it
             try:
+                # a frame may declare its size: python-zstandard trusts it over max_output_size
+                declared = zstandard.frame_content_size(chunk)
+                if declared not in (want, -1):
+                    fail(f"level {i}: its Zstandard frame declares {declared} bytes, {want} expected")
                 chunk = zstandard.ZstdDecompressor().decompress(chunk, max_output_size=want)
-            except zstandard.ZstdError as exc:
-                fail(f"level {i}: its Zstandard data is corrupt ({exc})")
+            except (zstandard.ZstdError, MemoryError) as exc:
+                fail(f"level {i}: its Zstandard data is corrupt ({type(exc).__name__}: {exc})")
             if len(chunk) != want:
                 fail(f"level {i}: {len(chunk)} bytes after Zstandard, {want} expected")
         levels.append(np.frombuffer(chunk, np.float16).reshape(shape).copy())

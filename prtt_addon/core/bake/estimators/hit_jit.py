@@ -368,7 +368,7 @@ def relight_project(tex, gtex, row_of, grow_of, sel, ray_of, D, d_rows, d_scale,
     dc[t, c, k] += w0[s] X[c, k] (the DC row), and when loc has texels,
     loc[t, c, i, o] += X[c, i] table[s, o] for i, o < Kg (the estimator's
     local projection; the caller turns it to the world; loc with one colour,
-    (n, 1, Kg, Kg), takes the colours' mean: shared glossy rows). What relight.py's
+    (n, 1, Kg, Kg), takes the colours' mean: shared glossy rows). What estimators/relightable.py's
     numpy path computes from the per-ray forms; rows of the texels
     :func:`texel_indices` found, prefetched as in :func:`_shade`."""
     cds, K = d_rows.shape[1], d_rows.shape[2]

@@ -1,5 +1,5 @@
 """The bounce stage under ``bounce_mode = "relightable"``: levels 1..bounces of
-every set as linear maps of the light (relight.py), summed into one texture
+every set as linear maps of the light (estimators/relightable.py), summed into one texture
 per set, ``<set>.relight.exr`` (kind "relight": exr_io.relight_channel_names).
 
 The same inputs, grids, rays, seeds and skips as the baked levels

@@ -118,7 +118,7 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
           bake into the folder can say which bake holds it.
     dask : run the ray chunks on a Dask cluster: "local[:N]", a scheduler
           address (tcp://HOST:PORT) or "env" ($DASK_SCHEDULER_ADDRESS);
-          the outputs are the local bake's, bit for bit (distributed.py).
+          the outputs are the local bake's, bit for bit (executors/dask_cluster.py).
     Returns the manifest dict (``manifest["skipped"]`` is True when an identical
     bake was already there). Raises BakeError (also when another bake holds the
     folder) / SceneError / MemoryLimitError for bad input and transfer.Cancelled
