@@ -29,6 +29,15 @@ def floor(bpy, size=20.0, name="Floor"):
     return add_object(bpy, name, me)
 
 
+def scene_camera(bpy, location, rotation, name="Cam"):
+    """A perspective camera at ``location`` turned by Euler ``rotation``, made the scene camera."""
+    cam = bpy.data.objects.new(name, bpy.data.cameras.new(name))
+    bpy.context.scene.collection.objects.link(cam)
+    cam.location, cam.rotation_euler = location, rotation
+    bpy.context.scene.camera = cam
+    return cam
+
+
 def source_collection(bpy, name="Src", exclude=True, objects=None):
     """A collection holding a cube (or ``objects``), excluded from the view layer."""
     col = bpy.data.collections.new(name)

@@ -196,10 +196,7 @@ def chain_blend(tmp_path_factory):
     bpy = addon_bpy()
     rs.floor(bpy, 8.0)
     rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
-    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
-    bpy.context.scene.collection.objects.link(cam)
-    cam.location, cam.rotation_euler = (0, -9, 5), (1.05, 0, 0)
-    bpy.context.scene.camera = cam
+    rs.scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
     bpy.context.scene.prtt.light_source = "BUILTIN"
     path = tmp_path_factory.mktemp("docs_chain") / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))

@@ -49,10 +49,7 @@ def baked(tmp_path_factory):
     bpy = addon_bpy()
     rs.floor(bpy, 6.0)
     rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
-    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
-    bpy.context.scene.collection.objects.link(cam)
-    cam.location, cam.rotation_euler = (0, -7, 4), (1.05, 0, 0)
-    bpy.context.scene.camera = cam
+    rs.scene_camera(bpy, (0, -7, 4), (1.05, 0, 0))
     bpy.context.scene.prtt.light_source = "BUILTIN"
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
     r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp)

@@ -39,10 +39,7 @@ def blend(tmp_path_factory):
     rs.collection_instance(bpy, "B", src, (-2, 0, 0))
     rs.gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
     rs.faceless(bpy)                                          # a helper with edges only
-    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
-    bpy.context.scene.collection.objects.link(cam)
-    cam.location, cam.rotation_euler = (0, -9, 5), (1.05, 0, 0)
-    bpy.context.scene.camera = cam
+    rs.scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
     bpy.context.scene.prtt.light_source = "BUILTIN"           # the factory-empty file has no World
     path = tmp / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))

@@ -46,10 +46,7 @@ def build_scene(bpy, *, edit_mode: str | None):
     obs = {}
     for i, (name, (v, e)) in enumerate(LOOSE.items()):
         obs[name] = rs.add_object(bpy, name, cube_with_loose(bpy, name, v, e), location=(3.0 * (i - 1), 0, 0.5))
-    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
-    bpy.context.scene.collection.objects.link(cam)
-    cam.location, cam.rotation_euler = (0, -9, 5), (1.05, 0, 0)
-    bpy.context.scene.camera = cam
+    rs.scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
     bpy.context.scene.prtt.light_source = "BUILTIN"
     if edit_mode:
         for o in bpy.context.view_layer.objects:

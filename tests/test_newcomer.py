@@ -33,10 +33,7 @@ def blend(tmp_path_factory):
     checker = np.indices((8, 8)).sum(0) % 2 * 0.6 + 0.2
     img = float_image("checker", np.repeat(checker[..., None], 3, -1).astype(np.float32), non_color=False)
     box.data.materials.append(principled("Checker", base_image=img))
-    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
-    bpy.context.scene.collection.objects.link(cam)
-    cam.location, cam.rotation_euler = (0, -7, 4), (1.05, 0, 0)
-    bpy.context.scene.camera = cam
+    rs.scene_camera(bpy, (0, -7, 4), (1.05, 0, 0))
     bpy.context.scene.prtt.light_source = "BUILTIN"
     path = tmp / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))

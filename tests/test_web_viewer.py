@@ -19,6 +19,9 @@ from tests.test_headless_chain import ROOT, run
 
 pytestmark = pytest.mark.blender
 BROWSER = "/usr/bin/chromium-headless-shell"
+#: WebGL2 on SwiftShader, and no calls out of this closed network.
+BROWSER_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                "--disable-background-networking", "--disable-component-update", "--no-first-run"]
 W, H = 160, 90
 TURN = 70.0
 
@@ -49,10 +52,7 @@ def exported(tmp_path_factory, request):
     floor.data.materials.append(principled("Floor", base_color=(0.30, 0.22, 0.15), roughness=1.0, specular=0.0))
     box = rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
     box.data.materials.append(principled("Box", base_color=(0.05, 0.12, 0.30), roughness=1.0, specular=0.0))
-    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
-    bpy.context.scene.collection.objects.link(cam)
-    cam.location, cam.rotation_euler = (0.5, -6, 3.5), (1.1, 0, 0.1)
-    bpy.context.scene.camera = cam
+    rs.scene_camera(bpy, (0.5, -6, 3.5), (1.1, 0, 0.1))
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = W, H
     from prtt_addon.bench.scene_build import environment_world
     from prtt_addon.core.light.envmap import builtin_environment_path
@@ -108,9 +108,7 @@ def browser_shot(url, out):
     from playwright.sync_api import sync_playwright
     assert os.path.exists(BROWSER), "Debian's chromium-headless-shell is needed: ./prtt.sh installs it"
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=BROWSER, args=[
-            "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-            "--disable-background-networking", "--disable-component-update", "--no-first-run"])
+        b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
         try:
             page = b.new_page(viewport={"width": W, "height": H})
             page.goto(url)
@@ -175,9 +173,7 @@ def test_the_slider_turns_the_light_live(exported, server, tmp_path):
     the light is turned in place, no reload; dragging orbits the camera."""
     from playwright.sync_api import sync_playwright
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=BROWSER, args=["--no-sandbox", "--use-angle=swiftshader",
-                                                            "--enable-unsafe-swiftshader",
-                                                            "--disable-background-networking"])
+        b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
         try:
             page = b.new_page(viewport={"width": W, "height": H})
             page.goto(f"{server}/viewer/index.html?glb=/room.glb&w={W}&h={H}")

@@ -22,6 +22,8 @@ import platform
 import re
 import sys
 
+from ..core.io.atomic import atomic_write
+
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
@@ -95,11 +97,10 @@ def write_record(path: str, command: str, argv, record: dict) -> str:
            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"),
            "machine": machine(), **record}
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(out, f, indent=1, sort_keys=False)
-        f.write("\n")
-    os.replace(tmp, path)
+    with atomic_write(path) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(out, f, indent=1, sort_keys=False)
+            f.write("\n")
     return path
 
 
@@ -161,11 +162,16 @@ def bake_block() -> str:
     return "\n".join(lines)
 
 
+def _full_hd_frames() -> list:
+    """The 1920 x 1080 rows of docs/bench/render_llvmpipe.csv (bench render --csv)."""
+    with open(bench_path("render_llvmpipe.csv"), newline="", encoding="utf-8") as f:
+        return [r for r in csv.DictReader(f) if (r["width"], r["height"]) == ("1920", "1080")]
+
+
 def render_block() -> str:
     """README: preview frame times at 1920 x 1080 (docs/bench/render_llvmpipe.csv,
     bench render --csv, with its .meta.json when the run wrote one)."""
-    with open(bench_path("render_llvmpipe.csv"), newline="", encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
+    full = _full_hd_frames()
     meta_path = bench_path("render_llvmpipe.csv.meta.json")
     if os.path.isfile(meta_path):
         with open(meta_path, encoding="utf-8") as f:
@@ -176,7 +182,6 @@ def render_block() -> str:
         head = ("`python -m prtt_addon.bench render --csv docs/bench/render_llvmpipe.csv`, Mesa llvmpipe on "
                 "2 CPU cores (a run before 2026-11-25, which recorded no date or machine); ms per frame "
                 "at 1920 × 1080:")
-    full = [r for r in rows if (r["width"], r["height"]) == ("1920", "1080")]
     scenes = list(dict.fromkeys(r["scene"] for r in full))
     names = {"tpfl": "TPFL, fragment (PRTT)", "vertex-tpfl": "TPFL, vertex (baseline)", "tp": "TP, fragment",
              "diffuse": "diffuse", "vertex-tp": "TP, vertex"}
@@ -198,8 +203,7 @@ def render_block() -> str:
 def preview_block() -> str:
     """docs/preview.md: every mode's frame time at 1920 x 1080 and its growth
     from the smallest to the largest scene (docs/bench/render_llvmpipe.csv)."""
-    with open(bench_path("render_llvmpipe.csv"), newline="", encoding="utf-8") as f:
-        full = [r for r in csv.DictReader(f) if (r["width"], r["height"]) == ("1920", "1080")]
+    full = _full_hd_frames()
     scenes = list(dict.fromkeys(r["scene"] for r in full))
     names = {"tpfl": "TPFL (fragment)", "tp": "TP (fragment)", "diffuse": "diffuse (fragment)",
              "vertex-tpfl": "TPFL (vertex)", "vertex-tp": "TP (vertex)"}
@@ -308,8 +312,9 @@ def stale_blocks(write: bool = False) -> list:
                 if write:
                     doc = doc[:m.start()] + f"<!-- figures:{name} -->\n{text}\n<!-- /figures:{name} -->" \
                         + doc[m.end():]
-                    with open(path, "w", encoding="utf-8") as f:
-                        f.write(doc)
+                    with atomic_write(path) as tmp:
+                        with open(tmp, "w", encoding="utf-8") as f:
+                            f.write(doc)
     return stale
 
 

@@ -104,9 +104,10 @@ class _Export:
             self.primitives_tagged += 1
 
 
-def _check_exportable(context, info: dict) -> None:
+def _check_exportable(context, info: dict):
     """Refuse (GltfExportError) a bake that is missing, stale, partial, or
-    holds what the export cannot carry yet."""
+    holds what the export cannot carry yet. Returns the preview's
+    (PreviewScene, PreviewStatus) of the bake (its light, its description)."""
     if info is None:
         raise GltfExportError("nothing baked in this scene: bake it first (python -m prtt_addon bake FILE.blend)")
     ps, status = collect(context, use_bounces=False, with_meshes=True)
@@ -121,6 +122,7 @@ def _check_exportable(context, info: dict) -> None:
         raise GltfExportError(f"the glTF export does not carry instances or UVs generated at bake time yet: "
                               f"{', '.join(unsupported[:8])}; give them a PRTT UV map (Unwrap) and no instancing, "
                               f"or leave them out of the bake")
+    return ps, status
 
 
 def _read_glb_json(path: str) -> dict:
@@ -138,9 +140,8 @@ def export_glb(context, out: str) -> dict:
     global _ACTIVE
     scene = context.scene
     info = last_bake(scene)
-    _check_exportable(context, info)
+    ps, status = _check_exportable(context, info)
     folder = bake_folder(scene, info)
-    ps, status = collect(context, use_bounces=False, with_meshes=False)
     bands = int(info["settings"]["bands"])
     bounce = info.get("bounce") or {}
     relightable = any(f.endswith(".relight.exr") for f in bounce.get("files", []))

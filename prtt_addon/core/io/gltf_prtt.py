@@ -29,13 +29,18 @@ GLTF_TO_BAKE_FRAME = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))
 def transfer_payload(planes: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
     """A set's transfer planes (K, H, W), rows top first, as KTX2 bytes and
     the JSON that describes them (coefficients, layers, the half-float error)."""
-    K, H, W = planes.shape
-    layers = sh_layers(np.asarray(planes, np.float32))
+    K = planes.shape[0]
+    return _payload(sh_layers(np.asarray(planes, np.float32)), "transfer", K, supercompression)
+
+
+def _payload(layers: np.ndarray, kind: str, K: int, supercompression: str, **meta) -> tuple[bytes, dict]:
+    """(layers, H, W, 4) as KTX2 bytes and the JSON every payload carries."""
+    L, H, W = layers.shape[:3]
     blob, level_bytes = ktx2_bytes([layers], supercompression=supercompression,
-                                   keys={"PRTTkind": "transfer", "PRTTcoefficients": str(K)})
-    return blob, {"coefficients": int(K), "layers": int(layers.shape[0]), "width": int(W), "height": int(H),
-                  "format": "RGBA16F", "supercompression": supercompression,
-                  "bytes": len(blob), "uncompressedBytes": int(level_bytes[0][1])}
+                                   keys={"PRTTkind": kind, "PRTTcoefficients": str(K)})
+    return blob, {"coefficients": int(K), **meta, "layers": int(L), "width": int(W), "height": int(H),
+                  "format": "RGBA16F", "supercompression": supercompression, "bytes": len(blob),
+                  "uncompressedBytes": int(level_bytes[0][1])}
 
 
 def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
@@ -44,14 +49,10 @@ def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd") -> tup
     layer c * ceil(K / 4), coefficient i in layer i // 4, channel i % 4 of
     them) and their JSON. The bounce's diffuse radiance under a light L is
     sqrt(4 pi) * sum_i DC_c,i L_c,i per colour c (docs/shading.md)."""
-    C, K, H, W = dc.shape
+    C, K = dc.shape[:2]
     layers = np.concatenate([sh_layers(np.asarray(dc[c], np.float32)) for c in range(C)])
-    blob, level_bytes = ktx2_bytes([layers], supercompression=supercompression,
-                                   keys={"PRTTkind": "relight-dc", "PRTTcoefficients": str(K)})
-    return blob, {"coefficients": int(K), "colours": int(C), "layersPerColour": int(layers.shape[0] // C),
-                  "layers": int(layers.shape[0]), "width": int(W), "height": int(H), "format": "RGBA16F",
-                  "supercompression": supercompression, "bytes": len(blob),
-                  "uncompressedBytes": int(level_bytes[0][1])}
+    return _payload(layers, "relight-dc", K, supercompression, colours=int(C),
+                    layersPerColour=int(layers.shape[0] // C))
 
 
 def root_extension(*, bands: int, light: np.ndarray, light_description: str, sets: list) -> dict:
