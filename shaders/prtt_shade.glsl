@@ -3,6 +3,13 @@
  * bounce textures, outgoing radiance. Needs `material` (struct PRTTMaterial),
  * `light`, and the samplers named below when their features are compiled in. */
 
+/* The channel of roughTex that holds roughness: r for Blender's images; a
+ * host whose roughness comes packed with other data (glTF's
+ * metallicRoughness: G) defines it first. */
+#ifndef PRTT_ROUGHNESS_CHANNEL
+#define PRTT_ROUGHNESS_CHANNEL r
+#endif
+
 /* Material at a point with material-texture coordinates muv. */
 void surface_material(vec2 muv, out vec3 albedo, out vec3 spec, out float exponent)
 {
@@ -13,7 +20,7 @@ void surface_material(vec2 muv, out vec3 albedo, out vec3 spec, out float expone
     base = bilinear_repeat(baseTex, muv).rgb;
   }
   if ((flags & 2) != 0) {
-    roughness = bilinear_repeat(roughTex, muv).r;
+    roughness = bilinear_repeat(roughTex, muv).PRTT_ROUGHNESS_CHANNEL;
   }
   derive_material(base, material.base.a, roughness, material.params.y, albedo, spec, exponent);
 }

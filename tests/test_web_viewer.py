@@ -77,23 +77,9 @@ def exported(tmp_path_factory, request):
 
 @pytest.fixture(scope="module")
 def server(exported):
-    """An HTTP server over a folder holding the repository's viewer/ and
-    tools/js/ (three.js, ktx-parse) and the exported scene."""
-    site = exported / "site"
-    site.mkdir(exist_ok=True)
-    for part in ("viewer", os.path.join("tools", "js")):
-        dst = site / part
-        if not dst.exists():
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.symlink(os.path.join(ROOT, part), dst)
-    shutil.copy(exported / "room.glb", site / "room.glb")
-    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(site))
-    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    handler.log_message = lambda *a: None
-    t = threading.Thread(target=httpd.serve_forever, daemon=True)
-    t.start()
-    yield f"http://127.0.0.1:{httpd.server_address[1]}"
-    httpd.shutdown()
+    """An HTTP server over a folder holding the repository's viewer/, shaders/
+    and tools/js/ (three.js, ktx-parse) and the exported scene."""
+    yield from serve(exported, "room.glb")
 
 
 def canvas_png(page, out):
@@ -123,7 +109,7 @@ def browser_shot(url, out):
 
 
 def test_the_browser_draws_what_blender_draws(exported, server, tmp_path):
-    title = browser_shot(f"{server}/viewer/index.html?glb=/room.glb&w={W}&h={H}", tmp_path / "web.png")
+    title = browser_shot(f"{server}/viewer/index.html?glb=/room.glb&mode=diffuse&w={W}&h={H}", tmp_path / "web.png")
     assert title == "ready 2", title
     addon_bpy()
     web, ref = read_png(tmp_path / "web.png"), read_png(exported / "blender.png")
@@ -140,7 +126,7 @@ def test_the_browser_draws_what_blender_draws(exported, server, tmp_path):
     assert rel < 0.01, rel
     if (exported / "textures" / "Box.relight.exr").exists():
         # the bounce is in the picture: without it the page is clearly off
-        title = browser_shot(f"{server}/viewer/index.html?glb=/room.glb&w={W}&h={H}&bounces=0", tmp_path / "nb.png")
+        title = browser_shot(f"{server}/viewer/index.html?glb=/room.glb&mode=diffuse&w={W}&h={H}&bounces=0", tmp_path / "nb.png")
         assert title == "ready 2", title
         _, _, rel_no_bounce = compare(read_png(tmp_path / "nb.png"), ref)
         assert rel_no_bounce > 4 * max(rel, 0.002), (rel_no_bounce, rel)      # measured 1.34 % vs 0.12 %
@@ -158,7 +144,7 @@ def test_turning_the_light_in_the_browser_is_turning_the_world(exported, server,
     """?turn=70 rotates the exported light's SH about Z: the page equals
     Blender's render with the World's Mapping node turned by 70 degrees, and
     differs clearly from the unturned one (so the test sees the turn)."""
-    title = browser_shot(f"{server}/viewer/index.html?glb=/room.glb&w={W}&h={H}&turn={TURN}", tmp_path / "t.png")
+    title = browser_shot(f"{server}/viewer/index.html?glb=/room.glb&mode=diffuse&w={W}&h={H}&turn={TURN}", tmp_path / "t.png")
     assert title == "ready 2", title
     addon_bpy()
     web = read_png(tmp_path / "t.png")
@@ -176,7 +162,7 @@ def test_the_slider_turns_the_light_live(exported, server, tmp_path):
         b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
         try:
             page = b.new_page(viewport={"width": W, "height": H})
-            page.goto(f"{server}/viewer/index.html?glb=/room.glb&w={W}&h={H}")
+            page.goto(f"{server}/viewer/index.html?glb=/room.glb&mode=diffuse&w={W}&h={H}")
             page.wait_for_function("document.title.startsWith('ready')", timeout=60_000)
             page.locator("#turn").fill(str(int(TURN)))          # fires 'input', as a drag does
             assert page.locator("#deg").text_content() == str(int(TURN))
@@ -202,3 +188,122 @@ def test_a_glb_without_prtt_is_a_clear_error(exported, server, tmp_path):
     bpy.ops.export_scene.gltf(filepath=str(exported / "site" / "plain.glb"), export_format="GLB")
     title = browser_shot(f"{server}/viewer/index.html?glb=/plain.glb&w={W}&h={H}", tmp_path / "x.png")
     assert title.startswith("error: /plain.glb: no PRTT_radiance_transfer extension"), title
+
+
+# --- the demo room: TPFL (glossy, textured floor) and diffuse with bounces, as drawn by Blender -------
+
+RW, RH = 192, 108
+ROOM_TURN = 90.0
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    """The demo's room (prtt_addon.demo.build_scene: 21K triangles, a glossy
+    plank floor with textured colour and roughness, the forest HDRI, the
+    demo camera), baked into one atlas with one relightable bounce (the
+    default), exported, and rendered by Blender's `render` in each mode
+    compared, at the World of the export and turned by ROOM_TURN degrees."""
+    from prtt_addon.demo import build_scene
+    tmp = tmp_path_factory.mktemp("room")
+    bpy = addon_bpy()
+    build_scene(bpy)
+    bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = RW, RH
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "room.blend"))
+    r = run("bake", "room.blend", "--out", "textures", "--unwrap", "SMART", "--atlas", "--resolution", "256",
+            "--rays", "64", "--bounces", "1", "--bounce-rays", "16", cwd=tmp, timeout=600)
+    assert r.returncode == 0, r.stderr + r.stdout
+    r = run("export", "room.blend", "--out", "room.glb", cwd=tmp)
+    assert r.returncode == 0, r.stderr + r.stdout
+    bpy.ops.wm.open_mainfile(filepath=str(tmp / "room.blend"))
+    mapping = next(n for n in bpy.context.scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
+    mapping.inputs["Rotation"].default_value[2] = np.radians(ROOM_TURN)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "turned.blend"))
+    for blend in ("room", "turned"):
+        for mode in ("tpfl", "diffuse", "tp"):
+            r = run("render", f"{blend}.blend", "--mode", mode, "--size", f"{RW}x{RH}",
+                    "--out", f"{blend}_{mode}.png", cwd=tmp)
+            assert r.returncode == 0, r.stderr + r.stdout
+    return tmp
+
+
+@pytest.fixture(scope="module")
+def room_server(room):
+    yield from serve(room, "room.glb")
+
+
+def serve(folder, glb):
+    site = folder / "site"
+    site.mkdir(exist_ok=True)
+    for part in ("viewer", "shaders", os.path.join("tools", "js")):
+        dst = site / part
+        if not dst.exists():
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.symlink(os.path.join(ROOT, part), dst)
+    shutil.copy(folder / glb, site / glb)
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(site))
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    handler.log_message = lambda *a: None
+    t = threading.Thread(target=httpd.serve_forever, daemon=True)
+    t.start()
+    yield f"http://127.0.0.1:{httpd.server_address[1]}"
+    httpd.shutdown()
+
+
+def room_shot(server, out, **query):
+    from playwright.sync_api import sync_playwright
+    q = "&".join(f"{k}={v}" for k, v in {"src": "/room.glb", "w": RW, "h": RH, "ui": 0, **query}.items())
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
+        try:
+            page = b.new_page(viewport={"width": RW, "height": RH})
+            errors = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(f"{server}/viewer/index.html?{q}")
+            page.wait_for_function("document.title.startsWith('ready') || document.title.startsWith('error')",
+                                   timeout=120_000)
+            title = page.title()
+            if title.startswith("ready"):
+                canvas_png(page, out)
+            assert not errors, errors
+            return title
+        finally:
+            b.close()
+
+
+def surface_rmse(web, ref):
+    """Relative RMSE over the pixels the page covers (it clears to black where
+    Blender shows the World), with the median and 99th percentile level."""
+    covered = web.max(axis=2) > 0
+    assert covered.mean() > 0.5, covered.mean()
+    d = (web - ref)[covered].astype(float)
+    return float(np.sqrt(np.mean(d ** 2)) / ref[covered].mean()), float(np.median(np.abs(d))), \
+        float(np.percentile(np.abs(d), 99))
+
+
+@pytest.mark.parametrize("mode,turn", [("tpfl", 0), ("tpfl", ROOM_TURN), ("diffuse", 0), ("diffuse", ROOM_TURN),
+                                       ("tp", 0)])
+def test_the_room_in_the_browser_is_blenders_room(room, room_server, tmp_path, mode, turn):
+    """The page draws the demo room as `prtt render` does, per pixel, in each
+    mode with the relightable bounce (relit on the GPU by the shared relight
+    pass), at the World of the export and turned (page relit against Blender
+    relit): relative RMSE within 1 %."""
+    title = room_shot(room_server, tmp_path / "web.png", mode=mode, turn=turn)
+    assert title.startswith("ready") and int(title.split()[1]) >= len(list_baked(room)), title
+    addon_bpy()
+    web = read_png(tmp_path / "web.png")
+    ref = read_png(room / f"{'turned' if turn else 'room'}_{mode}.png")
+    rel, med, p99 = surface_rmse(web, ref)
+    print(f"{mode} turn {turn}: relative RMSE {rel:.4%}, median {med}, p99 {p99}")
+    assert rel <= 0.01, (rel, med, p99)
+    if turn:      # the turn is seen: the unturned render is clearly farther
+        other, _, _ = surface_rmse(web, read_png(room / f"room_{mode}.png"))
+        assert other > 3 * max(rel, 0.002), (other, rel)
+
+
+def list_baked(folder):
+    import json
+    import struct
+    with open(folder / "room.glb", "rb") as f:
+        _, _, _, n, _ = struct.unpack("<4sIIII", f.read(20))
+        doc = json.loads(f.read(n))
+    return [nd for nd in doc["nodes"] if "PRTT_radiance_transfer" in (nd.get("extensions") or {})]

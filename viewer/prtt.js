@@ -1,32 +1,96 @@
-// PRTT's web viewer: a .glb exported by `prtt export` (docs/gltf.md), drawn
-// with three.js, its PRTT_radiance_transfer data shading each baked object:
-// diffuse PRT per pixel, radiance = albedo / pi * (sum_k T_k(uv) L_k + the
-// relightable bounce sqrt(4 pi) sum_k DC_k(uv) L_k), the transfer T read from
-// the set's KTX2 array texture (RGBA16F, coefficient k in layer k / 4,
-// channel k % 4) at the object's PRTT UVs, L the light's SH.
-// The same formula as the Blender preview's diffuse mode (shaders/prtt_shade.glsl).
+// PRTT in three.js: a GLTFLoader plugin that shades the objects of a .glb
+// exported by `prtt export` (docs/gltf.md) with PRTT's own shading GLSL
+// (shaders/*.glsl through prtt_shaders.js: the very files Blender's viewport
+// compiles), per pixel: TPFL (the paper's glossy PRT), TP (the full triple
+// product) or diffuse, with the bounce textures: a baked bounce as it is, a
+// relightable bounce relit on the GPU by the same relight pass as Blender's
+// (shaders/prtt_relight_frag.glsl) whenever the light changes.
+//
+//   const loader = new GLTFLoader();
+//   loader.register((parser) => new PRTTLoaderPlugin(parser, { renderer }));
+//   const gltf = await loader.loadAsync('room.glb');
+//   const prtt = gltf.userData.prtt;          // null: the file has no PRTT data
+//   prtt.render(renderer, gltf.scene, camera);
+//   prtt.setTurn(90); prtt.setMode('diffuse', { bounces: true });
 import * as THREE from 'three';
-import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { ZSTDDecoder } from 'three/addons/libs/zstddec.module.js';
 import { read as readKTX2 } from 'ktx-parse';
+import {
+  blockName, fetchSources, relightSources, relightVariant, shSizes, surfaceSources, surfaceVariant, GAUNT_WIDTH,
+  MAX_PREVIEW_BANDS, MODES,
+} from './prtt_shaders.js';
+import { gauntTable, lightBlock, relightBlock, rotateLight, turnLightZ } from './prtt_sh.js';
 
 export const NAME = 'PRTT_radiance_transfer';
+export { MODES };
 const VK_FORMAT_R16G16B16A16_SFLOAT = 97;
+const KTX2_ZSTD = 2;
 
-/** A set's transfer texture from its KTX2 bytes (checked: the one format PRTT writes). */
-function transferTexture(bytes, zstd, what) {
-  const c = readKTX2(bytes);
-  if (c.vkFormat !== VK_FORMAT_R16G16B16A16_SFLOAT || c.layerCount < 1 || c.levels.length < 1) {
-    throw new Error(`${what}: not an RGBA16F array texture (vkFormat ${c.vkFormat})`);
+/** A problem with the file or the browser, said on the page (never a bare exception). */
+export class PRTTError extends Error {}
+
+/** The browser's limits that PRTT's textures and blocks meet. */
+export function gpuLimits(renderer) {
+  const gl = renderer.getContext();
+  return {
+    maxTextureSize: gl.getParameter(gl.MAX_TEXTURE_SIZE),
+    maxArrayLayers: gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS),
+    maxTextureUnits: gl.getParameter(gl.MAX_TEXTURE_IMAGE_UNITS),
+    maxUniformBlockSize: gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE),
+    floatRenderTarget: !!gl.getExtension('EXT_color_buffer_float'),
+    floatLinear: !!gl.getExtension('OES_texture_float_linear'),
+  };
+}
+
+/**
+ * One KTX2 payload as a half-float 2D array texture, checked against what
+ * the extension says it holds (layers, size) and the browser's limits.
+ * ``what`` names it in every message.
+ */
+function arrayTexture(bytes, zstd, what, { layers, width, height }, limits) {
+  let c;
+  try {
+    c = readKTX2(bytes);
+  } catch (e) {
+    throw new PRTTError(`${what}: not a readable KTX2 file (${e.message})`);
+  }
+  if (c.vkFormat !== VK_FORMAT_R16G16B16A16_SFLOAT || c.levels.length < 1) {
+    throw new PRTTError(`${what}: not an RGBA16F array texture (vkFormat ${c.vkFormat})`);
+  }
+  if (c.layerCount !== layers || c.pixelWidth !== width || c.pixelHeight !== height) {
+    throw new PRTTError(`${what}: ${c.pixelWidth}x${c.pixelHeight} in ${c.layerCount} layers, the extension says `
+      + `${width}x${height} in ${layers} (wrong coefficient count or a damaged file)`);
+  }
+  if (limits && (width > limits.maxTextureSize || height > limits.maxTextureSize)) {
+    throw new PRTTError(`${what}: ${width}x${height} texels exceeds this browser's MAX_TEXTURE_SIZE `
+      + `(${limits.maxTextureSize}); export a smaller bake`);
+  }
+  if (limits && layers > limits.maxArrayLayers) {
+    throw new PRTTError(`${what}: ${layers} layers exceeds this browser's MAX_ARRAY_TEXTURE_LAYERS `
+      + `(${limits.maxArrayLayers}); bake fewer bands`);
   }
   const level = c.levels[0];
+  const want = width * height * layers * 8;
   let data = level.levelData;
-  if (c.supercompressionScheme === 2) data = zstd.decode(data, level.uncompressedByteLength);
-  else if (c.supercompressionScheme !== 0) throw new Error(`${what}: supercompression ${c.supercompressionScheme}`);
-  const want = c.pixelWidth * c.pixelHeight * c.layerCount * 8;
-  if (data.byteLength !== want) throw new Error(`${what}: ${data.byteLength} bytes, ${want} expected`);
+  if (c.supercompressionScheme === KTX2_ZSTD) {
+    if (level.uncompressedByteLength !== want) {
+      throw new PRTTError(`${what}: declares ${level.uncompressedByteLength} bytes, ${want} expected`);
+    }
+    try {
+      data = zstd.decode(data, want);
+    } catch (e) {
+      throw new PRTTError(`${what}: damaged Zstandard data (${e.message || e})`);
+    }
+  } else if (c.supercompressionScheme !== 0) {
+    throw new PRTTError(`${what}: supercompression scheme ${c.supercompressionScheme} is not PRTT's`);
+  }
+  if (data.byteLength !== want) throw new PRTTError(`${what}: ${data.byteLength} bytes, ${want} expected`);
   const half = new Uint16Array(data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength));
-  const tex = new THREE.DataArrayTexture(half, c.pixelWidth, c.pixelHeight, c.layerCount);
+  return halfArrayTexture(half, width, height, layers);
+}
+
+function halfArrayTexture(half, width, height, layers) {
+  const tex = new THREE.DataArrayTexture(half, width, height, layers);
   tex.type = THREE.HalfFloatType;
   tex.format = THREE.RGBAFormat;
   tex.minFilter = tex.magFilter = THREE.LinearFilter;
@@ -38,149 +102,378 @@ function transferTexture(bytes, zstd, what) {
   return tex;
 }
 
-const VERTEX = /* glsl */ `
-in vec2 prttUv;
-out vec2 vUv;
-void main() {
-  vUv = prttUv;
-  gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
-}`;
-
-const FRAGMENT = /* glsl */ `
-precision highp float;
-precision highp sampler2DArray;
-uniform sampler2DArray transfer;
-#ifdef BOUNCE
-uniform sampler2DArray relightDC;   // colour c's DC rows from layer c * LAYERS
-#endif
-uniform vec3 light[K];
-uniform vec3 albedo;
-uniform float exposure;
-in vec2 vUv;
-out highp vec4 fragColor;   // GLSL3: three declares no output of its own
-vec3 srgb(vec3 c) {
-  c = clamp(c, 0.0, 1.0);
-  return mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), c));
+function dummy2D() {
+  const t = new THREE.DataTexture(new Float32Array([0, 0, 0, 1]), 1, 1, THREE.RGBAFormat, THREE.FloatType);
+  t.needsUpdate = true;
+  return t;
 }
-void main() {
-  vec3 e = vec3(0.0);
-  for (int q = 0; q < LAYERS; q++) {
-    vec4 t = textureLod(transfer, vec3(vUv, float(q)), 0.0);
-    for (int c = 0; c < 4; c++) {
-      int k = 4 * q + c;
-      if (k < K) e += t[c] * light[k];
-    }
-  }
-#ifdef BOUNCE
-  // the relightable bounce's diffuse radiance: sqrt(4 pi) sum_i DC_c,i L_c,i
-  vec3 dc = vec3(0.0);
-  for (int q = 0; q < LAYERS; q++) {
-    vec4 r = textureLod(relightDC, vec3(vUv, float(q)), 0.0);
-    vec4 g = textureLod(relightDC, vec3(vUv, float(q + LAYERS)), 0.0);
-    vec4 b = textureLod(relightDC, vec3(vUv, float(q + 2 * LAYERS)), 0.0);
-    for (int c = 0; c < 4; c++) {
-      int k = 4 * q + c;
-      if (k < K) dc += vec3(r[c] * light[k].r, g[c] * light[k].g, b[c] * light[k].b);
-    }
-  }
-  e += 3.5449077018110318 * dc;
-#endif
-  fragColor = vec4(srgb(max(albedo / 3.14159265358979 * e, vec3(0.0)) * exposure), 1.0);
-}`;
 
-function prttMaterial(tex, bounce, light, K, layers, source) {
-  const color = source && source.color ? source.color.clone() : new THREE.Color(0.8, 0.8, 0.8);
-  const metal = source && source.metalness !== undefined ? source.metalness : 0.0;
-  return new THREE.ShaderMaterial({
-    glslVersion: THREE.GLSL3,
-    defines: bounce ? { K, LAYERS: layers, BOUNCE: 1 } : { K, LAYERS: layers },
-    uniforms: {
-      transfer: { value: tex },
-      relightDC: { value: bounce },
-      light: { value: light },
-      albedo: { value: new THREE.Vector3(color.r, color.g, color.b).multiplyScalar(1.0 - metal) },
-      exposure: { value: 1.0 },
-    },
-    vertexShader: VERTEX,
-    fragmentShader: FRAGMENT,
+/** The PRTTMaterial block (8 floats) of a glTF material: the exported preview values, or the glTF's own. */
+function materialBlock(source, ext, textures) {
+  const m = ext || {};
+  const color = source && source.color ? source.color : new THREE.Color(0.8, 0.8, 0.8);
+  const base = m.baseColor || [color.r, color.g, color.b];
+  const metallic = m.metallic ?? (source && source.metalness !== undefined ? source.metalness : 0.0);
+  const roughness = m.roughness ?? (source && source.roughness !== undefined ? source.roughness : 0.5);
+  const f0 = m.f0 ?? 0.04;
+  const strength = m.normalStrength ?? (source && source.normalScale ? source.normalScale.x : 1.0);
+  const flags = (textures.base ? 1 : 0) | (textures.rough ? 2 : 0) | (textures.normal ? 4 : 0);
+  return new Float32Array([base[0], base[1], base[2], metallic, roughness, f0, strength, flags]);
+}
+
+const UV_NAMES = ['uv', 'uv1', 'uv2', 'uv3'];
+
+/** A PRTT scene: its sets, light, mode and materials; draws with `render`. */
+class PRTTScene {
+  constructor(ext, limits, sources) {
+    this.ext = ext;
+    this.bands = ext.sh.bands;
+    this.K = ext.sh.coefficients;
+    this.limits = limits;
+    this.read = sources;
+    this.exposure = (ext.display && ext.display.exposure) || 1.0;
+    this.baseLight = ext.light.rgb.map((c) => [c[0], c[1], c[2]]);
+    this.light = this.baseLight;
+    this.turn = 0;
+    this.mode = 'tpfl';
+    this.bounces = true;
+    this.sets = [];
+    this.meshes = [];               // {mesh, set, primitive extension, material source, material ext}
+    this.notes = [];
+    this.viewGroup = new THREE.UniformsGroup();
+    this.viewGroup.setName(blockName('PRTTView'));
+    this.viewData = new Float32Array(24);
+    this.viewGroup.add(new THREE.Uniform(this.viewData));
+    this.lightGroup = new THREE.UniformsGroup();
+    this.lightGroup.setName(blockName('PRTTLight'));
+    this.lightData = lightBlock(this.light, this.bands);
+    this.lightGroup.add(new THREE.Uniform(this.lightData));
+    this.relightDirty = true;
+    this.dummy = dummy2D();
+    this.gaunt = null;
+    this.materials = new Map();
+  }
+
+  /** Turn the World by ``degrees`` about Z from the export's (no reload). */
+  setTurn(degrees) {
+    this.turn = degrees;
+    this.setLight(this.baseLight, { keepBase: true });
+  }
+
+  /** Light the scene by ``L`` (K RGB SH, bake frame), turned by the current turn. */
+  setLight(L, { keepBase = false } = {}) {
+    if (L.length < this.K) throw new PRTTError(`the light has ${L.length} SH coefficients, the bake ${this.K}`);
+    if (!keepBase) this.baseLight = L.slice(0, this.K);
+    this.light = this.turn ? turnLightZ(this.baseLight, this.turn) : this.baseLight;
+    this.lightData.set(lightBlock(this.light, this.bands));
+    this.relightDirty = true;
+  }
+
+  /** Switch the shading: 'tpfl' | 'tp' | 'diffuse', with or without the bounce. */
+  setMode(mode, { bounces = this.bounces } = {}) {
+    if (!MODES.includes(mode)) throw new PRTTError(`unknown mode ${mode}; use one of ${MODES.join(', ')}`);
+    this.mode = mode;
+    this.bounces = bounces;
+    for (const m of this.meshes) m.mesh.material = this.surfaceMaterial(m);
+  }
+
+  gauntTexture() {
+    if (!this.gaunt) {
+      const t = gauntTable(this.bands, GAUNT_WIDTH);
+      const tex = new THREE.DataTexture(t.data, GAUNT_WIDTH, t.rows, THREE.RGBAFormat, THREE.FloatType);
+      tex.minFilter = tex.magFilter = THREE.NearestFilter;
+      tex.needsUpdate = true;
+      this.gaunt = { tex, nnz: t.nnz };
+    }
+    return this.gaunt;
+  }
+
+  /** The bounce texture of set s under the current light, or null. */
+  bounceTexture(s) {
+    if (!this.bounces) return null;
+    if (s.bounce) return s.bounce;
+    if (s.relight) return s.relight.target.texture;
+    return null;
+  }
+
+  surfaceMaterial(m) {
+    const s = this.sets[m.set];
+    const bounce = this.bounceTexture(s);
+    const triple = this.mode === 'tp';
+    const key = `${this.mode}|${m.set}|${!!bounce}|${m.matKey}`;
+    const cached = this.materials.get(key);
+    if (cached) return cached;
+    const v = surfaceVariant(this.mode, this.bands, { bounce: !!bounce,
+      gauntNnz: triple ? this.gauntTexture().nnz : 0 });
+    const units = v.samplers.length;
+    if (units > this.limits.maxTextureUnits) {
+      throw new PRTTError(`mode ${this.mode} needs ${units} texture units, this browser's MAX_TEXTURE_IMAGE_UNITS `
+        + `is ${this.limits.maxTextureUnits}`);
+    }
+    const { vertexShader, fragmentShader } = surfaceSources(v, this.read, this.ext.sh.gltfToBakeFrame);
+    const uniforms = {
+      transferTex: { value: s.transfer },
+      baseTex: { value: m.textures.base || this.dummy },
+      roughTex: { value: m.textures.rough || this.dummy },
+      normalTex: { value: m.textures.normal || this.dummy },
+    };
+    if (bounce) uniforms.bounceTex = { value: bounce };
+    if (triple) uniforms.gauntTex = { value: this.gauntTexture().tex };
+    const mat = new THREE.RawShaderMaterial({
+      glslVersion: THREE.GLSL3, vertexShader, fragmentShader, uniforms,
+      defines: { PRTT_ROUGHNESS_CHANNEL: 'g' },      // glTF packs roughness in G
+      side: THREE.DoubleSide,
+    });
+    const matGroup = new THREE.UniformsGroup();
+    matGroup.setName(blockName('PRTTMaterial'));
+    matGroup.add(new THREE.Uniform(m.block));
+    mat.uniformsGroups = [this.viewGroup, matGroup, this.lightGroup];
+    this.materials.set(key, mat);
+    return mat;
+  }
+
+  /** Relight every relightable set under the current light (one pass per output layer). */
+  relight(renderer) {
+    if (!this.relightDirty) return;
+    this.relightDirty = false;
+    const K4 = shSizes(this.bands)[1];
+    const block = relightBlock(this.light, this.bands);
+    for (const s of this.sets) {
+      const r = s.relight;
+      if (!r) continue;
+      r.block.set(block);
+      const prevTarget = renderer.getRenderTarget();
+      for (let c = 0; c < 3; c++) {
+        for (let q = 0; q < K4; q++) {
+          r.material.uniforms.out_colour.value = c;
+          r.material.uniforms.out_q.value = q;
+          renderer.setRenderTarget(r.target, c * K4 + q);
+          renderer.render(r.scene, r.camera);
+        }
+      }
+      renderer.setRenderTarget(prevTarget);
+    }
+  }
+
+  /** Draw ``scene`` from ``camera``: the view block, the relight passes, then the frame. */
+  render(renderer, scene, camera) {
+    this.relight(renderer);
+    camera.updateMatrixWorld();
+    const toBake = new THREE.Matrix4();
+    const g = this.ext.sh.gltfToBakeFrame;
+    toBake.set(g[0][0], g[0][1], g[0][2], 0, g[1][0], g[1][1], g[1][2], 0, g[2][0], g[2][1], g[2][2], 0, 0, 0, 0, 1);
+    const vp = new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse)
+      .multiply(toBake.clone().invert());
+    this.viewData.set(vp.elements, 0);                    // column-major, as GLSL reads it
+    const eye = new THREE.Vector3().setFromMatrixPosition(camera.matrixWorld).applyMatrix4(toBake);
+    this.viewData.set([eye.x, eye.y, eye.z, 1.0], 16);
+    this.viewData.set([this.exposure, 0.0, this.K, 0.0], 20);
+    renderer.render(scene, camera);
+  }
+}
+
+/** The relight machinery of one set: operator texture, target array, quad pass. */
+function relightPass(operator, width, height, K4, glossyBands, bands, read, limits) {
+  if (!limits.floatRenderTarget) {
+    throw new PRTTError('relightable bounces need float render targets (EXT_color_buffer_float), which this '
+      + 'browser lacks; view without bounces (&bounces=0)');
+  }
+  const target = new THREE.WebGLArrayRenderTarget(width, height, 3 * K4, {
+    type: THREE.FloatType, format: THREE.RGBAFormat, depthBuffer: false,
+    minFilter: THREE.LinearFilter, magFilter: THREE.LinearFilter, generateMipmaps: false,
   });
+  target.texture.colorSpace = THREE.NoColorSpace;
+  const v = relightVariant(bands, glossyBands);
+  const { vertexShader, fragmentShader } = relightSources(v, read);
+  const block = new Float32Array(3 * K4 * 4);
+  const group = new THREE.UniformsGroup();
+  group.setName(blockName('PRTTRelight'));
+  group.add(new THREE.Uniform(block));
+  const material = new THREE.RawShaderMaterial({
+    glslVersion: THREE.GLSL3, vertexShader, fragmentShader, depthTest: false, depthWrite: false,
+    uniforms: { relightTex: { value: operator }, out_colour: { value: 0 }, out_q: { value: 0 } },
+  });
+  material.uniformsGroups = [group];
+  const quad = new THREE.BufferGeometry();
+  quad.setAttribute('pos', new THREE.BufferAttribute(new Float32Array([-1, -1, 1, -1, -1, 1, 1, 1]), 2));
+  quad.setAttribute('position', new THREE.BufferAttribute(new Float32Array(12), 3));
+  quad.setIndex([0, 1, 2, 2, 1, 3]);
+  const mesh = new THREE.Mesh(quad, material);
+  mesh.frustumCulled = false;
+  const scene = new THREE.Scene();
+  scene.add(mesh);
+  return { target, material, block, scene, camera: new THREE.OrthographicCamera(), operator };
 }
 
-/**
- * The light's SH (K RGB coefficients, k = l*l + l + m, bake frame, Z up) as
- * the World turned by ``degrees`` about Z sees it: what Blender's preview
- * shows when the World's Mapping node has that Z rotation (its lookups turn
- * by the angle, the environment the other way). A rotation about Z mixes each
- * band's (m, -m) pairs: c'(l, m) = cos(m a) c(l, m) + sin(m a) c(l, -m),
- * c'(l, -m) = -sin(m a) c(l, m) + cos(m a) c(l, -m).
- */
-export function turnLight(light, degrees) {
-  const a = degrees * Math.PI / 180;
-  const out = light.map((v) => v.clone());
-  const bands = Math.round(Math.sqrt(light.length));
-  for (let l = 1; l < bands; l++) {
-    for (let m = 1; m <= l; m++) {
-      const p = l * l + l + m, n = l * l + l - m;
-      const c = Math.cos(m * a), s = Math.sin(m * a);
-      out[p] = light[p].clone().multiplyScalar(c).addScaledVector(light[n], s);
-      out[n] = light[n].clone().multiplyScalar(c).addScaledVector(light[p], -s);
-    }
+/** Concatenate half-float layer arrays (each a DataArrayTexture's Uint16Array). */
+function concatLayers(parts, width, height) {
+  const n = parts.reduce((a, p) => a + p.image.depth, 0);
+  const out = new Uint16Array(width * height * 4 * n);
+  let at = 0;
+  for (const p of parts) {
+    out.set(p.image.data, at);
+    at += p.image.data.length;
+    p.dispose();
   }
-  return out;
+  return halfArrayTexture(out, width, height, n);
 }
 
-/** Load a PRTT .glb; returns {scene, camera, ext, shaded, setTurn} (shaded: meshes given
- * PRTT materials; setTurn(degrees) turns the light of all of them, no reload).
- * ``turn``: degrees the World is turned about Z from the export's (turnLight). */
-export async function loadPRTT(url, { turn = 0, useBounces = true } = {}) {
-  const gltf = await new GLTFLoader().loadAsync(url);
-  const parser = gltf.parser;
-  const ext = parser.json.extensions && parser.json.extensions[NAME];
-  if (!ext) throw new Error(`${url}: no ${NAME} extension (export it with prtt export)`);
-  const zstd = new ZSTDDecoder();
-  await zstd.init();
-  const K = ext.sh.coefficients;
-  const baseLight = ext.light.rgb.map((c) => new THREE.Vector3(c[0], c[1], c[2]));
-  const light = turnLight(baseLight, turn);
-  const sets = [], bounces = [];
-  for (const s of ext.sets) {
-    const buf = await parser.getDependency('bufferView', s.transfer.bufferView);
-    sets.push(transferTexture(new Uint8Array(buf), zstd, `set ${s.name}`));
-    if (s.relightDC && useBounces) {
-      const rb = await parser.getDependency('bufferView', s.relightDC.bufferView);
-      bounces.push(transferTexture(new Uint8Array(rb), zstd, `set ${s.name} bounce`));
-    } else {
-      bounces.push(null);
-    }
+/** GLTFLoader plugin: gltf.userData.prtt becomes a PRTTScene (or null without the extension). */
+export class PRTTLoaderPlugin {
+  constructor(parser, { renderer, mode = 'tpfl', bounces = true, shaderBase } = {}) {
+    this.name = NAME;
+    this.parser = parser;
+    this.renderer = renderer;
+    this.mode = mode;
+    this.bounces = bounces;
+    this.shaderBase = shaderBase;
   }
-  const nodes = parser.json.nodes || [];
-  const meshes = parser.json.meshes || [];
-  let shaded = 0;
-  gltf.scene.traverse((obj) => {
-    const assoc = parser.associations.get(obj);
-    if (!assoc || assoc.nodes === undefined) return;
-    const nodeExt = (nodes[assoc.nodes].extensions || {})[NAME];
-    if (!nodeExt) return;
-    const tex = sets[nodeExt.set], bounce = bounces[nodeExt.set];
-    obj.traverse((m) => {
-      if (!m.isMesh) return;
+
+  async afterRoot(gltf) {
+    const parser = this.parser;
+    const json = parser.json;
+    const ext = json.extensions && json.extensions[NAME];
+    gltf.userData.prtt = null;
+    if (!ext) return;
+    if (!this.renderer) throw new PRTTError('PRTTLoaderPlugin needs { renderer } (for the browser\'s limits)');
+    const limits = gpuLimits(this.renderer);
+    const bands = ext.sh && ext.sh.bands;
+    if (!(Number.isInteger(bands) && bands >= 1 && bands <= MAX_PREVIEW_BANDS)
+        || ext.sh.coefficients !== bands * bands) {
+      throw new PRTTError(`${NAME}: ${ext.sh && ext.sh.coefficients} coefficients for ${bands} bands; the viewer `
+        + `draws 1 to ${MAX_PREVIEW_BANDS} bands (K = bands^2)`);
+    }
+    const [K, K4] = shSizes(bands);
+    if (!Array.isArray(ext.light && ext.light.rgb) || ext.light.rgb.length !== K) {
+      throw new PRTTError(`${NAME}: the light has ${ext.light && ext.light.rgb && ext.light.rgb.length} `
+        + `coefficients, ${K} expected`);
+    }
+    const blockBytes = 16 * (3 * K * K4 + K);
+    if (blockBytes > limits.maxUniformBlockSize) {
+      throw new PRTTError(`${bands} bands need a ${blockBytes}-byte light block, over this browser's `
+        + `MAX_UNIFORM_BLOCK_SIZE (${limits.maxUniformBlockSize})`);
+    }
+    const files = [...new Set([...surfaceVariant('tpfl', bands).vertexFiles,
+      ...surfaceVariant('tpfl', bands).fragmentFiles, ...relightVariant(bands, 1).vertexFiles,
+      ...relightVariant(bands, 1).fragmentFiles])];
+    const read = await fetchSources(files, this.shaderBase);
+    const prtt = new PRTTScene(ext, limits, read);
+    const zstd = new ZSTDDecoder();
+    await zstd.init();
+    const payload = async (p, what, layers) => {
+      const buf = await parser.getDependency('bufferView', p.bufferView);
+      return arrayTexture(new Uint8Array(buf), zstd, what, { layers, width: p.width, height: p.height }, limits);
+    };
+    for (const s of ext.sets) {
+      const entry = { name: s.name, transfer: await payload(s.transfer, `set ${s.name} transfer`, K4) };
+      const W = s.transfer.width, H = s.transfer.height;
+      if (s.bounce) {
+        entry.bounce = await payload(s.bounce, `set ${s.name} bounce`, 3 * K4);
+      } else if (s.relightDC) {
+        const parts = [await payload(s.relightDC, `set ${s.name} relightable bounce`, 3 * K4)];
+        let gb = 0;
+        if (s.relightGlossy) {
+          gb = s.relightGlossy.glossyBands;
+          const kg = gb * gb, kg4 = Math.ceil(kg / 4);
+          parts.push(await payload(s.relightGlossy, `set ${s.name} relightable glossy rows`, 3 * (kg - 1) * kg4));
+        }
+        const layers = parts.reduce((a, p) => a + p.image.depth, 0);
+        if (layers > limits.maxArrayLayers) {
+          throw new PRTTError(`set ${s.name}: its relightable bounce needs ${layers} layers, over this browser's `
+            + `MAX_ARRAY_TEXTURE_LAYERS (${limits.maxArrayLayers})`);
+        }
+        entry.relight = relightPass(concatLayers(parts, W, H), W, H, K4, gb, bands, read, limits);
+      }
+      prtt.sets.push(entry);
+    }
+    if (ext.display && ext.display.viewTransform && ext.display.viewTransform !== 'Standard') {
+      prtt.notes.push(`the .blend's view transform is ${ext.display.viewTransform}; the viewer shows Standard`);
+    }
+    const nodes = json.nodes || [];
+    const meshes = json.meshes || [];
+    const materials = json.materials || [];
+    const todo = [];
+    gltf.scene.traverse((obj) => {
+      const assoc = parser.associations.get(obj);
+      if (!assoc || assoc.nodes === undefined) return;
+      const nodeExt = (nodes[assoc.nodes].extensions || {})[NAME];
+      if (!nodeExt) return;
+      if (!(nodeExt.set >= 0 && nodeExt.set < prtt.sets.length)) {
+        throw new PRTTError(`node ${nodes[assoc.nodes].name}: set ${nodeExt.set} is not in the file`);
+      }
+      obj.traverse((m) => { if (m.isMesh) todo.push([m, nodeExt]); });
+    });
+    for (const [m, nodeExt] of todo) {
       const a = parser.associations.get(m) || {};
       const prim = meshes[a.meshes] && meshes[a.meshes].primitives[a.primitives || 0];
       const primExt = prim && (prim.extensions || {})[NAME];
-      if (!primExt) return;
-      const name = primExt.texCoord === 0 ? 'uv' : `uv${primExt.texCoord}`;
-      const uv = m.geometry.getAttribute(name);
-      if (!uv) throw new Error(`mesh ${m.name}: no TEXCOORD_${primExt.texCoord}`);
-      m.geometry.setAttribute('prttUv', uv);
-      m.material = prttMaterial(tex, bounce, light, K, tex.image.depth, m.material);
-      shaded += 1;
-    });
-  });
-  const camera = gltf.cameras[0] || null;
-  /** Turn the World to ``degrees`` from the export's: every PRTT material's light at once. */
-  const setTurn = (degrees) => {
-    const turned = turnLight(baseLight, degrees);
-    for (let k = 0; k < light.length; k++) light[k].copy(turned[k]);
-  };
-  return { scene: gltf.scene, camera, ext, shaded, setTurn };
+      if (!primExt) continue;
+      const geometry = m.geometry;
+      const uv = geometry.getAttribute(UV_NAMES[primExt.texCoord] || `uv${primExt.texCoord}`);
+      if (!uv) throw new PRTTError(`mesh ${m.name}: no TEXCOORD_${primExt.texCoord} (its PRTT UVs)`);
+      const source = m.material;
+      const matIndex = prim.material;
+      const matExt = matIndex !== undefined ? ((materials[matIndex] || {}).extensions || {})[NAME] : undefined;
+      const textures = {};
+      if (!matExt || matExt.baseColorTexture) textures.base = source.map || null;
+      if (!matExt || matExt.roughnessTexture) textures.rough = source.roughnessMap || null;
+      if (!matExt || matExt.normalTexture) textures.normal = source.normalMap || null;
+      for (const [k, flag] of [['base', 'baseColorTexture'], ['rough', 'roughnessTexture'],
+        ['normal', 'normalTexture']]) {
+        if (matExt && matExt[flag] && !textures[k]) {
+          prtt.notes.push(`material ${source.name}: its ${flag} is not in the glTF; drawn with its constant value`);
+        }
+      }
+      const channel = (t) => (t ? t.channel || 0 : null);
+      const muvChannel = channel(textures.base) ?? channel(textures.rough) ?? 0;
+      if (textures.base && textures.rough && channel(textures.base) !== channel(textures.rough)) {
+        prtt.notes.push(`material ${source.name}: base colour and roughness use different UV maps; roughness `
+          + 'drawn with the base colour\'s');
+      }
+      for (const t of [textures.base, textures.rough, textures.normal]) {
+        if (t && (t.offset.x || t.offset.y || t.repeat.x !== 1 || t.repeat.y !== 1 || t.rotation)) {
+          prtt.notes.push(`material ${source.name}: a texture transform is not applied by the PRTT viewer`);
+        }
+      }
+      const g = new THREE.BufferGeometry();
+      const attr = (name) => geometry.getAttribute(name);
+      g.setAttribute('position', attr('position'));
+      g.setAttribute('pos', attr('position'));
+      g.setAttribute('nor', attr('normal'));
+      g.setAttribute('uv', uv);
+      g.setAttribute('muv', attr(UV_NAMES[muvChannel]) || uv);
+      g.setAttribute('nuv', attr(UV_NAMES[channel(textures.normal) ?? muvChannel]) || uv);
+      const tan = attr('tangent');
+      if (tan) g.setAttribute('tan', tan);
+      else g.setAttribute('tan', new THREE.BufferAttribute(new Float32Array(4 * attr('position').count), 4));
+      if (textures.normal && !tan) {
+        prtt.notes.push(`mesh ${m.name}: its normal map needs tangents (export with a normal map adds them)`);
+        textures.normal = null;
+      }
+      if (geometry.index) g.setIndex(geometry.index);
+      g.groups = geometry.groups;
+      m.geometry = g;
+      const block = materialBlock(source, matExt, textures);
+      prtt.meshes.push({ mesh: m, set: nodeExt.set, textures, block,
+        matKey: `${matIndex}|${m.uuid}` });
+    }
+    prtt.setMode(this.mode, { bounces: this.bounces });
+    gltf.userData.prtt = prtt;
+  }
 }
+
+/**
+ * Load a PRTT .glb with a renderer: returns {gltf, scene, camera, prtt, ext}.
+ * The title-bar contract of the page (index.html) builds on this.
+ */
+export async function loadPRTT(url, renderer, { turn = 0, mode = 'tpfl', bounces = true } = {}) {
+  const { GLTFLoader } = await import('three/addons/loaders/GLTFLoader.js');
+  const loader = new GLTFLoader();
+  loader.register((parser) => new PRTTLoaderPlugin(parser, { renderer, mode, bounces }));
+  const gltf = await (url instanceof ArrayBuffer ? loader.parseAsync(url, '') : loader.loadAsync(url));
+  const prtt = gltf.userData.prtt;
+  if (prtt && turn) prtt.setTurn(turn);
+  return { gltf, scene: gltf.scene, camera: gltf.cameras[0] || null, prtt, ext: prtt ? prtt.ext : null };
+}
+
+export { rotateLight };
