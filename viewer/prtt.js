@@ -25,6 +25,8 @@ export const NAME = 'PRTT_radiance_transfer';
 export { MODES };
 const VK_FORMAT_R16G16B16A16_SFLOAT = 97;
 const KTX2_ZSTD = 2;
+/** The most one texture may unpack to in the page (a 4096^2 band-5 transfer is 896 MiB). */
+export const MAX_TEXTURE_BYTES = 1024 * 2 ** 20;
 
 /** A problem with the file or the browser, said on the page (never a bare exception). */
 export class PRTTError extends Error {}
@@ -71,6 +73,10 @@ function arrayTexture(bytes, zstd, what, { layers, width, height }, limits) {
   }
   const level = c.levels[0];
   const want = width * height * layers * 8;
+  if (want > MAX_TEXTURE_BYTES) {
+    throw new PRTTError(`${what}: ${width}x${height} in ${layers} layers is ${(want / 2 ** 20).toFixed(0)} MiB, `
+      + `over the viewer's ${MAX_TEXTURE_BYTES / 2 ** 20} MiB per texture`);
+  }
   let data = level.levelData;
   if (c.supercompressionScheme === KTX2_ZSTD) {
     if (level.uncompressedByteLength !== want) {
@@ -305,6 +311,23 @@ function relightPass(operator, width, height, K4, glossyBands, bands, read, limi
   return { target, material, block, scene, camera: new THREE.OrthographicCamera(), operator };
 }
 
+/**
+ * The first K4 of every colour's fileK4 layers of a half-float array texture
+ * (``colours`` groups of fileK4 layers), for a scene drawn with fewer bands
+ * than its file: the shaders read coefficients k < K only.
+ */
+function keepLayers(tex, colours, fileK4, K4) {
+  if (K4 === fileK4) return tex;
+  const { width, height, data } = tex.image;
+  const per = width * height * 4;
+  const out = new Uint16Array(per * K4 * colours);
+  for (let c = 0; c < colours; c++) {
+    out.set(data.subarray(c * fileK4 * per, (c * fileK4 + K4) * per), c * K4 * per);
+  }
+  tex.dispose();
+  return halfArrayTexture(out, width, height, K4 * colours);
+}
+
 /** Concatenate half-float layer arrays (each a DataArrayTexture's Uint16Array). */
 function concatLayers(parts, width, height) {
   const n = parts.reduce((a, p) => a + p.image.depth, 0);
@@ -332,27 +355,37 @@ export class PRTTLoaderPlugin {
   async afterRoot(gltf) {
     const parser = this.parser;
     const json = parser.json;
-    const ext = json.extensions && json.extensions[NAME];
+    let ext = json.extensions && json.extensions[NAME];
     gltf.userData.prtt = null;
     if (!ext) return;
     if (!this.renderer) throw new PRTTError('PRTTLoaderPlugin needs { renderer } (for the browser\'s limits)');
     const limits = gpuLimits(this.renderer);
-    const bands = ext.sh && ext.sh.bands;
-    if (!(Number.isInteger(bands) && bands >= 1 && bands <= MAX_PREVIEW_BANDS)
-        || ext.sh.coefficients !== bands * bands) {
-      throw new PRTTError(`${NAME}: ${ext.sh && ext.sh.coefficients} coefficients for ${bands} bands; the viewer `
-        + `draws 1 to ${MAX_PREVIEW_BANDS} bands (K = bands^2)`);
+    const fileBands = ext.sh && ext.sh.bands;
+    if (!(Number.isInteger(fileBands) && fileBands >= 1 && fileBands <= 16)
+        || ext.sh.coefficients !== fileBands * fileBands) {
+      throw new PRTTError(`${NAME}: ${ext.sh && ext.sh.coefficients} coefficients for ${fileBands} bands; `
+        + 'PRTT writes K = bands^2 coefficients, 1 to 16 bands');
+    }
+    const [fileK, fileK4] = shSizes(fileBands);
+    if (!Array.isArray(ext.light && ext.light.rgb) || ext.light.rgb.length !== fileK
+        || !ext.light.rgb.every((c) => Array.isArray(c) && c.length === 3 && c.every(Number.isFinite))) {
+      throw new PRTTError(`${NAME}: the light must be ${fileK} finite RGB coefficients, the file has `
+        + `${ext.light && ext.light.rgb && ext.light.rgb.length}`);
+    }
+    // Fewer bands where the browser cannot hold the file's: the light block
+    // (TPFL's M(L)) grows as bands^4; the low bands of every texture still apply.
+    const blockBytes = (b) => 16 * (3 * b * b * Math.ceil(b * b / 4) + b * b);
+    let bands = Math.min(fileBands, MAX_PREVIEW_BANDS);
+    while (bands > 1 && blockBytes(bands) > limits.maxUniformBlockSize) bands -= 1;
+    const fallback = [];
+    if (bands < fileBands) {
+      fallback.push(`drawn with ${bands} of the file's ${fileBands} SH bands: ${fileBands} bands need a `
+        + `${blockBytes(fileBands)}-byte light block (this browser's MAX_UNIFORM_BLOCK_SIZE is `
+        + `${limits.maxUniformBlockSize}; the viewer draws at most ${MAX_PREVIEW_BANDS})`);
     }
     const [K, K4] = shSizes(bands);
-    if (!Array.isArray(ext.light && ext.light.rgb) || ext.light.rgb.length !== K) {
-      throw new PRTTError(`${NAME}: the light has ${ext.light && ext.light.rgb && ext.light.rgb.length} `
-        + `coefficients, ${K} expected`);
-    }
-    const blockBytes = 16 * (3 * K * K4 + K);
-    if (blockBytes > limits.maxUniformBlockSize) {
-      throw new PRTTError(`${bands} bands need a ${blockBytes}-byte light block, over this browser's `
-        + `MAX_UNIFORM_BLOCK_SIZE (${limits.maxUniformBlockSize})`);
-    }
+    const ext0 = ext;
+    ext = { ...ext0, sh: { ...ext0.sh, bands, coefficients: K }, light: { ...ext0.light, rgb: ext0.light.rgb.slice(0, K) } };
     const files = [...new Set([...surfaceVariant('tpfl', bands).vertexFiles,
       ...surfaceVariant('tpfl', bands).fragmentFiles, ...relightVariant(bands, 1).vertexFiles,
       ...relightVariant(bands, 1).fragmentFiles])];
@@ -360,27 +393,43 @@ export class PRTTLoaderPlugin {
     const prtt = new PRTTScene(ext, limits, read);
     const zstd = new ZSTDDecoder();
     await zstd.init();
+    prtt.notes.push(...fallback);
     const payload = async (p, what, layers) => {
+      if (!p || !Number.isInteger(p.bufferView) || !Number.isInteger(p.width) || !Number.isInteger(p.height)
+          || p.width < 1 || p.height < 1) {
+        throw new PRTTError(`${what}: the extension does not say where and how large it is`);
+      }
       const buf = await parser.getDependency('bufferView', p.bufferView);
       return arrayTexture(new Uint8Array(buf), zstd, what, { layers, width: p.width, height: p.height }, limits);
     };
     for (const s of ext.sets) {
-      const entry = { name: s.name, transfer: await payload(s.transfer, `set ${s.name} transfer`, K4) };
+      const transfer = await payload(s.transfer, `set ${s.name} transfer`, fileK4);
       const W = s.transfer.width, H = s.transfer.height;
+      const entry = { name: s.name, transfer: keepLayers(transfer, 1, fileK4, K4) };
       if (s.bounce) {
-        entry.bounce = await payload(s.bounce, `set ${s.name} bounce`, 3 * K4);
+        entry.bounce = keepLayers(await payload(s.bounce, `set ${s.name} bounce`, 3 * fileK4), 3, fileK4, K4);
       } else if (s.relightDC) {
-        const parts = [await payload(s.relightDC, `set ${s.name} relightable bounce`, 3 * K4)];
+        const parts = [keepLayers(await payload(s.relightDC, `set ${s.name} relightable bounce`, 3 * fileK4),
+          3, fileK4, K4)];
         let gb = 0;
         if (s.relightGlossy) {
           gb = s.relightGlossy.glossyBands;
+          if (!(Number.isInteger(gb) && gb >= 1 && gb <= fileBands)) {
+            throw new PRTTError(`set ${s.name}: relightGlossy has ${gb} glossy bands, the file ${fileBands}`);
+          }
           const kg = gb * gb, kg4 = Math.ceil(kg / 4);
-          parts.push(await payload(s.relightGlossy, `set ${s.name} relightable glossy rows`, 3 * (kg - 1) * kg4));
-        }
-        const layers = parts.reduce((a, p) => a + p.image.depth, 0);
-        if (layers > limits.maxArrayLayers) {
-          throw new PRTTError(`set ${s.name}: its relightable bounce needs ${layers} layers, over this browser's `
-            + `MAX_ARRAY_TEXTURE_LAYERS (${limits.maxArrayLayers})`);
+          const glossyLayers = 3 * (kg - 1) * kg4;
+          if (gb > bands) {
+            prtt.notes.push(`set ${s.name}: the bounce's glossy rows (${gb} bands) left out: drawn with ${bands}`);
+            gb = 0;
+          } else if (3 * K4 + glossyLayers > limits.maxArrayLayers) {
+            prtt.notes.push(`set ${s.name}: the bounce's glossy rows left out (diffuse bounce only): they need `
+              + `${3 * K4 + glossyLayers} layers, over this browser's MAX_ARRAY_TEXTURE_LAYERS `
+              + `(${limits.maxArrayLayers})`);
+            gb = 0;
+          } else {
+            parts.push(await payload(s.relightGlossy, `set ${s.name} relightable glossy rows`, glossyLayers));
+          }
         }
         entry.relight = relightPass(concatLayers(parts, W, H), W, H, K4, gb, bands, read, limits);
       }
@@ -413,7 +462,11 @@ export class PRTTLoaderPlugin {
       if (!uv) throw new PRTTError(`mesh ${m.name}: no TEXCOORD_${primExt.texCoord} (its PRTT UVs)`);
       const source = m.material;
       const matIndex = prim.material;
-      const matExt = matIndex !== undefined ? ((materials[matIndex] || {}).extensions || {})[NAME] : undefined;
+      // no material: the preview's default (the exporter's root defaultMaterial), not glTF's
+      // default (metallic 1), which would draw the object black
+      const matExt = matIndex !== undefined ? ((materials[matIndex] || {}).extensions || {})[NAME]
+        : (ext.defaultMaterial || { baseColor: [0.8, 0.8, 0.8], metallic: 0, roughness: 0.5, f0: 0.04,
+          normalStrength: 1 });
       const textures = {};
       if (!matExt || matExt.baseColorTexture) textures.base = source.map || null;
       if (!matExt || matExt.roughnessTexture) textures.rough = source.roughnessMap || null;
