@@ -1,8 +1,12 @@
 """`prtt export` (issue 34): a baked .blend as a .glb through Blender's own
 glTF exporter, with the PRTT_radiance_transfer extension, checked by reading
-the .glb back (JSON, buffer views, KTX2 through ktx-parse too) and by
-Blender's own glTF importer. The .blend is never modified."""
+the .glb back (JSON, buffer views, KTX2 through ktx-parse too, PNGs, the
+World's image) against the EXRs, Blender's pixels and what the preview draws,
+by the extension's JSON schema, and by Blender's own glTF importer. The .blend
+is never modified."""
+import io
 import json
+import math
 import os
 import shutil
 import struct
@@ -11,9 +15,12 @@ import subprocess
 import numpy as np
 import pytest
 
-from prtt_addon.core.io.exr_io import read_sh_exr
+from prtt_addon.core.io.exr_io import read_relight_exr, read_sh_exr
 from prtt_addon.core.io.gltf_prtt import GLTF_TO_BAKE_FRAME, NAME
+from prtt_addon.core.io.image_write import srgb_encode
 from prtt_addon.core.io.ktx2 import parse_ktx2
+from prtt_addon.core.light.envmap import compose_light, project_equirect
+from prtt_addon.core.preview import pack as pp
 from tests import real_scenes as rs
 from tests.blender_util import addon_bpy
 from tests.test_headless_chain import digest, run
@@ -21,6 +28,8 @@ from tests.test_ktx2 import node
 
 pytestmark = pytest.mark.blender
 BAKE = ["--resolution", "32", "--rays", "16", "--bounces", "0"]
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCHEMA = json.load(open(os.path.join(ROOT, "docs", "schema", "PRTT_radiance_transfer.schema.json")))
 
 
 def glb(path):
@@ -39,6 +48,106 @@ def glb(path):
 def view(doc, binary, index):
     bv = doc["bufferViews"][index]
     return binary[bv.get("byteOffset", 0):bv.get("byteOffset", 0) + bv["byteLength"]]
+
+
+def ktx2_layers(doc, binary, meta, tmp_path=None, kind=None):
+    """The (layers, H, W, 4) float16 of a payload, checked against its JSON
+    (and, given tmp_path, by ktx-parse)."""
+    blob = view(doc, binary, meta["bufferView"])
+    assert len(blob) == meta["bytes"]
+    (layers,), keys = parse_ktx2(blob)
+    assert layers.shape == (meta["layers"], meta["height"], meta["width"], 4) and layers.dtype == np.float16
+    assert keys["PRTTcoefficients"] == str(meta["coefficients"])
+    if kind is not None:
+        assert keys["PRTTkind"] == kind
+    if tmp_path is not None:
+        f = tmp_path / f"payload{meta['bufferView']}.ktx2"
+        f.write_bytes(blob)
+        info = json.loads(node("ktx_info.mjs", f))               # an independent parser agrees
+        assert (info["vkFormat"], info["layerCount"], info["pixelWidth"]) == (97, meta["layers"], meta["width"])
+    return layers
+
+
+def same_half(got, want):
+    """float16 ``got`` holds exactly ``want`` (float32) rounded to float16."""
+    want16 = np.asarray(want, np.float32).astype(np.float16)
+    return got.shape == want16.shape and np.array_equal(got.view(np.uint16), want16.view(np.uint16))
+
+
+def png(doc, binary, image_index):
+    from PIL import Image  # matplotlib's dependency (tests only)
+    img = doc["images"][image_index]
+    assert img["mimeType"] == "image/png"
+    return np.asarray(Image.open(io.BytesIO(view(doc, binary, img["bufferView"]))).convert("RGBA"), np.float64) / 255
+
+
+def accessor(doc, binary, index):
+    acc = doc["accessors"][index]
+    n = {"VEC2": 2, "VEC3": 3, "VEC4": 4, "SCALAR": 1}[acc["type"]]
+    dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16, 5121: np.uint8}[acc["componentType"]]
+    bv = doc["bufferViews"][acc["bufferView"]]
+    assert bv.get("byteStride", n * np.dtype(dtype).itemsize) == n * np.dtype(dtype).itemsize
+    return np.frombuffer(view(doc, binary, acc["bufferView"]), dtype, count=acc["count"] * n,
+                         offset=acc.get("byteOffset", 0)).reshape(acc["count"], n)
+
+
+# --- a small JSON Schema check (jsonschema is not a dependency): the keywords the schema uses ---
+
+_KEYWORDS = {"$schema", "$id", "$defs", "title", "description", "type", "required", "properties", "items",
+             "minItems", "maxItems", "const", "enum", "minimum", "maximum"}
+_TYPES = {"object": dict, "array": list, "string": str, "boolean": bool, "integer": int, "number": (int, float)}
+
+
+def schema_keywords(node_, out=None):
+    out = set() if out is None else out
+    if isinstance(node_, dict):
+        for k, v in node_.items():
+            out.add(k)
+            if k in ("properties", "$defs"):
+                for sub in v.values():
+                    schema_keywords(sub, out)
+            elif k == "items":
+                schema_keywords(v, out)
+    return out
+
+
+def validate(value, schema, where="$"):
+    """Raise AssertionError naming where ``value`` breaks ``schema``."""
+    t = schema.get("type")
+    if t is not None:
+        ok = isinstance(value, _TYPES[t]) and not (t in ("integer", "number") and isinstance(value, bool))
+        assert ok, f"{where}: {value!r} is not {t}"
+    if "const" in schema:
+        assert value == schema["const"], f"{where}: {value!r} != {schema['const']!r}"
+    if "enum" in schema:
+        assert value in schema["enum"], f"{where}: {value!r} not in {schema['enum']}"
+    if "minimum" in schema:
+        assert value >= schema["minimum"], f"{where}: {value} < {schema['minimum']}"
+    if "maximum" in schema:
+        assert value <= schema["maximum"], f"{where}: {value} > {schema['maximum']}"
+    if isinstance(value, dict):
+        for k in schema.get("required", []):
+            assert k in value, f"{where}: {k!r} missing"
+        for k, sub in schema.get("properties", {}).items():
+            if k in value:
+                validate(value[k], sub, f"{where}.{k}")
+    if isinstance(value, list):
+        assert len(value) >= schema.get("minItems", 0) and len(value) <= schema.get("maxItems", len(value)), where
+        if "items" in schema:
+            for i, v in enumerate(value):
+                validate(v, schema["items"], f"{where}[{i}]")
+
+
+def validate_file(doc):
+    """Every PRTT part of a .glb's JSON against the extension's schema."""
+    assert schema_keywords(SCHEMA) <= _KEYWORDS, schema_keywords(SCHEMA) - _KEYWORDS
+    validate(doc["extensions"][NAME], SCHEMA)
+    parts = [("node", n) for n in doc["nodes"]] + [("material", m) for m in doc.get("materials", [])]
+    parts += [("primitive", p) for m in doc["meshes"] for p in m["primitives"]]
+    for kind, part in parts:
+        ext = (part.get("extensions") or {}).get(NAME)
+        if ext is not None:
+            validate(ext, SCHEMA["$defs"][kind], f"{kind} {part.get('name', '')}")
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +176,11 @@ def test_export_writes_blenders_gltf_with_prtts_textures(baked, tmp_path):
     assert digest(work / "scene.blend") == before                     # the .blend is never modified
     doc, binary = glb(work / "room.glb")
     assert NAME in doc["extensionsUsed"] and NAME not in doc.get("extensionsRequired", [])
+    validate_file(doc)
     ext = doc["extensions"][NAME]
+    assert ext["display"] == {"exposure": 1.0, "stops": 0.0, "viewTransform": "AgX"}     # the factory file's
+    assert "view transform is 'AgX'" in r.stdout, r.stdout
+    assert "bounce" not in r.stdout
     assert ext["sh"]["bands"] == 5 and ext["sh"]["gltfToBakeFrame"] == [list(r) for r in GLTF_TO_BAKE_FRAME]
     assert np.asarray(ext["light"]["rgb"]).shape == (25, 3)
     names = [s["name"] for s in ext["sets"]]
@@ -169,4 +282,275 @@ def test_panel_export_button(baked, tmp_path):
     a, _ = glb(work / "panel.glb")
     b, _ = glb(work / "cli.glb")
     assert a["extensions"][NAME] == b["extensions"][NAME]
+    assert digest(work / "scene.blend") == before
+
+
+# --- bounces, materials, the display and the World (issue 34, the export's second part) ---------------
+
+def bumps(n=32):
+    """A tangent-space normal map (file order, 0.5 + 0.5 n)."""
+    y, x = (np.mgrid[0:n, 0:n] + 0.5) / n
+    nx, ny = 0.4 * np.sin(2 * np.pi * x), 0.3 * np.cos(2 * np.pi * 3 * y)
+    v = np.stack([nx, ny, np.ones_like(nx)], -1)
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    return (0.5 + 0.5 * v).astype(np.float32)
+
+
+def bake_scene(tmp, *bake):
+    """Floor and a box with a normal-mapped material (a float Non-Color image
+    on the PRTT map, the box's only UV map), baked with ``bake``'s options."""
+    bpy = addon_bpy()
+    from prtt_addon.bench import scene_build as sb  # needs bpy
+    rs.floor(bpy, 6.0)
+    box = rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    mat = sb.principled("Bumpy", base_color=(0.6, 0.5, 0.4), roughness=0.3)
+    nt = mat.node_tree
+    bsdf = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+    tex = nt.nodes.new("ShaderNodeTexImage")
+    tex.image = sb.float_image("bumps", bumps(), non_color=True)
+    nm = nt.nodes.new("ShaderNodeNormalMap")
+    nm.inputs["Strength"].default_value = 0.7
+    nt.links.new(tex.outputs["Color"], nm.inputs["Color"])
+    nt.links.new(nm.outputs["Normal"], bsdf.inputs["Normal"])
+    box.data.materials.append(mat)
+    rs.scene_camera(bpy, (0, -7, 4), (1.05, 0, 0))
+    bpy.context.scene.prtt.light_source = "BUILTIN"
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", "--resolution", "32", "--rays", "16",
+            *bake, cwd=tmp)
+    assert r.returncode == 0, r.stderr + r.stdout
+    return tmp
+
+
+@pytest.fixture(scope="module")
+def relit(tmp_path_factory):
+    return bake_scene(tmp_path_factory.mktemp("relit"), "--bounces", "1", "--bounce-rays", "8")
+
+
+@pytest.fixture(scope="module")
+def bounced(tmp_path_factory):
+    return bake_scene(tmp_path_factory.mktemp("bounced"), "--bounces", "2", "--bounce-rays", "8",
+                      "--bounce-mode", "baked")
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """The demo scene (prtt_addon/demo.py: the plank floor's float base colour
+    and roughness images, the forest World through a Mapping node, exposure
+    -0.7 with the Standard view transform), baked small."""
+    tmp = tmp_path_factory.mktemp("demo")
+    bpy = addon_bpy()
+    from prtt_addon.demo import build_scene
+    build_scene(bpy)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "demo.blend"))
+    r = run("bake", "demo.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp)
+    assert r.returncode == 0, r.stderr + r.stdout
+    return tmp
+
+
+def export(folder, blend="scene.blend", out="room.glb"):
+    """`prtt export` of ``blend`` in ``folder`` (its bytes unchanged): (JSON, binary, stdout)."""
+    before = digest(folder / blend)
+    r = run("export", blend, "--out", out, cwd=folder)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert digest(folder / blend) == before                            # the .blend is never modified
+    doc, binary = glb(folder / out)
+    validate_file(doc)
+    return doc, binary, r.stdout
+
+
+def preview_scene(path):
+    """What the Blender preview draws for the .blend at ``path``: (bpy, PreviewScene)."""
+    bpy = addon_bpy()
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    from prtt_addon.blender.preview.drawlist import clear_caches, collect
+    clear_caches()
+    ps, status = collect(bpy.context, use_bounces=True)
+    assert ps is not None, status.messages
+    return bpy, ps
+
+
+def test_relightable_bounce_dc_and_glossy_rows(relit, tmp_path):
+    doc, binary, out = export(relit)
+    assert "glossy" not in out and "stale" not in out, out
+    ext = doc["extensions"][NAME]
+    K = ext["sh"]["coefficients"]
+    for s in ext["sets"]:
+        dc, glossy, attrs = read_relight_exr(relit / "textures" / f"{s['name']}.relight.exr")
+        assert attrs["glossy_bands"] > 0 and "bounce" not in s
+        H, W = dc.shape[:2]
+        K4, Kg = pp.layers(K), glossy.shape[-1]
+        op = pp.pack_relight_operator(dc, glossy)[:, ::-1]         # the preview's layers, rows top first
+        got = ktx2_layers(doc, binary, s["relightDC"], tmp_path, "relight-dc")
+        assert s["relightDC"]["colours"] == 3 and s["relightDC"]["layersPerColour"] == K4
+        assert same_half(got, op[:3 * K4]), s["name"]
+        for c in range(3):                                         # the documented layout, coefficient by coefficient
+            for i in (0, K - 1):
+                want = dc[::-1, :, c, i].astype(np.float16)
+                assert np.array_equal(got[c * K4 + i // 4, :, :, i % 4], want)
+        meta = s["relightGlossy"]
+        Kg4 = pp.layers(Kg)
+        assert (meta["coefficients"], meta["glossyBands"], meta["glossyCoefficients"], meta["layersPerRow"],
+                meta["colours"]) == (K, attrs["glossy_bands"], Kg, Kg4, 3)
+        got = ktx2_layers(doc, binary, meta, tmp_path, "relight-glossy")
+        assert got.shape == (3 * (Kg - 1) * Kg4, H, W, 4)
+        assert same_half(got, op[3 * K4:]), s["name"]
+        for c, o, i in ((0, 1, 0), (1, Kg - 1, Kg - 1), (2, 3, 5)):
+            layer = (c * (Kg - 1) + o - 1) * Kg4 + i // 4
+            assert np.array_equal(got[layer, :, :, i % 4], glossy[::-1, :, c, o - 1, i].astype(np.float16))
+
+
+def test_baked_bounce_levels_summed_as_the_preview_draws_them(bounced, tmp_path):
+    doc, binary, out = export(bounced)
+    assert "not in the glTF" not in out, out
+    ext = doc["extensions"][NAME]
+    K = ext["sh"]["coefficients"]
+    bpy, ps = preview_scene(bounced / "scene.blend")
+    for s in ext["sets"]:
+        pset = ps.sets[s["name"]]
+        assert len(pset.bounces) == 2 and "relightDC" not in s
+        b = pset.load_bounce(K)                                    # (H, W, 3, K), every level summed
+        parts = [read_sh_exr(p)[0] for p in pset.bounces]
+        assert np.allclose(b, sum(parts))
+        meta = s["bounce"]
+        assert (meta["coefficients"], meta["colours"], meta["layersPerColour"], meta["levels"]) == \
+            (K, 3, pp.layers(K), 2)
+        got = ktx2_layers(doc, binary, meta, tmp_path, "bounce")
+        assert same_half(got, pp.pack_bounce(b)[:, ::-1]), s["name"]
+        assert np.array_equal(got[2 * pp.layers(K) + 1, :, :, 2], b[::-1, :, 2, 6].astype(np.float16))
+
+
+def test_normal_mapped_material(relit, tmp_path):
+    """The Box's material: its PreviewMaterial's parameters, a normalTexture
+    with the preview's pixels to 8 bits, tangents exported."""
+    doc, binary, out = export(relit)
+    assert "bumps" in out                                          # written from the preview's pixels
+    bpy, ps = preview_scene(relit / "scene.blend")
+    pm = ps.materials[ps.material_names.index("Bumpy")]
+    assert pm.normal_texture >= 0
+    mat = next(m for m in doc["materials"] if m["name"] == "Bumpy")
+    ext = mat["extensions"][NAME]
+    assert ext == {"baseColor": [float(c) for c in pm.base_color[:3]], "metallic": pm.metallic,
+                   "roughness": pm.roughness, "f0": pm.f0, "normalStrength": pm.normal_strength,
+                   "baseColorTexture": False, "roughnessTexture": False, "normalTexture": True}
+    assert abs(ext["normalStrength"] - 0.7) < 1e-6
+    nt = mat["normalTexture"]
+    node_ = {n["name"]: n for n in doc["nodes"]}["Box"]
+    prim = doc["meshes"][node_["mesh"]]["primitives"][0]
+    assert f"TEXCOORD_{nt.get('texCoord', 0)}" in prim["attributes"] and "TANGENT" in prim["attributes"]
+    got = png(doc, binary, doc["textures"][nt["index"]]["source"])
+    want = ps.images[pm.normal_texture][..., :3]                    # file order, the preview's values
+    err = np.abs(got[..., :3] - want).max()
+    assert err <= 0.5 / 255 + 1e-6, err
+
+
+def test_demo_floor_textures_and_materials(demo, tmp_path):
+    """The demo's plank floor: base colour and roughness texels of the .glb's
+    PNGs equal Blender's image pixels to 8-bit rounding (base colour
+    sRGB-encoded, as glTF says), at the UVs the preview uses; every material
+    of a baked object carries the preview's parameters."""
+    doc, binary, out = export(demo, "demo.blend", "demo.glb")
+    ext = doc["extensions"][NAME]
+    assert ext["display"] == {"exposure": 2 ** ext["display"]["stops"], "stops": pytest.approx(-0.7),
+                              "viewTransform": "Standard"}
+    assert "view transform" not in out
+    bpy, ps = preview_scene(demo / "demo.blend")
+    gl_mats = {m["name"]: m for m in doc["materials"]}
+    assert {n for n in ps.material_names if n is not None} == {n for n, m in gl_mats.items()
+                                                               if NAME in m.get("extensions", {})}
+    for name, pm in zip(ps.material_names, ps.materials):
+        if name is None:                                           # objects without a material: no glTF material
+            continue
+        e = gl_mats[name]["extensions"][NAME]
+        assert e["baseColor"] == [float(c) for c in pm.base_color[:3]] and e["f0"] == pm.f0, name
+        assert (e["metallic"], e["roughness"], e["normalStrength"]) == (pm.metallic, pm.roughness,
+                                                                         pm.normal_strength), name
+        assert (e["baseColorTexture"], e["roughnessTexture"], e["normalTexture"]) == \
+            (pm.base_texture >= 0, pm.roughness_texture >= 0, pm.normal_texture >= 0), name
+    floor = gl_mats["floor"]
+    assert floor["extensions"][NAME]["baseColorTexture"] and floor["extensions"][NAME]["roughnessTexture"]
+    pbr = floor["pbrMetallicRoughness"]
+    blender = {n: np.array(bpy.data.images[n].pixels[:], np.float64).reshape(512, 512, 4)[::-1]
+               for n in ("floor_color", "floor_roughness")}          # Blender's pixels, file order
+    base = png(doc, binary, doc["textures"][pbr["baseColorTexture"]["index"]]["source"])
+    err_base = np.abs(base[..., :3] - srgb_encode(blender["floor_color"][..., :3])).max()
+    rough = png(doc, binary, doc["textures"][pbr["metallicRoughnessTexture"]["index"]]["source"])
+    err_rough = np.abs(rough[..., 1] - blender["floor_roughness"][..., 0]).max()
+    print(f"floor texels: base colour {err_base * 255:.4f} levels (sRGB), roughness {err_rough * 255:.4f} levels")
+    assert err_base <= 0.5 / 255 + 1e-6 and err_rough <= 0.5 / 255 + 1e-6, (err_base, err_rough)
+    # the texture's TEXCOORD is the preview's material UVs (and the PRTT one its PRTT UVs), v flipped
+    node_ = {n["name"]: n for n in doc["nodes"]}["floor"]
+    prim = doc["meshes"][node_["mesh"]]["primitives"][0]
+    assert pbr["baseColorTexture"].get("texCoord", 0) == pbr["metallicRoughnessTexture"].get("texCoord", 0)
+    tc = accessor(doc, binary, prim["attributes"][f"TEXCOORD_{pbr['baseColorTexture'].get('texCoord', 0)}"])
+    prtt = accessor(doc, binary, prim["attributes"][f"TEXCOORD_{prim['extensions'][NAME]['texCoord']}"])
+    got = {(round(float(a), 4), round(1 - float(b), 4), round(float(c), 4), round(1 - float(d), 4))
+           for (a, b), (c, d) in zip(prtt, tc)}
+    dm = next(m for m in ps.meshes if m.name == "floor")
+    want = {(round(float(a), 4), round(float(b), 4), round(float(c), 4), round(float(d), 4))
+            for (a, b), (c, d) in zip(dm.uv, dm.mat_uv)}
+    assert got == want
+
+
+def test_environment_reprojects_to_the_light(demo, tmp_path):
+    """The World's image travels as its file's bytes; projected and turned with
+    the environment's numbers it gives the root's light (a turned Mapping node
+    of type Texture here)."""
+    bpy = addon_bpy()
+    bpy.ops.wm.open_mainfile(filepath=str(demo / "demo.blend"))
+    mapping = next(n for n in bpy.context.scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
+    mapping.inputs["Rotation"].default_value = (0.3, -0.2, 1.1)
+    mapping.vector_type = "TEXTURE"
+    bpy.context.scene.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 1.7
+    work = tmp_path / "p"
+    shutil.copytree(demo, work)
+    bpy.ops.wm.save_as_mainfile(filepath=str(work / "turned.blend"))
+    doc, binary, _ = export(work, "turned.blend", "turned.glb")
+    ext = doc["extensions"][NAME]
+    env = ext["environment"]
+    assert env["rotation"] == pytest.approx([0.3, -0.2, 1.1]) and env["vectorType"] == "TEXTURE"
+    assert env["strength"] == pytest.approx(1.7)
+    image = env["image"]
+    data = view(doc, binary, image["bufferView"])
+    src = bpy.path.abspath(bpy.data.worlds["Forest"].node_tree.nodes["Environment Texture"].image.filepath)
+    assert data == open(src, "rb").read() and image["bytes"] == len(data) and image["mimeType"] == "image/x-exr"
+    f = tmp_path / ("env" + os.path.splitext(src)[1])
+    f.write_bytes(data)
+    light = compose_light(project_equirect(str(f), ext["sh"]["bands"]), env["strength"],
+                          np.asarray(env["lookupRotation"]))
+    want = np.asarray(ext["light"]["rgb"])
+    rel = np.abs(light - want).max() / np.abs(want).max()
+    assert rel < 1e-6, rel
+    # (the unturned light is far from it: the test sees the turn)
+    assert np.abs(compose_light(project_equirect(str(f), 5), 1.7) - want).max() / np.abs(want).max() > 0.05
+
+
+def test_environment_without_an_image_and_over_the_bound(baked, tmp_path, monkeypatch):
+    """A constant World: its colour, no image, a note; an image over the bound:
+    left out with a note (in-process, the bound lowered)."""
+    from prtt_addon.blender.gltf import export as gx
+    bpy = addon_bpy()
+    work = tmp_path / "p"
+    shutil.copytree(baked, work)
+    bpy.ops.wm.open_mainfile(filepath=str(work / "scene.blend"))
+    before = digest(work / "scene.blend")
+    monkeypatch.setattr(gx, "ENVIRONMENT_MAX_BYTES", 1000)
+    summary = gx.export_glb(bpy.context, str(work / "small.glb"))
+    assert any("MiB the glTF carries" in n for n in summary["notes"]), summary["notes"]
+    doc, _ = glb(work / "small.glb")
+    assert "image" not in doc["extensions"][NAME]["environment"]
+    world = bpy.data.worlds.new("Plain")
+    world.color = (0.2, 0.3, 0.4)
+    if world.node_tree:                                  # Blender 5: a Background node, its colour unlinked
+        world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.2, 0.3, 0.4, 1.0)
+    bpy.context.scene.world = world
+    bpy.context.scene.prtt.light_source = "WORLD"
+    summary = gx.export_glb(bpy.context, str(work / "plain.glb"))
+    assert any("constant colour" in n for n in summary["notes"]), summary["notes"]
+    doc, _ = glb(work / "plain.glb")
+    validate_file(doc)
+    env = doc["extensions"][NAME]["environment"]
+    assert "image" not in env and env["color"] == pytest.approx([0.2, 0.3, 0.4])
+    L = np.asarray(doc["extensions"][NAME]["light"]["rgb"])
+    assert L[0] == pytest.approx(np.array([0.2, 0.3, 0.4]) * math.sqrt(4 * math.pi)) and np.abs(L[1:]).max() == 0
     assert digest(work / "scene.blend") == before

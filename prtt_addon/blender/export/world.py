@@ -40,13 +40,20 @@ def _linked(socket):
     return socket.links[0].from_node if socket.is_linked else None
 
 
+def environment_file(image) -> str:
+    """The EXR/HDR file the World image's pixels are read from, or "" when they
+    come from Blender (packed, generated, another format, missing)."""
+    if image.source != "FILE" or image.packed_file:
+        return ""
+    import bpy
+    path = bpy.path.abspath(image.filepath, library=image.library)
+    return path if path and os.path.isfile(path) and path.lower().endswith((".exr", ".hdr")) else ""
+
+
 def _image_pixels(image) -> np.ndarray:
     """(H, W, 3) float32 in file order (top row first), linear."""
-    path = ""
-    if image.source == "FILE" and not image.packed_file:
-        import bpy
-        path = bpy.path.abspath(image.filepath, library=image.library)
-    if path and os.path.isfile(path) and path.lower().endswith((".exr", ".hdr")):
+    path = environment_file(image)
+    if path:
         return read_hdr_image(path)
     px = image_array(image, linearise=True)          # reloads an image without data
     if px.size == 0:
@@ -79,13 +86,17 @@ class WorldSetup:
     strength: float
     rotation: np.ndarray | None   # R of the Mapping node (lookup directions are R w), or None
     description: str
+    file: str = ""            # the EXR/HDR file the pixels come from ("": Blender's pixels, a studio HDRI
+                              # (source() gives its path), or no image)
+    image_name: str = ""      # the Environment Texture's image (or the studio HDRI's name)
+    mapping: tuple | None = None  # the Mapping node's ((rx, ry, rz) Euler XYZ radians, vector type), or None
 
 
 def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> WorldSetup:
     """Parse the World's nodes (or the studio HDRI choice). Cheap: reads no pixels."""
     if source == "BUILTIN":
         return WorldSetup(("builtin", builtin), lambda: envmap.builtin_environment_path(builtin), 1.0, None,
-                          f"studio HDRI '{builtin}'")
+                          f"studio HDRI '{builtin}'", image_name=builtin)
     world = scene.world
     if world is None:
         raise WorldLightError("the scene has no World: add one, or choose a studio HDRI as the light")
@@ -126,9 +137,13 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
             raise WorldLightError(f"World {world.name!r}: {m.name!r} ({m.bl_label}) feeds the Environment "
                                   f"Texture's vector; PRTT understands a Mapping node")
         R = mapping_rotation(m)
+        mapping = (tuple(float(a) for a in m.inputs["Rotation"].default_value), m.vector_type)
         desc += ", rotated"
+    else:
+        mapping = None
     key = ("image", img.name, img.filepath, img.source, tuple(img.size), bool(img.packed_file), img.is_dirty)
-    return WorldSetup(key, lambda: _image_pixels(img), strength, R, desc)
+    return WorldSetup(key, lambda: _image_pixels(img), strength, R, desc, file=environment_file(img),
+                      image_name=img.name, mapping=mapping)
 
 
 def project_setup(setup: WorldSetup, bands: int) -> np.ndarray:

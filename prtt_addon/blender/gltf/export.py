@@ -7,18 +7,25 @@ add-on module that has ``glTF2ExportUserExtension`` (the package's
 ``__init__`` has one); they act only while :func:`export_glb` runs (the
 user's own glTF exports stay untouched), and add:
 
-* on the root: the SH convention and frame, the World's light, and per
-  texture set its transfer planes as a KTX2 2D array in a buffer view;
+* on the root: the SH convention and frame, the World's light, the display
+  (exposure, view transform), the World's environment (its image file as it
+  is, in a buffer view), and per texture set its transfer planes and bounce
+  textures (relightable DC and glossy rows, or the baked bounce light) as
+  KTX2 2D arrays in buffer views;
 * on each baked object's node: its texture set;
-* on each of its mesh's primitives: the TEXCOORD set that holds the PRTT UVs.
+* on each of its mesh's primitives: the TEXCOORD set that holds the PRTT UVs;
+* on each material of a baked object: the parameters the preview shades it
+  with (the very PreviewMaterial the preview draws it with);
+* the images of those materials' base colour and normal map are written as
+  8-bit PNGs of the pixels the preview reads where Blender's exporter would
+  not (float images: it writes their linear values truncated to 8 bits, where
+  glTF's base colour is sRGB-encoded).
 
 The exporter logs and swallows a hook's exception, so afterwards the file is
 read back and refused unless every baked object carries its set. What is not
 exported yet is refused with a message, not skipped: instances and objects
 with UVs generated at bake time (their UVs are not in a mesh the exporter
-writes). A relightable bounce goes in as its DC rows (the diffuse bounce under
-any light); its glossy rows and baked bounces are left out with a note. The
-.blend is never saved.
+writes). The .blend is never saved.
 """
 from __future__ import annotations
 
@@ -32,11 +39,33 @@ import bpy
 import numpy as np
 
 from ...core.io.atomic import atomic_write
-from ...core.io.exr_io import read_relight_exr, read_sh_exr
-from ...core.io.gltf_prtt import NAME, relight_dc_payload, root_extension, transfer_payload
+from ...core.io.exr_io import read_sh_exr
+from ...core.io.gltf_prtt import (
+    NAME,
+    bounce_payload,
+    display_extension,
+    environment_extension,
+    material_extension,
+    relight_dc_payload,
+    relight_glossy_payload,
+    root_extension,
+    transfer_payload,
+)
+from ...core.io.image_write import png_bytes, srgb8
+from ...core.preview import pack as pp
+from ...core.shading.shade import light_hash
 from ..blendfile import open_scene
-from ..preview.drawlist import bake_folder, collect, last_bake
+from ..export.world import world_setup
+from ..preview.drawlist import bake_folder, collect, last_bake, materials_signature
 from ..shared import UV_MAP
+
+#: The largest World image carried in the .glb; a larger one is left out with a note.
+ENVIRONMENT_MAX_BYTES = 64 << 20
+_ENVIRONMENT_MIME = {".exr": "image/x-exr", ".hdr": "image/vnd.radiance"}
+#: glTF material texture of each material flag, as the viewer reads it.
+_MATERIAL_TEXTURES = (("baseColorTexture", "pbrMetallicRoughness", "baseColorTexture", "base colour"),
+                      ("roughnessTexture", "pbrMetallicRoughness", "metallicRoughnessTexture", "roughness"),
+                      ("normalTexture", None, "normalTexture", "normal map"))
 
 
 class GltfExportError(ValueError):
@@ -62,19 +91,30 @@ def _extension(data: dict):
 
 
 class _Export:
-    """The hooks of one export: what they add, and what they saw."""
+    """The hooks of one export: what they add, and what they saw.
 
-    def __init__(self, root: dict, blobs: list, set_index: dict):
+    blobs: [(path into the root extension's JSON, bytes)]: each becomes that
+    object's ``bufferView``. materials: {Blender material name: its
+    extension}; images: {Blender image name: (kind, pixels (H, W, 4) file
+    order)} for the material images the export encodes itself."""
+
+    def __init__(self, root: dict, blobs: list, set_index: dict, materials: dict, images: dict):
         self.root, self.blobs, self.set_index = root, blobs, set_index
+        self.materials, self.images = materials, images
         self.nodes_tagged: set = set()
         self.primitives_tagged = 0
+        self.materials_tagged: set = set()
+        self.images_encoded: dict = {}          # Blender image name -> kind
+        self.notes: list = []
 
     def gather_gltf_extensions_hook(self, gltf, export_settings):
         from io_scene_gltf2.io.exp.binary_data import BinaryData  # Blender's bundled exporter
         root = json.loads(json.dumps(self.root))
-        for s, blobs in zip(root["sets"], self.blobs):
-            for key, blob in blobs.items():
-                s[key]["bufferView"] = BinaryData(blob)          # the writer turns it into a buffer view index
+        for path, blob in self.blobs:
+            target = root
+            for key in path:
+                target = target[key]
+            target["bufferView"] = BinaryData(blob)          # the writer turns it into a buffer view index
         if gltf.extensions is None:
             gltf.extensions = {}
         gltf.extensions[NAME] = _extension(root)
@@ -102,6 +142,51 @@ class _Export:
                 prim.extensions = {}
             prim.extensions[NAME] = _extension({"texCoord": texcoord})
             self.primitives_tagged += 1
+
+    def gather_material_hook(self, gltf_material, blender_material, export_settings):
+        name = getattr(blender_material, "name", None)
+        if name not in self.materials:
+            return
+        if gltf_material.extensions is None:
+            gltf_material.extensions = {}
+        gltf_material.extensions[NAME] = _extension(dict(self.materials[name]))
+        self.materials_tagged.add(name)
+
+    def gather_image_hook(self, gltf_image, export_image, blender_shader_sockets, export_settings):
+        """Base colour and normal map images of a PRTT material: the exporter's
+        own bytes where they are the preview's pixels to 8 bits (an sRGB byte
+        image's file, a byte normal map's file), else an 8-bit PNG made from
+        the pixels the preview reads (sRGB-encoded for the base colour)."""
+        from io_scene_gltf2.blender.exp.material.encode_image import Channel, FillImage  # Blender's exporter
+        from io_scene_gltf2.io.exp.binary_data import BinaryData
+        sockets = {s.socket.name for s in blender_shader_sockets}
+        kind = "base" if "Base Color" in sockets else "normal" if sockets == {"Normal"} else None
+        fills = [export_image.fills.get(c) for c in (Channel.R, Channel.G, Channel.B)]
+        if kind is None or not all(isinstance(f, FillImage) and f.src_chan == c
+                                   for f, c in zip(fills, (Channel.R, Channel.G, Channel.B))):
+            return
+        img = fills[0].image
+        if len({f.image.name for f in fills}) != 1 or self.images.get(img.name, (None,))[0] != kind:
+            return
+        srgb_byte = not img.is_float and img.colorspace_settings.name.lower().startswith("srgb")
+        if (kind == "base" and srgb_byte) or (kind == "normal" and not img.is_float):
+            return                                  # the exporter writes these bytes unchanged: the preview's pixels
+        alpha = export_image.fills.get(Channel.A)
+        if alpha is not None and not (isinstance(alpha, FillImage) and alpha.image.name == img.name
+                                      and alpha.src_chan == Channel.A):
+            self.notes.append(f"image {img.name!r}: its alpha comes from elsewhere; the glTF has Blender's "
+                              f"exporter's PNG of it, not the preview's pixels")
+            return
+        rgba = pp.image_rgba(self.images[img.name][1])[::-1]    # (H, W, 4) file order, alpha 1 if none
+        if alpha is None:
+            rgba[..., 3] = 1.0
+        if kind == "base":
+            data = srgb8(rgba)
+        else:
+            data = np.round(np.clip(np.nan_to_num(rgba), 0.0, 1.0) * 255.0).astype(np.uint8)
+        gltf_image.buffer_view = BinaryData(png_bytes(data))
+        gltf_image.mime_type = "image/png"
+        self.images_encoded[img.name] = kind
 
 
 def _check_exportable(context, info: dict):
@@ -134,47 +219,137 @@ def _read_glb_json(path: str) -> dict:
         return json.loads(f.read(n))
 
 
+def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list) -> tuple[list, list, dict]:
+    """The root's ``sets`` (transfer and bounce textures as KTX2), the blobs
+    that go into buffer views, and {object: set index}."""
+    K = ps.bands * ps.bands
+    sets, blobs, set_index = [], [], {}
+    for i, (set_name, objects) in enumerate(sorted(info["set_objects"].items())):
+        data, _ = read_sh_exr(os.path.join(folder, f"{set_name}.transfer.exr"))      # (H, W, K), row 0 at the bottom
+        planes = np.ascontiguousarray(data[::-1].transpose(2, 0, 1))               # (K, H, W), top row first
+        blob, meta = transfer_payload(planes)
+        entry = {"name": set_name, "resolution": [meta["width"], meta["height"]], "transfer": meta}
+        payload = {"transfer": blob}
+        pset = ps.sets.get(set_name)
+        if pset is not None and pset.relight:
+            dc, glossy, attrs = pset.load_relight()                # (H, W, 3, K), (H, W, 3, Kg - 1, Kg); row 0 at the bottom
+            payload["relightDC"], entry["relightDC"] = relight_dc_payload(
+                np.ascontiguousarray(dc[::-1].transpose(2, 3, 0, 1)))
+            if glossy is not None and int(attrs.get("glossy_bands", 0)) > 0:
+                payload["relightGlossy"], entry["relightGlossy"] = relight_glossy_payload(
+                    np.ascontiguousarray(glossy[::-1].transpose(2, 3, 4, 0, 1)), dc.shape[-1])
+        elif pset is not None and pset.bounces:
+            b = pset.load_bounce(K)                                 # (H, W, 3, K): every level summed, as drawn
+            if b.shape[-1] != K:
+                notes.append(f"texture set {set_name!r}: its bounce textures hold {b.shape[-1]} coefficients, "
+                             f"the bake {K}: left out of the glTF (bake again)")
+            else:
+                payload["bounce"], entry["bounce"] = bounce_payload(
+                    np.ascontiguousarray(b[::-1].transpose(2, 3, 0, 1)), len(pset.bounces))
+        sets.append(entry)
+        blobs += [(("sets", i, key), blob) for key, blob in payload.items()]
+        for name in objects:
+            set_index[name] = i
+    return sets, blobs, set_index
+
+
+def _environment(scene, notes: list) -> tuple[dict, bytes | None]:
+    """The root's ``environment`` (the World the light was projected from)
+    and its image file's bytes (None: not carried, a note says why)."""
+    st = scene.prtt
+    setup = world_setup(scene, source=st.light_source, builtin=st.builtin_environment or "forest")
+    rotation, vector_type = setup.mapping or ((0.0, 0.0, 0.0), "POINT")
+    common = dict(description=setup.description, strength=setup.strength, rotation=rotation,
+                  vector_type=vector_type, lookup_rotation=setup.rotation)
+    if isinstance(setup.source, np.ndarray):
+        notes.append("the World is a constant colour: the glTF's environment has no image")
+        return environment_extension(color=setup.source, **common), None
+    path = setup.file or (setup.source() if setup.key[0] == "builtin" else "")
+    if not path:
+        notes.append(f"the World image {setup.image_name!r} is not an EXR/HDR file on disk (packed, generated "
+                     f"or another format): the glTF's environment has no image")
+        return environment_extension(**common), None
+    size = os.path.getsize(path)
+    if size > ENVIRONMENT_MAX_BYTES:
+        notes.append(f"the World image {path} is {size / 2**20:.0f} MiB, over the "
+                     f"{ENVIRONMENT_MAX_BYTES / 2**20:.0f} MiB the glTF carries: left out (the light's SH are in)")
+        return environment_extension(**common), None
+    with open(path, "rb") as f:
+        blob = f.read()
+    image = {"name": setup.image_name or os.path.basename(path),
+             "mimeType": _ENVIRONMENT_MIME[os.path.splitext(path)[1].lower()], "bytes": len(blob)}
+    return environment_extension(image=image, **common), blob
+
+
+def _material_params(ps: pp.PreviewScene) -> tuple[dict, dict]:
+    """{material name: extension} from the PreviewMaterials the preview draws,
+    and {image name: (kind, pixels)} of their base colour and normal map images."""
+    materials, images = {}, {}
+    for name, m in zip(ps.material_names, ps.materials):
+        if name is None:
+            continue
+        normal = m.normal_texture if ps.normal_maps else -1
+        materials[name] = material_extension(
+            base_color=m.base_color, metallic=m.metallic, roughness=m.roughness, f0=m.f0,
+            normal_strength=m.normal_strength, base_texture=m.base_texture >= 0,
+            roughness_texture=m.roughness_texture >= 0, normal_texture=normal >= 0)
+        for kind, index in (("base", m.base_texture), ("normal", normal)):
+            if index >= 0:
+                images.setdefault(ps.image_names[index], (kind, ps.images[index]))
+    return materials, images
+
+
+def _check_materials(doc: dict, job: _Export, notes: list) -> None:
+    """A note for each material flag whose texture Blender's exporter did not write."""
+    for mat in doc.get("materials", []):
+        ext = (mat.get("extensions") or {}).get(NAME)
+        if not ext:
+            continue
+        for flag, group, key, what in _MATERIAL_TEXTURES:
+            where = mat.get(group) or {} if group else mat
+            if ext.get(flag) and key not in where:
+                notes.append(f"material {mat.get('name')!r}: the preview reads its {what} from an image, but "
+                             f"Blender's glTF exporter wrote no {key}; a viewer shows its factor instead")
+    missing = sorted(set(job.materials) - job.materials_tagged)
+    if missing:
+        notes.append(f"materials without PRTT parameters in the glTF: {', '.join(missing[:8])}")
+
+
 def export_glb(context, out: str) -> dict:
     """Export ``context.scene`` to the .glb ``out`` (atomically). Returns a
-    summary: sets, objects, bytes. GltfExportError when it cannot."""
+    summary: sets, objects, bytes, notes. GltfExportError when it cannot."""
     global _ACTIVE
     scene = context.scene
     info = last_bake(scene)
     ps, status = _check_exportable(context, info)
     folder = bake_folder(scene, info)
     bands = int(info["settings"]["bands"])
-    bounce = info.get("bounce") or {}
-    relightable = any(f.endswith(".relight.exr") for f in bounce.get("files", []))
-    sets, blobs, set_index = [], [], {}
-    for i, (set_name, objects) in enumerate(sorted(info["set_objects"].items())):
-        data, _ = read_sh_exr(os.path.join(folder, f"{set_name}.transfer.exr"))      # (H, W, K), row 0 at the bottom
-        planes = np.ascontiguousarray(data[::-1].transpose(2, 0, 1))               # (K, H, W), top row first
-        blob, meta = transfer_payload(planes)
-        entry, payload = {"name": set_name, "resolution": [meta["width"], meta["height"]], "transfer": meta}, {}
-        payload["transfer"] = blob
-        relight = os.path.join(folder, f"{set_name}.relight.exr")
-        if relightable and os.path.isfile(relight):
-            dc, _, _ = read_relight_exr(relight)                   # (H, W, 3, K), row 0 at the bottom
-            payload["relightDC"], entry["relightDC"] = relight_dc_payload(
-                np.ascontiguousarray(dc[::-1].transpose(2, 3, 0, 1)))
-        sets.append(entry)
-        blobs.append(payload)
-        for name in objects:
-            set_index[name] = i
-    root = root_extension(bands=bands, light=ps.light, light_description=status.light_description, sets=sets)
+    notes = []
+    sets, blobs, set_index = _set_payloads(ps, folder, info, notes)
+    environment, env_blob = _environment(scene, notes)
+    if env_blob is not None:
+        blobs.append((("environment", "image"), env_blob))
+    vs = scene.view_settings
+    if vs.view_transform != "Standard":
+        notes.append(f"the scene's view transform is {vs.view_transform!r}; the preview and the viewer show "
+                     f"'Standard' (linear to sRGB after the exposure)")
+    root = root_extension(bands=bands, light=ps.light, light_description=status.light_description, sets=sets,
+                          display=display_extension(vs.exposure, vs.view_transform), environment=environment)
+    materials, images = _material_params(ps)
     prefs = context.preferences
     package = __name__.split(".blender.")[0]
     added = None
     if package not in prefs.addons:
         added = prefs.addons.new()               # the exporter finds hooks on enabled add-ons only
         added.module = package
-    _ACTIVE = job = _Export(root, blobs, set_index)
+    _ACTIVE = job = _Export(root, blobs, set_index, materials, images)
     try:
         with atomic_write(out) as tmp:
             target = tmp if tmp.endswith(".glb") else tmp + ".glb"
             r = bpy.ops.export_scene.gltf(filepath=target, export_format="GLB", use_selection=False,
                                           export_texcoords=True, export_normals=True, export_cameras=True,
-                                          export_lights=True, export_apply=True)
+                                          export_lights=True, export_apply=True,
+                                          export_tangents=any(m["normalTexture"] for m in materials.values()))
             if r != {"FINISHED"}:
                 raise GltfExportError(f"Blender's glTF exporter did not finish ({r})")
             if target != tmp:
@@ -189,13 +364,24 @@ def export_glb(context, out: str) -> dict:
         _ACTIVE = None
         if added is not None:
             prefs.addons.remove(added)
-    notes = []
-    if bounce and not relightable:
-        notes.append("baked bounce textures are not in the glTF (relightable ones are: --bounce-mode relightable)")
-    elif relightable:
-        notes.append("relightable bounces exported as their diffuse (DC) rows; their glossy rows are not in "
-                     "the glTF yet")
-    return {"sets": len(sets), "objects": len(set_index), "bytes": os.path.getsize(out), "notes": notes}
+    _check_materials(doc, job, notes)
+    notes += job.notes
+    if job.images_encoded:
+        notes.append("material images written from the pixels the preview reads, as 8-bit PNGs (base colour "
+                     "sRGB-encoded): " + ", ".join(sorted(job.images_encoded)))
+    b = info.get("bounce")
+    if b:
+        stale = []
+        if b.get("light_hash") and light_hash(ps.light) != b["light_hash"]:
+            stale.append("the World light changed")
+        sig = info.get("materials_signature")
+        if sig and materials_signature(scene) != sig:
+            stale.append("materials changed")
+        if stale:
+            notes.append("the bounce textures are stale (" + ", ".join(stale) + "): exported as baked; bake "
+                         "again to update them")
+    return {"sets": len(sets), "objects": len(set_index), "bytes": os.path.getsize(out), "notes": notes,
+            "images_encoded": dict(job.images_encoded)}
 
 
 def export_parser(prog: str) -> argparse.ArgumentParser:

@@ -132,6 +132,8 @@ class _MaterialTable:
         self.materials: list = []
         self.images: list = []
         self.image_keys: list = []
+        self.names: list = []           # the Blender material of each entry of materials (None: no material)
+        self.image_names: list = []     # the Blender image of each entry of images
         self._mat_index: dict = {}
         self._img_index: dict = {}
         self.normal_maps = normal_maps
@@ -147,6 +149,7 @@ class _MaterialTable:
             i = self._img_index[key] = len(self.images)
             self.images.append(arr)
             self.image_keys.append("|".join(map(str, key)))
+            self.image_names.append(img.name)
         return i
 
     def index(self, mat) -> int:
@@ -165,6 +168,7 @@ class _MaterialTable:
             m = dataclasses.replace(m, base_texture=base, roughness_texture=rough)
             i = self._mat_index[key] = len(self.materials)
             self.materials.append(m)
+            self.names.append(key)
             self.exports.append(ex)
         return i
 
@@ -451,5 +455,5 @@ def collect(context, *, visible=None, use_bounces: bool = True,
                        + "): Bake again to update them")
     ps = pp.PreviewScene(bands=bands, meshes=meshes, materials=table.materials, sets=sets, light=light,
                          images=table.images, image_keys=table.image_keys, use_bounces=use_bounces,
-                         normal_maps=normal_maps)
+                         normal_maps=normal_maps, material_names=table.names, image_names=table.image_names)
     return ps, status

@@ -2,11 +2,14 @@
 Blender's own glTF (docs/gltf.md; its JSON schema is
 docs/schema/PRTT_radiance_transfer.schema.json).
 
-The root extension holds the SH convention, the frame, the light and one
-entry per texture set; each set's transfer planes travel as a KTX2 2D array
-texture (core/io/ktx2.py: RGBA16F, coefficient k in layer k // 4, channel
-k % 4) in a buffer view of the .glb. A mesh primitive names the TEXCOORD set
-that holds its PRTT UVs and the texture set it samples.
+The root extension holds the SH convention, the frame, the light, the
+display (exposure, view transform), the World's environment (its image file
+in a buffer view) and one entry per texture set; each set's transfer planes
+(and bounce textures: relightable DC and glossy rows, or baked bounce light)
+travel as KTX2 2D array textures (core/io/ktx2.py: RGBA16F, four SH
+coefficients per layer) in buffer views of the .glb. A node names its texture
+set, a mesh primitive the TEXCOORD set that holds its PRTT UVs, a material
+the parameters the preview shades it with.
 
 Frame: the textures and the light are in Blender's world frame (Z up), as
 baked. glTF is Y up: Blender's exporter writes (x, y, z) as (x, z, -y). A
@@ -43,6 +46,13 @@ def _payload(layers: np.ndarray, kind: str, K: int, supercompression: str, **met
                   "uncompressedBytes": int(level_bytes[0][1])}
 
 
+def _row_layers(rows: np.ndarray) -> np.ndarray:
+    """(R, K, H, W) rows of K coefficients each as (R * ceil(K / 4), H, W, 4)
+    layers: row r from layer r * ceil(K / 4), coefficient i in layer i // 4,
+    channel i % 4 of them."""
+    return np.concatenate([sh_layers(np.asarray(r, np.float32)) for r in rows])
+
+
 def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
     """A set's relightable bounce, its DC rows (3, K, H, W): colour c's row over
     light coefficient i, rows top first, as KTX2 bytes (colour c's rows from
@@ -50,16 +60,89 @@ def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd") -> tup
     them) and their JSON. The bounce's diffuse radiance under a light L is
     sqrt(4 pi) * sum_i DC_c,i L_c,i per colour c (docs/shading.md)."""
     C, K = dc.shape[:2]
-    layers = np.concatenate([sh_layers(np.asarray(dc[c], np.float32)) for c in range(C)])
+    layers = _row_layers(dc)
     return _payload(layers, "relight-dc", K, supercompression, colours=int(C),
                     layersPerColour=int(layers.shape[0] // C))
 
 
-def root_extension(*, bands: int, light: np.ndarray, light_description: str, sets: list) -> dict:
+def relight_glossy_payload(glossy: np.ndarray, K: int, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+    """A set's relightable bounce, its glossy rows (3, Kg - 1, Kg, H, W): for
+    colour c and out coefficient o = 1 .. Kg - 1 the row over light
+    coefficient i, rows top first, as KTX2 bytes and their JSON: the tail of
+    core.preview.pack.pack_relight_operator after its DC layers, row (c, o)
+    from layer (c * (Kg - 1) + o - 1) * ceil(Kg / 4), coefficient i in layer
+    i // 4, channel i % 4 of them. The bounce's SH coefficient o (1 .. Kg - 1)
+    under a light L is sum_i G_c,o,i L_c,i (core.shading.relit.apply_light;
+    coefficient 0 is the DC rows' sum). ``K``: the bake's coefficients."""
+    C, O, Kg = glossy.shape[:3]
+    if O != Kg - 1:
+        raise ValueError(f"glossy rows: expected (3, Kg - 1, Kg, H, W), got {glossy.shape}")
+    layers = _row_layers(np.asarray(glossy).reshape(C * O, Kg, *glossy.shape[3:]))
+    return _payload(layers, "relight-glossy", K, supercompression, colours=int(C),
+                    glossyBands=int(round(Kg ** 0.5)), glossyCoefficients=int(Kg),
+                    layersPerRow=int((Kg + 3) // 4))
+
+
+def bounce_payload(bounce: np.ndarray, levels: int, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+    """A set's baked bounce light (3, K, H, W), its levels summed, rows top
+    first, as KTX2 bytes and their JSON (core.preview.pack.pack_bounce's
+    layout: colour c's coefficient k in layer c * ceil(K / 4) + k // 4,
+    channel k % 4). The bounce radiance's SH coefficients, added to the
+    incident light before shading (docs/shading.md)."""
+    C, K = bounce.shape[:2]
+    layers = _row_layers(bounce)
+    return _payload(layers, "bounce", K, supercompression, colours=int(C),
+                    layersPerColour=int(layers.shape[0] // C), levels=int(levels))
+
+
+def material_extension(*, base_color, metallic: float, roughness: float, f0: float, normal_strength: float,
+                       base_texture: bool, roughness_texture: bool, normal_texture: bool) -> dict:
+    """A material's parameters as the preview shader reads them (its
+    PRTTMaterial block, core.preview.pack.PreviewMaterial): linear base
+    colour, metallic, roughness, the dielectric F0, the normal map's strength
+    and which of them come from the glTF material's own textures (base
+    colour: baseColorTexture; roughness: metallicRoughnessTexture's G;
+    normals: normalTexture)."""
+    return {"baseColor": [float(c) for c in tuple(base_color)[:3]], "metallic": float(metallic),
+            "roughness": float(roughness), "f0": float(f0), "normalStrength": float(normal_strength),
+            "baseColorTexture": bool(base_texture), "roughnessTexture": bool(roughness_texture),
+            "normalTexture": bool(normal_texture)}
+
+
+def display_extension(stops: float, view_transform: str) -> dict:
+    """How the preview turns radiance into pixels: ``exposure`` = 2 ** stops
+    multiplies linear radiance before the sRGB encode (Blender's Standard
+    view transform; core.io.image_write.write_image)."""
+    return {"exposure": float(2.0 ** float(stops)), "stops": float(stops), "viewTransform": str(view_transform)}
+
+
+def environment_extension(*, description: str, strength: float, rotation=(0.0, 0.0, 0.0),
+                          vector_type: str = "POINT", lookup_rotation=None, image: dict | None = None,
+                          color=None) -> dict:
+    """The World at export: its equirect image's file (``image``: name,
+    mimeType, bytes; the writer adds its bufferView) or a constant ``color``,
+    Background strength, the Mapping node's Euler XYZ rotation (radians) and
+    type, and the lookup rotation R (core.light.envmap.mapping_rotation). The
+    root light is compose_light(project_equirect(image), strength, R)."""
+    R = np.eye(3) if lookup_rotation is None else np.asarray(lookup_rotation, np.float64)
+    out = {"description": description, "strength": float(strength),
+           "rotation": [float(a) for a in rotation], "vectorType": vector_type,
+           "lookupRotation": R.round(12).tolist()}
+    if image is not None:
+        out["image"] = image
+    if color is not None:
+        out["color"] = [float(c) for c in color]
+    return out
+
+
+def root_extension(*, bands: int, light: np.ndarray, light_description: str, sets: list,
+                   display: dict | None = None, environment: dict | None = None) -> dict:
     """The root extension's JSON, ``sets`` each {"name", "resolution",
     "transfer": {..., "bufferView": <filled by the writer>}}. ``light``:
     (K, 3) RGB SH of the environment in the bake frame (Blender's World at
-    export, strength and rotation applied)."""
+    export, strength and rotation applied); ``display``
+    (:func:`display_extension`) and ``environment``
+    (:func:`environment_extension`) when given."""
     L = np.asarray(light, np.float64)
     if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] != bands * bands:
         raise ValueError(f"light: expected ({bands * bands}, 3) SH coefficients, got {L.shape}")
@@ -70,4 +153,6 @@ def root_extension(*, bands: int, light: np.ndarray, light_description: str, set
                "frame": "Blender world, Z up", "gltfToBakeFrame": [list(r) for r in GLTF_TO_BAKE_FRAME]},
         "light": {"description": light_description, "rgb": L.round(9).tolist()},
         "sets": sets,
+        **({"display": display} if display is not None else {}),
+        **({"environment": environment} if environment is not None else {}),
     }

@@ -294,6 +294,9 @@ class PreviewScene:
     light: (K, 3) float64 world-frame RGB SH (rotation and strength applied);
     images: list of (H, W, 4) float32 material textures / normal maps, file
     order (row 0 = top), linear values; image_keys: a cache key per image.
+    material_names, image_names: where the scene came from Blender, the
+    material (None: no material) of each entry of materials and the image of
+    each entry of images (the glTF export matches them with Blender's).
     """
 
     bands: int
@@ -305,6 +308,8 @@ class PreviewScene:
     image_keys: list = dataclasses.field(default_factory=list)
     use_bounces: bool = True
     normal_maps: bool = True
+    material_names: list = dataclasses.field(default_factory=list)
+    image_names: list = dataclasses.field(default_factory=list)
 
 
 # --- packing for the GPU ------------------------------------------------------------
