@@ -87,6 +87,9 @@ function arrayTexture(bytes, zstd, what, { layers, width, height }, limits) {
     } catch (e) {
       throw new PRTTError(`${what}: damaged Zstandard data (${e.message || e})`);
     }
+    if (data.byteLength !== want) {
+      throw new PRTTError(`${what}: damaged Zstandard data (${data.byteLength} bytes decoded, ${want} expected)`);
+    }
   } else if (c.supercompressionScheme !== 0) {
     throw new PRTTError(`${what}: supercompression scheme ${c.supercompressionScheme} is not PRTT's`);
   }
