@@ -554,3 +554,140 @@ def test_environment_without_an_image_and_over_the_bound(baked, tmp_path, monkey
     L = np.asarray(doc["extensions"][NAME]["light"]["rgb"])
     assert L[0] == pytest.approx(np.array([0.2, 0.3, 0.4]) * math.sqrt(4 * math.pi)) and np.abs(L[1:]).max() == 0
     assert digest(work / "scene.blend") == before
+
+
+# --- instances (tiles) and UVs generated at bake time ------------------------------------------------
+
+#: Blender's frame -> glTF's: (x, y, z) -> (x, z, -y).
+TO_GLTF = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+
+
+def gltf_tile(uv, tile):
+    """docs/gltf.md's formula: a node's tile applied to glTF texture
+    coordinates (u, v) (v down from the top row), giving where to sample the
+    set's KTX2 (same convention)."""
+    columns, rows, column, row, inset = tile
+    s = 1.0 - 2.0 * inset
+    return np.stack([(column + inset + uv[:, 0] * s) / columns,
+                     1.0 - (row + inset + (1.0 - uv[:, 1]) * s) / rows], axis=1)
+
+
+def world_matrices(doc):
+    """{node index: 4 x 4 world matrix} in glTF's frame."""
+    def local(n):
+        if "matrix" in n:
+            return np.asarray(n["matrix"], np.float64).reshape(4, 4).T
+        x, y, z, w = n.get("rotation", (0, 0, 0, 1))
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        M = np.eye(4)
+        M[:3, :3] = R * np.asarray(n.get("scale", (1, 1, 1)))
+        M[:3, 3] = n.get("translation", (0, 0, 0))
+        return M
+    out = {}
+
+    def walk(i, parent):
+        out[i] = parent @ local(doc["nodes"][i])
+        for c in doc["nodes"][i].get("children", []):
+            walk(c, out[i])
+    for i in doc["scenes"][doc.get("scene", 0)]["nodes"]:
+        walk(i, np.eye(4))
+    return out
+
+
+@pytest.fixture(scope="module")
+def instanced(tmp_path_factory):
+    """test_headless_chain's scene (collection instances of an excluded
+    collection's cube: UVs generated per instance group; a geometry-nodes
+    grid: generated; a faceless helper) with an extruded curve, a text and
+    geometry-nodes instances of an unwrapped cube, baked."""
+    tmp = tmp_path_factory.mktemp("instanced")
+    bpy = addon_bpy()
+    rs.floor(bpy, 8.0)
+    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    src = rs.source_collection(bpy)
+    rs.collection_instance(bpy, "A", src, (2, 0, 0))
+    rs.collection_instance(bpy, "B", src, (-2, 0, 0))
+    rs.gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
+    rs.faceless(bpy)
+    rs.extruded_curve(bpy)
+    rs.text(bpy)
+    dot = rs.add_object(bpy, "Dot", rs.cube_mesh(bpy, "dot", 0.3), location=(0, 0, -20))
+    rs.gn_instance_on_points(bpy, "Scatter", dot, [(3, 1, 0.2), (3, 2, 0.2), (-3, 1.5, 0.2)])
+    rs.scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
+    bpy.context.scene.prtt.light_source = "BUILTIN"
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp)
+    assert r.returncode == 0, r.stderr + r.stdout
+    return tmp
+
+
+def test_instances_and_generated_uvs_as_the_preview_draws_them(instanced):
+    """Each drawn object's and instance's node: its set and tile; its mesh's
+    PRTT TEXCOORD, the tile applied by docs/gltf.md's formula, at each
+    vertex equal to the UVs the Blender preview draws there (collect());
+    generated UVs (instances of a mesh without a PRTT map, geometry-nodes
+    faces, a curve, a text) reach a TEXCOORD; nothing Blender does not render."""
+    doc, binary, out = export(instanced)
+    assert "left out of the glTF" in out and "SrcCube" in out, out       # the excluded source collection
+    ext = doc["extensions"][NAME]
+    bpy, ps = preview_scene(instanced / "scene.blend")
+    info = json.loads(bpy.context.scene.prtt.last_bake)
+    assert {r["uv"] for r in info["objects"].values()} == {"map", "generated"}
+    assert sum(1 for r in info["objects"].values() if r.get("tile")) == 5
+    worlds = world_matrices(doc)
+    C = np.eye(4)
+    C[:3, :3] = TO_GLTF
+    drawn = {m.name: m for m in ps.meshes}
+    seen = set()
+    for i, M in worlds.items():
+        n = doc["nodes"][i]
+        e = (n.get("extensions") or {}).get(NAME)
+        if "mesh" not in n:
+            continue
+        assert e is not None, f"node {n.get('name')}: a mesh without PRTT data (not rendered by Blender?)"
+        B = np.linalg.inv(C) @ M @ C                                   # the node's world matrix, Blender's frame
+        name = next(k for k, m in drawn.items() if k not in seen and np.allclose(m.matrix, B, atol=1e-5)
+                    and ext["sets"][e["set"]]["name"] == m.set_name)
+        seen.add(name)
+        rec = info["objects"][name]
+        assert e.get("tile") == (list(rec["tile"]) if rec.get("tile") else None), name
+        dm = drawn[name]
+        want = {}
+        for p, u, nrm in zip(dm.positions, dm.uv, dm.normals):
+            want.setdefault(tuple(np.round(np.r_[p, u].astype(np.float64), 4)), []).append(nrm)
+        got = set()
+        for prim in doc["meshes"][n["mesh"]]["primitives"]:
+            pos = accessor(doc, binary, prim["attributes"]["POSITION"]) @ TO_GLTF    # glTF -> Blender: p T
+            nor = accessor(doc, binary, prim["attributes"]["NORMAL"]) @ TO_GLTF
+            uv = accessor(doc, binary, prim["attributes"][f"TEXCOORD_{prim['extensions'][NAME]['texCoord']}"])
+            uv = gltf_tile(uv.astype(np.float64), e["tile"]) if "tile" in e else uv.astype(np.float64)
+            uv[:, 1] = 1.0 - uv[:, 1]                                   # glTF's v -> Blender's
+            for p, u, nrm in zip(pos, uv, nor):
+                k = tuple(np.round(np.r_[p, u].astype(np.float64), 4))
+                got.add(k)
+                assert k not in want or min(np.abs(nrm - w).max() for w in want[k]) < 1e-3, (name, k, nrm)
+        assert got == set(want), (name, sorted(got - set(want))[:4], sorted(set(want) - got)[:4])
+    assert seen == set(drawn) == set(info["objects"])
+    # Blender's own importer opens it
+    code = ("import bpy; bpy.ops.wm.read_factory_settings(use_empty=True); "
+            f"r = bpy.ops.import_scene.gltf(filepath={str(instanced / 'room.glb')!r}); print('IMPORTED', r)")
+    r = subprocess.run([os.sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert "IMPORTED {'FINISHED'}" in r.stdout, r.stdout + r.stderr
+
+
+def test_instances_export_leaves_blenders_data_as_it_was(instanced, tmp_path):
+    """In the same Blender session: the temporary meshes that carry generated
+    UVs are gone after the export, nothing else in bpy.data changed."""
+    from prtt_addon.blender.gltf.export import export_glb
+    bpy = addon_bpy()
+    bpy.ops.wm.open_mainfile(filepath=str(instanced / "scene.blend"))
+
+    def state():
+        return {kind: sorted(x.name for x in getattr(bpy.data, kind))
+                for kind in ("meshes", "objects", "materials", "images", "collections", "node_groups")}
+    before = state()
+    summary = export_glb(bpy.context, str(tmp_path / "room.glb"))
+    assert summary["objects"] == 11
+    assert state() == before

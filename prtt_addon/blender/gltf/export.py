@@ -12,8 +12,14 @@ user's own glTF exports stay untouched), and add:
   is, in a buffer view), and per texture set its transfer planes and bounce
   textures (relightable DC and glossy rows, or the baked bounce light) as
   KTX2 2D arrays in buffer views;
-* on each baked object's node: its texture set;
+* on each baked object's or instance's node: its texture set, and an
+  instance's tile of it (found in the exporter's tree by object and world
+  matrix, :func:`_match`, in ``gather_gltf_hook`` once every node is made);
 * on each of its mesh's primitives: the TEXCOORD set that holds the PRTT UVs;
+  where the bake generated the UVs (curves, text, geometry-nodes faces,
+  instances of a mesh without a PRTT map), the node gets a mesh made by the
+  exporter from a temporary copy of the evaluated mesh that carries them
+  (:func:`_triangle_mesh`, removed after the export);
 * on each material of a baked object: the parameters the preview shades it
   with (the very PreviewMaterial the preview draws it with);
 * the images of those materials' base colour and normal map are written as
@@ -21,15 +27,17 @@ user's own glTF exports stay untouched), and add:
   not (float images: it writes their linear values truncated to 8 bits, where
   glTF's base colour is sRGB-encoded).
 
+Nodes of the exporter's that Blender's render leaves out (a collection
+excluded from the view layer, the usual source of collection instances; a
+curve's own mesh listed again as a geometry-nodes instance) are taken out.
 The exporter logs and swallows a hook's exception, so afterwards the file is
-read back and refused unless every baked object carries its set. What is not
-exported yet is refused with a message, not skipped: instances and objects
-with UVs generated at bake time (their UVs are not in a mesh the exporter
-writes). The .blend is never saved.
+read back and refused unless every baked object and instance carries its set.
+The .blend is never saved.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import struct
@@ -55,8 +63,11 @@ from ...core.io.image_write import png_bytes, srgb8
 from ...core.preview import pack as pp
 from ...core.shading.shade import light_hash
 from ..blendfile import open_scene
+from ..export.job import GENERATED_UVS
+from ..export.scene_objects import GEOMETRY_TYPES, render_enabled
 from ..export.world import world_setup
-from ..preview.drawlist import bake_folder, collect, last_bake, materials_signature
+from ..preview.drawlist import bake_folder, collect, generated_uvs, last_bake, materials_signature
+from ..rna_arrays import RnaArrayError, read, write
 from ..shared import UV_MAP
 
 #: The largest World image carried in the .glb; a larger one is left out with a note.
@@ -90,6 +101,115 @@ def _extension(data: dict):
     return Extension(NAME, data, required=False)
 
 
+@dataclasses.dataclass
+class _Part:
+    """A baked object or instance as the bake recorded it (export/job._records)."""
+
+    name: str
+    key: str
+    set: int
+    matrix: np.ndarray | None = None         # (4, 4) world, Blender frame (None: a bake before records)
+    tile: tuple | None = None                # (columns, rows, column, row, inset)
+    uv: str = "map"                          # "map" | "generated"
+    uv_group: str = ""
+
+    @property
+    def geometry_nodes_instance(self) -> bool:
+        """An instance made by geometry nodes (its source is its instancer)."""
+        owner = self.key.split(":", 2)[1] if self.key.startswith("instance:") else ""
+        return bool(owner) and self.key.endswith(f":{owner}")
+
+
+def _parts(info: dict, set_numbers: dict) -> list:
+    """The bake's parts, in its record's order."""
+    out, recorded = [], info.get("objects", {})
+    for name, rec in recorded.items():
+        if rec.get("set") not in set_numbers:
+            continue
+        m = rec.get("matrix")
+        out.append(_Part(name, rec.get("key") or f"object:{name}", set_numbers[rec["set"]],
+                         None if m is None else np.asarray(m, np.float64),
+                         tuple(rec["tile"]) if rec.get("tile") else None, rec.get("uv") or "map",
+                         rec.get("uv_group") or ""))
+    for set_name, names in info.get("set_objects", {}).items():      # objects without a record
+        out += [_Part(n, f"object:{n}", set_numbers[set_name]) for n in names if n not in recorded]
+    return out
+
+
+def _match(vnode, parts: list):
+    """The part the exporter's tree node ``vnode`` draws, or None: the same
+    object (a real object, an instance's source, or a geometry-nodes
+    instance's instancer) at the same world matrix."""
+    ob = vnode.blender_object
+    if ob is not None:
+        keys = (f"object:{ob.name}",)
+        suffix, prefix = f":{ob.name}", "instance:"
+    elif getattr(vnode, "original_object", None) is not None:
+        keys, suffix, prefix = (), f":{vnode.original_object.name}", f"instance:{vnode.original_object.name}:"
+    else:
+        return None
+    M = np.array(vnode.matrix_world, np.float64)
+    for p in parts:
+        if not (p.key in keys or (p.key.startswith(prefix) and p.key.endswith(suffix))):
+            continue
+        if p.matrix is None or np.allclose(M, p.matrix, rtol=1e-6, atol=1e-5):
+            return p
+    return None
+
+
+def _drop(vtree, vnode, scenes) -> None:
+    """Take ``vnode``'s glTF node out of its parent's children (or the scenes' roots)."""
+    parent = vtree.nodes.get(vnode.parent_uuid) if vnode.parent_uuid is not None else None
+    holders = [parent.node.children] if parent is not None and getattr(parent, "node", None) is not None \
+        else [sc.nodes for sc in scenes]
+    for nodes in holders:
+        for i in [i for i, n in enumerate(nodes) if n is vnode.node][::-1]:
+            del nodes[i]
+
+
+def _triangle_mesh(src, uv: np.ndarray, name: str):
+    """A new Blender mesh of ``src``'s loop triangles, three corners each:
+    its vertices, split normals (as custom normals), material indices and
+    UV maps per corner, and "PRTT" = ``uv`` (T, 3, 2)."""
+    src.calc_loop_triangles()
+    T = len(src.loop_triangles)
+    if uv.shape != (T, 3, 2):
+        raise GltfExportError(f"its generated UVs ({uv.shape[0]} triangles) no longer match its mesh "
+                              f"({T} triangles): bake again")
+    nl = len(src.loops)
+    loops = read(src.loop_triangles, "loops", 3, np.int32)
+    verts = read(src.loop_triangles, "vertices", 3, np.int32)
+    slots = read(src.loop_triangles, "material_index", 1, np.int32)
+    normals = read(src.corner_normals, "vector", 3, expect=nl, what=f"{name}: corner normals")
+    layers = [(u.name, read(u.uv, "vector", 2, expect=nl, what=f"{name}: UV map {u.name!r}")[loops],
+               u.active_render, u.active) for u in src.uv_layers]
+    tmp = bpy.data.meshes.new(name)
+    try:
+        tmp.vertices.add(len(src.vertices))
+        write(tmp.vertices, "co", read(src.vertices, "co", 3), 3)
+        tmp.loops.add(3 * T)
+        write(tmp.loops, "vertex_index", verts.ravel(), 1, np.int32)
+        tmp.polygons.add(T)
+        write(tmp.polygons, "loop_start", np.arange(0, 3 * T, 3), 1, np.int32)
+        write(tmp.polygons, "material_index", slots, 1, np.int32)
+        tmp.update(calc_edges=True)
+        if len(tmp.polygons) != T or len(tmp.loops) != 3 * T:
+            raise GltfExportError(f"its triangles did not make a valid mesh ({len(tmp.polygons)} of {T})")
+        if UV_MAP not in [n for n, *_ in layers]:
+            layers.append((UV_MAP, None, False, False))
+        for lname, values, render, active in layers:
+            layer = tmp.uv_layers.new(name=lname)
+            write(layer.uv, "vector", np.asarray(uv if lname == UV_MAP else values), 2)
+            layer.active_render = bool(render)
+            if active:
+                tmp.uv_layers.active = layer
+        tmp.normals_split_custom_set(normals[loops].reshape(-1, 3).tolist())
+        return tmp
+    except BaseException:
+        bpy.data.meshes.remove(tmp)
+        raise
+
+
 class _Export:
     """The hooks of one export: what they add, and what they saw.
 
@@ -98,10 +218,15 @@ class _Export:
     extension}; images: {Blender image name: (kind, pixels (H, W, 4) file
     order)} for the material images the export encodes itself."""
 
-    def __init__(self, root: dict, blobs: list, set_index: dict, materials: dict, images: dict):
-        self.root, self.blobs, self.set_index = root, blobs, set_index
+    def __init__(self, root: dict, blobs: list, parts: list, generated: dict, materials: dict, images: dict):
+        self.root, self.blobs, self.parts, self.generated = root, blobs, parts, generated
         self.materials, self.images = materials, images
         self.nodes_tagged: set = set()
+        self.generated_meshes: dict = {}       # uv group -> glTF mesh
+        self.temporary_meshes: list = []       # Blender meshes made for the export (removed after it)
+        self.errors: list = []
+        self.rendered: set = set()             # the objects Blender renders (scene_objects.render_enabled)
+        self.dropped: list = []                # nodes of the exporter's left out (_not_rendered)
         self.primitives_tagged = 0
         self.materials_tagged: set = set()
         self.images_encoded: dict = {}          # Blender image name -> kind
@@ -119,13 +244,87 @@ class _Export:
             gltf.extensions = {}
         gltf.extensions[NAME] = _extension(root)
 
-    def gather_node_hook(self, gltf_node, blender_object, export_settings):
-        if blender_object is None or blender_object.name not in self.set_index:
-            return
-        if gltf_node.extensions is None:
-            gltf_node.extensions = {}
-        gltf_node.extensions[NAME] = _extension({"set": self.set_index[blender_object.name]})
-        self.nodes_tagged.add(blender_object.name)
+    def gather_gltf_hook(self, active_scene_idx, scenes, animations, export_settings):
+        """Every node gathered: each baked object's or instance's node found in
+        the exporter's tree (by its object and world matrix, as the bake
+        recorded them) gets its set and tile; one whose UVs the bake generated
+        gets a mesh that carries them."""
+        vtree = export_settings["vtree"]
+        free = list(self.parts)
+        for vnode in list(vtree.nodes.values()):
+            node = getattr(vnode, "node", None)
+            if node is None or node.mesh is None:
+                continue
+            part = _match(vnode, free)
+            if part is None:
+                if self._not_rendered(vnode):
+                    _drop(vtree, vnode, scenes)
+                    if vnode.blender_object is not None:
+                        self.dropped.append(vnode.blender_object.name)
+                continue
+            free.remove(part)
+            try:
+                if part.uv == "generated":
+                    node.mesh = self._generated_mesh(vnode, part, export_settings)
+            except (GltfExportError, RnaArrayError, RuntimeError, ValueError) as exc:
+                self.errors.append(f"{part.name}: {exc}")
+                continue
+            if node.extensions is None:
+                node.extensions = {}
+            ext = {"set": part.set}
+            if part.tile is not None:
+                ext["tile"] = [int(v) for v in part.tile[:4]] + [float(part.tile[4])]
+            node.extensions[NAME] = _extension(ext)
+            self.nodes_tagged.add(part.name)
+
+    def _not_rendered(self, vnode) -> bool:
+        """A node of the exporter's that Blender's render (and the preview) does
+        not show: a top-level object of a collection excluded from the view
+        layer or disabled in renders (the source of collection instances), or,
+        with geometry-nodes instances exported, a curve's or text's own mesh
+        a second time (the depsgraph lists it as an instance of itself)."""
+        ob = vnode.blender_object
+        if ob is not None:
+            return vnode.parent_uuid is None and ob.type in GEOMETRY_TYPES and ob.name not in self.rendered
+        orig = getattr(vnode, "original_object", None)
+        return (orig is not None and orig.type != "MESH"
+                and np.allclose(np.array(vnode.matrix_world), np.array(orig.matrix_world), atol=1e-6))
+
+    def _generated_mesh(self, vnode, part: _Part, export_settings):
+        """The glTF mesh of ``part`` with the UVs the bake generated as its
+        PRTT TEXCOORD: Blender's exporter run on a temporary mesh (one per UV
+        group: instances share it) made of the evaluated mesh's triangles,
+        each with its own corners (the generated UVs are per triangle corner),
+        its split normals, UV maps and material slots, and a "PRTT" UV map.
+        The temporary mesh is removed after the export."""
+        got = self.generated_meshes.get(part.uv_group)
+        if got is not None:
+            return got
+        from io_scene_gltf2.blender.exp import mesh as gltf_mesh  # Blender's bundled exporter
+        uv = self.generated.get(part.uv_group)
+        if uv is None:
+            raise GltfExportError(f"its generated UVs are not in the bake's {GENERATED_UVS}: bake again")
+        ob = vnode.blender_object
+        owner = ob if ob is not None else vnode.original_object
+        if ob is not None:
+            ob_eval = ob.evaluated_get(bpy.context.evaluated_depsgraph_get())
+            src = ob_eval.to_mesh()
+        else:                                          # a geometry-nodes instance: its mesh as the exporter has it
+            ob_eval, src = None, vnode.data
+        try:
+            tmp = _triangle_mesh(src, uv, f"{owner.name} (PRTT)")
+        finally:
+            if ob_eval is not None:
+                ob_eval.to_mesh_clear()
+        self.temporary_meshes.append(tmp)
+        materials = tuple(slot.material for slot in owner.material_slots)
+        for m in materials:
+            tmp.materials.append(m)
+        got = gltf_mesh.gather_mesh(tmp, None, None, None, materials, None, export_settings)
+        if got is None:
+            raise GltfExportError("Blender's glTF exporter made no mesh of it")
+        self.generated_meshes[part.uv_group] = got
+        return got
 
     def gather_mesh_hook(self, gltf_mesh, blender_mesh, blender_object, vertex_groups, modifiers, materials,
                          export_settings):
@@ -190,8 +389,8 @@ class _Export:
 
 
 def _check_exportable(context, info: dict):
-    """Refuse (GltfExportError) a bake that is missing, stale, partial, or
-    holds what the export cannot carry yet. Returns the preview's
+    """Refuse (GltfExportError) a bake that is missing, stale or partial.
+    Returns the preview's
     (PreviewScene, PreviewStatus) of the bake (its light, its description)."""
     if info is None:
         raise GltfExportError("nothing baked in this scene: bake it first (python -m prtt_addon bake FILE.blend)")
@@ -200,13 +399,6 @@ def _check_exportable(context, info: dict):
     if ps is None or problems:
         raise GltfExportError("the bake cannot be exported as it is: " + "; ".join(problems or ["not drawable"])
                               + " (bake again, then export)")
-    unsupported = sorted(name for name, rec in info.get("objects", {}).items()
-                         if rec.get("kind", "object") != "object" or rec.get("uv") == "generated"
-                         or rec.get("tile"))
-    if unsupported:
-        raise GltfExportError(f"the glTF export does not carry instances or UVs generated at bake time yet: "
-                              f"{', '.join(unsupported[:8])}; give them a PRTT UV map (Unwrap) and no instancing, "
-                              f"or leave them out of the bake")
     return ps, status
 
 
@@ -336,36 +528,46 @@ def export_glb(context, out: str) -> dict:
     root = root_extension(bands=bands, light=ps.light, light_description=status.light_description, sets=sets,
                           display=display_extension(vs.exposure, vs.view_transform), environment=environment)
     materials, images = _material_params(ps)
+    parts = _parts(info, {s["name"]: i for i, s in enumerate(sets)})
+    generated = generated_uvs(folder) if any(p.uv == "generated" for p in parts) else {}
     prefs = context.preferences
     package = __name__.split(".blender.")[0]
     added = None
     if package not in prefs.addons:
         added = prefs.addons.new()               # the exporter finds hooks on enabled add-ons only
         added.module = package
-    _ACTIVE = job = _Export(root, blobs, set_index, materials, images)
+    _ACTIVE = job = _Export(root, blobs, parts, generated, materials, images)
+    job.rendered = render_enabled(scene, context.view_layer)
     try:
         with atomic_write(out) as tmp:
             target = tmp if tmp.endswith(".glb") else tmp + ".glb"
             r = bpy.ops.export_scene.gltf(filepath=target, export_format="GLB", use_selection=False,
                                           export_texcoords=True, export_normals=True, export_cameras=True,
                                           export_lights=True, export_apply=True,
-                                          export_tangents=any(m["normalTexture"] for m in materials.values()))
+                                          export_tangents=any(m["normalTexture"] for m in materials.values()),
+                                          export_gn_mesh=any(p.geometry_nodes_instance for p in parts))
             if r != {"FINISHED"}:
                 raise GltfExportError(f"Blender's glTF exporter did not finish ({r})")
             if target != tmp:
                 os.replace(target, tmp)
+            if job.errors:
+                raise GltfExportError("could not export " + "; ".join(job.errors[:4]))
             doc = _read_glb_json(tmp)
-            missing = sorted(set(set_index) - job.nodes_tagged)
+            missing = sorted({p.name for p in parts} - job.nodes_tagged)
             if NAME not in (doc.get("extensions") or {}) or missing or not job.primitives_tagged:
                 raise GltfExportError(f"PRTT's data did not reach the file (objects without it: "
                                       f"{', '.join(missing[:8]) or 'none'}; primitives tagged: "
                                       f"{job.primitives_tagged}); see Blender's log above")
     finally:
         _ACTIVE = None
+        for m in job.temporary_meshes:
+            bpy.data.meshes.remove(m)
         if added is not None:
             prefs.addons.remove(added)
     _check_materials(doc, job, notes)
     notes += job.notes
+    if job.dropped:
+        notes.append(f"left out of the glTF, as Blender's render leaves them out: {', '.join(job.dropped[:8])}")
     if job.images_encoded:
         notes.append("material images written from the pixels the preview reads, as 8-bit PNGs (base colour "
                      "sRGB-encoded): " + ", ".join(sorted(job.images_encoded)))

@@ -286,7 +286,7 @@ def mesh_corners(ob_eval, table: _MaterialTable) -> tuple[dict, np.ndarray, list
         ob_eval.to_mesh_clear()
 
 
-def _generated_uvs(out_dir: str) -> dict:
+def generated_uvs(out_dir: str) -> dict:
     """{uv group: (T, 3, 2) float32} from the bake's generated_uvs.npz (cached by mtime)."""
     path = os.path.join(out_dir, GENERATED_UVS)
     try:
@@ -419,7 +419,7 @@ def collect(context, *, visible=None, use_bounces: bool = True,
     generated = {}
     if any(r.get("uv") == "generated" for r in parts.values()):
         try:
-            generated = _generated_uvs(out_dir)
+            generated = generated_uvs(out_dir)
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             status.add("ERROR", f"cannot read {os.path.join(out_dir, GENERATED_UVS)} ({exc}); bake again")
     meshes, moved, edited = [], [], []
