@@ -393,11 +393,30 @@ def test_relightable_bounce_dc_and_glossy_rows(relit, tmp_path):
         assert (meta["coefficients"], meta["glossyBands"], meta["glossyCoefficients"], meta["layersPerRow"],
                 meta["colours"]) == (K, attrs["glossy_bands"], Kg, Kg4, 3)
         got = ktx2_layers(doc, binary, meta, tmp_path, "relight-glossy")
-        assert got.shape == (3 * (Kg - 1) * Kg4, H, W, 4)
-        assert same_half(got, op[3 * K4:]), s["name"]
-        for c, o, i in ((0, 1, 0), (1, Kg - 1, Kg - 1), (2, 3, 5)):
-            layer = (c * (Kg - 1) + o - 1) * Kg4 + i // 4
-            assert np.array_equal(got[layer, :, :, i % 4], glossy[::-1, :, c, o - 1, i].astype(np.float16))
+        if attrs.get("glossy_colour") == "shared":
+            # stored once for all colours, as the EXR holds them: a third of the bytes
+            assert meta["glossyColour"] == "shared"
+            _, stored, _ = read_relight_exr(relit / "textures" / f"{s['name']}.relight.exr", expand=False)
+            assert got.shape == ((Kg - 1) * Kg4, H, W, 4)
+            for o, i in ((1, 0), (Kg - 1, Kg - 1), (3, 5)):
+                layer = (o - 1) * Kg4 + i // 4
+                assert np.array_equal(got[layer, :, :, i % 4], stored[::-1, :, o - 1, i].astype(np.float16))
+            # the documented tint (kappa_c = DC_c,0 / mean_c DC_c,0) gives the preview's rows back
+            got_dc = ktx2_layers(doc, binary, s["relightDC"], tmp_path, "relight-dc")
+            d0 = np.stack([got_dc[c * K4, :, :, 0] for c in range(3)], -1).astype(np.float64)
+            m = d0.mean(-1, keepdims=True)
+            kappa = np.divide(d0, m, out=np.ones_like(d0), where=np.abs(m) > 1e-3 * np.abs(d0).max(-1, keepdims=True))
+            rows = got.astype(np.float32).reshape(Kg - 1, Kg4, H, W, 4)
+            for c, o, i in ((0, 1, 0), (1, Kg - 1, Kg - 1), (2, 3, 5)):
+                tinted = kappa[..., c] * rows[o - 1, i // 4, :, :, i % 4]
+                np.testing.assert_allclose(tinted, glossy[::-1, :, c, o - 1, i], rtol=2e-3, atol=1e-7)
+        else:
+            assert meta["glossyColour"] == "per-colour"
+            assert got.shape == (3 * (Kg - 1) * Kg4, H, W, 4)
+            assert same_half(got, op[3 * K4:]), s["name"]
+            for c, o, i in ((0, 1, 0), (1, Kg - 1, Kg - 1), (2, 3, 5)):
+                layer = (c * (Kg - 1) + o - 1) * Kg4 + i // 4
+                assert np.array_equal(got[layer, :, :, i % 4], glossy[::-1, :, c, o - 1, i].astype(np.float16))
 
 
 def test_baked_bounce_levels_summed_as_the_preview_draws_them(bounced, tmp_path):

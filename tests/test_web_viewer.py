@@ -162,7 +162,7 @@ def test_the_slider_turns_the_light_live(exported, server, tmp_path):
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
         try:
-            page = b.new_page(viewport={"width": W, "height": H})
+            page = b.new_page(viewport={"width": 960, "height": 600})   # the controls below the canvas
             page.goto(f"{server}/viewer/index.html?glb=/room.glb&mode=diffuse&w={W}&h={H}")
             page.wait_for_function("document.title.startsWith('ready')", timeout=60_000)
             page.locator("#turn").fill(str(int(TURN)))          # fires 'input', as a drag does

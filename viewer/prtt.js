@@ -331,6 +331,61 @@ function keepLayers(tex, colours, fileK4, K4) {
   return halfArrayTexture(out, width, height, K4 * colours);
 }
 
+/**
+ * An instance's PRTT UVs in its tile of the set's texture (docs/gltf.md):
+ * tile = [columns, rows, column, row, inset], in Blender's UV frame
+ * u_t = (column + inset + u (1 - 2 inset)) / columns, v_t likewise with rows,
+ * applied here to glTF's v' = 1 - v. A new attribute: the mesh's own UVs are
+ * shared with the other instances.
+ */
+function tiledUvs(uv, tile, name) {
+  const ok = Array.isArray(tile) && tile.length === 5 && tile.every(Number.isFinite)
+    && Number.isInteger(tile[0]) && Number.isInteger(tile[1]) && tile[0] >= 1 && tile[1] >= 1
+    && Number.isInteger(tile[2]) && Number.isInteger(tile[3]) && tile[2] >= 0 && tile[2] < tile[0]
+    && tile[3] >= 0 && tile[3] < tile[1] && tile[4] >= 0 && tile[4] < 0.5;
+  if (!ok) throw new PRTTError(`node ${name}: tile ${JSON.stringify(tile)} is not [columns, rows, column, row, inset]`);
+  const [gx, gy, col, row, inset] = tile;
+  const scale = 1 - 2 * inset;
+  const out = new Float32Array(uv.count * 2);
+  for (let i = 0; i < uv.count; i++) {
+    const u = uv.getX(i), v = 1 - uv.getY(i);
+    out[2 * i] = (col + inset + u * scale) / gx;
+    out[2 * i + 1] = 1 - (row + inset + v * scale) / gy;
+  }
+  return new THREE.BufferAttribute(out, 2);
+}
+
+/**
+ * Per-colour glossy rows from the shared ones (the EXRs' and the export's
+ * layout under tuning auto), as core/io/exr_io.expand_shared_glossy makes
+ * them: R_c = kappa_c S, kappa_c = dc_c,0 / mean_c dc_c,0 per texel (1 where
+ * that mean is below 1e-3 of the largest colour's magnitude). ``dc``: the DC
+ * rows (3 K4 layers), ``shared``: (Kg - 1) ceil(Kg / 4) layers. Half floats in,
+ * half floats out (colour c's rows from layer c (Kg - 1) ceil(Kg / 4)).
+ */
+function expandSharedGlossy(dc, K4, shared, kg) {
+  const { width, height } = dc.image;
+  const per = width * height * 4;
+  const rows = (kg - 1) * Math.ceil(kg / 4);
+  const S = shared.image.data, D = dc.image.data;
+  const out = new Uint16Array(3 * rows * per);
+  const f = THREE.DataUtils.fromHalfFloat, h = THREE.DataUtils.toHalfFloat;
+  for (let t = 0; t < width * height; t++) {
+    const d0 = [0, 1, 2].map((c) => f(D[c * K4 * per + 4 * t]));
+    const m = (d0[0] + d0[1] + d0[2]) / 3;
+    const big = Math.max(Math.abs(d0[0]), Math.abs(d0[1]), Math.abs(d0[2]));
+    const kappa = d0.map((x) => (Math.abs(m) > 1e-3 * big ? Math.fround(x / m) : 1));
+    for (let l = 0; l < rows; l++) {
+      for (let j = 0; j < 4; j++) {
+        const v = f(S[l * per + 4 * t + j]);
+        for (let c = 0; c < 3; c++) out[(c * rows + l) * per + 4 * t + j] = h(Math.fround(kappa[c] * v));
+      }
+    }
+  }
+  shared.dispose();
+  return halfArrayTexture(out, width, height, 3 * rows);
+}
+
 /** Concatenate half-float layer arrays (each a DataArrayTexture's Uint16Array). */
 function concatLayers(parts, width, height) {
   const n = parts.reduce((a, p) => a + p.image.depth, 0);
@@ -407,7 +462,6 @@ export class PRTTLoaderPlugin {
     };
     for (const s of ext.sets) {
       const transfer = await payload(s.transfer, `set ${s.name} transfer`, fileK4);
-      const W = s.transfer.width, H = s.transfer.height;
       const entry = { name: s.name, transfer: keepLayers(transfer, 1, fileK4, K4) };
       if (s.bounce) {
         entry.bounce = keepLayers(await payload(s.bounce, `set ${s.name} bounce`, 3 * fileK4), 3, fileK4, K4);
@@ -430,11 +484,20 @@ export class PRTTLoaderPlugin {
               + `${3 * K4 + glossyLayers} layers, over this browser's MAX_ARRAY_TEXTURE_LAYERS `
               + `(${limits.maxArrayLayers})`);
             gb = 0;
+          } else if (s.relightGlossy.glossyColour === 'shared') {
+            const shared = await payload(s.relightGlossy, `set ${s.name} relightable glossy rows`,
+              (kg - 1) * kg4);
+            parts.push(expandSharedGlossy(parts[0], K4, shared, kg));
           } else {
             parts.push(await payload(s.relightGlossy, `set ${s.name} relightable glossy rows`, glossyLayers));
           }
         }
-        entry.relight = relightPass(concatLayers(parts, W, H), W, H, K4, gb, bands, read, limits);
+        // the bounce's own grid (the bake's bounce grid: coarser than the transfer where islands allow)
+        const bw = s.relightDC.width, bh = s.relightDC.height;
+        if (parts.some((p) => p.image.width !== bw || p.image.height !== bh)) {
+          throw new PRTTError(`set ${s.name}: its relightable bounce's DC and glossy rows differ in size`);
+        }
+        entry.relight = relightPass(concatLayers(parts, bw, bh), bw, bh, K4, gb, bands, read, limits);
       }
       prtt.sets.push(entry);
     }
@@ -461,15 +524,15 @@ export class PRTTLoaderPlugin {
       const primExt = prim && (prim.extensions || {})[NAME];
       if (!primExt) continue;
       const geometry = m.geometry;
-      const uv = geometry.getAttribute(UV_NAMES[primExt.texCoord] || `uv${primExt.texCoord}`);
+      let uv = geometry.getAttribute(UV_NAMES[primExt.texCoord] || `uv${primExt.texCoord}`);
       if (!uv) throw new PRTTError(`mesh ${m.name}: no TEXCOORD_${primExt.texCoord} (its PRTT UVs)`);
+      if (nodeExt.tile) uv = tiledUvs(uv, nodeExt.tile, m.name);
       const source = m.material;
       const matIndex = prim.material;
-      // no material: the preview's default (the exporter's root defaultMaterial), not glTF's
-      // default (metallic 1), which would draw the object black
+      // no material: the preview's default (the root's defaultMaterial), not glTF's default
+      // (metallic 1), which would draw the object black; files without it: the glTF's
       const matExt = matIndex !== undefined ? ((materials[matIndex] || {}).extensions || {})[NAME]
-        : (ext.defaultMaterial || { baseColor: [0.8, 0.8, 0.8], metallic: 0, roughness: 0.5, f0: 0.04,
-          normalStrength: 1 });
+        : ext.defaultMaterial;
       const textures = {};
       if (!matExt || matExt.baseColorTexture) textures.base = source.map || null;
       if (!matExt || matExt.roughnessTexture) textures.rough = source.roughnessMap || null;

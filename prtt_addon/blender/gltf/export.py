@@ -47,7 +47,7 @@ import bpy
 import numpy as np
 
 from ...core.io.atomic import atomic_write
-from ...core.io.exr_io import read_sh_exr
+from ...core.io.exr_io import read_relight_exr, read_sh_exr
 from ...core.io.gltf_prtt import (
     NAME,
     bounce_payload,
@@ -424,12 +424,14 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list) -> 
         payload = {"transfer": blob}
         pset = ps.sets.get(set_name)
         if pset is not None and pset.relight:
-            dc, glossy, attrs = pset.load_relight()                # (H, W, 3, K), (H, W, 3, Kg - 1, Kg); row 0 at the bottom
+            # (H, W, 3, K), and (H, W, 3, Kg - 1, Kg) or shared (H, W, Kg - 1, Kg) as stored; row 0 at the bottom
+            dc, glossy, attrs = read_relight_exr(pset.relight, expand=False)
             payload["relightDC"], entry["relightDC"] = relight_dc_payload(
                 np.ascontiguousarray(dc[::-1].transpose(2, 3, 0, 1)))
             if glossy is not None and int(attrs.get("glossy_bands", 0)) > 0:
+                axes = (2, 3, 4, 0, 1) if glossy.ndim == 5 else (2, 3, 0, 1)
                 payload["relightGlossy"], entry["relightGlossy"] = relight_glossy_payload(
-                    np.ascontiguousarray(glossy[::-1].transpose(2, 3, 4, 0, 1)), dc.shape[-1])
+                    np.ascontiguousarray(glossy[::-1].transpose(*axes)), dc.shape[-1])
         elif pset is not None and pset.bounces:
             b = pset.load_bounce(K)                                 # (H, W, 3, K): every level summed, as drawn
             if b.shape[-1] != K:
@@ -473,6 +475,13 @@ def _environment(scene, notes: list) -> tuple[dict, bytes | None]:
     return environment_extension(image=image, **common), blob
 
 
+def _material_block(m: pp.PreviewMaterial, normal: int) -> dict:
+    return material_extension(
+        base_color=m.base_color, metallic=m.metallic, roughness=m.roughness, f0=m.f0,
+        normal_strength=m.normal_strength, base_texture=m.base_texture >= 0,
+        roughness_texture=m.roughness_texture >= 0, normal_texture=normal >= 0)
+
+
 def _material_params(ps: pp.PreviewScene) -> tuple[dict, dict]:
     """{material name: extension} from the PreviewMaterials the preview draws,
     and {image name: (kind, pixels)} of their base colour and normal map images."""
@@ -481,10 +490,7 @@ def _material_params(ps: pp.PreviewScene) -> tuple[dict, dict]:
         if name is None:
             continue
         normal = m.normal_texture if ps.normal_maps else -1
-        materials[name] = material_extension(
-            base_color=m.base_color, metallic=m.metallic, roughness=m.roughness, f0=m.f0,
-            normal_strength=m.normal_strength, base_texture=m.base_texture >= 0,
-            roughness_texture=m.roughness_texture >= 0, normal_texture=normal >= 0)
+        materials[name] = _material_block(m, normal)
         for kind, index in (("base", m.base_texture), ("normal", normal)):
             if index >= 0:
                 images.setdefault(ps.image_names[index], (kind, ps.images[index]))
@@ -526,7 +532,8 @@ def export_glb(context, out: str) -> dict:
         notes.append(f"the scene's view transform is {vs.view_transform!r}; the preview and the viewer show "
                      f"'Standard' (linear to sRGB after the exposure)")
     root = root_extension(bands=bands, light=ps.light, light_description=status.light_description, sets=sets,
-                          display=display_extension(vs.exposure, vs.view_transform), environment=environment)
+                          display=display_extension(vs.exposure, vs.view_transform), environment=environment,
+                          default_material=_material_block(pp.PreviewMaterial(), normal=-1))
     materials, images = _material_params(ps)
     parts = _parts(info, {s["name"]: i for i, s in enumerate(sets)})
     generated = generated_uvs(folder) if any(p.uv == "generated" for p in parts) else {}

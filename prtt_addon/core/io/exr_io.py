@@ -309,11 +309,14 @@ def _stack(path, chans: dict, names: list[str]) -> np.ndarray:
     return data
 
 
-def read_relight_exr(path) -> tuple[np.ndarray, np.ndarray | None, dict]:
+def read_relight_exr(path, *, expand: bool = True) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Read a relightable bounce texture (kind "relight"): (dc (H, W, 3, K),
     glossy (H, W, 3, Kg - 1, Kg) or None, attrs), float32, row 0 at the bottom.
     Shared glossy rows (``prtt_glossy_colour`` "shared") come back per colour
-    (expand_shared_glossy), so every reader sees one layout."""
+    (expand_shared_glossy), so every reader sees one layout; with
+    ``expand=False`` they come back as stored, (H, W, Kg - 1, Kg) (the glTF
+    export carries them so, and the viewer tints them as expand_shared_glossy
+    does)."""
     chans, attrs = _read_channels(path)
     if attrs["kind"] != "relight":
         raise TextureError(f"{path}: a {attrs['kind']!r} texture, not a relightable bounce texture")
@@ -329,7 +332,8 @@ def read_relight_exr(path) -> tuple[np.ndarray, np.ndarray | None, dict]:
     dc = np.ascontiguousarray(data[..., :3 * K].reshape(H, W, 3, K))
     glossy = None
     if kg and shared:
-        glossy = expand_shared_glossy(dc, data[..., 3 * K:].reshape(H, W, kg - 1, kg))
+        glossy = data[..., 3 * K:].reshape(H, W, kg - 1, kg)
+        glossy = expand_shared_glossy(dc, glossy) if expand else np.ascontiguousarray(glossy)
     elif kg:
         glossy = np.ascontiguousarray(data[..., 3 * K:].reshape(H, W, 3, kg - 1, kg))
     return dc, glossy, attrs
