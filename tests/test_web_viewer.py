@@ -565,3 +565,52 @@ def test_an_hdr_dropped_on_the_page_lights_the_room(room, room_server, tmp_path)
     rel, plain, p99 = surface_rmse(read_png(tmp_path / "web.png"), read_png(room / "cityhdr_tpfl.png"))
     print(f"city.hdr: relative RMSE {rel:.4%} (plain {plain:.4%})")
     assert rel <= 0.01, (rel, plain, p99)
+
+
+@pytest.fixture(scope="module")
+def instanced_scene(tmp_path_factory):
+    """Instances and generated UVs (as tests/test_gltf_export.py's
+    `instanced`): collection instances of an excluded collection's cube, a
+    geometry-nodes grid, an extruded curve, a text and geometry-nodes
+    instances, under Blender's studio light; exported and rendered."""
+    tmp = tmp_path_factory.mktemp("instanced-web")
+    bpy = addon_bpy()
+    rs.floor(bpy, 8.0)
+    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    src = rs.source_collection(bpy)
+    rs.collection_instance(bpy, "A", src, (2, 0, 0))
+    rs.collection_instance(bpy, "B", src, (-2, 0, 0))
+    rs.gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
+    rs.extruded_curve(bpy)
+    rs.text(bpy)
+    dot = rs.add_object(bpy, "Dot", rs.cube_mesh(bpy, "dot", 0.3), location=(0, 0, -20))
+    rs.gn_instance_on_points(bpy, "Scatter", dot, [(3, 1, 0.2), (3, 2, 0.2), (-3, 1.5, 0.2)])
+    rs.scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
+    bpy.context.scene.prtt.light_source = "BUILTIN"
+    bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = RW, RH
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", "--resolution", "128", "--rays", "64",
+            "--bounces", "1", "--bounce-rays", "16", cwd=tmp, timeout=600)
+    assert r.returncode == 0, r.stderr + r.stdout
+    r = run("export", "scene.blend", "--out", "room.glb", cwd=tmp)
+    assert r.returncode == 0, r.stderr + r.stdout
+    r = run("render", "scene.blend", "--mode", "tpfl", "--size", f"{RW}x{RH}", "--out", "blender.png", cwd=tmp)
+    assert r.returncode == 0, r.stderr + r.stdout
+    return tmp
+
+
+@pytest.fixture(scope="module")
+def instanced_server(instanced_scene):
+    yield from serve(instanced_scene, "room.glb")
+
+
+def test_instances_and_generated_uvs_in_the_browser(instanced_scene, instanced_server, tmp_path):
+    """Each instance samples its own tile of the set (the node's tile applied
+    to the shared mesh's TEXCOORD in the page), curves, text and
+    geometry-nodes faces their generated UVs: the page draws what Blender draws."""
+    title = room_shot(instanced_server, tmp_path / "web.png", mode="tpfl")
+    assert title.startswith("ready"), title
+    addon_bpy()
+    rel, plain, p99 = surface_rmse(read_png(tmp_path / "web.png"), read_png(instanced_scene / "blender.png"))
+    print(f"instances: relative RMSE {rel:.4%} (plain {plain:.4%})")
+    assert rel <= 0.01, (rel, plain, p99)
