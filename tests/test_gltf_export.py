@@ -348,10 +348,10 @@ def demo(tmp_path_factory):
     return tmp
 
 
-def export(folder, blend="scene.blend", out="room.glb"):
+def export(folder, blend="scene.blend", out="room.glb", *args):
     """`prtt export` of ``blend`` in ``folder`` (its bytes unchanged): (JSON, binary, stdout)."""
     before = digest(folder / blend)
-    r = run("export", blend, "--out", out, cwd=folder)
+    r = run("export", blend, "--out", out, *args, cwd=folder)
     assert r.returncode == 0, r.stderr + r.stdout
     assert digest(folder / blend) == before                            # the .blend is never modified
     doc, binary = glb(folder / out)
@@ -710,3 +710,36 @@ def test_instances_export_leaves_blenders_data_as_it_was(instanced, tmp_path):
     summary = export_glb(bpy.context, str(tmp_path / "room.glb"))
     assert summary["objects"] == 11
     assert state() == before
+
+
+def test_the_8_bit_encoding_keeps_its_stated_error(relit, tmp_path):
+    """--encoding u8: each payload RGBA8 (ktx-parse reads vkFormat 37), each
+    plane decoding as offset + scale * q, within maxError <= scale / 2 of the
+    half-float payload's values (which equal the EXRs to float16), valid
+    against the schema; fewer bytes."""
+    from prtt_addon.core.io.gltf_prtt import decode_u8
+    doc_h, bin_h, _ = export(relit, "scene.blend", "half.glb")
+    doc, binary, _ = export(relit, "scene.blend", "u8.glb", "--encoding", "u8")
+    ext, ext_h = doc["extensions"][NAME], doc_h["extensions"][NAME]
+    n = 0
+    for s, s_h in zip(ext["sets"], ext_h["sets"]):
+        for key in ("transfer", "relightDC", "relightGlossy"):
+            meta = s[key]
+            assert (meta["format"], meta["encoding"]) == ("RGBA8", "u8")
+            blob = view(doc, binary, meta["bufferView"])
+            (q,), _ = parse_ktx2(blob)
+            f = tmp_path / f"u8_{n}.ktx2"
+            f.write_bytes(blob)
+            info = json.loads(node("ktx_info.mjs", f))
+            assert (info["vkFormat"], info["typeSize"], info["layerCount"]) == (37, 1, meta["layers"])
+            want = ktx2_layers(doc_h, bin_h, s_h[key]).astype(np.float32)
+            got = decode_u8(q, meta["scale"], meta["offset"])
+            err = float(np.abs(got - want).max())
+            scale = np.asarray(meta["scale"]).reshape(-1, 4)
+            assert err <= meta["maxError"] * (1 + 1e-6) + 1e-7, (key, err, meta["maxError"])
+            # float16 rounding of the reference aside, each plane within half its step
+            per_plane = np.abs(got - want).max(axis=(1, 2))
+            assert np.all(per_plane <= scale / 2 + np.abs(want).max(axis=(1, 2)) * 2.0 ** -10 + 1e-7), key
+            n += 1
+    assert n >= 3
+    assert (relit / "u8.glb").stat().st_size < (relit / "half.glb").stat().st_size

@@ -87,7 +87,7 @@ def test_half_storage_error_is_within_its_bound(rng):
 @pytest.mark.parametrize("levels, message", [
     ([], "1..15 mip levels"),
     ([np.zeros((2, 4, 4, 3), np.float16)], "expected (layers, height, width, 4)"),
-    ([np.zeros((2, 4, 4, 4), np.int32)], "expected floats"),
+    ([np.zeros((2, 4, 4, 4), np.int32)], "expected floats or uint8"),
     ([np.zeros((2, 4, 4, 4)), np.zeros((2, 4, 4, 4))], "level 1: expected shape (2, 2, 2, 4)"),
     ([np.zeros((3000, 1, 1, 4))], "at most 2048 layers"),
 ])
@@ -137,3 +137,24 @@ def test_reader_refuses_lying_sizes_before_allocating(tmp_path):
     struct.pack_into("<I", huge, 32, 2048)                      # layers
     with pytest.raises(KTX2Error):
         parse_ktx2(bytes(huge))
+
+
+@pytest.mark.parametrize("scheme", ["none", "zstd"])
+def test_rgba8_files_are_ktx_parses_too(tmp_path, rng, scheme):
+    """The glTF export's 8-bit encoding: VK_FORMAT_R8G8B8A8_UNORM (37), typeSize
+    1, a DFD of four 8-bit unsigned normalised samples; ktx-parse reads it and
+    writes the very same bytes, the reader gives the bytes back."""
+    levels = [rng.integers(0, 256, (7, 9, 13, 4), dtype=np.uint8)]
+    path = tmp_path / "u8.ktx2"
+    write_ktx2(path, levels, supercompression=scheme)
+    c = json.loads(node("ktx_info.mjs", path))
+    assert (c["vkFormat"], c["typeSize"], c["pixelWidth"], c["pixelHeight"], c["layerCount"]) == (37, 1, 13, 9, 7)
+    (dfd,) = c["dfd"]
+    assert dfd["bytesPlane"][0] == 4
+    assert [(s["bitOffset"], s["bitLength"], s["channelType"]) for s in dfd["samples"]] == \
+        [(0, 7, 0), (8, 7, 1), (16, 7, 2), (24, 7, 15)]
+    assert c["levels"][0]["uncompressed"] == levels[0].nbytes
+    node("ktx_rewrite.mjs", path, tmp_path / "again.ktx2")
+    assert (tmp_path / "again.ktx2").read_bytes() == path.read_bytes()
+    back, _ = read_ktx2(path)
+    assert back[0].dtype == np.uint8 and np.array_equal(back[0], levels[0])

@@ -24,6 +24,7 @@ import { gauntTable, lightBlock, relightBlock, rotateLight, turnLightZ } from '.
 export const NAME = 'PRTT_radiance_transfer';
 export { MODES };
 const VK_FORMAT_R16G16B16A16_SFLOAT = 97;
+const VK_FORMAT_R8G8B8A8_UNORM = 37;
 const KTX2_ZSTD = 2;
 /** The most one texture may unpack to in the page (a 4096^2 band-5 transfer is 896 MiB). */
 export const MAX_TEXTURE_BYTES = 1024 * 2 ** 20;
@@ -49,15 +50,22 @@ export function gpuLimits(renderer) {
  * the extension says it holds (layers, size) and the browser's limits.
  * ``what`` names it in every message.
  */
-function arrayTexture(bytes, zstd, what, { layers, width, height }, limits) {
+function arrayTexture(bytes, zstd, what, { layers, width, height, encoding = 'half', scale, offset }, limits) {
   let c;
   try {
     c = readKTX2(bytes);
   } catch (e) {
     throw new PRTTError(`${what}: not a readable KTX2 file (${e.message})`);
   }
-  if (c.vkFormat !== VK_FORMAT_R16G16B16A16_SFLOAT || c.levels.length < 1) {
-    throw new PRTTError(`${what}: not an RGBA16F array texture (vkFormat ${c.vkFormat})`);
+  const u8 = encoding === 'u8';
+  if (!u8 && encoding !== 'half') throw new PRTTError(`${what}: unknown encoding ${encoding} (half or u8)`);
+  const [vk, fmt] = u8 ? [VK_FORMAT_R8G8B8A8_UNORM, 'RGBA8'] : [VK_FORMAT_R16G16B16A16_SFLOAT, 'RGBA16F'];
+  if (c.vkFormat !== vk || c.levels.length < 1) {
+    throw new PRTTError(`${what}: not an ${fmt} array texture (vkFormat ${c.vkFormat})`);
+  }
+  if (u8 && !(Array.isArray(scale) && Array.isArray(offset) && scale.length === 4 * layers
+      && offset.length === 4 * layers && [...scale, ...offset].every(Number.isFinite))) {
+    throw new PRTTError(`${what}: an 8-bit payload needs ${4 * layers} finite scales and offsets`);
   }
   if (c.layerCount !== layers || c.pixelWidth !== width || c.pixelHeight !== height) {
     throw new PRTTError(`${what}: ${c.pixelWidth}x${c.pixelHeight} in ${c.layerCount} layers, the extension says `
@@ -72,7 +80,7 @@ function arrayTexture(bytes, zstd, what, { layers, width, height }, limits) {
       + `(${limits.maxArrayLayers}); bake fewer bands`);
   }
   const level = c.levels[0];
-  const want = width * height * layers * 8;
+  const want = width * height * layers * (u8 ? 4 : 8);
   if (want > MAX_TEXTURE_BYTES) {
     throw new PRTTError(`${what}: ${width}x${height} in ${layers} layers is ${(want / 2 ** 20).toFixed(0)} MiB, `
       + `over the viewer's ${MAX_TEXTURE_BYTES / 2 ** 20} MiB per texture`);
@@ -94,8 +102,26 @@ function arrayTexture(bytes, zstd, what, { layers, width, height }, limits) {
     throw new PRTTError(`${what}: supercompression scheme ${c.supercompressionScheme} is not PRTT's`);
   }
   if (data.byteLength !== want) throw new PRTTError(`${what}: ${data.byteLength} bytes, ${want} expected`);
+  if (u8) return halfArrayTexture(decodeU8(data, width * height, layers, scale, offset), width, height, layers);
   const half = new Uint16Array(data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength));
   return halfArrayTexture(half, width, height, layers);
+}
+
+/**
+ * Half floats of an 8-bit payload (docs/gltf.md): plane p = 4 layer + channel
+ * holds offset[p] + scale[p] q, q = 0 .. 255; one 256-entry table per plane.
+ */
+function decodeU8(q, texels, layers, scale, offset) {
+  const out = new Uint16Array(q.length);
+  const lut = new Uint16Array(256 * 4 * layers);
+  for (let p = 0; p < 4 * layers; p++) {
+    for (let v = 0; v < 256; v++) lut[256 * p + v] = THREE.DataUtils.toHalfFloat(offset[p] + scale[p] * v);
+  }
+  for (let l = 0; l < layers; l++) {
+    const base = l * texels * 4;
+    for (let t = 0; t < texels * 4; t++) out[base + t] = lut[256 * (4 * l + (t & 3)) + q[base + t]];
+  }
+  return out;
 }
 
 function halfArrayTexture(half, width, height, layers) {
@@ -458,7 +484,8 @@ export class PRTTLoaderPlugin {
         throw new PRTTError(`${what}: the extension does not say where and how large it is`);
       }
       const buf = await parser.getDependency('bufferView', p.bufferView);
-      return arrayTexture(new Uint8Array(buf), zstd, what, { layers, width: p.width, height: p.height }, limits);
+      return arrayTexture(new Uint8Array(buf), zstd, what, { layers, width: p.width, height: p.height,
+        encoding: p.encoding, scale: p.scale, offset: p.offset }, limits);
     };
     for (const s of ext.sets) {
       const transfer = await payload(s.transfer, `set ${s.name} transfer`, fileK4);

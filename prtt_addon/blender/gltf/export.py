@@ -49,6 +49,7 @@ import numpy as np
 from ...core.io.atomic import atomic_write
 from ...core.io.exr_io import read_relight_exr, read_sh_exr
 from ...core.io.gltf_prtt import (
+    ENCODINGS,
     NAME,
     bounce_payload,
     display_extension,
@@ -411,7 +412,8 @@ def _read_glb_json(path: str) -> dict:
         return json.loads(f.read(n))
 
 
-def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list) -> tuple[list, list, dict]:
+def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
+                  encoding: str = "half") -> tuple[list, list, dict]:
     """The root's ``sets`` (transfer and bounce textures as KTX2), the blobs
     that go into buffer views, and {object: set index}."""
     K = ps.bands * ps.bands
@@ -419,7 +421,7 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list) -> 
     for i, (set_name, objects) in enumerate(sorted(info["set_objects"].items())):
         data, _ = read_sh_exr(os.path.join(folder, f"{set_name}.transfer.exr"))      # (H, W, K), row 0 at the bottom
         planes = np.ascontiguousarray(data[::-1].transpose(2, 0, 1))               # (K, H, W), top row first
-        blob, meta = transfer_payload(planes)
+        blob, meta = transfer_payload(planes, encoding=encoding)
         entry = {"name": set_name, "resolution": [meta["width"], meta["height"]], "transfer": meta}
         payload = {"transfer": blob}
         pset = ps.sets.get(set_name)
@@ -427,11 +429,11 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list) -> 
             # (H, W, 3, K), and (H, W, 3, Kg - 1, Kg) or shared (H, W, Kg - 1, Kg) as stored; row 0 at the bottom
             dc, glossy, attrs = read_relight_exr(pset.relight, expand=False)
             payload["relightDC"], entry["relightDC"] = relight_dc_payload(
-                np.ascontiguousarray(dc[::-1].transpose(2, 3, 0, 1)))
+                np.ascontiguousarray(dc[::-1].transpose(2, 3, 0, 1)), encoding=encoding)
             if glossy is not None and int(attrs.get("glossy_bands", 0)) > 0:
                 axes = (2, 3, 4, 0, 1) if glossy.ndim == 5 else (2, 3, 0, 1)
                 payload["relightGlossy"], entry["relightGlossy"] = relight_glossy_payload(
-                    np.ascontiguousarray(glossy[::-1].transpose(*axes)), dc.shape[-1])
+                    np.ascontiguousarray(glossy[::-1].transpose(*axes)), dc.shape[-1], encoding=encoding)
         elif pset is not None and pset.bounces:
             b = pset.load_bounce(K)                                 # (H, W, 3, K): every level summed, as drawn
             if b.shape[-1] != K:
@@ -439,7 +441,7 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list) -> 
                              f"the bake {K}: left out of the glTF (bake again)")
             else:
                 payload["bounce"], entry["bounce"] = bounce_payload(
-                    np.ascontiguousarray(b[::-1].transpose(2, 3, 0, 1)), len(pset.bounces))
+                    np.ascontiguousarray(b[::-1].transpose(2, 3, 0, 1)), len(pset.bounces), encoding=encoding)
         sets.append(entry)
         blobs += [(("sets", i, key), blob) for key, blob in payload.items()]
         for name in objects:
@@ -513,7 +515,7 @@ def _check_materials(doc: dict, job: _Export, notes: list) -> None:
         notes.append(f"materials without PRTT parameters in the glTF: {', '.join(missing[:8])}")
 
 
-def export_glb(context, out: str) -> dict:
+def export_glb(context, out: str, *, encoding: str = "half") -> dict:
     """Export ``context.scene`` to the .glb ``out`` (atomically). Returns a
     summary: sets, objects, bytes, notes. GltfExportError when it cannot."""
     global _ACTIVE
@@ -523,7 +525,7 @@ def export_glb(context, out: str) -> dict:
     folder = bake_folder(scene, info)
     bands = int(info["settings"]["bands"])
     notes = []
-    sets, blobs, set_index = _set_payloads(ps, folder, info, notes)
+    sets, blobs, set_index = _set_payloads(ps, folder, info, notes, encoding)
     environment, env_blob = _environment(scene, notes)
     if env_blob is not None:
         blobs.append((("environment", "image"), env_blob))
@@ -601,6 +603,9 @@ def export_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("blend", help="a baked .blend file")
     p.add_argument("--out", required=True, help="the .glb to write (relative to where you run the command)")
     p.add_argument("--scene", help="scene name (default: the file's active scene)")
+    p.add_argument("--encoding", choices=ENCODINGS, default="half",
+                   help="the textures' encoding: half (RGBA16F, the EXRs' values; default) or u8 (RGBA8 with a "
+                        "scale and offset per plane: about half the bytes, error written per payload as maxError)")
     return p
 
 
@@ -615,7 +620,7 @@ def export_file(argv, prog="prtt export") -> int:
     out = os.path.abspath(args.out)
     try:
         with bpy.context.temp_override(scene=scene):
-            summary = export_glb(bpy.context, out)
+            summary = export_glb(bpy.context, out, encoding=args.encoding)
     except (GltfExportError, ValueError, OSError) as exc:
         print(f"prtt: error: {exc}", file=sys.stderr)
         return 1

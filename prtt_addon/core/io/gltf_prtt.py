@@ -33,21 +33,65 @@ VERSION = 1
 GLTF_TO_BAKE_FRAME = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))
 
 
-def transfer_payload(planes: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+def transfer_payload(planes: np.ndarray, *, supercompression: str = "zstd",
+                     encoding: str = "half") -> tuple[bytes, dict]:
     """A set's transfer planes (K, H, W), rows top first, as KTX2 bytes and
     the JSON that describes them (coefficients, layers, the half-float error)."""
     K = planes.shape[0]
-    return _payload(sh_layers(np.asarray(planes, np.float32)), "transfer", K, supercompression)
+    return _payload(sh_layers(np.asarray(planes, np.float32)), "transfer", K, supercompression, encoding)
 
 
-def _payload(layers: np.ndarray, kind: str, K: int, supercompression: str, **meta) -> tuple[bytes, dict]:
-    """(layers, H, W, 4) as KTX2 bytes and the JSON every payload carries."""
+#: The payload encodings: "half" RGBA16F, the SH values themselves (lossless
+#: against the half EXRs); "u8" RGBA8, each plane (layer, channel) its own
+#: ``offset`` + ``scale`` * q, q = 0 .. 255 (a quarter of the raw bytes,
+#: error at most scale / 2 per plane, measured and written as ``maxError``).
+ENCODINGS = ("half", "u8")
+
+
+def encode_u8(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(L, H, W, 4) floats -> (uint8 layers, scale (4 L,), offset (4 L,)):
+    plane p = 4 * layer + channel decodes as offset[p] + scale[p] * q. A
+    constant plane gets scale 0 (q = 0)."""
+    a = np.asarray(layers, np.float32)
+    L = a.shape[0]
+    planes = a.transpose(0, 3, 1, 2).reshape(4 * L, -1)
+    lo = planes.min(axis=1).astype(np.float64)
+    hi = planes.max(axis=1).astype(np.float64)
+    scale = (hi - lo) / 255.0
+    q = np.zeros(a.shape, np.uint8)
+    for p in range(4 * L):                   # one plane at a time: no float64 copy of the whole payload
+        if scale[p] > 0:
+            q[p // 4, :, :, p % 4] = np.clip(np.rint((a[p // 4, :, :, p % 4] - lo[p]) / scale[p]), 0, 255)
+    return q, scale, lo
+
+
+def decode_u8(q: np.ndarray, scale, offset) -> np.ndarray:
+    """The float32 values (L, H, W, 4) of :func:`encode_u8`'s planes."""
+    s = np.asarray(scale, np.float64).reshape(-1, 4)[:, None, None, :]
+    o = np.asarray(offset, np.float64).reshape(-1, 4)[:, None, None, :]
+    return (o + s * q).astype(np.float32)
+
+
+def _payload(layers: np.ndarray, kind: str, K: int, supercompression: str, encoding: str = "half",
+             **meta) -> tuple[bytes, dict]:
+    """(layers, H, W, 4) as KTX2 bytes in ``encoding`` and the JSON every payload carries."""
+    if encoding not in ENCODINGS:
+        raise ValueError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
     L, H, W = layers.shape[:3]
-    blob, level_bytes = ktx2_bytes([layers], supercompression=supercompression, zstd_level=ZSTD_LEVEL,
+    extra = {}
+    if encoding == "u8":
+        q, scale, offset = encode_u8(layers)
+        err = max((float(np.abs(decode_u8(q[i:i + 1], scale[4 * i:4 * i + 4], offset[4 * i:4 * i + 4])
+                                - np.asarray(layers[i:i + 1], np.float32)).max()) for i in range(L)), default=0.0)
+        extra = {"encoding": "u8", "scale": scale.tolist(), "offset": offset.tolist(), "maxError": err}
+        stored, fmt = q, "RGBA8"
+    else:
+        stored, fmt = layers, "RGBA16F"
+    blob, level_bytes = ktx2_bytes([stored], supercompression=supercompression, zstd_level=ZSTD_LEVEL,
                                    keys={"PRTTkind": kind, "PRTTcoefficients": str(K)})
     return blob, {"coefficients": int(K), **meta, "layers": int(L), "width": int(W), "height": int(H),
-                  "format": "RGBA16F", "supercompression": supercompression, "bytes": len(blob),
-                  "uncompressedBytes": int(level_bytes[0][1])}
+                  "format": fmt, "supercompression": supercompression, "bytes": len(blob),
+                  "uncompressedBytes": int(level_bytes[0][1]), **extra}
 
 
 def _row_layers(rows: np.ndarray) -> np.ndarray:
@@ -57,7 +101,8 @@ def _row_layers(rows: np.ndarray) -> np.ndarray:
     return np.concatenate([sh_layers(np.asarray(r, np.float32)) for r in rows])
 
 
-def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd",
+                       encoding: str = "half") -> tuple[bytes, dict]:
     """A set's relightable bounce, its DC rows (3, K, H, W): colour c's row over
     light coefficient i, rows top first, as KTX2 bytes (colour c's rows from
     layer c * ceil(K / 4), coefficient i in layer i // 4, channel i % 4 of
@@ -65,11 +110,12 @@ def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd") -> tup
     sqrt(4 pi) * sum_i DC_c,i L_c,i per colour c (docs/shading.md)."""
     C, K = dc.shape[:2]
     layers = _row_layers(dc)
-    return _payload(layers, "relight-dc", K, supercompression, colours=int(C),
+    return _payload(layers, "relight-dc", K, supercompression, encoding, colours=int(C),
                     layersPerColour=int(layers.shape[0] // C))
 
 
-def relight_glossy_payload(glossy: np.ndarray, K: int, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+def relight_glossy_payload(glossy: np.ndarray, K: int, *, supercompression: str = "zstd",
+                           encoding: str = "half") -> tuple[bytes, dict]:
     """A set's relightable bounce, its glossy rows, as KTX2 bytes and their
     JSON, rows top first, in one of the EXRs' two layouts:
 
@@ -95,13 +141,14 @@ def relight_glossy_payload(glossy: np.ndarray, K: int, *, supercompression: str 
     if O != Kg - 1 or C not in (1, 3):
         raise ValueError(f"glossy rows: expected (3, Kg - 1, Kg, H, W) or (Kg - 1, Kg, H, W), got {glossy.shape}")
     layers = _row_layers(g.reshape(C * O, Kg, *g.shape[3:]))
-    return _payload(layers, "relight-glossy", K, supercompression, colours=3,
+    return _payload(layers, "relight-glossy", K, supercompression, encoding, colours=3,
                     glossyColour="shared" if shared else "per-colour",
                     glossyBands=int(round(Kg ** 0.5)), glossyCoefficients=int(Kg),
                     layersPerRow=int((Kg + 3) // 4))
 
 
-def bounce_payload(bounce: np.ndarray, levels: int, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+def bounce_payload(bounce: np.ndarray, levels: int, *, supercompression: str = "zstd",
+                   encoding: str = "half") -> tuple[bytes, dict]:
     """A set's baked bounce light (3, K, H, W), its levels summed, rows top
     first, as KTX2 bytes and their JSON (core.preview.pack.pack_bounce's
     layout: colour c's coefficient k in layer c * ceil(K / 4) + k // 4,
@@ -109,7 +156,7 @@ def bounce_payload(bounce: np.ndarray, levels: int, *, supercompression: str = "
     incident light before shading (docs/shading.md)."""
     C, K = bounce.shape[:2]
     layers = _row_layers(bounce)
-    return _payload(layers, "bounce", K, supercompression, colours=int(C),
+    return _payload(layers, "bounce", K, supercompression, encoding, colours=int(C),
                     layersPerColour=int(layers.shape[0] // C), levels=int(levels))
 
 

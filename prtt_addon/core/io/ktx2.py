@@ -1,7 +1,10 @@
 """KTX 2.0 files of float 2D array textures: PRTT's SH planes for glTF and the web.
 
-PyPI has no writer of float KTX2 arrays, so this is a small one: one format,
-``VK_FORMAT_R16G16B16A16_SFLOAT`` (RGBA16F, 8 bytes a texel), a 2D array
+PyPI has no writer of float KTX2 arrays, so this is a small one: two formats,
+``VK_FORMAT_R16G16B16A16_SFLOAT`` (RGBA16F, 8 bytes a texel: the SH values
+themselves) and ``VK_FORMAT_R8G8B8A8_UNORM`` (RGBA8, 4 bytes: the glTF
+export's 8-bit encoding, each plane with its own scale and offset kept
+beside the file, core/io/gltf_prtt.py), a 2D array
 texture of ``layers`` layers (four SH coefficients per layer: coefficient
 k = 4 * layer + channel, k = l² + l + m), one or more mip levels, no
 supercompression or Zstandard per level (scheme 2). Layout as the KTX 2.0
@@ -16,6 +19,7 @@ independent parser.
 :func:`read_ktx2` reads back what :func:`write_ktx2` writes, for tests and the
 export's checks; it bounds every size before allocating (files from outside
 are untrusted) and refuses any other format with :class:`KTX2Error`.
+Levels are float16 arrays for RGBA16F and uint8 arrays for RGBA8.
 """
 from __future__ import annotations
 
@@ -28,6 +32,10 @@ from .atomic import atomic_write
 
 IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
 VK_FORMAT_R16G16B16A16_SFLOAT = 97
+VK_FORMAT_R8G8B8A8_UNORM = 37
+#: dtype -> (vkFormat, typeSize, bytes a texel, name)
+FORMATS = {np.dtype(np.float16): (VK_FORMAT_R16G16B16A16_SFLOAT, 2, 8, "RGBA16F"),
+           np.dtype(np.uint8): (VK_FORMAT_R8G8B8A8_UNORM, 1, 4, "RGBA8")}
 SUPERCOMPRESSION = {"none": 0, "zstd": 2}
 #: Largest side and layer count accepted (a 16384² array of 16 layers of
 #: RGBA16F is 32 GiB: beyond what a browser or a GPU takes).
@@ -48,15 +56,27 @@ class KTX2Error(ValueError):
 def _dfd_rgba16f() -> bytes:
     """The Data Format Descriptor of linear RGBA16F: its total size, then one
     basic descriptor block (24 bytes) with four 16-byte samples."""
+    return _dfd(np.dtype(np.float16))
+
+
+def _dfd(dtype) -> bytes:
+    """The Data Format Descriptor of linear RGBA16F (float16) or RGBA8 UNORM
+    (uint8): its total size, then one basic descriptor block (24 bytes) with
+    four 16-byte samples."""
+    half = np.dtype(dtype) == np.float16
+    bits, texel = (16, 8) if half else (8, 4)
     samples = b""
     for i, channel in enumerate((0, 1, 2, 15)):             # KHR_DF_CHANNEL_RGBSDA_R, G, B, ALPHA
-        qualifiers = 0x80 | 0x40                            # FLOAT | SIGNED (a float's sign bit)
-        samples += struct.pack("<HBB4B2I", 16 * i, 16 - 1, channel | qualifiers, 0, 0, 0, 0,
-                               0xBF800000, 0x3F800000)      # sampleLower -1.0f, sampleUpper 1.0f
+        if half:
+            qualifiers = 0x80 | 0x40                        # FLOAT | SIGNED (a float's sign bit)
+            lower, upper = 0xBF800000, 0x3F800000           # sampleLower -1.0f, sampleUpper 1.0f
+        else:
+            qualifiers, lower, upper = 0, 0, 255            # unsigned normalised: 0 .. 255 is 0 .. 1
+        samples += struct.pack("<HBB4B2I", bits * i, bits - 1, channel | qualifiers, 0, 0, 0, 0, lower, upper)
     block = struct.pack("<IHH4B4B8B", 0, 2, 24 + len(samples),
                         1, 1, 1, 0,                         # RGBSDA model, BT.709 primaries, linear, straight alpha
                         0, 0, 0, 0,                         # one texel a block
-                        8, 0, 0, 0, 0, 0, 0, 0) + samples  # bytes in plane 0
+                        texel, 0, 0, 0, 0, 0, 0, 0) + samples  # bytes in plane 0
     return struct.pack("<I", 4 + len(block)) + block
 
 
@@ -81,10 +101,12 @@ def _check_levels(levels) -> list:
         a = np.asarray(lv)
         if a.ndim != 4 or a.shape[3] != 4:
             raise KTX2Error(f"level {i}: expected (layers, height, width, 4), got {a.shape}")
-        if a.dtype != np.float16:
+        if a.dtype not in FORMATS:
             if not np.issubdtype(a.dtype, np.floating):
-                raise KTX2Error(f"level {i}: expected floats, got {a.dtype}")
+                raise KTX2Error(f"level {i}: expected floats or uint8, got {a.dtype}")
             a = a.astype(np.float16)
+        if i and a.dtype != out[0].dtype:
+            raise KTX2Error(f"level {i}: {a.dtype}, level 0 is {out[0].dtype}")
         out.append(np.ascontiguousarray(a))
     L, H, W = out[0].shape[:3]
     if not (1 <= L <= MAX_LAYERS and 1 <= H <= MAX_SIDE and 1 <= W <= MAX_SIDE):
@@ -108,8 +130,9 @@ def write_ktx2(path, levels, **kw) -> dict:
 
 def ktx2_bytes(levels, *, supercompression: str = "none", keys: dict | None = None,
                zstd_level: int = 10) -> tuple[bytes, list]:
-    """Mip ``levels`` (level 0 first, each (layers, H, W, 4), float16 or
-    converted to it) as the bytes of a KTX2 2D array texture, and
+    """Mip ``levels`` (level 0 first, each (layers, H, W, 4): float16 (or
+    floats, converted) for RGBA16F, uint8 for RGBA8) as the bytes of a KTX2
+    2D array texture, and
     [(stored, uncompressed) bytes per level]. ``supercompression``: "none" or
     "zstd" (each level on its own, as KTX2 requires). ``keys``: extra
     key/value pairs (str -> str)."""
@@ -124,15 +147,16 @@ def ktx2_bytes(levels, *, supercompression: str = "none", keys: dict | None = No
         stored = [cctx.compress(b) for b in raw]
     else:
         stored = raw
-    dfd = _dfd_rgba16f()
+    vk, type_size = FORMATS[levels[0].dtype][:2]
+    dfd = _dfd(levels[0].dtype)
     kvd = _kvd({"KTXorientation": "rd", "KTXwriter": "PRTT (prtt_addon.core.io.ktx2)", **(keys or {})})
     n = len(levels)
     level_index_at = _HEADER.size + _INDEX.size
     dfd_at = level_index_at + n * _LEVEL.size
     kvd_at = dfd_at + len(dfd)
     data_at = kvd_at + len(kvd)
-    # Levels in the file smallest first; uncompressed ones aligned to lcm(8, 4).
-    align = 8 if supercompression == "none" else 1
+    # Levels in the file smallest first; uncompressed ones aligned to lcm(texel bytes, 4).
+    align = FORMATS[levels[0].dtype][2] if supercompression == "none" else 1
     offsets, pos, body = [0] * n, data_at, b""
     for i in reversed(range(n)):
         pad = -pos % align
@@ -141,7 +165,7 @@ def ktx2_bytes(levels, *, supercompression: str = "none", keys: dict | None = No
         offsets[i] = pos
         body += stored[i]
         pos += len(stored[i])
-    header = _HEADER.pack(IDENTIFIER, VK_FORMAT_R16G16B16A16_SFLOAT, 2, W, H, 0, L, 1, n,
+    header = _HEADER.pack(IDENTIFIER, vk, type_size, W, H, 0, L, 1, n,
                           SUPERCOMPRESSION[supercompression])
     index = _INDEX.pack(dfd_at, len(dfd), kvd_at, len(kvd), 0, 0)
     level_index = b"".join(_LEVEL.pack(offsets[i], len(stored[i]), len(raw[i])) for i in range(n))
@@ -170,8 +194,11 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
     if len(data) < _HEADER.size + _INDEX.size or not data.startswith(IDENTIFIER):
         fail("not a KTX 2.0 file")
     _, vk, type_size, W, H, depth, L, faces, n, scheme = _HEADER.unpack_from(data)
-    if vk != VK_FORMAT_R16G16B16A16_SFLOAT or type_size != 2:
-        fail(f"vkFormat {vk} (typeSize {type_size}); only RGBA16F ({VK_FORMAT_R16G16B16A16_SFLOAT}) is read")
+    fmt = next((d for d, f in FORMATS.items() if f[:2] == (vk, type_size)), None)
+    if fmt is None:
+        fail(f"vkFormat {vk} (typeSize {type_size}); only RGBA16F ({VK_FORMAT_R16G16B16A16_SFLOAT}) and "
+             f"RGBA8 ({VK_FORMAT_R8G8B8A8_UNORM}) are read")
+    _, _, texel, fmt_name = FORMATS[fmt]
     if depth != 0 or faces != 1 or not (1 <= L <= MAX_LAYERS) or not (1 <= W <= MAX_SIDE and 1 <= H <= MAX_SIDE):
         fail(f"{W}x{H}x{depth}, {L} layers, {faces} faces: not a 2D array within the limits")
     if not 1 <= n <= MAX_LEVELS or n > 1 + max(W, H).bit_length():
@@ -184,8 +211,8 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
     for what, at, ln in (("DFD", dfd_at, dfd_len), ("key/value data", kvd_at, kvd_len)):
         if ln > MAX_KVD_BYTES or at + ln > len(data):
             fail(f"{what} of {ln} bytes at {at} runs past the file")
-    if data[dfd_at:dfd_at + dfd_len] != _dfd_rgba16f():
-        fail("its Data Format Descriptor is not linear RGBA16F")
+    if data[dfd_at:dfd_at + dfd_len] != _dfd(fmt):
+        fail(f"its Data Format Descriptor is not linear {fmt_name}")
     keys, p, end = {}, kvd_at, kvd_at + kvd_len
     while p + 4 <= end:
         (ln,) = struct.unpack_from("<I", data, p)
@@ -205,9 +232,9 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
     for i in range(n):
         off, ln, raw_len = _LEVEL.unpack_from(data, level_index_at + i * _LEVEL.size)
         shape = (L, max(1, H >> i), max(1, W >> i), 4)
-        want = int(np.prod(shape)) * 2
+        want = int(np.prod(shape)) * texel // 4
         if raw_len != want or off + ln > len(data) or (scheme == 0 and ln != want):
-            fail(f"level {i}: {ln} bytes at {off} ({raw_len} uncompressed) for {shape} RGBA16F")
+            fail(f"level {i}: {ln} bytes at {off} ({raw_len} uncompressed) for {shape} {fmt_name}")
         index.append((off, ln, shape, want))
     try:
         check_fits(2 * sum(want for *_, want in index), f"reading {path}")
@@ -228,7 +255,7 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
                 fail(f"level {i}: its Zstandard data is corrupt ({type(exc).__name__}: {exc})")
             if len(chunk) != want:
                 fail(f"level {i}: {len(chunk)} bytes after Zstandard, {want} expected")
-        levels.append(np.frombuffer(chunk, np.float16).reshape(shape).copy())
+        levels.append(np.frombuffer(chunk, fmt).reshape(shape).copy())
     return levels, keys
 
 
