@@ -71,6 +71,8 @@ NOT_HERE = [
     (r"^(python -m )?pip install", "installs packages (the farm recipe's install is run by tests/test_farm_recipe.py)"),
     (r"^\./prtt\.sh (test|slow)$", "the test suite itself"),
     (r"tools/build_extension\.py", "builds the extension zips: run by tests/test_extension.py"),
+    (r"^python -m http\.server", "a static server for viewer/: tests/test_web_viewer.py serves the same folders "
+                                  "and drives the page in headless Chromium"),
     (r"prtt_addon\.bench \w+", "a benchmark (minutes, writes docs/bench/): options checked against -h"),
     (r"[\[\]]|\|| (N|DIR|OUTDIR|JOB\.npz|FILE\.blend|IMG\.png|PATH|M|NAME|F|DEG|TOL)\b",
      "a synopsis (placeholders, [optional] parts, a|b choices): options checked against -h"),
