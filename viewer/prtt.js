@@ -313,8 +313,9 @@ function relightPass(operator, width, height, K4, glossyBands, bands, read, limi
     throw new PRTTError('relightable bounces need float render targets (EXT_color_buffer_float), which this '
       + 'browser lacks; view without bounces (&bounces=0)');
   }
+  // float32 as Blender's relight pass writes; half floats where float32 cannot be filtered
   const target = new THREE.WebGLArrayRenderTarget(width, height, 3 * K4, {
-    type: THREE.FloatType, format: THREE.RGBAFormat, depthBuffer: false,
+    type: limits.floatLinear ? THREE.FloatType : THREE.HalfFloatType, format: THREE.RGBAFormat, depthBuffer: false,
     minFilter: THREE.LinearFilter, magFilter: THREE.LinearFilter, generateMipmaps: false,
   });
   target.texture.colorSpace = THREE.NoColorSpace;
