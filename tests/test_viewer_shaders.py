@@ -80,3 +80,13 @@ def test_the_web_sources_hold_the_shared_files_verbatim():
                 i = src[stage].find(texts[f], at)
                 assert i >= 0, (mode, stage, f)
                 at = i + len(texts[f])
+
+
+def test_the_depth_prepass_variant_is_blenders():
+    v = js("out(S.depthVariant());")
+    ref = ss.depth_variant()
+    assert v["name"] == ref.name and v["defines"] == as_lists(ref.defines)
+    assert v["typedefs"].split() == ref.typedefs.split()
+    assert v["vertexIn"] == as_lists(ref.vertex_in) and v["uniformBufs"] == as_lists(ref.uniform_bufs)
+    assert v["pushConstants"] == as_lists(ref.push_constants)
+    assert v["vertexFiles"] == list(ref.vertex_files) and v["fragmentFiles"] == list(ref.fragment_files)

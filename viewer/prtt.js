@@ -16,7 +16,8 @@ import * as THREE from 'three';
 import { ZSTDDecoder } from 'three/addons/libs/zstddec.module.js';
 import { read as readKTX2 } from 'ktx-parse';
 import {
-  blockName, fetchSources, relightSources, relightVariant, shSizes, surfaceSources, surfaceVariant, GAUNT_WIDTH,
+  blockName, depthVariant, fetchSources, relightSources, relightVariant, shSizes, surfaceSources, surfaceVariant,
+  GAUNT_WIDTH,
   MAX_PREVIEW_BANDS, MODES,
 } from './prtt_shaders.js';
 import { gauntTable, lightBlock, relightBlock, rotateLight, turnLightZ } from './prtt_sh.js';
@@ -187,6 +188,8 @@ class PRTTScene {
     this.dummy = dummy2D();
     this.gaunt = null;
     this.materials = new Map();
+    this.prepass = true;           // a depth pre-pass, as the Blender preview's fragment modes
+    this.depth = null;
   }
 
   /** Turn the World by ``degrees`` about Z from the export's (no reload). */
@@ -209,7 +212,18 @@ class PRTTScene {
     if (!MODES.includes(mode)) throw new PRTTError(`unknown mode ${mode}; use one of ${MODES.join(', ')}`);
     this.mode = mode;
     this.bounces = bounces;
-    for (const m of this.meshes) m.mesh.material = this.surfaceMaterial(m);
+    for (const m of this.meshes) m.mesh.material = m.shading = this.surfaceMaterial(m);
+  }
+
+  /** The depth pre-pass material: Blender's (shaders/prtt_depth_*.glsl), the same clip positions. */
+  depthMaterial() {
+    if (!this.depth) {
+      const { vertexShader, fragmentShader } = surfaceSources(depthVariant(), this.read, this.ext.sh.gltfToBakeFrame);
+      this.depth = new THREE.RawShaderMaterial({ glslVersion: THREE.GLSL3, vertexShader, fragmentShader,
+        colorWrite: false, side: THREE.DoubleSide });
+      this.depth.uniformsGroups = [this.viewGroup];
+    }
+    return this.depth;
   }
 
   gauntTexture() {
@@ -303,7 +317,23 @@ class PRTTScene {
     const eye = new THREE.Vector3().setFromMatrixPosition(camera.matrixWorld).applyMatrix4(toBake);
     this.viewData.set([eye.x, eye.y, eye.z, 1.0], 16);
     this.viewData.set([this.exposure, 0.0, this.K, 0.0], 20);
-    renderer.render(scene, camera);
+    if (!this.prepass) {
+      renderer.render(scene, camera);
+      return;
+    }
+    // As Blender's preview: depth first, then each pixel shaded once (LESS_EQUAL on equal depths)
+    const depth = this.depthMaterial();
+    const autoClear = renderer.autoClear;
+    try {
+      for (const m of this.meshes) m.mesh.material = depth;
+      renderer.render(scene, camera);
+      renderer.autoClear = false;
+      for (const m of this.meshes) m.mesh.material = m.shading;
+      renderer.render(scene, camera);
+    } finally {
+      renderer.autoClear = autoClear;
+      for (const m of this.meshes) m.mesh.material = m.shading;
+    }
   }
 }
 
@@ -473,7 +503,7 @@ export class PRTTLoaderPlugin {
     ext = { ...ext0, sh: { ...ext0.sh, bands, coefficients: K }, light: { ...ext0.light, rgb: ext0.light.rgb.slice(0, K) } };
     const files = [...new Set([...surfaceVariant('tpfl', bands).vertexFiles,
       ...surfaceVariant('tpfl', bands).fragmentFiles, ...relightVariant(bands, 1).vertexFiles,
-      ...relightVariant(bands, 1).fragmentFiles])];
+      ...relightVariant(bands, 1).fragmentFiles, ...depthVariant().vertexFiles, ...depthVariant().fragmentFiles])];
     const read = await fetchSources(files, this.shaderBase);
     const prtt = new PRTTScene(ext, limits, read);
     const zstd = new ZSTDDecoder();

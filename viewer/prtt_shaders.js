@@ -86,6 +86,22 @@ export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0 } = {
   };
 }
 
+/** The depth pre-pass, as shader_source.depth_variant(): the shading pass's clip positions. */
+export function depthVariant() {
+  return {
+    name: 'prtt_depth',
+    defines: [],
+    typedefs: TYPEDEFS(1, 1),
+    vertexIn: [[0, 'VEC3', 'pos']],
+    interface: [],
+    samplers: [],
+    uniformBufs: [[0, 'PRTTView', 'view']],
+    pushConstants: [['MAT4', 'ModelMatrix']],
+    vertexFiles: ['prtt_view.glsl', 'prtt_depth_vert.glsl'],
+    fragmentFiles: ['prtt_depth_frag.glsl'],
+  };
+}
+
 /** The relight pass, as shader_source.relight_variant(bands, glossyBands). */
 export function relightVariant(bands, glossyBands) {
   const [k, k4] = shSizes(bands);
@@ -132,7 +148,7 @@ function mat4Literal(m) {
 
 /**
  * GLSL ES 3.00 sources {vertexShader, fragmentShader} (without #version,
- * which three.js adds for GLSL3) of a surface variant around the shared
+ * which three.js adds for GLSL3) of a surface (or the depth) variant around the shared
  * files' texts (read(name) -> source), for three.js's RawShaderMaterial.
  * gltfToBake: the 3x3 glTF -> bake frame rotation of the extension (its
  * entries are 0 and +-1).
@@ -142,6 +158,8 @@ export function surfaceSources(v, read, gltfToBake) {
     for (const x of row) if (![0, 1, -1].includes(x)) throw new Error('gltfToBakeFrame must be an axis permutation');
   }
   const vs = header(v);
+  // the depth pre-pass and the shading pass must agree to the bit on every depth
+  vs.push('invariant gl_Position;');
   vs.push('uniform mat4 modelMatrix;   // three.js: the node\'s world matrix, glTF frame');
   vs.push(`const mat4 PRTT_GLTF_TO_BAKE = ${mat4Literal(gltfToBake)};`);
   vs.push('#define ModelMatrix (PRTT_GLTF_TO_BAKE * modelMatrix)');
