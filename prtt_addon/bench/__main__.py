@@ -11,6 +11,8 @@ BENCHMARKS = {
     "sweep": ("prtt_addon.bench.sweep", "run time against error: rays, strategies, resolution, bands, storage, scenes"),
     "cycles": ("prtt_addon.bench.cycles_compare", "diffuse PRTT against Cycles under a band-limited environment"),
     "contact": ("prtt_addon.bench.contact", "the paper's contact-shadow figure, measured against ray tracing"),
+    "web": ("prtt_addon.bench.web_bench", "glTF export vs bake (time, bytes) and the web viewer's page load and "
+            "frame time (headless Chromium, SwiftShader)"),
     "figures": ("prtt_addon.bench.figures", "write the docs' figures blocks from the benchmarks' records (--check)"),
     "stress": ("prtt_addon.bench.stress", "numerical stress cases (scale, normals, thin shells, degenerate, bands, overflow)"),
 }

@@ -89,13 +89,19 @@ def settings_line(settings, defaults) -> str:
     return ", ".join(parts) + "; every other setting at its default"
 
 
+def record_of(command: str, argv, record: dict) -> dict:
+    """``record`` with the command line (``command``: "bench bake"), the date
+    and the machine: what :func:`write_record` writes."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return {"command": f"python -m prtt_addon.{command} {' '.join(argv)}".strip(),
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"),
+            "machine": machine(), **record}
+
+
 def write_record(path: str, command: str, argv, record: dict) -> str:
     """Write ``record`` with the command line (``command``: "bench bake"), the
     date and the machine as JSON at ``path`` (atomically). Returns the path."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    out = {"command": f"python -m prtt_addon.{command} {' '.join(argv)}".strip(),
-           "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"),
-           "machine": machine(), **record}
+    out = record_of(command, argv, record)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with atomic_write(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
@@ -283,10 +289,97 @@ def dask_model_block() -> str:
     return "\n".join(lines)
 
 
+def _mb(n: float) -> str:
+    return f"{n / 1e6:.2f} MB"
+
+
+def web_block(r: dict | None = None) -> str:
+    """docs/benchmarks.md: the glTF export and the web viewer
+    (docs/bench/web.json, bench web); ``r``: a record instead of the file."""
+    r = _load("web.json") if r is None else r
+    st, sc, b, ex, by = r["settings"], r["scene"], r["bake"], r["export"], r["bytes"]
+    pay, exr = by["payload"], by["exr"]
+    w, h = st["size"]
+    sw, sh = st["small_size"]
+    br, la = r["browser"], r["loadavg"]
+    kinds = {"transfer": "transfer", "relightDC": "relightable bounce DC rows",
+             "relightGlossy": "relightable bounce glossy rows", "bounce": "baked bounce"}
+    rest = by["glb"] - pay["total"]
+    files = ", ".join(f"`{n}` {_mb(f['bytes'])} ({f['channels']} {'/'.join(f['types'])} channels, "
+                      f"{f['compression'].replace('_COMPRESSION', '')})" for n, f in exr["files"].items())
+    same = ("half with lossless compression already: their size is the lossless half size" if exr["all_half_lossless"]
+            else f"as lossless half EXRs (half ZIP copies where not): {_mb(exr['half_lossless_total'])}")
+    loads = r["page_load"]["seconds"]
+    code = r.get("code")
+    at = (f" (code at {code['commit']}" + (f", with {', '.join(code['changed'])} changed" if code["changed"] else "")
+          + ")") if code else ""
+    lines = [
+        f"`{r['command']}`, {r['date']}{at}, on {machine_text(r['machine'])}; chromium-headless-shell "
+        f"{br['version']}, WebGL2 on `{br['webgl_renderer']}`: SwiftShader, the CPU, so the frame times measure "
+        f"a software rasteriser, not a graphics card. Machine load average (1, 5, 15 min) {la['start']} at the "
+        f"start, {la.get('end')} at the end" + (
+            "; 1-minute load average as each phase ended (this benchmark alone keeps about 2 busy): "
+            + ", ".join(f"{k} {v}" for k, v in la["after"].items()) if la.get("after") else "") + ".",
+        "",
+        "| | measured |",
+        "|---|---|",
+        f"| scene | the demo room: {sc['triangles']:,} triangles, {sc['objects']} objects, one {st['resolution']}² "
+        f"atlas (Smart UV), {st['bands']} bands, {st['rays']} rays, {st['bounces']} relightable bounce of "
+        f"{st['bounce_rays']} rays, no per-vertex transfer |",
+        f"| bake | **{b['seconds']:.1f} s** (the manifest's `seconds.total`: the bake's own stages); wall time of "
+        f"`prtt bake` {b['wall_s']:.1f} s (Blender's start, the Smart UV unwrap, the worker, the save) |",
+        f"| export (`--encoding {ex.get('encoding', 'half')}`) | **{ex['export_glb_s']:.2f} s**: `export_glb` in a Blender process with the .blend open (first "
+        f"call; a second {ex['export_glb_again_s']:.2f} s); wall time of `prtt export` {ex['cli_wall_s']:.2f} s |",
+        f"| export / bake | **{100 * ex['ratio']:.1f} %** (`export_glb` / bake); the two commands' wall times "
+        f"{100 * ex['ratio_cli']:.1f} %; goal ≤ 10 % |",
+        f"| .glb | {_mb(by['glb'])}: PRTT textures {_mb(pay['textures'])} ("
+        + ", ".join(f"{kinds.get(k, k)} {_mb(v)}" for k, v in pay["kinds"].items())
+        + f"; KTX2 RGBA16F, zstd; {_mb(pay['uncompressed_textures'])} uncompressed), the World's image "
+        f"{_mb(pay['environment'])}, the rest (meshes, materials, images) {_mb(rest)} |",
+        f"| the bake's EXRs it carries | {_mb(exr['total'])}: {files}; {same} |",
+        f"| .glb / EXRs | **{by['ratio_glb_to_exr']:.2f}** (the PRTT textures alone "
+        f"{by['ratio_textures_to_exr']:.2f}); goal ≤ 1 |",
+        *[f"| `--encoding {e['encoding']}` | export {e['export_glb_s']:.2f} s `export_glb` (again "
+          f"{e['export_glb_again_s']:.2f} s; `prtt export` {e['cli_wall_s']:.2f} s): **{100 * e['ratio']:.1f} %** "
+          f"of the bake; .glb {_mb(e['glb'])} (PRTT textures {_mb(e['payload']['textures'])}): "
+          f"**{e['ratio_glb_to_exr']:.2f}** × the EXRs; page load " + (
+              f"{e['page_load']['median_s']:.1f} s (median of {len(e['page_load']['seconds'])}) |"
+              if e["page_load"]["seconds"] else "did not reach `ready` |")
+          for e in r.get("encodings", [])[1:]],
+        f"| page load to the first frame ({w} × {h}, tpfl, `--encoding {ex.get('encoding', 'half')}`) | " + (
+            f"**{r['page_load']['median_s']:.1f} s**, median of {len(loads)} loads in a freshly launched browser "
+            f"each ({', '.join(f'{v:.1f}' for v in loads)} s): `goto` until the title says `ready` |"
+            if loads else "no load reached `ready` |"),
+        "",
+        f"| mode, {w} × {h}, bounces on (`--encoding {ex.get('encoding', 'half')}`) | ms per frame, median of {st['frames']} | min–max | FPS |",
+        "|---|---|---|---|"]
+    for f in r["frames"]:
+        if "median_ms" in f:
+            lines.append(f"| {f['mode']} | **{f['median_ms']:.0f}** | {f['min_ms']:.0f}–{f['max_ms']:.0f} | "
+                         f"{1000 / f['median_ms']:.3g} |")
+        else:
+            lines.append(f"| {f['mode']} | the page said `{f['title']}` | | |")
+    if r.get("scaling"):
+        lines += ["", f"Frame time against triangles, tpfl, bounces on; each scene a {st['scaling_resolution']}² "
+                      f"texture set per object, {st['scaling_rays']} rays, 1 relightable bounce of "
+                      f"{st['scaling_bounce_rays']} rays (the rays do not change a frame's work; the sets are not the 1024² "
+                      f"atlas above, so compare these rows with each other); "
+                      f"median of {st['frames']} frames:", "",
+                  f"| scene | triangles | .glb | {w} × {h} ms | {sw} × {sh} ms | ns per pixel at {w} × {h} |",
+                  "|---|---|---|---|---|---|"]
+        for s in r["scaling"]:
+            ms = [f"**{z['median_ms']:.0f}**" if "median_ms" in z else f"`{z['title']}`" for z in s["sizes"]]
+            ns = s["sizes"][0].get("ns_per_pixel")
+            lines.append(f"| {s['scene']} | {s['triangles']:,} | {_mb(s['glb_bytes'])} | {ms[0]} | {ms[1]} | "
+                         + (f"{ns:.0f}" if ns is not None else "") + " |")
+    return "\n".join(lines)
+
+
 #: Generated blocks: name -> (pages, maker).
 BLOCKS = {"bake": (("README.md",), bake_block), "render": (("README.md",), render_block),
           "preview": (("docs/preview.md",), preview_block),
-          "dask": (("docs/distributed.md",), dask_block), "dask-model": (("docs/distributed.md",), dask_model_block)}
+          "dask": (("docs/distributed.md",), dask_block), "dask-model": (("docs/distributed.md",), dask_model_block),
+          "web": (("docs/benchmarks.md",), web_block)}
 
 
 def _pattern(name: str):
