@@ -249,9 +249,12 @@ def serve(folder, glb):
             dst.parent.mkdir(parents=True, exist_ok=True)
             os.symlink(os.path.join(ROOT, part), dst)
     shutil.copy(folder / glb, site / glb)
-    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(site))
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):             # no request lines on stderr
+            pass
+
+    handler = functools.partial(Quiet, directory=str(site))
     httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    handler.log_message = lambda *a: None
     t = threading.Thread(target=httpd.serve_forever, daemon=True)
     t.start()
     yield f"http://127.0.0.1:{httpd.server_address[1]}"
