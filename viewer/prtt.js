@@ -215,6 +215,24 @@ class PRTTScene {
     for (const m of this.meshes) m.mesh.material = m.shading = this.surfaceMaterial(m);
   }
 
+  /** Free what this scene put on the GPU: PRTT textures, relight targets, materials. */
+  dispose() {
+    for (const s of this.sets) {
+      s.transfer.dispose();
+      if (s.bounce) s.bounce.dispose();
+      if (s.relight) {
+        s.relight.target.dispose();
+        s.relight.operator.dispose();
+        s.relight.material.dispose();
+      }
+    }
+    for (const mat of this.materials.values()) mat.dispose();
+    if (this.depth) this.depth.dispose();
+    if (this.gaunt) this.gaunt.tex.dispose();
+    this.dummy.dispose();
+    for (const g of [this.viewGroup, this.lightGroup]) g.dispose();
+  }
+
   /** The depth pre-pass material: Blender's (shaders/prtt_depth_*.glsl), the same clip positions. */
   depthMaterial() {
     if (!this.depth) {
@@ -565,7 +583,7 @@ export class PRTTLoaderPlugin {
     const nodes = json.nodes || [];
     const meshes = json.meshes || [];
     const materials = json.materials || [];
-    const todo = [];
+    const todo = new Map();          // mesh -> its node's extension; the deepest baked node wins
     gltf.scene.traverse((obj) => {
       const assoc = parser.associations.get(obj);
       if (!assoc || assoc.nodes === undefined) return;
@@ -574,7 +592,7 @@ export class PRTTLoaderPlugin {
       if (!(nodeExt.set >= 0 && nodeExt.set < prtt.sets.length)) {
         throw new PRTTError(`node ${nodes[assoc.nodes].name}: set ${nodeExt.set} is not in the file`);
       }
-      obj.traverse((m) => { if (m.isMesh) todo.push([m, nodeExt]); });
+      obj.traverse((m) => { if (m.isMesh) todo.set(m, nodeExt); });   // pre-order: a baked child overrides
     });
     for (const [m, nodeExt] of todo) {
       const a = parser.associations.get(m) || {};
