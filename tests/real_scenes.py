@@ -186,3 +186,26 @@ def link_object(bpy, path, name):
     ob = dst.objects[0]
     bpy.context.scene.collection.objects.link(ob)
     return ob
+
+
+def chain_scene(bpy, *, generated: bool = False):
+    """test_headless_chain's scene in the current file: a floor and a cube
+    without PRTT maps, cube instances from an excluded collection, a
+    geometry-nodes grid, a faceless helper, a camera, Blender's studio light
+    (the factory-empty file has no World); with ``generated``, also an
+    extruded curve, a text and geometry-nodes instances of an unwrapped cube
+    (UVs the bake generates)."""
+    floor(bpy, 8.0)
+    add_object(bpy, "Box", cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    src = source_collection(bpy)
+    collection_instance(bpy, "A", src, (2, 0, 0))
+    collection_instance(bpy, "B", src, (-2, 0, 0))
+    gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
+    faceless(bpy)                                          # a helper with edges only
+    if generated:
+        extruded_curve(bpy)
+        text(bpy)
+        dot = add_object(bpy, "Dot", cube_mesh(bpy, "dot", 0.3), location=(0, 0, -20))
+        gn_instance_on_points(bpy, "Scatter", dot, [(3, 1, 0.2), (3, 2, 0.2), (-3, 1.5, 0.2)])
+    scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
+    bpy.context.scene.prtt.light_source = "BUILTIN"

@@ -623,19 +623,7 @@ def instanced(tmp_path_factory):
     geometry-nodes instances of an unwrapped cube, baked."""
     tmp = tmp_path_factory.mktemp("instanced")
     bpy = addon_bpy()
-    rs.floor(bpy, 8.0)
-    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
-    src = rs.source_collection(bpy)
-    rs.collection_instance(bpy, "A", src, (2, 0, 0))
-    rs.collection_instance(bpy, "B", src, (-2, 0, 0))
-    rs.gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
-    rs.faceless(bpy)
-    rs.extruded_curve(bpy)
-    rs.text(bpy)
-    dot = rs.add_object(bpy, "Dot", rs.cube_mesh(bpy, "dot", 0.3), location=(0, 0, -20))
-    rs.gn_instance_on_points(bpy, "Scatter", dot, [(3, 1, 0.2), (3, 2, 0.2), (-3, 1.5, 0.2)])
-    rs.scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
-    bpy.context.scene.prtt.light_source = "BUILTIN"
+    rs.chain_scene(bpy, generated=True)
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
     r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp)
     assert r.returncode == 0, r.stderr + r.stdout

@@ -32,15 +32,7 @@ def blend(tmp_path_factory):
     excluded collection, a geometry-nodes grid, a camera."""
     tmp = tmp_path_factory.mktemp("chain")
     bpy = addon_bpy()
-    rs.floor(bpy, 8.0)
-    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
-    src = rs.source_collection(bpy)
-    rs.collection_instance(bpy, "A", src, (2, 0, 0))
-    rs.collection_instance(bpy, "B", src, (-2, 0, 0))
-    rs.gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
-    rs.faceless(bpy)                                          # a helper with edges only
-    rs.scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
-    bpy.context.scene.prtt.light_source = "BUILTIN"           # the factory-empty file has no World
+    rs.chain_scene(bpy)
     path = tmp / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))
     return path

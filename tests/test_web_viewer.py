@@ -324,11 +324,7 @@ def test_the_room_in_the_browser_is_blenders_room(room, room_server, tmp_path, m
 
 
 def list_baked(folder):
-    import json
-    import struct
-    with open(folder / "room.glb", "rb") as f:
-        _, _, _, n, _ = struct.unpack("<4sIIII", f.read(20))
-        doc = json.loads(f.read(n))
+    doc, _ = read_glb(folder / "room.glb")
     return [nd for nd in doc["nodes"] if "PRTT_radiance_transfer" in (nd.get("extensions") or {})]
 
 
@@ -574,24 +570,14 @@ def test_an_hdr_dropped_on_the_page_lights_the_room(room, room_server, tmp_path)
 
 @pytest.fixture(scope="module")
 def instanced_scene(tmp_path_factory):
-    """Instances and generated UVs (as tests/test_gltf_export.py's
-    `instanced`): collection instances of an excluded collection's cube, a
-    geometry-nodes grid, an extruded curve, a text and geometry-nodes
-    instances, under Blender's studio light; exported and rendered."""
+    """Instances and generated UVs (tests/test_gltf_export.py's `instanced`,
+    real_scenes.chain_scene: collection instances of an excluded collection's
+    cube, a geometry-nodes grid, a faceless helper, an extruded curve, a text
+    and geometry-nodes instances, under Blender's studio light); exported and
+    rendered."""
     tmp = tmp_path_factory.mktemp("instanced-web")
     bpy = addon_bpy()
-    rs.floor(bpy, 8.0)
-    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
-    src = rs.source_collection(bpy)
-    rs.collection_instance(bpy, "A", src, (2, 0, 0))
-    rs.collection_instance(bpy, "B", src, (-2, 0, 0))
-    rs.gn_grid(bpy, location=(0, 2.5, 0.05), size=1.5)
-    rs.extruded_curve(bpy)
-    rs.text(bpy)
-    dot = rs.add_object(bpy, "Dot", rs.cube_mesh(bpy, "dot", 0.3), location=(0, 0, -20))
-    rs.gn_instance_on_points(bpy, "Scatter", dot, [(3, 1, 0.2), (3, 2, 0.2), (-3, 1.5, 0.2)])
-    rs.scene_camera(bpy, (0, -9, 5), (1.05, 0, 0))
-    bpy.context.scene.prtt.light_source = "BUILTIN"
+    rs.chain_scene(bpy, generated=True)
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = RW, RH
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
     r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", "--resolution", "128", "--rays", "64",
@@ -626,12 +612,8 @@ def test_the_8_bit_encoding_costs_what_it_says(room, room_server, tmp_path, mode
     """`export --encoding u8`: every payload RGBA8 with a scale and offset per
     plane, under 70 % of the half-float export's bytes; the page decodes it
     and the picture stays within 1.5 % of Blender's (the half-float file: 0.48 %)."""
-    import json
-    import struct
     half, u8 = (room / "room.glb").stat().st_size, (room / "room_u8.glb").stat().st_size
-    with open(room / "room_u8.glb", "rb") as f:
-        _, _, _, n, _ = struct.unpack("<4sIIII", f.read(20))
-        ext = json.loads(f.read(n))["extensions"]["PRTT_radiance_transfer"]
+    ext = read_glb(room / "room_u8.glb")[0]["extensions"][EXT]
     payloads = [p for s in ext["sets"] for k, p in s.items() if isinstance(p, dict) and "bufferView" in p]
     assert payloads and all(p["format"] == "RGBA8" and p["encoding"] == "u8" for p in payloads)
     assert all(0 <= p["maxError"] <= max(p["scale"]) / 2 * 1.0001 + 1e-12 for p in payloads)

@@ -58,13 +58,13 @@ import json
 import os
 import shutil
 import statistics
-import struct
 import subprocess
 import sys
 import tempfile
 import threading
 import time
 
+from ..core.io.gltf_prtt import read_glb_json
 from . import figures, scene_library
 
 #: Debian's headless Chromium and its flags, as tests/test_web_viewer.py launches it:
@@ -225,20 +225,10 @@ def export(folder: str, blend: str, glb: str, encoding: str = "half") -> dict:
 
 # --- bytes --------------------------------------------------------------------------------
 
-def glb_json(path: str) -> dict:
-    """The JSON chunk of a .glb."""
-    with open(path, "rb") as f:
-        head = f.read(20)
-        magic, _, _, length, kind = struct.unpack("<4sIIII", head)
-        if magic != b"glTF" or kind != 0x4E4F534A:
-            raise ValueError(f"{path}: not a .glb with a JSON chunk first")
-        return json.loads(f.read(length))
-
-
 def payload_bytes(glb: str) -> dict:
     """The PRTT extension's payload ``bytes`` per kind (summed over sets), the
     World's image, and the KTX2s' uncompressed bytes."""
-    ext = glb_json(glb)["extensions"]["PRTT_radiance_transfer"]
+    ext = read_glb_json(glb)["extensions"]["PRTT_radiance_transfer"]
     kinds = {k: 0 for k in PAYLOADS}
     raw = 0
     for s in ext["sets"]:

@@ -40,7 +40,6 @@ import argparse
 import dataclasses
 import json
 import os
-import struct
 import sys
 
 import bpy
@@ -55,6 +54,7 @@ from ...core.io.gltf_prtt import (
     display_extension,
     environment_extension,
     material_extension,
+    read_glb_json,
     relight_dc_payload,
     relight_glossy_payload,
     root_extension,
@@ -403,15 +403,6 @@ def _check_exportable(context, info: dict):
     return ps, status
 
 
-def _read_glb_json(path: str) -> dict:
-    with open(path, "rb") as f:
-        head = f.read(20)
-        magic, _, _, n, kind = struct.unpack("<4sIIII", head)
-        if magic != b"glTF" or kind != 0x4E4F534A:
-            raise GltfExportError(f"{path}: the exporter did not write a .glb")
-        return json.loads(f.read(n))
-
-
 def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
                   encoding: str = "half") -> tuple[list, list, dict]:
     """The root's ``sets`` (transfer and bounce textures as KTX2), the blobs
@@ -561,7 +552,10 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
                 os.replace(target, tmp)
             if job.errors:
                 raise GltfExportError("could not export " + "; ".join(job.errors[:4]))
-            doc = _read_glb_json(tmp)
+            try:
+                doc = read_glb_json(tmp)
+            except ValueError as exc:
+                raise GltfExportError(f"the exporter did not write a .glb ({exc})") from exc
             missing = sorted({p.name for p in parts} - job.nodes_tagged)
             if NAME not in (doc.get("extensions") or {}) or missing or not job.primitives_tagged:
                 raise GltfExportError(f"PRTT's data did not reach the file (objects without it: "

@@ -18,6 +18,9 @@ viewer turns a glTF world direction d into the bake frame with
 """
 from __future__ import annotations
 
+import json
+import struct
+
 import numpy as np
 
 from .ktx2 import ktx2_bytes, sh_layers
@@ -31,6 +34,30 @@ VERSION = 1
 #: glTF world direction -> Blender world direction (the inverse of the
 #: exporter's Y-up conversion (x, y, z) -> (x, z, -y)).
 GLTF_TO_BAKE_FRAME = ((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0))
+
+
+#: The largest JSON chunk :func:`read_glb_json` reads (the JSON of a glb PRTT
+#: writes is a few hundred KB; the textures are in the binary chunk).
+MAX_GLB_JSON_BYTES = 64 << 20
+
+
+def read_glb_json(path) -> dict:
+    """The JSON chunk of the .glb at ``path``. ValueError (naming the file)
+    when it is not a .glb whose first chunk is JSON, or that chunk is over
+    MAX_GLB_JSON_BYTES or truncated."""
+    with open(path, "rb") as f:
+        head = f.read(20)
+        if len(head) < 20:
+            raise ValueError(f"{path}: not a .glb (shorter than its header)")
+        magic, _, _, n, kind = struct.unpack("<4sIIII", head)
+        if magic != b"glTF" or kind != 0x4E4F534A:
+            raise ValueError(f"{path}: not a .glb with a JSON chunk first")
+        if n > MAX_GLB_JSON_BYTES:
+            raise ValueError(f"{path}: a {n}-byte JSON chunk, over {MAX_GLB_JSON_BYTES}")
+        data = f.read(n)
+    if len(data) != n:
+        raise ValueError(f"{path}: its JSON chunk is cut short")
+    return json.loads(data)
 
 
 def transfer_payload(planes: np.ndarray, *, supercompression: str = "zstd",
