@@ -20,7 +20,7 @@ import {
   GAUNT_WIDTH,
   MAX_PREVIEW_BANDS, MODES,
 } from './prtt_shaders.js';
-import { gauntTable, lightBlock, relightBlock, rotateLight, turnLightZ } from './prtt_sh.js';
+import { gauntTable, lightBlock, relightBlock, turnLightZ } from './prtt_sh.js';
 
 export const NAME = 'PRTT_radiance_transfer';
 export { MODES };
@@ -671,4 +671,3 @@ export async function loadPRTT(url, renderer, { turn = 0, mode = 'tpfl', bounces
   return { gltf, scene: gltf.scene, camera: gltf.cameras[0] || null, prtt, ext: prtt ? prtt.ext : null };
 }
 
-export { rotateLight };
