@@ -143,11 +143,12 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
     from .core.bake.pipeline.context import BakeSettings  # deferred (start-up)
     from .core.bake.pipeline.runner import bake_scene  # deferred (start-up)
     from .core.base.errors import BakeError, Cancelled  # deferred (start-up)
-    from .core.base.memory import MemoryLimitError  # deferred (start-up)
+    from .core.base.memory import MemoryLimitError, large_frees_to_os  # deferred (start-up)
     from .core.io.jobfile import JobFile  # deferred (start-up)
     from .core.model.scene import SceneError, validate  # deferred (start-up)
     from .core.texels.unwrap import UnwrapError  # deferred (start-up)
 
+    large_frees_to_os()      # this process bakes and exits: freed arrays go back to the OS at once
     try:
         with JobFile(job_path) as job:
             settings = dict(job.settings())

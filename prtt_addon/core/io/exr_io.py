@@ -23,6 +23,7 @@ import os
 
 import numpy as np
 
+from ..base.memory import discard_pages
 from ..sh.basis import bands_of
 from .atomic import atomic_write
 
@@ -154,7 +155,7 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
                     rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
                     executor=None, rng: tuple[float, float] | None = None,
                     names: list[str] | None = None, bands: int | None = None,
-                    mantissa_bits: int = HALF_MANTISSA_BITS, full_bits=None) -> str:
+                    mantissa_bits: int = HALF_MANTISSA_BITS, full_bits=None, consume: bool = False) -> str:
     """Write an SH texture from channel-first ``planes`` (C, H, W), row 0 at the bottom.
 
     C = K for kind "transfer", 3K when ``rgb`` (bounce; R.sh000.., G.., B..).
@@ -169,6 +170,11 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
             all 10); the header records it as ``prtt_mantissa_bits``.
     full_bits : with ``names``, one bool per channel: which keep all 10 bits
             under ``mantissa_bits`` (the layout's DC-to-DC channels; relight_full_bits).
+    consume : ``planes`` (a C-contiguous array the caller is done with) gives
+            each plane's pages back to the OS once it is converted to the
+            file's precision (base/memory.discard_pages), so the float32
+            texture and its float16 copy are never resident together; the
+            planes read as zeros afterwards. The bytes written are the same.
     Returns the path written.
     """
     import OpenEXR
@@ -204,9 +210,14 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
         exact = [c % K == 0 for c in range(len(names))]
 
     # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).
+    consume = consume and a.flags.c_contiguous and a.dtype != dtype
+
     def convert(c):
         plane = np.ascontiguousarray(a[c, ::-1], dtype=dtype)
-        return quantize_half(plane, mantissa_bits) if lossy and not exact[c] else plane
+        plane = quantize_half(plane, mantissa_bits) if lossy and not exact[c] else plane
+        if consume:
+            discard_pages(a[c])
+        return plane
     mapper = executor.map if executor is not None else map
     channels = dict(zip(names, mapper(convert, range(len(names)))))
     header = {

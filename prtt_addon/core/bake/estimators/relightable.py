@@ -121,19 +121,23 @@ def transfer_product_rows(T: np.ndarray, kg: int, out: np.ndarray | None = None)
 
 def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
                 fine: tuple[SurfaceTexels, np.ndarray] | None = None) -> RelightExit:
-    """Level 1's exit forms from the transfer ``T_rows`` (M, K) at ``surf``'s
-    valid texels; ``fine`` = (SurfaceTexels, T rows) of a finer grid the
-    diffuse term leaves from (as bounce.exit_textures' ``diffuse_at``)."""
+    """Level 1's exit forms from the transfer ``T_rows`` (M + 1, K) float32 at
+    ``surf``'s M valid texels, then a row of zeros (bounce_stage.padded_rows:
+    the diffuse table is that array itself, not a copy); ``fine`` =
+    (SurfaceTexels, T rows alike) of a finer grid the diffuse term leaves
+    from (as bounce.exit_textures' ``diffuse_at``)."""
     dsurf, dT = (surf, T_rows) if fine is None else fine
+    if dT.dtype != np.float32 or dT.shape[0] != dsurf.valid.size + 1 or dT[-1].any():
+        raise ValueError("level1_exit: transfer rows must be (M + 1, K) float32 with a last row of zeros")
     grid = TexelRows.of(surf)
     dgrid = grid if fine is None else TexelRows.of(dsurf)
-    ex = RelightExit(dgrid, _with_zero_row(dT[:, None, :]), _with_zero_row(dsurf.albedo / math.pi))
+    ex = RelightExit(dgrid, np.ascontiguousarray(dT)[:, None, :], _with_zero_row(dsurf.albedo / math.pi))
     if surf.glossy:
         kg = glossy_bands * glossy_bands
         A = lobe_factors(surf.exponent, glossy_bands)                                   # (M, Kg)
         # Built in the table with its zero row, in place: no (M, Kg, Kg) temporaries.
         g_rows = np.zeros((surf.valid.size + 1, 1, kg, kg), np.float32)
-        E = transfer_product_rows(T_rows, kg, out=g_rows[:-1, 0])                     # (M, Kg, Kg)
+        E = transfer_product_rows(T_rows[:-1], kg, out=g_rows[:-1, 0])                     # (M, Kg, Kg)
         E *= A[:, :, None].astype(np.float32)
         ex.glossy_grid = grid
         ex.g_rows = g_rows

@@ -218,6 +218,15 @@ def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: Boun
     return dataclasses.replace(src, gbuffer=coarse, points=pts, rows=None, incident=None), skip
 
 
+def padded_rows(pm: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
+    """(M + 1, k) float32: the first ``k`` columns of ``pm`` (texels, C) at
+    texels ``valid`` (M,), then a row of zeros: the layout of an exit table
+    (relightable.level1_exit uses it as it is, with no second copy)."""
+    out = np.zeros((valid.size + 1, k), np.float32)
+    np.take(pm[:, :k] if pm.shape[1] != k else pm, valid, axis=0, out=out[:-1])
+    return out
+
+
 def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry | None = None, *,
                   lit: bool = True) -> tuple[BounceInputs, dict[int, np.ndarray]]:
     """Skip masks and surface texels of every set, and level 1's incident
@@ -243,7 +252,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
     def fine_diffuse(r):
         full = surface_texels(sc, r.gbuffer, st.dilate, diffuse_only=True)
         if not lit:
-            return full, np.ascontiguousarray(r.incident.pm[full.valid][:, :K])
+            return full, padded_rows(r.incident.pm, full.valid, K)
         return full, incident_dc_at(full, r.incident, ctx.light, st.bands)
 
     for r in sources:
@@ -257,6 +266,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         fine_job = ctx.helpers.submit(fine_diffuse, r) if asked > 1 else None
         grid = choose_grid(r.gbuffer, asked)
         skip[r.index] = r.points.analytic | open_job.result()
+        r.rows = None                      # read by open_texels only
         if auto:
             nb, why = choose_bounce_bands(sc, r.index, glossy_tri, st.bands)
             rays = int(round(st.bounce_rays * AUTO_RAY_FACTOR)) if grid.downscale > 1 else st.bounce_rays
@@ -272,22 +282,25 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
             # the coarse grid with the transfer averaged over each block (4x fewer
             # texels to light and look up).
             level1_diffuse[r.index] = fine
-            block_job = ctx.helpers.submit(block_mean_incident, incident, fine[0].valid, grid.downscale, st.dilate)
+            # The full-resolution texture, points and surface are done with once the
+            # block means are taken: freed before the coarse grid's are built.
+            incident = block_mean_incident(incident, fine[0].valid, grid.downscale, st.dilate)
+            r.points = None
+            r.gbuffer.release_surface()
             r, skip[r.index] = coarse_source(ctx, geo, r, grid, skip[r.index])
             surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
-            incident = block_job.result()
         else:
             surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
         if lit:
             Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
         else:
-            Lp[r.index] = np.ascontiguousarray(incident.pm[surf[r.index].valid][:, :K])
+            Lp[r.index] = padded_rows(incident.pm, surf[r.index].valid, K)
         baked.append(r)
     # On the grids the bounce textures are baked on, like each level's energy.
     if lit:
         direct = sum(level_energy(v) for v in Lp.values())
     else:
-        direct = sum(uniform_energy(v[:, None, :]) for v in Lp.values())
+        direct = sum(uniform_energy(v[:-1, None, :]) for v in Lp.values())
     ctx.seconds["bounce_exit"] = time.perf_counter() - t
     return BounceInputs(skip, surf, direct, glossy_tri, grids, baked, level1_diffuse), Lp
 
@@ -366,7 +379,7 @@ def bounce_set_level(ctx: BakeContext, geo: Geometry, plan: BakePlan, src: Bounc
         attrs.update(band_limited=1, shading_bands=st.bands)
     with numpy_hugepage_advice(False):      # fresh arrays, streamed once
         dilate(tex, mask, st.dilate, executor=ctx.helpers)
-        half = write_planes(ctx, fname, tex, "bounce", attrs, rgb=True)
+        half = write_planes(ctx, fname, tex, "bounce", attrs, rgb=True, consume=level >= st.bounces)
     nxt = None
     if level < st.bounces:
         rows = tex.reshape(3 * Kb, -1)[:, inputs.surface[src.index].valid].T.reshape(-1, 3, Kb)

@@ -57,6 +57,7 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         if level == 1:
             exits = {i: level1_exit(inputs.surface[i], v, gbands, fine=inputs.level1_diffuse.get(i))
                      for i, v in T.items()}
+            T, inputs.level1_diffuse = None, {}       # the exits hold what later levels read
         else:
             exits = {i: later_exit(inputs.surface[i], r, gbands) for i, r in rows.items()}
         shader = RelightShader(sc, exits, st.bands, gbands, inputs.glossy_tri)
@@ -109,8 +110,11 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         stopped = early_stop(ctx, level, energy, inputs.direct, "uniform white light")
         if stopped:
             break
+    # The levels' exit tables and rows are done with: only the sums are written.
+    inputs = exits = shader = rows = nxt = None
     files = []
-    for i, (src, planes, rays) in sums.items():
+    for i in list(sums):
+        src, planes, rays = sums.pop(i)
         t = time.perf_counter()
         g = glossy_sets[i]
         fname = f"{src.name}.relight.exr"
@@ -120,7 +124,8 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         if g and shared:
             attrs["glossy_colour"] = "shared"
         write_planes(ctx, fname, planes, "relight", attrs, rgb=False,
-                     names=relight_channel_names(K, kg if g else 0, g and shared), bands=st.bands)
+                     names=relight_channel_names(K, kg if g else 0, g and shared), bands=st.bands, consume=True)
+        planes = None
         files.append(fname)
         ctx.seconds["bounce_write"] += time.perf_counter() - t
     return BounceResult(reports, files, stopped)

@@ -278,10 +278,14 @@ def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer) -> SetPlanes:
 
 
 def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, attrs: dict, *, rgb: bool,
-                 half: bool | None = None, names: list[str] | None = None, bands: int | None = None) -> bool:
+                 half: bool | None = None, names: list[str] | None = None, bands: int | None = None,
+                 consume: bool = False) -> bool:
     """Write ``planes`` (C, H, W) as staged output ``fname`` (progress stage
     "write"); half precision (settings.half unless given) unless values
-    overflow it (a warning, then float32). Returns whether it was written as half."""
+    overflow it (a warning, then float32). ``consume``: the caller is done
+    with ``planes``, which give their memory back plane by plane as they are
+    converted (exr_io.write_sh_planes) and read as zeros afterwards. Returns
+    whether it was written as half."""
     ctx.check_cancel()
     ctx.emit(type="progress", stage="write", file=fname, fraction=0.0)
     half = ctx.settings.half if half is None else half
@@ -295,7 +299,8 @@ def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, at
     exr_io.write_sh_planes(ctx.staging.path(fname), planes, kind=kind, half=half, rgb=rgb,
                            attrs=attrs, atomic=False, executor=ctx.helpers, rng=rng, names=names, bands=bands,
                            mantissa_bits=ctx.settings.storage_bits(),
-                           full_bits=None if names is None else exr_io.relight_full_bits(names))
+                           full_bits=None if names is None else exr_io.relight_full_bits(names),
+                           consume=consume)
     return half
 
 
@@ -333,8 +338,10 @@ class BounceSource:
     index: int                     # scene set index
     name: str
     gbuffer: GBuffer               # with its surface arrays
-    points: Points                 # the transfer kernel's input (N points)
-    rows: np.ndarray               # (N, K) float32 transfer of the covered texels
+    points: Points | None          # the transfer kernel's input (N points); None once a coarser
+                                   # bounce grid replaces the set's (bounce_stage.bounce_inputs)
+    rows: np.ndarray | None        # (N, K) float32 transfer of the covered texels; None once the
+                                   # bounce inputs are built (open_texels reads them)
     incident: IncidentSet | None   # the dilated transfer texture, pixel-major (H * W, K) float32;
                                    # None once the level-1 incident radiance is computed
     storage: str = "float32"       # precision of rows: "float32" (traced now) or "half" (read from disk)
