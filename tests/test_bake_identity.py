@@ -3,10 +3,8 @@ every output file of five small bakes, one per bake mode, against the SHA-256
 recorded from the earlier code (tests/bake_identity.py, tests/data/bake_identity.json)."""
 import json
 
-import pytest
-
 import bake_identity
-
+import pytest
 
 RECORDED = json.load(open(bake_identity.RECORD, encoding="utf-8"))["cases"]
 
