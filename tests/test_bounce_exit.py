@@ -111,7 +111,7 @@ def test_exit_radiance_equals_slow_per_hit_reference(wall, path):
         # would hide indexing mistakes behind smooth data).
         T_pm = np.zeros((gb.width * gb.height, bands * bands), np.float32)
         T_pm[surf.valid] = rng.normal(0.5, 0.3, (surf.valid.size, bands * bands))
-        Lp = incident_at(surf, IncidentSet(T_pm, gb.width, gb.height), light, bands)
+        Lp = incident_at(surf, IncidentSet.from_pixel_major(T_pm, gb.width, gb.height), light, bands)
         exits[s] = exit_textures(surf, Lp, bands)
         surfs[s], T_pms[s] = surf, T_pm
     shader = ExitShader(sc, exits, bands, glossy_triangles(sc))
@@ -139,7 +139,7 @@ def test_block_mean_incident_is_the_mean_of_valid_texels():
     W, H, C, f = 12, 8, 4, 2
     pm = rng.normal(size=(W * H, C)).astype(np.float32)
     valid = np.flatnonzero(rng.random(W * H) < 0.6)
-    got = block_mean_incident(IncidentSet(pm, W, H), valid, f, 3)
+    got = block_mean_incident(IncidentSet.from_pixel_major(pm, W, H), valid, f, 3)
     assert (got.width, got.height) == (W // f, H // f)
     is_valid = np.zeros(W * H, bool)
     is_valid[valid] = True
@@ -148,7 +148,7 @@ def test_block_mean_incident_is_the_mean_of_valid_texels():
             idx = [(by * f + j) * W + bx * f + i for j in range(f) for i in range(f)]
             idx = [k for k in idx if is_valid[k]]
             if idx:
-                np.testing.assert_allclose(got.pm[by * (W // f) + bx], pm[idx].astype(np.float64).mean(axis=0),
+                np.testing.assert_allclose(got.band(0, got.height)[by * (W // f) + bx], pm[idx].astype(np.float64).mean(axis=0),
                                            rtol=1e-6, atol=1e-6)
 
 
@@ -171,12 +171,12 @@ def test_diffuse_from_the_fine_grid_glossy_from_the_coarse_one(path):
         surf = surface_texels(sc, coarse, 2)
         T_pm = np.zeros((gb.width * gb.height, bands * bands), np.float32)
         T_pm[fine.valid] = rng.normal(0.5, 0.3, (fine.valid.size, bands * bands))
-        inc = IncidentSet(T_pm, gb.width, gb.height)
+        inc = IncidentSet.from_pixel_major(T_pm, gb.width, gb.height)
         dc = incident_dc_at(fine, inc, light, bands)
         np.testing.assert_allclose(dc, incident_at(fine, inc, light, bands)[:, :, 0], rtol=1e-5, atol=1e-5)
         inc_c = block_mean_incident(inc, fine.valid, f, 2)
         exits[s] = exit_textures(surf, incident_at(surf, inc_c, light, bands), bands, diffuse_at=(fine, dc))
-        parts[s] = (fine, T_pm, surf, inc_c.pm)
+        parts[s] = (fine, T_pm, surf, inc_c.band(0, inc_c.height))
     glossy = glossy_triangles(sc)
     shader = ExitShader(sc, exits, bands, glossy)
     n = 400
@@ -261,7 +261,7 @@ def test_compiled_and_numpy_paths_agree_on_many_hits_and_sets_without_exits(band
         gb = build_gbuffer(sc, s)
         surf = surface_texels(sc, gb, 2)
         T_pm = rng.normal(0.5, 0.3, (gb.width * gb.height, bands * bands)).astype(np.float32)
-        exits[s] = exit_textures(surf, incident_at(surf, IncidentSet(T_pm, gb.width, gb.height), light, bands),
+        exits[s] = exit_textures(surf, incident_at(surf, IncidentSet.from_pixel_major(T_pm, gb.width, gb.height), light, bands),
                                  bands)
     tri, u, v, view = _random_hits(sc, rng, 20000)
     for sets in (exits, {1: exits[1]}):

@@ -107,11 +107,72 @@ BOUNCE_CHUNK_RAYS = 1 << 16
 
 @dataclasses.dataclass
 class IncidentSet:
-    """One set's texture that radiance leaving its surface is computed from."""
+    """One set's texture that radiance leaving its surface is computed from,
+    held only at the texels that may hold a value (covered texels and their
+    dilation rings: ~60 % of an atlas), every other texel being zero.
 
-    pm: np.ndarray        # (H * W, C) float32, pixel-major
+    ``rows`` (M + 1, C) float32: row i is texel ``valid[i]``'s, the last is
+    zeros (the layout of an exit table: relightable.level1_exit takes it as
+    it is); ``valid`` (M,) ascending flat texel indices (row 0 = bottom).
+    """
+
+    rows: np.ndarray
+    valid: np.ndarray
     width: int
     height: int
+
+    #: Bytes of the pixel-major band :meth:`blocks_mean` builds at a time.
+    BAND_BYTES = 32 << 20
+
+    @classmethod
+    def from_pixel_major(cls, pm: np.ndarray, width: int, height: int) -> "IncidentSet":
+        """From a whole texture, pixel-major (H * W, C); ``valid`` = the texels with a non-zero value."""
+        valid = np.flatnonzero(np.any(pm != 0, axis=1))
+        rows = np.zeros((valid.size + 1, pm.shape[1]), np.float32)
+        np.take(pm, valid, axis=0, out=rows[:-1])
+        return cls(rows, valid, width, height)
+
+    @classmethod
+    def from_planes(cls, planes: np.ndarray, grown: np.ndarray) -> "IncidentSet":
+        """From channel planes (C, H, W) that are zero outside mask ``grown`` (H, W)
+        (texels.dilate.dilate's return), one plane at a time: no pixel-major copy."""
+        C, H, W = planes.shape
+        valid = np.flatnonzero(grown.reshape(-1))
+        rows = np.zeros((valid.size + 1, C), np.float32)
+        for c in range(C):
+            rows[:-1, c] = planes[c].reshape(-1)[valid]
+        return cls(rows, valid, W, H)
+
+    @property
+    def channels(self) -> int:
+        return int(self.rows.shape[1])
+
+    def at(self, texels: np.ndarray, k: int | None = None, *, padded: bool = False) -> np.ndarray:
+        """The first ``k`` (default all) channels at flat texel indices ``texels``
+        (n,), zeros where the texture is empty: (n, k) float32, or with
+        ``padded`` (n + 1, k) with a last row of zeros. When ``texels`` is
+        ``valid`` itself and k = C, the rows themselves (no copy)."""
+        k = self.channels if k is None else int(k)
+        texels = np.asarray(texels)
+        n = texels.shape[0]
+        if k == self.channels and n == self.valid.size and np.array_equal(texels, self.valid):
+            return self.rows if padded else self.rows[:-1]
+        out = np.zeros((n + 1 if padded else n, k), np.float32)
+        if self.valid.size == 0:
+            return out
+        where = np.minimum(np.searchsorted(self.valid, texels), self.valid.size)
+        where[self.valid[np.minimum(where, self.valid.size - 1)] != texels] = self.valid.size  # the zero row
+        src = self.rows if k == self.channels else self.rows[:, :k]
+        np.take(src, where, axis=0, out=out[:n])
+        return out
+
+    def band(self, row0: int, row1: int) -> np.ndarray:
+        """Texture rows row0 .. row1 - 1, pixel-major ((row1 - row0) W, C) float32."""
+        W = self.width
+        out = np.zeros(((row1 - row0) * W, self.channels), np.float32)
+        lo, hi = np.searchsorted(self.valid, [row0 * W, row1 * W])
+        out[self.valid[lo:hi] - row0 * W] = self.rows[lo:hi]
+        return out
 
 
 @dataclasses.dataclass
@@ -242,7 +303,7 @@ def incident_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray, b
     """Lp (M, 3, K) float32 at the valid texels: M(L) T of a transfer texture lit
     by ``light`` (level 1; later levels read the previous bounce planes)."""
     K = bands * bands
-    rows = incident.pm[surf.valid]
+    rows = incident.at(surf.valid)
     Mx = tpfl_matrix(np.asarray(light)[:K], bands)                               # (3, K, K)
     M2 = np.ascontiguousarray(Mx.reshape(3 * K, K).T, dtype=np.float32)
     return (rows[:, :K] @ M2).reshape(-1, 3, K)
@@ -254,24 +315,30 @@ def incident_dc_at(surf: SurfaceTexels, incident: IncidentSet, light: np.ndarray
     K = bands * bands
     Mx = tpfl_matrix(np.asarray(light)[:K], bands)                               # (3, K, K)
     M0 = np.ascontiguousarray(Mx[:, 0, :].T, dtype=np.float32)                   # (K, 3)
-    return incident.pm[surf.valid][:, :K] @ M0
+    return incident.at(surf.valid)[:, :K] @ M0
 
 
 def block_mean_incident(incident: IncidentSet, valid: np.ndarray, f: int, dilate_iterations: int) -> IncidentSet:
     """``incident`` on the grid 1/f per side: each coarse texel the mean of the
     f x f block's texels in ``valid`` (flat indices that hold a value), blocks
     without one filled by ``dilate_iterations`` rings (the textures' rule)."""
-    W, H, C = incident.width, incident.height, incident.pm.shape[1]
+    W, H, C = incident.width, incident.height, incident.channels
     w, h = W // f, H // f
     mask = np.zeros(H * W, np.float32)
     mask[valid] = 1.0
-    blocks = np.einsum("aibjc,aibj->abc", incident.pm.reshape(h, f, w, f, C), mask.reshape(h, f, w, f))
+    blocks = np.zeros((h, w, C), np.float32)
+    # In bands of block rows (each block's sum is the same whichever band holds it).
+    step = max(1, IncidentSet.BAND_BYTES // max(1, f * W * C * 4))
+    for a0 in range(0, h, step):
+        a1 = min(h, a0 + step)
+        pm = incident.band(a0 * f, a1 * f)
+        blocks[a0:a1] = np.einsum("aibjc,aibj->abc", pm.reshape(a1 - a0, f, w, f, C),
+                                  mask[a0 * f * W:a1 * f * W].reshape(a1 - a0, f, w, f))
     count = mask.reshape(h, f, w, f).sum(axis=(1, 3))
     have = count > 0
     blocks[have] /= count[have][:, None]
     planes = np.ascontiguousarray(np.moveaxis(blocks, 2, 0))
-    dilate(planes, have, dilate_iterations)
-    return IncidentSet(np.ascontiguousarray(planes.reshape(C, -1).T), w, h)
+    return IncidentSet.from_planes(planes, dilate(planes, have, dilate_iterations))
 
 
 def level_energy(tex_rows: np.ndarray) -> float:

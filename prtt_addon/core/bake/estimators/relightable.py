@@ -122,7 +122,7 @@ def transfer_product_rows(T: np.ndarray, kg: int, out: np.ndarray | None = None)
 def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
                 fine: tuple[SurfaceTexels, np.ndarray] | None = None) -> RelightExit:
     """Level 1's exit forms from the transfer ``T_rows`` (M + 1, K) float32 at
-    ``surf``'s M valid texels, then a row of zeros (bounce_stage.padded_rows:
+    ``surf``'s M valid texels, then a row of zeros (bounce.IncidentSet.at(..., padded=True):
     the diffuse table is that array itself, not a copy); ``fine`` =
     (SurfaceTexels, T rows alike) of a finer grid the diffuse term leaves
     from (as bounce.exit_textures' ``diffuse_at``)."""

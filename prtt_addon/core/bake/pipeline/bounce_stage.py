@@ -218,15 +218,6 @@ def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: Boun
     return dataclasses.replace(src, gbuffer=coarse, points=pts, rows=None, incident=None), skip
 
 
-def padded_rows(pm: np.ndarray, valid: np.ndarray, k: int) -> np.ndarray:
-    """(M + 1, k) float32: the first ``k`` columns of ``pm`` (texels, C) at
-    texels ``valid`` (M,), then a row of zeros: the layout of an exit table
-    (relightable.level1_exit uses it as it is, with no second copy)."""
-    out = np.zeros((valid.size + 1, k), np.float32)
-    np.take(pm[:, :k] if pm.shape[1] != k else pm, valid, axis=0, out=out[:-1])
-    return out
-
-
 def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry | None = None, *,
                   lit: bool = True) -> tuple[BounceInputs, dict[int, np.ndarray]]:
     """Skip masks and surface texels of every set, and level 1's incident
@@ -252,7 +243,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
     def fine_diffuse(r):
         full = surface_texels(sc, r.gbuffer, st.dilate, diffuse_only=True)
         if not lit:
-            return full, padded_rows(r.incident.pm, full.valid, K)
+            return full, r.incident.at(full.valid, K, padded=True)
         return full, incident_dc_at(full, r.incident, ctx.light, st.bands)
 
     for r in sources:
@@ -294,7 +285,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         if lit:
             Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
         else:
-            Lp[r.index] = padded_rows(incident.pm, surf[r.index].valid, K)
+            Lp[r.index] = incident.at(surf[r.index].valid, K, padded=True)
         baked.append(r)
     # On the grids the bounce textures are baked on, like each level's energy.
     if lit:

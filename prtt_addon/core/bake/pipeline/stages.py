@@ -38,7 +38,7 @@ from ...io import exr_io
 from ...model.scene import Scene
 from ...texels.dilate import dilate, mip_chain
 from ...texels.gbuffer import GBuffer, build_gbuffer, face_normals
-from ...texels.texsample import pixel_major, planes_from_rows
+from ...texels.texsample import planes_from_rows
 from ..estimators.bounce import IncidentSet
 from ..estimators.hemisphere_clear import FLAT_COS, clear_triangles
 from ..estimators.raytrace import RayScene
@@ -238,6 +238,7 @@ class SetPlanes:
     planes: np.ndarray             # (K, H, W) float32 channel planes, zero where no texel (until dilated)
     mask: np.ndarray               # (H, W) bool: covered texels
     mips: list[tuple[np.ndarray, np.ndarray]] = dataclasses.field(default_factory=list)
+    grown: np.ndarray | None = None   # (H, W) bool: the texels that hold a value once dilated
 
 
 def project_rows(ctx: BakeContext, traced: SetRows, *, keep_rows: bool = True) -> SetPlanes:
@@ -272,7 +273,7 @@ def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer) -> SetPlanes:
         cov = np.zeros(gb.height * gb.width, np.float32)
         cov[gb.texel] = gb.coverage
         sp.mips = mip_chain(sp.planes, cov.reshape(gb.height, gb.width))
-    dilate(sp.planes, sp.mask, st.dilate, executor=ctx.helpers)
+    sp.grown = dilate(sp.planes, sp.mask, st.dilate, executor=ctx.helpers)
     ctx.seconds["dilate"] += time.perf_counter() - t
     return sp
 
@@ -313,7 +314,9 @@ class SetFiles:
 
 
 def write_set(ctx: BakeContext, plan: BakePlan, gb: GBuffer, sp: SetPlanes, info: dict) -> SetFiles:
-    """Stage the set's transfer texture and its mips (the mips in the texture's precision)."""
+    """Stage the set's transfer texture and its mips (the mips in the texture's
+    precision). Consumes ``sp``: its planes give their memory back as they are
+    written and read as zeros afterwards (write_planes)."""
     st = ctx.settings
     name = ctx.scene.set_names[gb.set_index]
     t = time.perf_counter()
@@ -321,11 +324,11 @@ def write_set(ctx: BakeContext, plan: BakePlan, gb: GBuffer, sp: SetPlanes, info
                  texels=int(gb.n), analytic_texels=info["analytic_points"])
     fname = f"{name}.transfer.exr"
     ctx.check_cancel()
-    half = write_planes(ctx, fname, sp.planes, "transfer", attrs, rgb=False)
+    half = write_planes(ctx, fname, sp.planes, "transfer", attrs, rgb=False, consume=True)
     files = [fname]
     for lvl, (mt, _) in enumerate(sp.mips, start=1):
         mname = f"{name}.transfer.mip{lvl}.exr"
-        write_planes(ctx, mname, mt, "transfer", dict(attrs, mip_level=lvl), rgb=False, half=half)
+        write_planes(ctx, mname, mt, "transfer", dict(attrs, mip_level=lvl), rgb=False, half=half, consume=True)
         files.append(mname)
     ctx.seconds["write"] += time.perf_counter() - t
     return SetFiles(files, half)
@@ -342,7 +345,7 @@ class BounceSource:
                                    # bounce grid replaces the set's (bounce_stage.bounce_inputs)
     rows: np.ndarray | None        # (N, K) float32 transfer of the covered texels; None once the
                                    # bounce inputs are built (open_texels reads them)
-    incident: IncidentSet | None   # the dilated transfer texture, pixel-major (H * W, K) float32;
+    incident: IncidentSet | None   # the dilated transfer texture at the texels that hold a value;
                                    # None once the level-1 incident radiance is computed
     storage: str = "float32"       # precision of rows: "float32" (traced now) or "half" (read from disk)
 
@@ -369,7 +372,10 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     traced = trace_set(ctx, geo, gb, position=position)
     sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=keep_for_bounce), gb)
     info = traced.info
+    # What the bounce reads of the texture, taken before the write consumes the planes.
+    incident = IncidentSet.from_planes(sp.planes, sp.grown) if keep_for_bounce else None
     written = write_set(ctx, plan, gb, sp, info)
+    sp = None
     rep.update(file=written.files[0], storage="half" if written.half else "float",
                analytic_texels=info["analytic_points"], traced_texels=info["traced_points"],
                rays_traced=info["rays_traced"], rays_naive=info["rays_naive"],
@@ -378,9 +384,6 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
                threads=info["threads"], trace_seconds=info["seconds"])
     res = SetResult(gb.set_index, name, rep, written.files)
     if keep_for_bounce:
-        # Normal pages (the runner's advice): the exit radiance reads it in
-        # texel order, and huge pages cost ~6x more to fault in here.
-        incident = IncidentSet(pixel_major(sp.planes), gb.width, gb.height)
         res.bounce = BounceSource(gb.set_index, name, gb, traced.points, traced.rows, incident)
     return res
 
@@ -395,7 +398,7 @@ def load_transfer_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, old_report: 
         raise BakeError(f"{name}.transfer.exr is {data.shape[1]}x{data.shape[0]}, the set is "
                         f"{gb.width}x{gb.height}: bake the transfer again")
     pm = data.reshape(gb.height * gb.width, -1)    # (H, W, K) rows are already pixel-major
-    incident = IncidentSet(pm, gb.width, gb.height)
+    incident = IncidentSet.from_pixel_major(pm, gb.width, gb.height)
     src = BounceSource(gb.set_index, name, gb, geo.points(ctx.scene, gb.set_index, gb), pm[gb.texel], incident,
                        storage=attrs.get("storage", "half"))
     return SetResult(gb.set_index, name, old_report, [], bounce=src)
