@@ -192,3 +192,63 @@ def _malloc_trim():
     if trim is not None:
         trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
     return trim
+
+
+def _status_mb(key: str) -> float | None:
+    """A "VmHWM:"/"VmRSS:" line of /proc/self/status in MiB (Linux), else None."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith(key):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+class StagePeaks:
+    """Peak resident memory (RSS, MiB) of this process per stage of a bake.
+
+    ``enter(stage)`` closes the stage before it with the kernel's high-water
+    mark (VmHWM) and resets that mark (writing 5 to /proc/self/clear_refs,
+    Linux >= 4.0), so each stage's peak is its own, including what earlier
+    stages still hold. A stage entered twice keeps its larger peak; what ran
+    before the first stage is "setup". Where the mark cannot be read or
+    reset (not Linux), :meth:`peaks` is empty and ``process`` None.
+    """
+
+    def __init__(self):
+        self.stage = "setup"
+        self._peaks: dict[str, float] = {}
+        self.process: float | None = None
+        self.estimate_mb: float | None = None     # what the bake said it would need (plan.check_memory)
+        self.resettable = _status_mb("VmHWM:") is not None and self._reset()
+
+    @staticmethod
+    def _reset() -> bool:
+        try:
+            with open("/proc/self/clear_refs", "w", encoding="ascii") as f:
+                f.write("5")
+            return True
+        except OSError:
+            return False
+
+    def enter(self, stage: str) -> None:
+        """Start ``stage`` (nothing happens when it is the current one)."""
+        if stage == self.stage:
+            return
+        self._close()
+        self.stage = stage
+
+    def _close(self) -> None:
+        hwm = _status_mb("VmHWM:")
+        if hwm is None or not self.resettable:
+            return
+        self._peaks[self.stage] = max(self._peaks.get(self.stage, 0.0), hwm)
+        self.process = max(self.process or 0.0, hwm)
+        self._reset()
+
+    def peaks(self) -> dict[str, float]:
+        """{stage: peak RSS MiB} so far (the current stage's up to now), in the order first entered."""
+        self._close()
+        return {k: round(v, 1) for k, v in self._peaks.items()}

@@ -47,6 +47,8 @@ def channel_names(n_coeffs: int, rgb: bool = False) -> list[str]:
 
 
 HALF_MANTISSA_BITS = 10
+#: Values quantize_half rounds at a time (its temporaries: ~14 bytes a value).
+QUANTIZE_BLOCK = 1 << 20
 
 
 def quantize_half(h: np.ndarray, keep: int) -> np.ndarray:
@@ -63,6 +65,13 @@ def quantize_half(h: np.ndarray, keep: int) -> np.ndarray:
     drop = HALF_MANTISSA_BITS - int(keep)
     if drop <= 0:
         return h
+    if h.size > QUANTIZE_BLOCK:
+        # Elementwise, so in blocks: the uint32 temporaries stay a few MB whatever the texture's size.
+        out = np.empty_like(h)
+        flat_in, flat_out = h.reshape(-1), out.reshape(-1)
+        for a in range(0, h.size, QUANTIZE_BLOCK):
+            flat_out[a:a + QUANTIZE_BLOCK] = quantize_half(flat_in[a:a + QUANTIZE_BLOCK], keep)
+        return out
     b = h.view(np.uint16).astype(np.uint32)
     r = (b + ((1 << (drop - 1)) - 1) + ((b >> drop) & 1)) & ~np.uint32((1 << drop) - 1)
     out = r.astype(np.uint16).view(np.float16)
@@ -210,7 +219,7 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
         exact = [c % K == 0 for c in range(len(names))]
 
     # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).
-    consume = consume and a.flags.c_contiguous and a.dtype != dtype
+    consume = consume and a.flags.c_contiguous      # (each plane is copied: [::-1] below)
 
     def convert(c):
         plane = np.ascontiguousarray(a[c, ::-1], dtype=dtype)

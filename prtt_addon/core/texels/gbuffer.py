@@ -139,8 +139,14 @@ def build_gbuffer(sc: Scene, set_index: int, *, normal_maps: bool = True, execut
 
 
 def merge_gbuffers(parts: list[GBuffer]) -> GBuffer:
-    """Concatenate G-buffers of disjoint row bands (in row order)."""
-    cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+    """Concatenate G-buffers of disjoint row bands (in row order). The parts
+    give up each array as it is merged (their fields become None), so the
+    merge holds one field twice at most, not the whole G-buffer."""
+    def cat(name):
+        out = np.concatenate([getattr(p, name) for p in parts])
+        for p in parts:
+            setattr(p, name, None)
+        return out
     stats = {}
     for k, v in parts[0].stats.items():
         if isinstance(v, list):

@@ -29,8 +29,6 @@ from ...texels.gbuffer import GBuffer, build_gbuffer
 from ...texels.islands import coarse_grid_conflicts, island_labels
 from ..estimators import denoise
 from ..estimators.bounce import (
-    HALF_OPEN_TOLERANCE,
-    OPEN_TOLERANCE,
     ExitShader,
     SurfaceTexels,
     bake_bounce_set,
@@ -41,7 +39,6 @@ from ..estimators.bounce import (
     incident_at,
     incident_dc_at,
     level_energy,
-    open_texels,
     surface_texels,
     textured_triangles,
 )
@@ -215,7 +212,7 @@ def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: Boun
     traced = np.bincount(block, weights=(~skip_full).astype(np.float64), minlength=grid.width * grid.height)
     skip = ((covered > 0) & (traced == 0))[coarse.texel]
     skip |= pts.analytic
-    return dataclasses.replace(src, gbuffer=coarse, points=pts, rows=None, incident=None), skip
+    return dataclasses.replace(src, gbuffer=coarse, points=pts, open=None, incident=None), skip
 
 
 def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry | None = None, *,
@@ -250,14 +247,11 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         ctx.check_cancel()
         # Zero without rays: analytic texels, and texels no transfer ray saw geometry
         # from (tested against half-float rounding when read back from disk).
-        tol = HALF_OPEN_TOLERANCE if r.storage == "half" else OPEN_TOLERANCE
         # The steps below are numpy on one core each: independent ones run on the
         # helper threads beside the island labels (choose_grid) on this one.
-        open_job = ctx.helpers.submit(open_texels, r.rows, r.gbuffer.normal, st.bands, tol)
         fine_job = ctx.helpers.submit(fine_diffuse, r) if asked > 1 else None
         grid = choose_grid(r.gbuffer, asked)
-        skip[r.index] = r.points.analytic | open_job.result()
-        r.rows = None                      # read by open_texels only
+        skip[r.index] = r.points.analytic | r.open
         if auto:
             nb, why = choose_bounce_bands(sc, r.index, glossy_tri, st.bands)
             rays = int(round(st.bounce_rays * AUTO_RAY_FACTOR)) if grid.downscale > 1 else st.bounce_rays

@@ -64,6 +64,8 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
         "analytic_test": geo.clear_stats, "totals": totals, "seconds": ctx.seconds,
         "rays_per_second_trace": totals["rays_traced"] / trace_s if trace_s > 0 and not reused else 0.0,
         "rays_per_second_end_to_end": totals["rays_traced"] / ctx.seconds["total"] if not reused else 0.0,
+        "memory": {"peak_rss_mb": ctx.memory.peaks(), "process_peak_rss_mb": ctx.memory.process,
+                   "estimate_mb": ctx.memory.estimate_mb},
         "warnings": ctx.warnings, "skipped": False,
     }
 

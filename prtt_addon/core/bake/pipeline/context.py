@@ -22,6 +22,7 @@ import numpy as np
 
 from ... import settings_schema as _schema
 from ...base.errors import BakeError, Cancelled
+from ...base.memory import StagePeaks
 from ...io import atomic
 from ...io.outdir import file_info
 from ...model.scene import Scene
@@ -197,6 +198,7 @@ class BakeContext:
     tables: cf.Future | None = dataclasses.field(init=False)    # warm_tables on a helper (stages.start_tables)
     dask: object | None = None                  # distributed.DaskSpec: trace on a Dask cluster (runner opens it)
     remote: object | None = dataclasses.field(init=False)       # the open distributed.DaskBake, else None
+    memory: StagePeaks = dataclasses.field(init=False)          # peak RSS per stage (the manifest's "memory")
 
     def __post_init__(self):
         self.failed = threading.Event()
@@ -206,6 +208,7 @@ class BakeContext:
         self.warnings = []
         self.tables = None
         self.remote = None
+        self.memory = StagePeaks()
 
     @classmethod
     def create(cls, scene: Scene, out_dir: str, settings: BakeSettings, *, light=None,
@@ -237,8 +240,18 @@ class BakeContext:
         return self.settings.bands ** 2
 
     def emit(self, **event) -> None:
-        """Send a progress / warning / info / done event."""
+        """Send a progress / warning / info / done event (a progress event's
+        stage also starts that stage's peak-memory account, :meth:`mark`)."""
+        if event.get("type") == "progress" and event.get("stage"):
+            stage = event["stage"]
+            if stage == "write" and isinstance(event.get("file"), str):
+                stage = "write " + event["file"].split(".")[-2]        # transfer / relight / bounce1 / mip1
+            self.mark(stage)
         emit(self.progress, **event)
+
+    def mark(self, stage: str) -> None:
+        """Account this process's memory from now on to ``stage`` (base.memory.StagePeaks)."""
+        self.memory.enter(stage)
 
     def check_cancel(self) -> None:
         """Raise Cancelled if the bake was cancelled (cheap: between sets, levels, files)."""

@@ -39,7 +39,7 @@ from ...model.scene import Scene
 from ...texels.dilate import dilate, mip_chain
 from ...texels.gbuffer import GBuffer, build_gbuffer, face_normals
 from ...texels.texsample import planes_from_rows
-from ..estimators.bounce import IncidentSet
+from ..estimators.bounce import HALF_OPEN_TOLERANCE, OPEN_TOLERANCE, IncidentSet, open_texels
 from ..estimators.hemisphere_clear import FLAT_COS, clear_triangles
 from ..estimators.raytrace import RayScene
 from ..estimators.transfer import SAME_NORMAL, Points, bake_points, warm_tables
@@ -343,11 +343,11 @@ class BounceSource:
     gbuffer: GBuffer               # with its surface arrays
     points: Points | None          # the transfer kernel's input (N points); None once a coarser
                                    # bounce grid replaces the set's (bounce_stage.bounce_inputs)
-    rows: np.ndarray | None        # (N, K) float32 transfer of the covered texels; None once the
-                                   # bounce inputs are built (open_texels reads them)
+    open: np.ndarray               # (N,) bool: no transfer ray of the texel met geometry (bounce.open_texels,
+                                   # with the tolerance of the transfer's precision: float32 traced now, or
+                                   # half read from disk); these texels trace no bounce rays
     incident: IncidentSet | None   # the dilated transfer texture at the texels that hold a value;
                                    # None once the level-1 incident radiance is computed
-    storage: str = "float32"       # precision of rows: "float32" (traced now) or "half" (read from disk)
 
 
 @dataclasses.dataclass(eq=False)
@@ -370,7 +370,13 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     if rep.get("skipped"):
         return SetResult(gb.set_index, name, rep, [])
     traced = trace_set(ctx, geo, gb, position=position)
+    # The bounce reads of the rows only which texels are open: found beside the
+    # projection, so the rows are freed before the texture is written.
+    open_job = (ctx.helpers.submit(open_texels, traced.rows, gb.normal, ctx.settings.bands, OPEN_TOLERANCE)
+                if keep_for_bounce else None)
     sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=keep_for_bounce), gb)
+    is_open = ctx.wait(open_job) if open_job is not None else None
+    traced.rows = None
     info = traced.info
     # What the bounce reads of the texture, taken before the write consumes the planes.
     incident = IncidentSet.from_planes(sp.planes, sp.grown) if keep_for_bounce else None
@@ -384,7 +390,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
                threads=info["threads"], trace_seconds=info["seconds"])
     res = SetResult(gb.set_index, name, rep, written.files)
     if keep_for_bounce:
-        res.bounce = BounceSource(gb.set_index, name, gb, traced.points, traced.rows, incident)
+        res.bounce = BounceSource(gb.set_index, name, gb, traced.points, is_open, incident)
     return res
 
 
@@ -399,8 +405,9 @@ def load_transfer_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, old_report: 
                         f"{gb.width}x{gb.height}: bake the transfer again")
     pm = data.reshape(gb.height * gb.width, -1)    # (H, W, K) rows are already pixel-major
     incident = IncidentSet.from_pixel_major(pm, gb.width, gb.height)
-    src = BounceSource(gb.set_index, name, gb, geo.points(ctx.scene, gb.set_index, gb), pm[gb.texel], incident,
-                       storage=attrs.get("storage", "half"))
+    tol = HALF_OPEN_TOLERANCE if attrs.get("storage", "half") == "half" else OPEN_TOLERANCE
+    is_open = open_texels(pm[gb.texel], gb.normal, ctx.settings.bands, tol)
+    src = BounceSource(gb.set_index, name, gb, geo.points(ctx.scene, gb.set_index, gb), is_open, incident)
     return SetResult(gb.set_index, name, old_report, [], bounce=src)
 
 
