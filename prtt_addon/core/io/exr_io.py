@@ -184,14 +184,21 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
             file's precision (base/memory.discard_pages), so the float32
             texture and its float16 copy are never resident together; the
             planes read as zeros afterwards. The bytes written are the same.
+    ``planes`` may instead be made one plane at a time: an object with
+    ``shape`` (C, H, W) and ``channel(c)`` -> (H, W) float32 (PlaneSource;
+    texels.dilate.DilatedRows), given with its ``rng``; only one plane per
+    thread is then resident beside the file's channels.
     Returns the path written.
     """
     import OpenEXR
 
     # ZIP compression runs on OpenEXR's thread pool (~1.6x faster on 2 cores).
     OpenEXR.set_global_thread_count(os.cpu_count() or 1)
-    a = np.asarray(planes)
-    if a.ndim != 3:
+    made = hasattr(planes, "channel")      # planes made one at a time (PlaneSource)
+    if made and rng is None:
+        raise ValueError("planes made one at a time need their value range (rng)")
+    a = planes if made else np.asarray(planes)
+    if len(a.shape) != 3:
         raise ValueError(f"SH planes must be (C, H, W), got {a.shape}")
     custom_names = names is not None
     if names is not None:
@@ -205,8 +212,8 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
         names = channel_names(K, rgb)
     rng = rng if rng is not None else value_range(a, executor)
     check_finite(a, os.fspath(path), rng)
-    if half and half_overflow(a, rng):
-        raise ValueError(f"{half_overflow(a, rng)} values exceed the half-float range; write float32")
+    if half and (made and not (-HALF_MAX <= rng[0] and rng[1] <= HALF_MAX) or not made and half_overflow(a, rng)):
+        raise ValueError("values exceed the half-float range; write float32")
     dtype = np.float16 if half else np.float32
     H, W = a.shape[1:]
     lossy = half and mantissa_bits < HALF_MANTISSA_BITS
@@ -219,10 +226,10 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
         exact = [c % K == 0 for c in range(len(names))]
 
     # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).
-    consume = consume and a.flags.c_contiguous      # (each plane is copied: [::-1] below)
+    consume = consume and not made and a.flags.c_contiguous      # (each plane is copied: [::-1] below)
 
     def convert(c):
-        plane = np.ascontiguousarray(a[c, ::-1], dtype=dtype)
+        plane = np.ascontiguousarray((a.channel(c) if made else a[c])[::-1], dtype=dtype)
         plane = quantize_half(plane, mantissa_bits) if lossy and not exact[c] else plane
         if consume:
             discard_pages(a[c])

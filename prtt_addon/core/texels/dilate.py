@@ -94,3 +94,60 @@ def mip_chain(tex: np.ndarray, weight: np.ndarray, levels: int | None = None):
         w = den / 4.0
         out.append((t.astype(tex.dtype), w))
     return out
+
+
+class DilatedRows:
+    """Channel planes (C, H, W) float32 of values known at covered texels only,
+    made one plane at a time (exr_io.write_sh_planes' plane source): each
+    level's row of the channel scattered into a zero plane and dilated along
+    one plan, as :func:`dilate` dilates a whole stack (its arithmetic is per
+    channel, so the values are the same), the levels' dilated planes added
+    in order as stacks would be. Only one plane per thread is resident,
+    instead of the stack.
+
+    levels : list of (C, N) float32, column i the value at texel ``texel[i]``.
+    texel : (N,) int64 flat texel indices (row 0 = bottom) of ``mask`` (H, W).
+    """
+
+    def __init__(self, levels: list, texel: np.ndarray, mask: np.ndarray, iterations: int):
+        self.levels = levels
+        self.texel = texel
+        H, W = mask.shape
+        self.shape = (int(levels[0].shape[0]), H, W)
+        self.rings, self.grown = dilation_rings(mask, iterations)
+
+    def channel(self, c: int, levels=None) -> np.ndarray:
+        """(H, W) float32: channel ``c``, dilated, summed over ``levels`` (default all)."""
+        _, H, W = self.shape
+        out = None
+        for rows in self.levels if levels is None else levels:
+            p = np.zeros((1, H * W), np.float32)
+            p[0, self.texel] = rows[c]
+            p = p.reshape(1, H, W)
+            apply_dilation(p, self.rings)
+            if out is None:
+                out = p
+            else:
+                out += p
+        return out[0]
+
+    def value_range(self) -> tuple[float, float]:
+        """(min, max) of the planes: the levels' sum at the covered texels, and 0
+        where texels stay empty (dilated texels average covered ones, within
+        that range to rounding)."""
+        total = self.levels[0]
+        for rows in self.levels[1:]:
+            total = total + rows
+        lo, hi = (float(np.min(total)), float(np.max(total))) if total.size else (0.0, 0.0)
+        if not self.grown.all():
+            lo, hi = min(lo, 0.0), max(hi, 0.0)
+        return lo, hi
+
+    def at(self, texels: np.ndarray, level: int = -1, executor=None) -> np.ndarray:
+        """(C, n) float32: one level's dilated planes at flat texel indices ``texels``."""
+        mapper = executor.map if executor is not None else map
+        cols = mapper(lambda c: self.channel(c, [self.levels[level]]).reshape(-1)[texels], range(self.shape[0]))
+        out = np.empty((self.shape[0], texels.size), np.float32)
+        for c, v in enumerate(cols):
+            out[c] = v
+        return out

@@ -197,7 +197,7 @@ class SurfaceTexels:
 
     @property
     def glossy(self) -> bool:
-        return bool(np.any(self.spec > 0.0))
+        return bool(self.spec.strides[0] != 0 and np.any(self.spec > 0.0))
 
 
 def surface_texels(sc, gb: GBuffer, dilate_iterations: int, *, diffuse_only: bool = False) -> SurfaceTexels:
@@ -217,13 +217,17 @@ def surface_texels(sc, gb: GBuffer, dilate_iterations: int, *, diffuse_only: boo
     planes = planes.reshape(n_planes, H, W)
     grown = dilate(planes, gb.mask(), dilate_iterations).reshape(-1)
     valid = np.flatnonzero(grown)
-    rows = planes.reshape(n_planes, H * W)[:, valid].T
     row_of = np.full(H * W, valid.size, np.int32)
     row_of[valid] = np.arange(valid.size, dtype=np.int32)
-    albedo = np.ascontiguousarray(rows[:, 0:3])
     if diffuse_only:
-        zeros = np.zeros((valid.size, 3))
-        return SurfaceTexels(W, H, valid, albedo, zeros, np.zeros(valid.size), zeros, row_of)
+        albedo = np.ascontiguousarray(planes.reshape(n_planes, H * W)[:, valid].T)
+        planes = None
+        # Read-only zeros that take no memory (a full-resolution grid has millions of texels).
+        zeros3 = np.broadcast_to(np.zeros(3), (valid.size, 3))
+        return SurfaceTexels(W, H, valid, albedo, zeros3, np.broadcast_to(np.zeros(()), (valid.size,)), zeros3,
+                             row_of)
+    rows = planes.reshape(n_planes, H * W)[:, valid].T
+    albedo = np.ascontiguousarray(rows[:, 0:3])
     n = rows[:, 7:10]
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     return SurfaceTexels(W, H, valid, albedo, np.ascontiguousarray(rows[:, 3:6]),

@@ -346,23 +346,26 @@ class RelightProjection:
 def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: RelightShader,
                      st: TransferSettings, level: int, *, glossy_out: bool, shared_colour: bool = False,
                      progress=None, cancel=None, remote=None):
-    """One set's relightable level. Returns (planes (3K + G, H*W): the DC rows'
-    3K channels, then the G = C (Kg - 1) Kg glossy rows' (G = 0 when not
-    ``glossy_out``), in one array so they dilate and add up without a copy;
-    coverage mask (H, W); stats). Channel order colour, then out coefficient,
-    then light coefficient; C = 1 with ``shared_colour`` (RelightProjection),
-    else 3."""
+    """One set's relightable level. Returns (rows (3K + G, N) float32, column
+    i for covered texel ``gb.texel[i]``: the DC rows' 3K channels, then the G
+    = C (Kg - 1) Kg glossy rows' (G = 0 when not ``glossy_out``); coverage mask
+    (H, W); stats). Only the covered texels are held (texels.dilate.DilatedRows
+    makes the dilated planes one at a time as they are written). Channel
+    order colour, then out coefficient, then light coefficient; C = 1 with
+    ``shared_colour`` (RelightProjection), else 3."""
     K, kg = shader.K, shader.glossy_bands ** 2
-    HW = gb.height * gb.width
     nc = 1 if shared_colour else 3
-    planes = np.zeros((3 * K + (nc * (kg - 1) * kg if glossy_out else 0), HW), np.float32)
+    planes = np.zeros((3 * K + (nc * (kg - 1) * kg if glossy_out else 0), gb.n), np.float32)
     dc = planes[:3 * K]
     gl = planes[3 * K:] if glossy_out else None
+    column = np.zeros(gb.height * gb.width, np.int64)       # texel -> its column
+    column[gb.texel] = np.arange(gb.n, dtype=np.int64)
 
     def store(cols, result):
-        hit_kernel.store_columns(dc, cols, result[0])
+        at = column[cols]
+        hit_kernel.store_columns(dc, at, result[0])
         if gl is not None:
-            hit_kernel.store_columns(gl, cols, result[1])
+            hit_kernel.store_columns(gl, at, result[1])
 
     stats = trace_bounce_level(rs, gb, pts, skip, st, level, RelightProjection(shader, K, kg, glossy_out,
                                                                                shared_colour), store,

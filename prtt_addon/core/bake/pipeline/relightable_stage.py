@@ -15,7 +15,7 @@ import numpy as np
 
 from ...base.memory import numpy_hugepage_advice
 from ...io.exr_io import expand_shared_glossy, relight_channel_names
-from ...texels.dilate import dilate
+from ...texels.dilate import DilatedRows
 from ..estimators.bounce import bounce_settings
 from ..estimators.relightable import (
     GLOSSY_BANDS,
@@ -71,34 +71,33 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
                 continue
             t = time.perf_counter()
             lbst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
-            planes, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
-                                                   glossy_out=glossy_sets[src.index], shared_colour=shared,
-                                                   progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
+            cols, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
+                                                 glossy_out=glossy_sets[src.index], shared_colour=shared,
+                                                 progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
             ctx.seconds["bounce_trace"] += time.perf_counter() - t
             t = time.perf_counter()
-            H, W = gb.height, gb.width
-            flat = planes
-            planes = planes.reshape(-1, H, W)
-            with numpy_hugepage_advice(False):
-                # Dilation is linear with one mask: dilating each level equals dilating the sum.
-                dilate(planes, mask, st.dilate, executor=ctx.helpers)
             # The early stop reads only the DC responses to the light's DC (channels c K).
-            energy += uniform_energy(flat[0:3 * K:K][:, gb.texel].T[:, :, None])
+            energy += uniform_energy(cols[0:3 * K:K].T[:, :, None])
+            # Each level is kept at its covered texels; dilated, and the levels
+            # summed, one plane at a time as the texture is written (DilatedRows).
             if src.index in sums:
-                sums[src.index][1] += planes
+                sums[src.index][1].append(cols)
             else:
-                sums[src.index] = [src, planes, lbst.rays]
+                sums[src.index] = [src, [cols], lbst.rays, mask]
             if level < st.bounces:
                 valid = inputs.surface[src.index].valid
                 M = valid.size
-                dc_rows = np.ascontiguousarray(flat[:3 * K, valid].T.reshape(M, 3, K))
+                with numpy_hugepage_advice(False):
+                    flat = DilatedRows([cols], gb.texel, mask, st.dilate).at(valid, executor=ctx.helpers)
+                dc_rows = np.ascontiguousarray(flat[:3 * K].T.reshape(M, 3, K))
                 g_rows = None
                 if flat.shape[0] > 3 * K and shared:
                     # The next level reads what is stored: the shared rows, tinted per colour.
-                    g_rows = expand_shared_glossy(dc_rows, flat[3 * K:, valid].T.reshape(M, kg - 1, kg))
+                    g_rows = expand_shared_glossy(dc_rows, flat[3 * K:].T.reshape(M, kg - 1, kg))
                 elif flat.shape[0] > 3 * K:
-                    g_rows = np.ascontiguousarray(flat[3 * K:, valid].T.reshape(M, 3, kg - 1, kg))
+                    g_rows = np.ascontiguousarray(flat[3 * K:].T.reshape(M, 3, kg - 1, kg))
                 nxt[src.index] = RelightRows(dc_rows, g_rows)
+                flat = None
             stats.update(name=src.name, level=level, file=f"{src.name}.relight.exr", rays=lbst.rays, **extra)
             if shared and glossy_sets[src.index]:
                 stats["glossy_colour"] = "shared: tuning auto stores the glossy rows once, tinted per colour on reading"
@@ -114,7 +113,8 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
     inputs = exits = shader = rows = nxt = None
     files = []
     for i in list(sums):
-        src, planes, rays = sums.pop(i)
+        src, levels, rays, mask = sums.pop(i)
+        planes = DilatedRows(levels, src.gbuffer.texel, mask, st.dilate)
         t = time.perf_counter()
         g = glossy_sets[i]
         fname = f"{src.name}.relight.exr"
@@ -124,8 +124,8 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         if g and shared:
             attrs["glossy_colour"] = "shared"
         write_planes(ctx, fname, planes, "relight", attrs, rgb=False,
-                     names=relight_channel_names(K, kg if g else 0, g and shared), bands=st.bands, consume=True)
-        planes = None
+                     names=relight_channel_names(K, kg if g else 0, g and shared), bands=st.bands)
+        planes = levels = None
         files.append(fname)
         ctx.seconds["bounce_write"] += time.perf_counter() - t
     return BounceResult(reports, files, stopped)

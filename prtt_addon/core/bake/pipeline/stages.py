@@ -281,7 +281,8 @@ def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer) -> SetPlanes:
 def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, attrs: dict, *, rgb: bool,
                  half: bool | None = None, names: list[str] | None = None, bands: int | None = None,
                  consume: bool = False) -> bool:
-    """Write ``planes`` (C, H, W) as staged output ``fname`` (progress stage
+    """Write ``planes`` (C, H, W), or a source that makes them one at a time
+    (texels.dilate.DilatedRows), as staged output ``fname`` (progress stage
     "write"); half precision (settings.half unless given) unless values
     overflow it (a warning, then float32). ``consume``: the caller is done
     with ``planes``, which give their memory back plane by plane as they are
@@ -290,10 +291,18 @@ def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, at
     ctx.check_cancel()
     ctx.emit(type="progress", stage="write", file=fname, fraction=0.0)
     half = ctx.settings.half if half is None else half
-    rng = exr_io.value_range(planes, ctx.helpers)
-    over = exr_io.half_overflow(planes, rng) if half else 0
+    if hasattr(planes, "channel"):         # made one plane at a time (texels.dilate.DilatedRows)
+        rng = planes.value_range()
+        over = half and not (-exr_io.HALF_MAX <= rng[0] and rng[1] <= exr_io.HALF_MAX)
+        if over:
+            ctx.warn(f"{fname}: values up to {max(-rng[0], rng[1]):.6g} exceed the half-float range; "
+                     f"stored as float32")
+    else:
+        rng = exr_io.value_range(planes, ctx.helpers)
+        over = exr_io.half_overflow(planes, rng) if half else 0
+        if over:
+            ctx.warn(f"{fname}: {over} values exceed the half-float range; stored as float32")
     if over:
-        ctx.warn(f"{fname}: {over} values exceed the half-float range; stored as float32")
         half = False
     # Tuning auto rounds the half coefficients of bands l >= 1 (context.AUTO_MANTISSA_BITS),
     # and every relightable channel but the DC-to-DC one.
