@@ -107,25 +107,18 @@ def job_light(extra: dict, override=None):
 
 
 def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
-    """Refuse (MemoryLimitError) a job whose arrays plus the bake's estimate do
-    not fit in the available memory, from its headers alone (before loading)."""
-    import numpy as np
-
+    """Refuse (MemoryLimitError) a job whose arrays do not fit in the available
+    memory, from its headers alone (before loading). The bake's own estimate,
+    which needs the loaded UV layout, is checked once the job is loaded
+    (core/bake/pipeline/plan.check_memory); ``st``, ``resolution`` and
+    ``bouncing`` are kept for callers that pass them."""
     # Deferred imports (start-up): the worker installs its signal handlers
     # before numpy, Embree and the bake load, so a SIGTERM during start-up is a
     # clean cancel (exit 3), not a kill.
-    from .core.bake.pipeline.plan import bake_memory_bytes  # deferred (start-up)
     from .core.base.memory import GiB, check_fits  # deferred (start-up)
-    from .core.model.scene import MAX_RESOLUTION  # deferred (start-up)
-    res = job.set_resolution() if resolution is None else np.full((len(job.set_resolution()), 2), resolution)
-    # An out-of-range resolution fails validation with its own message; here it
-    # must not fail first as an absurd memory need: such sets count as 1 texel.
-    res = np.asarray(res).reshape(-1, 2)
-    res = np.where((res >= 1) & (res <= MAX_RESOLUTION), res, 1).astype(np.int64)
     arrays = job.peak_bytes()
-    bake = bake_memory_bytes(res, st, n_triangles=job.members["positions"].shape[0], bouncing=bouncing)
-    check_fits(arrays + bake, f"job {job.path} (its arrays {arrays / GiB:.2f} GiB, the bake "
-                              f"{bake / GiB:.2f} GiB)")
+    check_fits(arrays, f"loading job {job.path} (its arrays {arrays / GiB:.2f} GiB)",
+               advice="the job's scene is too large for this machine")
 
 
 def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
@@ -176,6 +169,13 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
         return EXIT_CANCELLED
     except (SceneError, BakeError, MemoryLimitError, UnwrapError, ValueError, OSError) as exc:
         emit({"type": "error", "error": type(exc).__name__, "message": str(exc)})
+        return EXIT_FAILED
+    except MemoryError as exc:
+        # The estimate passed but the memory ran out (another process took it, or a
+        # limit the estimate could not see): the staged files are already removed.
+        emit({"type": "error", "error": "MemoryError",
+              "message": f"out of memory during the bake ({exc or 'allocation failed'}); the previous outputs in "
+                         f"{out_dir} are unchanged. Free memory, or lower --resolution, --bands or the bounces"})
         return EXIT_FAILED
     except Exception as exc:  # report, never die silently
         emit({"type": "error", "error": type(exc).__name__, "message": str(exc),

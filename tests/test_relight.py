@@ -154,25 +154,6 @@ def test_relightable_bakes_without_a_light_and_refuses_denoising(tmp_path):
                                                       bounce_denoise="edge-aware"), light=None)
 
 
-def test_memory_estimate_counts_the_relightable_operator():
-    from prtt_addon.core.bake.pipeline.memory_plan import bounce_resident_bytes, relight_resident_bytes
-    from prtt_addon.core.bake.pipeline.plan import bake_memory_bytes
-    res = np.array([[1024, 1024]])
-    for tuning, colours in (("fixed", 3), ("auto", 1)):
-        baked = bake_memory_bytes(res, BakeSettings(bounces=1, tuning=tuning,
-                                                    bounce_mode="baked"), n_triangles=10, bouncing=True)
-        relit = bake_memory_bytes(res, BakeSettings(bounces=1, bounce_mode="relightable", tuning=tuning),
-                                  n_triangles=10, bouncing=True)
-        assert relit - baked == (relight_resident_bytes(1024, 1024, 25, 9, colours)
-                                 - bounce_resident_bytes(1024, 1024, 25))
-    # Per colour: 291 operator channels held four times against 75 bounce channels; shared rows
-    # (147 stored channels) count less, but the next level's tinted rows still per colour.
-    per, shared = relight_resident_bytes(1024, 1024, 25, 9), relight_resident_bytes(1024, 1024, 25, 9, 1)
-    assert per == 1024 * 1024 * (4 * (4 * 291 + 6) + 220)
-    assert shared == 1024 * 1024 * (4 * (2 * 147 + 2 * 291 + 6) + 220)
-    assert per > 4 * bounce_resident_bytes(1024, 1024, 25)
-
-
 @pytest.mark.parametrize("header", [{"glossy_bands": 100000}, {"bands": 10**6}, {"bands": "five"}])
 def test_forged_band_counts_are_refused_before_listing_channels(tmp_path, header):
     """A texture's header is untrusted: a band count beyond the bake's limit is

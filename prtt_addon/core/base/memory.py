@@ -23,6 +23,47 @@ class MemoryLimitError(RuntimeError):
 
 
 def available_bytes() -> int | None:
+    """Bytes this process can still allocate: the least of the machine's
+    MemAvailable (/proc/meminfo; else its free physical pages), its cgroup's
+    memory.max less memory.current (a container's or systemd unit's limit)
+    and its address-space limit (RLIMIT_AS, ``ulimit -v``) less what it has
+    mapped (VmSize). None where nothing is known."""
+    limits = [v for v in (_machine_available(), _cgroup_available(), _address_space_available()) if v is not None]
+    return max(0, min(limits)) if limits else None
+
+
+def _cgroup_available() -> int | None:
+    """memory.max - memory.current of this process's cgroup (v2), or None (no limit, not Linux)."""
+    try:
+        with open("/proc/self/cgroup", encoding="ascii") as f:
+            path = next((line.strip().split("::", 1)[1] for line in f if line.startswith("0::")), None)
+        if path is None:
+            return None
+        base = os.path.join("/sys/fs/cgroup", path.lstrip("/"))
+        with open(os.path.join(base, "memory.max"), encoding="ascii") as f:
+            top = f.read().strip()
+        if top == "max":
+            return None
+        with open(os.path.join(base, "memory.current"), encoding="ascii") as f:
+            return int(top) - int(f.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def _address_space_available() -> int | None:
+    """RLIMIT_AS less this process's mapped bytes (VmSize), or None without a limit."""
+    try:
+        import resource
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    except (ImportError, OSError, ValueError):
+        return None
+    if soft == resource.RLIM_INFINITY:
+        return None
+    size = _status_mb("VmSize:")
+    return int(soft - (size or 0) * 1024 * 1024)
+
+
+def _machine_available() -> int | None:
     """MemAvailable from /proc/meminfo (Linux), else physical pages, else None."""
     try:
         with open("/proc/meminfo", encoding="ascii") as f:
@@ -37,13 +78,15 @@ def available_bytes() -> int | None:
         return None
 
 
-def check_fits(needed: int, what: str, *, fraction: float = 0.8) -> None:
-    """Raise MemoryLimitError if ``needed`` exceeds ``fraction`` of available memory."""
+def check_fits(needed: int, what: str, *, fraction: float = 0.8, advice: str | None = None) -> None:
+    """Raise MemoryLimitError if ``needed`` exceeds ``fraction`` of available
+    memory (the least of the machine's and this process's limits:
+    :func:`available_bytes`); the message names both and ``advice``."""
     avail = available_bytes()
     if avail is not None and needed > fraction * avail:
         raise MemoryLimitError(
-            f"{what} needs about {needed / GiB:.1f} GiB but only {avail / GiB:.1f} GiB is "
-            f"available; lower the resolution or the bands, or bake fewer sets at once")
+            f"{what} needs about {needed / GiB:.2f} GiB but only {avail / GiB:.2f} GiB is "
+            f"available; {advice or 'lower the resolution or the bands, or bake fewer sets at once'}")
 
 
 def _numpy_hugepage_switch():

@@ -164,7 +164,8 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
                     rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
                     executor=None, rng: tuple[float, float] | None = None,
                     names: list[str] | None = None, bands: int | None = None,
-                    mantissa_bits: int = HALF_MANTISSA_BITS, full_bits=None, consume: bool = False) -> str:
+                    mantissa_bits: int = HALF_MANTISSA_BITS, full_bits=None, consume: bool = False,
+                    visit=None) -> str:
     """Write an SH texture from channel-first ``planes`` (C, H, W), row 0 at the bottom.
 
     C = K for kind "transfer", 3K when ``rgb`` (bounce; R.sh000.., G.., B..).
@@ -184,6 +185,9 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
             file's precision (base/memory.discard_pages), so the float32
             texture and its float16 copy are never resident together; the
             planes read as zeros afterwards. The bytes written are the same.
+    visit : called as visit(c, plane) with each float32 plane (H, W), row 0 at
+            the bottom, before it is converted (and, with ``consume``, given
+            back): what else the caller takes of the planes on the way.
     ``planes`` may instead be made one plane at a time: an object with
     ``shape`` (C, H, W) and ``channel(c)`` -> (H, W) float32 (PlaneSource;
     texels.dilate.DilatedRows), given with its ``rng``; only one plane per
@@ -229,7 +233,10 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     consume = consume and not made and a.flags.c_contiguous      # (each plane is copied: [::-1] below)
 
     def convert(c):
-        plane = np.ascontiguousarray((a.channel(c) if made else a[c])[::-1], dtype=dtype)
+        src = a.channel(c) if made else a[c]
+        if visit is not None:
+            visit(c, src)
+        plane = np.ascontiguousarray(src[::-1], dtype=dtype)
         plane = quantize_half(plane, mantissa_bits) if lossy and not exact[c] else plane
         if consume:
             discard_pages(a[c])

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..base.memory import discard_pages
+
 
 def pixel_major(tex_chw: np.ndarray) -> np.ndarray:
     """(C, H, W) -> (H * W, C) float32, rows contiguous: one gather per texel."""
@@ -22,7 +24,7 @@ def pixel_major(tex_chw: np.ndarray) -> np.ndarray:
 
 
 def planes_from_rows(texel: np.ndarray, rows: np.ndarray, n_texels: int, *,
-                     executor=None, block: int = 4096) -> np.ndarray:
+                     executor=None, block: int = 4096, visit=None, consume: bool = False) -> np.ndarray:
     """Channel planes (C, n_texels) float32 holding ``rows`` (N, C) at ``texel``
     (N,) (strictly ascending), zero elsewhere.
 
@@ -32,7 +34,16 @@ def planes_from_rows(texel: np.ndarray, rows: np.ndarray, n_texels: int, *,
     ~4x slower). Texels between spans are never written, so the empty parts of
     a sparse atlas stay untouched zero pages. With an ``executor`` two threads
     share the spans.
+
+    visit : called as visit(a, b) for each run of rows a..b - 1 once it is in
+            the planes (from the thread that placed it): what else the caller
+            reads of those rows, before ``consume`` lets them go.
+    consume : ``rows`` (C-contiguous, done with) give each run's pages back to
+            the OS once it is placed (base/memory.discard_pages): the rows
+            and the planes are never both whole in memory. The rows read as
+            zeros afterwards.
     """
+    consume = consume and rows.flags.c_contiguous
     n, C = rows.shape
     if texel.shape != (n,):
         raise ValueError(f"texel must have shape ({n},), got {texel.shape}")
@@ -46,6 +57,10 @@ def planes_from_rows(texel: np.ndarray, rows: np.ndarray, n_texels: int, *,
             span = np.zeros((C, hi - lo), np.float32)
             span[:, texel[a:b] - lo] = rows[a:b].T
             planes[:, lo:hi] = span
+            if visit is not None:
+                visit(a, b)
+            if consume:
+                discard_pages(rows[a:b])
 
     if executor is not None and len(starts) > 1:
         mid = len(starts) // 2

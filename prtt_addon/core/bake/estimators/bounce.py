@@ -133,15 +133,25 @@ class IncidentSet:
         return cls(rows, valid, width, height)
 
     @classmethod
+    def empty(cls, grown: np.ndarray, channels: int) -> "IncidentSet":
+        """Zeros at the texels of mask ``grown`` (H, W) (texels.dilate.dilate's
+        return), for :meth:`take` to fill plane by plane."""
+        H, W = grown.shape
+        valid = np.flatnonzero(grown.reshape(-1))
+        return cls(np.zeros((valid.size + 1, channels), np.float32), valid, W, H)
+
+    def take(self, c: int, plane: np.ndarray) -> None:
+        """Channel ``c`` from its plane (H, W), zero outside ``valid`` (threads may take different channels)."""
+        self.rows[:-1, c] = plane.reshape(-1)[self.valid]
+
+    @classmethod
     def from_planes(cls, planes: np.ndarray, grown: np.ndarray) -> "IncidentSet":
         """From channel planes (C, H, W) that are zero outside mask ``grown`` (H, W)
         (texels.dilate.dilate's return), one plane at a time: no pixel-major copy."""
-        C, H, W = planes.shape
-        valid = np.flatnonzero(grown.reshape(-1))
-        rows = np.zeros((valid.size + 1, C), np.float32)
-        for c in range(C):
-            rows[:-1, c] = planes[c].reshape(-1)[valid]
-        return cls(rows, valid, W, H)
+        out = cls.empty(grown, planes.shape[0])
+        for c in range(planes.shape[0]):
+            out.take(c, planes[c])
+        return out
 
     @property
     def channels(self) -> int:

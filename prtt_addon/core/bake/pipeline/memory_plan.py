@@ -1,56 +1,135 @@
-"""What a bake will hold in memory, estimated before it starts (plan.py
-checks the sum against the memory available, base/memory.check_fits)."""
+"""What a bake will hold in memory, estimated before it starts, stage by stage
+(plan.check_memory checks the largest against the memory available,
+base/memory.check_fits; the manifest's ``memory`` records it beside the peak
+each stage measured).
+
+The model follows what each stage holds (stages.py, bounce_stage.py,
+relightable_stage.py), per texture set of A = W x H texels of which N are
+covered (estimated from the UV layout's area: :func:`covered_texels`) and V
+hold a value once dilated (N and the dilation rings around every island).
+K = bands², C the relightable channels (3K + the glossy rows). Bytes:
+
+* every stage: the process (Python, numpy, numba's kernels, Embree: BASE),
+  the scene's arrays and its BVH (:func:`scene_bytes`);
+* G-buffer: the G-buffer and its rasteriser's temporaries, GBUFFER_BUILD a texel;
+* trace and projection: the G-buffer and kernel points (SURFACE a texel), the
+  traced rows 4 K N, the float32 planes 4 K A;
+* write: the planes (given back plane by plane as they become the file's
+  channels), and when the bake bounces the texture at its valid texels 4 K V;
+* bounce (relightable): on the bounce grid (1/f per side: A/f², N/f², V/f²
+  texels) the G-buffer and points, the surface (SURFACE_SHADING a valid
+  texel), the glossy exit table 4 Kg² V, and each set's traced columns
+  4 C N (held until written); on the transfer's grid the diffuse exit table
+  4 K V and the albedo (FINE_DIFFUSE a valid texel). Baked bounces hold the
+  level's (3K, A) planes and exit rows instead;
+* sets baked earlier keep, when bouncing, their surface and texture (SURFACE
+  N + 4 K V) until the bounce.
+
+The constants are measured (bench memory: the demo room at 512² to 4096²,
+the 1.27M-triangle room and bunnies); docs/benchmarks.md tabulates the
+estimate against the measured peak.
+"""
 from __future__ import annotations
 
-from ..estimators.transfer import SHARED_FACTOR
+import math
+
+import numpy as np
+
+MiB = 1 << 20
+
+#: The bake process before any set: interpreter, numpy, numba's compiled kernels, Embree's allocator.
+BASE = 180 * MiB
+#: Bytes a scene triangle holds: the job's arrays (positions, normals, UVs, ids) and Embree's BVH.
+TRIANGLE = 400
+#: The G-buffer while it is built: the merged arrays and the row bands' rasteriser temporaries.
+GBUFFER_BUILD = 240
+#: A covered texel's G-buffer (position, normals, barycentrics, ids: 117 B) and kernel points (17 B).
+SURFACE = 134
+#: A valid texel's shading on the bounce grid: albedo, spec, exponent, normal (float64), exit scales.
+SURFACE_SHADING = 120
+#: A valid texel of the transfer's grid that level 1's diffuse light leaves from: albedo, scale, row.
+FINE_DIFFUSE = 40
+#: Dilation rings: V = N (1 + RING * dilate / sqrt(A)) (the islands' perimeters in texels).
+RING = 18.0
+#: Covered texels: N = UV area x A (1 + EDGE / sqrt(A)) (conservative rasterisation of island edges).
+EDGE = 30.0
+#: One trace thread's ray chunk: rays x (origin, direction, hits) bytes.
+RAY_BYTES = 66
 
 
-def set_bytes(width: int, height: int, n_coeffs: int, *, rgb: bool = False,
-              threads: int = 2, chunk_rays: int = 1 << 19, rays: int = 256,
-              bounce: bool = False) -> int:
-    """Peak bytes for baking one texture set (measured structure, rounded up):
+def covered_texels(uv_area: float, width: int, height: int) -> int:
+    """Texels a UV layout of total area ``uv_area`` (unit square = 1) covers at W x H."""
+    A = width * height
+    return int(min(A, uv_area * A * (1.0 + EDGE / math.sqrt(max(A, 1)))))
 
-    * the float32 texture and the kernels' texel rows (or the dilation's copy):
-      2 x W H K' x 4 (K' = 3K for RGB);
-    * the G-buffer, <= W H texels x ~160 B (positions, normals, ids, barycentrics);
-    * rasteriser temporaries, bounded by its chunk: ~200 MB per G-buffer row
-      band, max(2, threads) bands built at once;
-    * per thread: rays of one chunk x ~64 B (origins, directions, results) plus
-      the chunk's occlusion bits (texels x rays bytes), or a shared-frame chunk
-      (transfer.SHARED_FACTOR x as many rays, 9 B each), whichever is larger;
-    * with bounces, what stays resident for every set until the last level:
-      see :func:`bounce_resident_bytes`.
+
+def valid_texels(covered: int, width: int, height: int, dilate: int) -> int:
+    """Texels that hold a value once ``dilate`` rings are grown around ``covered`` ones."""
+    A = width * height
+    return int(min(A, covered * (1.0 + RING * dilate / math.sqrt(max(A, 1)))))
+
+
+def uv_areas(uvs: np.ndarray, set_id: np.ndarray, n_sets: int) -> np.ndarray:
+    """(S,) total UV area of each set's triangles (uvs (T, 3, 2), set_id (T,), -1 = not baked)."""
+    uv = np.asarray(uvs, np.float64)
+    a = 0.5 * np.abs((uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1])
+                     - (uv[:, 2, 0] - uv[:, 0, 0]) * (uv[:, 1, 1] - uv[:, 0, 1]))
+    sid = np.asarray(set_id)
+    ok = (sid >= 0) & np.isfinite(a)
+    return np.bincount(sid[ok], weights=a[ok], minlength=n_sets)[:n_sets]
+
+
+def scene_bytes(n_triangles: int) -> int:
+    """The scene's arrays and Embree's BVH (per triangle)."""
+    return TRIANGLE * int(n_triangles)
+
+
+def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int = 2,
+                chunk_rays: int = 1 << 19, mips: bool = False, bounces: int = 0,
+                bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
+                glossy_coeffs: int = 0) -> dict[str, int]:
+    """Estimated peak bytes of each stage of a bake.
+
+    sets : (width, height, covered texels) per texture set being baked, in bake order.
+    bounces : levels baked (0: none); downscale: the bounce grid's 1/f per
+    side (bounce_stage.asked_downscale); relight_channels: C of a
+    relightable texture; glossy_coeffs: Kg² of its glossy exit table (0: none).
+    Returns {stage: bytes} with the stage names of the manifest's ``memory``.
     """
-    k = n_coeffs * (3 if rgb else 1)
-    texels = width * height
-    return (2 * texels * k * 4 + texels * 160 + max(2, threads) * 200 * 1024 ** 2
-            + threads * chunk_rays * max(64 + 2, 9 * SHARED_FACTOR)
-            + (bounce_resident_bytes(width, height, n_coeffs) if bounce else 0))
+    K = bands * bands
+    base = BASE + scene_bytes(n_triangles)
+    chunks = max(1, threads) * chunk_rays * RAY_BYTES
+    out = {"setup": base, "gbuffer": 0, "trace": 0, "write transfer": 0}
+    held = 0                                   # what earlier sets keep for the bounce
+    for w, h, n in sets:
+        A = w * h
+        v = valid_texels(n, w, h, dilate)
+        planes = 4 * K * A * (4 / 3 if mips else 1)
+        out["gbuffer"] = max(out["gbuffer"], base + held + GBUFFER_BUILD * n)
+        out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + int(planes) + chunks)
+        keep = SURFACE * n + 4 * K * v if bounces else 0
+        out["write transfer"] = max(out["write transfer"], base + held + int(planes) + keep)
+        held += keep
+    if bounces:
+        f2 = max(1, downscale) ** 2
+        total = base + chunks
+        for w, h, n in sets:
+            A = w * h
+            v = valid_texels(n, w, h, dilate)
+            wc, hc = max(1, w // max(1, downscale)), max(1, h // max(1, downscale))
+            nc = max(1, n // f2)
+            vc = valid_texels(nc, wc, hc, dilate)
+            if bounce_mode == "relightable":
+                total += (SURFACE * nc + SURFACE_SHADING * vc + 4 * glossy_coeffs * vc
+                          + 4 * relight_channels * nc * min(bounces, 2) + 12 * wc * hc)
+            else:
+                total += SURFACE * nc + SURFACE_SHADING * vc + 4 * 3 * K * (wc * hc + 2 * vc)
+            total += 4 * K * v + FINE_DIFFUSE * v + 8 * A if f2 > 1 else 4 * K * v
+        out["bounce"] = total
+    return out
 
 
-def bvh_bytes(n_triangles: int) -> int:
-    """Embree's scene for ``n_triangles``: its vertex and index buffers and the BVH,
-    measured 243 MB for 2M triangles (robust build), plus the float32 copy of
-    one build chunk: ~128 B a triangle."""
-    return 128 * int(n_triangles)
-
-
-def bounce_resident_bytes(width: int, height: int, n_coeffs: int) -> int:
-    """Bytes a set keeps in memory during bounce levels, per texel: its incident
-    radiance at the valid texels (3K floats), its exit rows (3 + 6 + 3K floats,
-    read by every set's rays), the level being baked (3K floats), its surface
-    texels (10 doubles) and its G-buffer (~140 B): 4 (9K + 9) + 220."""
-    return width * height * (4 * (9 * n_coeffs + 9) + 220)
-
-
-def relight_resident_bytes(width: int, height: int, n_coeffs: int, glossy_coeffs: int,
-                           glossy_colours: int = 3) -> int:
-    """bounce_resident_bytes for relightable bounces (relightable_stage.py): per
-    texel C = 3K + g (Kg - 1) Kg floats of stored operator (g = glossy_colours:
-    3, or 1 for glossy rows shared between colours), held twice (the sum over
-    levels, the level being baked), and C3 (g = 3) twice more (the next
-    level's rows, tinted per colour, and exit rows of at most C3 + 6 floats),
-    surface texels and G-buffer: 4 (2 C + 2 C3 + 6) + 220."""
-    glossy = (glossy_coeffs - 1) * glossy_coeffs
-    C, C3 = 3 * n_coeffs + glossy_colours * glossy, 3 * n_coeffs + 3 * glossy
-    return width * height * (4 * (2 * C + 2 * C3 + 6) + 220)
+def peak_stage(stages: dict[str, int]) -> tuple[str, int]:
+    """(stage, bytes) of the largest estimate."""
+    name = max(stages, key=stages.get)
+    return name, stages[name]

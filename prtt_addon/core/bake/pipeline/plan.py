@@ -25,7 +25,7 @@ from ...shading.shade import light_hash
 from ..estimators import denoise
 from ..estimators.relightable import GLOSSY_BANDS, relight_shared_colour
 from .context import MANIFEST, BakeContext, BakeSettings
-from .memory_plan import bounce_resident_bytes, bvh_bytes, relight_resident_bytes, set_bytes
+from .memory_plan import covered_texels, peak_stage, stage_bytes, uv_areas
 
 
 def settings_hash(settings: BakeSettings) -> str:
@@ -79,21 +79,35 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
     return h.hexdigest()
 
 
-def bake_memory_bytes(set_resolution, st: BakeSettings, *, n_triangles: int, bouncing: bool) -> int:
-    """Peak bytes a bake adds to its scene's arrays: Embree's BVH, the largest
-    set (memory_plan.set_bytes) and, with bounces, every set's resident textures.
-    ``set_resolution`` (S, 2) (width, height)."""
+def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool) -> dict[str, int]:
+    """Estimated peak bytes of each stage of a bake (memory_plan.stage_bytes).
+    ``set_sizes``: (width, height, covered texels) per set baked, in order
+    (covered: memory_plan.covered_texels of the set's UV area)."""
+    from .bounce_stage import asked_downscale  # deferred: bounce_stage imports this module
+
     K = st.bands ** 2
-    per_set = resident = 0
-    for w, h in np.asarray(set_resolution).reshape(-1, 2).tolist():
-        per_set = max(per_set, set_bytes(int(w), int(h), K, threads=st.n_threads, chunk_rays=st.chunk_rays,
-                                         rays=st.rays))
-        if bouncing and st.bounce_mode == "relightable":
-            kg = min(GLOSSY_BANDS, st.bands) ** 2
-            resident += relight_resident_bytes(int(w), int(h), K, kg, 1 if relight_shared_colour(st) else 3)
-        elif bouncing:
-            resident += bounce_resident_bytes(int(w), int(h), K)
-    return bvh_bytes(n_triangles) + per_set + resident
+    kg = min(GLOSSY_BANDS, st.bands) ** 2
+    colours = 1 if relight_shared_colour(st) else 3
+    return stage_bytes([tuple(int(v) for v in s) for s in set_sizes], bands=st.bands, dilate=st.dilate,
+                       n_triangles=n_triangles, threads=st.n_threads, chunk_rays=st.chunk_rays, mips=st.mips,
+                       bounces=st.bounces if bouncing else 0, bounce_mode=st.bounce_mode,
+                       downscale=asked_downscale(st.bounces, st.tuning, st.bounce_downscale),
+                       relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg)
+
+
+def bake_memory_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool) -> int:
+    """The largest of :func:`bake_stage_bytes`: the bake's estimated peak."""
+    return peak_stage(bake_stage_bytes(set_sizes, st, n_triangles=n_triangles, bouncing=bouncing))[1]
+
+
+def scene_set_sizes(sc, set_ids) -> list[tuple[int, int, int]]:
+    """(width, height, covered texels estimated from the UV area) of sets ``set_ids`` of ``sc``."""
+    areas = uv_areas(sc.uvs, sc.set_id, sc.n_sets)
+    out = []
+    for s in set_ids:
+        w, h = (int(v) for v in sc.set_resolution[s])
+        out.append((w, h, covered_texels(float(areas[s]), w, h)))
+    return out
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -184,16 +198,19 @@ def reusable(ctx: BakeContext, old: dict | None, in_hash: str, set_hash: str, b_
 
 
 def check_memory(ctx: BakeContext, plan: BakePlan) -> None:
-    """MemoryLimitError unless each set (with the BVH) fits, and, when bouncing,
-    every set's textures that stay resident until the last level. Before
-    anything of the bake is allocated."""
-    sc, st, K = ctx.scene, ctx.settings, ctx.n_coeffs
-    resident = 0
-    for s in ctx.set_ids:
-        w, h = (int(v) for v in sc.set_resolution[s])
-        check_fits(set_bytes(w, h, K, threads=st.n_threads, chunk_rays=st.chunk_rays, rays=st.rays,
-                             bounce=plan.bouncing) + bvh_bytes(sc.n_triangles),
-                   f"texture set {sc.set_names[s]!r} at {w}x{h}, {st.bands} bands")
-        resident += bounce_resident_bytes(w, h, K) if plan.bouncing else 0
-    if resident:
-        check_fits(resident, f"bouncing light between {len(ctx.set_ids)} texture sets (all stay in memory)")
+    """MemoryLimitError unless the bake's estimated peak (:func:`bake_stage_bytes`:
+    the largest stage) fits in the memory available, before anything of the
+    bake is allocated; the estimate goes into the manifest's ``memory``. The
+    refusal names the estimate, the memory available and what to lower."""
+    sc, st = ctx.scene, ctx.settings
+    sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
+    stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing)
+    stage, need = peak_stage(stages)
+    ctx.memory.estimate_mb = round(need / 2 ** 20, 1)
+    biggest = max(sizes, key=lambda s: s[0] * s[1], default=None)
+    what = (f"the bake ({len(sizes)} texture set(s), the largest {biggest[0]}x{biggest[1]}, {st.bands} bands"
+            + (f", {st.bounces} {st.bounce_mode} bounce(s)" if plan.bouncing else "") + f"; its peak: {stage})"
+            if biggest else "the bake")
+    check_fits(need, what, advice="lower --resolution (memory grows with texels), --bands, or the bounces "
+                                   "(--bounces, --bounce-downscale 2 or 4), or give the objects smaller "
+                                   "texture sets")

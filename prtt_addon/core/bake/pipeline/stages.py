@@ -241,22 +241,24 @@ class SetPlanes:
     grown: np.ndarray | None = None   # (H, W) bool: the texels that hold a value once dilated
 
 
-def project_rows(ctx: BakeContext, traced: SetRows, *, keep_rows: bool = True) -> SetPlanes:
-    """The set's channel planes holding its texel rows, zero elsewhere.
+def project_rows(ctx: BakeContext, traced: SetRows, *, keep_rows: bool = True,
+                 visit=None) -> SetPlanes:
+    """The set's channel planes holding its texel rows, zero elsewhere. The
+    rows are consumed as they are placed (texsample.planes_from_rows: rows
+    and planes are never both whole in memory; traced.rows becomes None);
+    ``visit(a, b)`` reads rows a..b - 1 first (the bounce's open texels).
 
     keep_rows False (a set that does not bounce): the points and the
-    G-buffer's surface are dropped before the planes are allocated and the
-    rows after, so the peak stays below G-buffer + planes (traced.points and
-    traced.rows become None)."""
+    G-buffer's surface are dropped before the planes are allocated
+    (traced.points becomes None)."""
     t = time.perf_counter()
     if not keep_rows:
         traced.release_surface()
     gb = traced.gbuffer
     texel = gb.texel
-    tex = planes_from_rows(texel, traced.rows, gb.height * gb.width,
-                           executor=ctx.helpers).reshape(ctx.n_coeffs, gb.height, gb.width)
-    if not keep_rows:
-        traced.rows = None
+    tex = planes_from_rows(texel, traced.rows, gb.height * gb.width, executor=ctx.helpers, visit=visit,
+                           consume=True).reshape(ctx.n_coeffs, gb.height, gb.width)
+    traced.rows = None
     mask = np.zeros(gb.height * gb.width, bool)
     mask[texel] = True
     ctx.seconds["dilate"] += time.perf_counter() - t
@@ -280,14 +282,14 @@ def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer) -> SetPlanes:
 
 def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, attrs: dict, *, rgb: bool,
                  half: bool | None = None, names: list[str] | None = None, bands: int | None = None,
-                 consume: bool = False) -> bool:
+                 consume: bool = False, visit=None) -> bool:
     """Write ``planes`` (C, H, W), or a source that makes them one at a time
     (texels.dilate.DilatedRows), as staged output ``fname`` (progress stage
     "write"); half precision (settings.half unless given) unless values
     overflow it (a warning, then float32). ``consume``: the caller is done
     with ``planes``, which give their memory back plane by plane as they are
-    converted (exr_io.write_sh_planes) and read as zeros afterwards. Returns
-    whether it was written as half."""
+    converted (exr_io.write_sh_planes) and read as zeros afterwards;
+    ``visit(c, plane)`` sees each plane first. Returns whether it was written as half."""
     ctx.check_cancel()
     ctx.emit(type="progress", stage="write", file=fname, fraction=0.0)
     half = ctx.settings.half if half is None else half
@@ -310,7 +312,7 @@ def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, at
                            attrs=attrs, atomic=False, executor=ctx.helpers, rng=rng, names=names, bands=bands,
                            mantissa_bits=ctx.settings.storage_bits(),
                            full_bits=None if names is None else exr_io.relight_full_bits(names),
-                           consume=consume)
+                           consume=consume, visit=visit)
     return half
 
 
@@ -322,10 +324,12 @@ class SetFiles:
     half: bool                     # stored as float16 (all of the set's files alike)
 
 
-def write_set(ctx: BakeContext, plan: BakePlan, gb: GBuffer, sp: SetPlanes, info: dict) -> SetFiles:
+def write_set(ctx: BakeContext, plan: BakePlan, gb: GBuffer, sp: SetPlanes, info: dict, *,
+              visit=None) -> SetFiles:
     """Stage the set's transfer texture and its mips (the mips in the texture's
     precision). Consumes ``sp``: its planes give their memory back as they are
-    written and read as zeros afterwards (write_planes)."""
+    written and read as zeros afterwards (write_planes); ``visit(c, plane)``
+    sees each plane of the texture first."""
     st = ctx.settings
     name = ctx.scene.set_names[gb.set_index]
     t = time.perf_counter()
@@ -333,7 +337,7 @@ def write_set(ctx: BakeContext, plan: BakePlan, gb: GBuffer, sp: SetPlanes, info
                  texels=int(gb.n), analytic_texels=info["analytic_points"])
     fname = f"{name}.transfer.exr"
     ctx.check_cancel()
-    half = write_planes(ctx, fname, sp.planes, "transfer", attrs, rgb=False, consume=True)
+    half = write_planes(ctx, fname, sp.planes, "transfer", attrs, rgb=False, consume=True, visit=visit)
     files = [fname]
     for lvl, (mt, _) in enumerate(sp.mips, start=1):
         mname = f"{name}.transfer.mip{lvl}.exr"
@@ -379,17 +383,20 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     if rep.get("skipped"):
         return SetResult(gb.set_index, name, rep, [])
     traced = trace_set(ctx, geo, gb, position=position)
-    # The bounce reads of the rows only which texels are open: found beside the
-    # projection, so the rows are freed before the texture is written.
-    open_job = (ctx.helpers.submit(open_texels, traced.rows, gb.normal, ctx.settings.bands, OPEN_TOLERANCE)
-                if keep_for_bounce else None)
-    sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=keep_for_bounce), gb)
-    is_open = ctx.wait(open_job) if open_job is not None else None
-    traced.rows = None
+    # The bounce reads of the rows only which texels are open: found as the rows
+    # are projected (and consumed), run by run.
+    is_open = np.zeros(gb.n, bool) if keep_for_bounce else None
+    rows = traced.rows
+
+    def opened(a, b):
+        is_open[a:b] = open_texels(rows[a:b], gb.normal[a:b], ctx.settings.bands, OPEN_TOLERANCE)
+    sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=keep_for_bounce,
+                                          visit=opened if keep_for_bounce else None), gb)
+    rows = None
     info = traced.info
-    # What the bounce reads of the texture, taken before the write consumes the planes.
-    incident = IncidentSet.from_planes(sp.planes, sp.grown) if keep_for_bounce else None
-    written = write_set(ctx, plan, gb, sp, info)
+    # What the bounce reads of the texture, taken plane by plane as the write consumes them.
+    incident = IncidentSet.empty(sp.grown, ctx.n_coeffs) if keep_for_bounce else None
+    written = write_set(ctx, plan, gb, sp, info, visit=incident.take if incident is not None else None)
     sp = None
     rep.update(file=written.files[0], storage="half" if written.half else "float",
                analytic_texels=info["analytic_points"], traced_texels=info["traced_points"],
