@@ -2,6 +2,8 @@
 import sys
 
 BENCHMARKS = {
+    "memory": ("prtt_addon.bench.memory_bench", "peak memory and seconds against texels and triangles, per stage and "
+               "process (bake worker, Blender side, render), the estimate against the measured peak"),
     "bake": ("prtt_addon.bench.bake_bench", "transfer bake vs raw Embree on the room-class scene"),
     "bounce": ("prtt_addon.bench.bounce_bench", "inter-reflection bake on the room-class scene"),
     "auto": ("prtt_addon.bench.auto_bench", "per-set tuning vs the fixed bake: time, bytes, preview image error"),

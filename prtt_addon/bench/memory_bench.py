@@ -83,8 +83,8 @@ def texture_bytes(folder: str) -> dict:
             h = ef.header()
             (x0, y0), (x1, y1) = h["dataWindow"]
             texels = (x1 - x0 + 1) * (y1 - y0 + 1)
-            chans = h["channels"]
-            out[f] = sum(texels * (2 if str(c.type()).endswith("HALF") else 4) for c in chans)
+            # A PRTT texture's channels all have its storage's type (the header says which).
+            out[f] = int(texels) * len(h["channels"]) * (2 if h.get("prtt_storage") == "half" else 4)
     return out
 
 
