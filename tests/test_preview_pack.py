@@ -121,3 +121,44 @@ def test_shader_variants_are_described():
         variant("tpfl", 9)
     with pytest.raises(ValueError, match="unknown preview mode"):
         variant("phong", 5)
+
+
+@pytest.mark.parametrize("tuning", ["auto", "fixed"])
+def test_layer_sources_fill_the_packed_layers_exactly(tmp_path, tuning):
+    """The renderer's uploads (LayerSource: one layer at a time from the file's
+    channels, no float32 copy of the texture) equal pack_layers /
+    pack_relight_operator of the readers' arrays, bit for bit: shared glossy
+    rows (tuning auto) tinted per colour as expand_shared_glossy, per-colour
+    rows (fixed) as stored."""
+    from prtt_addon.bench.scene_library import room_scene
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.runner import bake_scene
+    from prtt_addon.core.io.exr_io import read_relight_exr, read_sh_exr
+    from prtt_addon.core.light.envmap import builtin_environment_path, environment_light
+    sc = room_scene(64, atlas=True, materials=True)
+    bake_scene(sc, tmp_path, BakeSettings(rays=16, bounce_rays=8, bounces=1, tuning=tuning),
+               light=environment_light(builtin_environment_path("forest"), 5))
+    t = str(tmp_path / "atlas.transfer.exr")
+    with pp.transfer_layers(t) as src:
+        got = np.full((src.layers, src.height, src.width, 4), np.nan, np.float32)
+        src.fill(got)
+        assert src.coeffs == 25 and not src.rgb
+    want = pp.pack_layers(read_sh_exr(t)[0])
+    assert got.tobytes() == want.tobytes()
+    r = str(tmp_path / "atlas.relight.exr")
+    with pp.relight_operator_layers(r) as src:
+        got = np.full((src.layers, src.height, src.width, 4), np.nan, np.float32)
+        src.fill(got)
+        assert src.glossy_bands == 3 and (src.tint is not None) == (tuning == "auto")
+    dc, glossy, _ = read_relight_exr(r)
+    assert glossy is not None
+    assert got.tobytes() == pp.pack_relight_operator(dc, glossy).tobytes()
+
+
+def test_layer_source_names_a_missing_channel(tmp_path):
+    from prtt_addon.core.io.exr_io import TextureError, write_sh_planes
+    p = str(tmp_path / "t.exr")
+    write_sh_planes(p, np.ones((9, 4, 4), np.float32), kind="transfer", attrs={"bands": 4}, names=None, bands=None)
+    with pytest.raises(TextureError, match="missing channels"):
+        with pp.transfer_layers(p):
+            pass

@@ -232,6 +232,14 @@ def test_relightable_bounces_follow_the_world(relit_blend, mode):
 
     ps, _, _, _ = frame(bpy)
     assert all(s.relight and not s.bounces for s in ps.sets.values())
+    # Tuning auto's shared glossy rows: the relight pass tints them on the GPU
+    # (RELIGHT_SHARED), the reference expands them on the CPU.
+    from prtt_addon.core.io.exr_io import open_sh_channels
+    shared = []
+    for s in ps.sets.values():
+        with open_sh_channels(s.relight) as (_, attrs):
+            shared.append(attrs.get("glossy_colour") == "shared")
+    assert any(shared)
     renderer = Renderer()
     images = []
     for turn in (0.0, math.pi / 2):

@@ -49,10 +49,10 @@ def test_surface_variants_are_blenders():
 
 
 def test_relight_variants_are_blenders():
-    cases = [(b, g) for b in (1, 3, 5, 8) for g in range(0, b + 1)]
-    got = js(f"out({json.dumps(cases)}.map(([b, g]) => S.relightVariant(b, g)));")
-    for (b, g), v in zip(cases, got):
-        ref = ss.relight_variant(b, g)
+    cases = [(b, g, sh) for b in (1, 3, 5, 8) for g in range(0, b + 1) for sh in (False, True)]
+    got = js(f"out({json.dumps(cases)}.map(([b, g, sh]) => S.relightVariant(b, g, sh)));")
+    for (b, g, sh), v in zip(cases, got):
+        ref = ss.relight_variant(b, g, sh)
         assert v["name"] == ref.name
         assert v["defines"] == as_lists(ref.defines)
         assert v["typedefs"].split() == ref.typedefs.split()

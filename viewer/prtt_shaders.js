@@ -102,14 +102,15 @@ export function depthVariant() {
   };
 }
 
-/** The relight pass, as shader_source.relight_variant(bands, glossyBands). */
-export function relightVariant(bands, glossyBands) {
+/** The relight pass, as shader_source.relight_variant(bands, glossyBands, shared). */
+export function relightVariant(bands, glossyBands, shared = false) {
   const [k, k4] = shSizes(bands);
   const kg = glossyBands * glossyBands;
+  const tinted = Boolean(shared && glossyBands);
   return {
-    name: `prtt_relight_b${bands}_g${glossyBands}`,
+    name: `prtt_relight_b${bands}_g${glossyBands}` + (tinted ? '_shared' : ''),
     defines: [['SH_K', String(k)], ['SH_K4', String(k4)], ['RELIGHT_KG', String(Math.max(kg, 1))],
-      ['RELIGHT_KG4', String(Math.max(Math.ceil(kg / 4), 1))]],
+      ['RELIGHT_KG4', String(Math.max(Math.ceil(kg / 4), 1))], ...(tinted ? [['RELIGHT_SHARED', '1']] : [])],
     typedefs: RELIGHT_TYPEDEFS(3 * k4),
     vertexIn: [[0, 'VEC2', 'pos']],
     interface: [],

@@ -22,7 +22,7 @@ from ...core.bake.pipeline.context import BakeSettings
 from ...core.bake.pipeline.runner import check_out_dir
 from ...core.base.errors import BakeError
 from ...core.io.atomic import atomic_write, temp_prefix
-from ...core.io.exr_io import read_sh_exr
+from ...core.io.exr_io import read_dc_plane
 from ...core.io.jobfile import save_scene
 from ...core.settings_schema import core_from_ui
 from ..export.job import GENERATED_UVS, ExportError, export_scene, output_folder
@@ -176,8 +176,8 @@ def load_preview_images(out_dir: str, manifest: dict) -> list:
     for name in manifest.get("transfer_files", manifest["files"]):
         if not name.endswith(".transfer.exr"):
             continue
-        data, _ = read_sh_exr(os.path.join(out_dir, name))
-        ao = np.clip(data[..., 0] / 0.886226925, 0.0, None)     # A_0 y_00 = pi / (2 sqrt(pi))
+        # The DC channel alone: Blender's process holds no copy of the whole texture.
+        ao = np.clip(read_dc_plane(os.path.join(out_dir, name)) / 0.886226925, 0.0, None)   # A_0 y_00 = pi / (2 sqrt(pi))
         h, w = ao.shape
         title = f"PRTT AO {name[:-len('.transfer.exr')]}"
         img = bpy.data.images.get(title)

@@ -111,6 +111,27 @@ class Renderer:
                                      f"texture ({exc}); bake at a lower resolution") from exc
         return tex, packed.size * (2 if fmt == "RGBA16F" else 4)
 
+    def _layer_texture(self, src: pp.LayerSource):
+        """A LayerSource as an RGBA 2D array texture, filled straight into the
+        GPU module's staging buffer (no float32 copy of the texture beside it);
+        half when that changes no value (checked a layer at a time). Returns
+        (GPUTexture, bytes) as :meth:`_array_texture`."""
+        L, H, W = src.layers, src.height, src.width
+        size, layers = gpu.capabilities.max_texture_size_get(), gpu.capabilities.max_texture_layers_get()
+        if W > size or H > size or L > layers:
+            raise TextureUploadError(f"{src.path}: {W}x{H} texels in {L} layers exceeds this GPU's limits "
+                                     f"({size} texels per side, {layers} layers); bake at a lower resolution")
+        buf = gpu.types.Buffer("FLOAT", L * H * W * 4)
+        view = np.asarray(buf).reshape(L, H, W, 4)
+        src.fill(view)
+        fmt = "RGBA16F" if all(pp.half_exact(view[layer]) for layer in range(L)) else "RGBA32F"
+        try:
+            tex = gpu.types.GPUTexture((W, H), layers=L, format=fmt, data=buf)
+        except RuntimeError as exc:     # out of (GPU) memory
+            raise TextureUploadError(f"{src.path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
+                                     f"texture ({exc}); bake at a lower resolution") from exc
+        return tex, view.size * (2 if fmt == "RGBA16F" else 4)
+
     def _texture_2d(self, rgba_bottom_first: np.ndarray):
         H, W, _ = rgba_bottom_first.shape
         return gpu.types.GPUTexture((W, H), format="RGBA32F", data=_buffer(rgba_bottom_first))
@@ -122,9 +143,13 @@ class Renderer:
         key, K = s.key, bands * bands
 
         def transfer():
-            data = _load(s.load_transfer, s.transfer)
-            _check_coeffs(data, 3, K, s.transfer)
-            return self._array_texture(pp.pack_layers(data), s.transfer)
+            def upload():
+                with pp.transfer_layers(s.transfer) as src:
+                    if src.rgb or src.coeffs < K:
+                        raise TextureUploadError(f"{s.transfer}: holds {src.coeffs} SH coefficients"
+                                                 f"{' per colour' if src.rgb else ''}, the bake has {K}; bake again")
+                    return self._layer_texture(src)
+            return _load(upload, s.transfer)
 
         def bounce():
             if s.relight:
@@ -152,19 +177,22 @@ class Renderer:
         where = s.relight
 
         def operator():
-            dc, glossy, attrs = _load(s.load_relight, where)
-            if dc.shape[-1] != K:          # the pass reads exactly the bake's K4 layers per colour
-                raise TextureUploadError(f"{where}: holds {dc.shape[-1]} light coefficients, the bake has {K}; "
-                                         f"bake again")
-            tex, nbytes = self._array_texture(pp.pack_relight_operator(dc, glossy), where)
-            gbands = int(attrs.get("glossy_bands", 0)) if glossy is not None else 0
-            return tex, nbytes, dc.shape[1], dc.shape[0], gbands
+            def upload():
+                # Shared glossy rows stay shared on the GPU (a third of the layers,
+                # half floats): the pass tints them (RELIGHT_SHARED).
+                with pp.relight_operator_layers(where, expand=False) as src:
+                    if src.coeffs != K:          # the pass reads exactly the bake's K4 layers per colour
+                        raise TextureUploadError(f"{where}: holds {src.coeffs} light coefficients, the bake has "
+                                                 f"{K}; bake again")
+                    tex, nbytes = self._layer_texture(src)
+                    return tex, nbytes, src.width, src.height, src.glossy_bands, src.shared
+            return _load(upload, where)
 
-        op_tex, _, W, H, gbands = self._get(("relight-op", s.key), operator)
+        op_tex, _, W, H, gbands, shared = self._get(("relight-op", s.key), operator)
         # float32: relit values are not half-exact as baked ones (read from half EXRs) are,
         # and half rounding moved shaded pixels by 1.3e-3 (tests/test_preview_render.py).
         out = gpu.types.GPUTexture((W, H), layers=3 * K4, format="RGBA32F")
-        sh = gpu_shaders.relight_shader(bands, gbands)
+        sh = gpu_shaders.relight_shader(bands, gbands, shared)
         ubo = gpu.types.GPUUniformBuf(_buffer(pp.relight_block(light, bands)))
         quad = batch_for_shader(sh, "TRI_STRIP", {"pos": ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))})
         viewport = gpu.state.viewport_get()
@@ -358,6 +386,8 @@ def _load(loader, path: str) -> np.ndarray:
     TextureUploadError naming the file."""
     try:
         data = loader()
+    except TextureUploadError:              # already names the file and what to do
+        raise
     except TextureError as exc:             # core.io.exr_io's messages start with the file
         raise TextureUploadError(f"{exc}; bake again") from exc
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:   # a damaged .npz

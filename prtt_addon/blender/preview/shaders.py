@@ -70,5 +70,5 @@ def depth_shader():
     return build(depth_variant())
 
 
-def relight_shader(bands: int, glossy_bands: int):
-    return build(relight_variant(bands, glossy_bands))
+def relight_shader(bands: int, glossy_bands: int, shared: bool = False):
+    return build(relight_variant(bands, glossy_bands, shared))

@@ -19,6 +19,7 @@ atomic (see atomic.py).
 """
 from __future__ import annotations
 
+import contextlib
 import os
 
 import numpy as np
@@ -132,13 +133,19 @@ def expand_shared_glossy(dc: np.ndarray, shared: np.ndarray) -> np.ndarray:
     dc_c,0 / mean_c dc_c,0 (1 where that mean is zero or below 1e-3 of the
     largest colour's). Exact when the light bounced off grey surfaces only
     (every colour's rows are then equal)."""
-    d0 = np.asarray(dc[..., 0], np.float64)                                        # (..., 3)
+    kappa = glossy_tint(dc[..., 0])
+    # float32 product: the expanded rows are what a reader holds (no float64 copy of them).
+    return kappa[..., None, None] * np.asarray(shared, np.float32)[..., None, :, :]
+
+
+def glossy_tint(dc0: np.ndarray) -> np.ndarray:
+    """(..., 3) float32 tints kappa_c of :func:`expand_shared_glossy` from the DC
+    responses to the light's DC ``dc0`` (..., 3)."""
+    d0 = np.asarray(dc0, np.float64)                                               # (..., 3)
     m = d0.mean(axis=-1, keepdims=True)
     # A mean far below its colours' size (signs that cancel) would blow the tint up: untinted there.
     ok = np.abs(m) > 1e-3 * np.abs(d0).max(axis=-1, keepdims=True)
-    kappa = np.divide(d0, m, out=np.ones_like(d0), where=ok).astype(np.float32)
-    # float32 product: the expanded rows are what a reader holds (no float64 copy of them).
-    return kappa[..., None, None] * np.asarray(shared, np.float32)[..., None, :, :]
+    return np.divide(d0, m, out=np.ones_like(d0), where=ok).astype(np.float32)
 
 
 def relight_full_bits(names: list[str]) -> list[bool]:
@@ -292,6 +299,63 @@ def write_sh_exr(path, data: np.ndarray, *, kind: str, half: bool = True,
                            attrs=attrs, atomic=atomic)
 
 
+def read_dc_plane(path) -> np.ndarray:
+    """(H, W) float32, row 0 at the bottom: a PRTT transfer texture's DC
+    channel ``sh000`` alone (what the add-on's AO image shows). OpenEXR's
+    scanline reader decodes it block by block without the other channels
+    (the full read of a 4096² texture held 0.8 GB of half channels for it)."""
+    import Imath
+    import OpenEXR
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise TextureError(f"{path}: no such texture")
+    try:
+        f = OpenEXR.InputFile(path)
+        try:
+            header = f.header()
+            if "sh000" not in header["channels"]:
+                raise TextureError(f"{path}: missing channels ['sh000']")
+            box = header["dataWindow"]
+            H, W = int(box.max.y) - int(box.min.y) + 1, int(box.max.x) - int(box.min.x) + 1
+            data = f.channel("sh000", Imath.PixelType(Imath.PixelType.FLOAT))
+        finally:
+            f.close()
+    except TextureError:
+        raise
+    except Exception as exc:
+        raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
+    return np.frombuffer(data, np.float32).reshape(H, W)[::-1].copy()
+
+
+@contextlib.contextmanager
+def open_sh_channels(path):
+    """A PRTT texture's channels as the file stores them, without copies:
+    yields (name -> (H, W) half or float32 array, rows in file order (top
+    first), attrs (``prtt_*`` headers without the prefix)), valid inside the
+    block only (the binding empties them when the file closes). For readers
+    that take a few channels at a time (core/preview/pack.LayerSource)."""
+    import OpenEXR
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise TextureError(f"{path}: no such texture")
+    try:
+        f = OpenEXR.File(path)
+    except Exception as exc:
+        raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
+    with f:
+        try:
+            header = dict(f.header())
+            chans = {n: c.pixels for n, c in f.channels().items()}
+        except Exception as exc:
+            raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
+        attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
+        if "bands" not in attrs or "kind" not in attrs:
+            raise TextureError(f"{path}: not a PRTT texture (no prtt_bands/prtt_kind header)")
+        yield chans, attrs
+
+
 def _read_channels(path) -> tuple[dict, dict]:
     import OpenEXR
 
@@ -314,6 +378,11 @@ def _read_channels(path) -> tuple[dict, dict]:
 #: The most SH bands a texture file may declare (the bake's own limit): a
 #: header is untrusted input, and channel names are listed from it.
 MAX_FILE_BANDS = 16
+
+
+def bands_of_header(path, attrs: dict, key: str = "bands", lo: int = 1, hi: int = MAX_FILE_BANDS) -> int:
+    """The header's band count ``key`` as an int in [lo, hi], or TextureError (a header is untrusted)."""
+    return _bands(path, attrs, key, lo, hi)
 
 
 def _bands(path, attrs: dict, key: str, lo: int, hi: int = MAX_FILE_BANDS) -> int:

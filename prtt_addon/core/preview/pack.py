@@ -19,13 +19,23 @@ Layouts (core/preview/shader_source.py documents the GPU side):
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 
 import numpy as np
 
-from ..io.exr_io import read_relight_exr, read_sh_exr
+from ..io.exr_io import (
+    TextureError,
+    bands_of_header,
+    channel_names,
+    glossy_tint,
+    open_sh_channels,
+    read_relight_exr,
+    read_sh_exr,
+    relight_channel_names,
+)
 from ..model.material import DEFAULT
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..shading.materials import dielectric_f0
@@ -325,6 +335,112 @@ def pack_layers(tex: np.ndarray) -> np.ndarray:
     out = np.zeros((H, W, 4 * L), np.float32)
     out[..., :K] = tex
     return np.ascontiguousarray(out.reshape(H, W, L, 4).transpose(2, 0, 1, 3))
+
+
+@dataclasses.dataclass(eq=False)
+class LayerSource:
+    """A texture's GPU layers (L, H, W, 4) float32, row 0 at the bottom, made
+    one layer at a time from its file's channels (exr_io.open_sh_channels):
+    :meth:`fill` writes them straight into the caller's buffer (the GPU's
+    staging buffer), with no float32 copy of the whole texture beside it. The
+    values are :func:`pack_layers` / :func:`pack_relight_operator`'s of the
+    texture as read_sh_exr / read_relight_exr return it.
+
+    ``groups``: per layer the four channel names (None: zero), or for a
+    shared glossy row (name, colour): the channel tinted by that colour's
+    exr_io.glossy_tint. ``coeffs``: SH coefficients in the last axis of the
+    texture as read (the renderer's band check); ``rgb``: a bounce texture
+    where a transfer was expected."""
+
+    path: str
+    chans: dict
+    groups: list
+    height: int
+    width: int
+    coeffs: int
+    rgb: bool = False
+    tint: np.ndarray | None = None      # (H, W, 3) float32 glossy tints, row 0 at the bottom
+
+    @property
+    def layers(self) -> int:
+        return len(self.groups)
+
+    def fill(self, out: np.ndarray) -> None:
+        """Write every layer into ``out`` (L, H, W, 4) float32."""
+        if out.shape != (self.layers, self.height, self.width, 4):
+            raise ValueError(f"{self.path}: layers of shape {out.shape}, expected "
+                             f"{(self.layers, self.height, self.width, 4)}")
+        for l, group in enumerate(self.groups):
+            for j, name in enumerate(group):
+                if name is None:
+                    out[l, :, :, j] = 0.0
+                elif isinstance(name, tuple):
+                    n, c = name
+                    np.multiply(self.tint[:, :, c], self.chans[n][::-1], out=out[l, :, :, j], dtype=np.float32)
+                else:
+                    out[l, :, :, j] = self.chans[name][::-1]
+
+
+def _groups(names: list) -> list:
+    """Channel names four to a layer, the last padded with None."""
+    L = layers(len(names))
+    padded = list(names) + [None] * (4 * L - len(names))
+    return [padded[4 * l:4 * l + 4] for l in range(L)]
+
+
+def _missing(path: str, chans: dict, names: list) -> None:
+    missing = [n for n in names if n not in chans]
+    if missing:
+        raise TextureError(f"{path}: missing channels {missing[:4]}{'...' if len(missing) > 4 else ''}")
+
+
+@contextlib.contextmanager
+def transfer_layers(path: str):
+    """LayerSource of a transfer texture (pack_layers(read_sh_exr(path)[0]))."""
+    with open_sh_channels(path) as (chans, attrs):
+        K = bands_of_header(path, attrs) ** 2
+        rgb = any(n.startswith("R.") for n in chans)
+        names = channel_names(K, rgb)
+        _missing(path, chans, names)
+        H, W = chans[names[0]].shape
+        yield LayerSource(path, chans, _groups(names), H, W, K, rgb)
+
+
+@contextlib.contextmanager
+def relight_operator_layers(path: str, *, expand: bool = True):
+    """LayerSource of a relightable bounce texture's operator
+    (pack_relight_operator of read_relight_exr(path)); ``coeffs`` = its light
+    coefficients K; attributes ``glossy_bands`` and ``shared``. With
+    ``expand=False`` shared glossy rows (tuning auto) stay as stored, once
+    for all colours ((Kg - 1) ceil(Kg / 4) layers after the DC rows instead of
+    three times as many), for the relight pass to tint (shader_source.
+    relight_variant(shared=True)); they are then half floats as in the file."""
+    with open_sh_channels(path) as (chans, attrs):
+        if attrs["kind"] != "relight":
+            raise TextureError(f"{path}: a {attrs['kind']!r} texture, not a relightable bounce texture")
+        bands = bands_of_header(path, attrs)
+        K, kg = bands * bands, bands_of_header(path, attrs, "glossy_bands", 0, bands) ** 2
+        colour = attrs.get("glossy_colour", "per-colour")
+        if colour not in ("per-colour", "shared"):
+            raise TextureError(f"{path}: unknown prtt_glossy_colour {colour!r} (per-colour or shared)")
+        shared = colour == "shared"
+        _missing(path, chans, relight_channel_names(K, kg, shared))
+        groups = [g for c in "RGB" for g in _groups([f"{c}.dc.i{i:03d}" for i in range(K)])]
+        H, W = chans["R.dc.i000"].shape
+        tint = None
+        if kg and shared and not expand:
+            groups += [g for o in range(1, kg) for g in _groups([f"S.o{o:03d}.i{i:03d}" for i in range(kg)])]
+        elif kg and shared:
+            tint = glossy_tint(np.stack([chans[f"{c}.dc.i000"][::-1] for c in "RGB"], axis=-1).astype(np.float32))
+            groups += [g for c in range(3) for o in range(1, kg)
+                       for g in _groups([(f"S.o{o:03d}.i{i:03d}", c) for i in range(kg)])]
+        elif kg:
+            groups += [g for c in "RGB" for o in range(1, kg) for g in _groups([f"{c}.o{o:03d}.i{i:03d}"
+                                                                               for i in range(kg)])]
+        src = LayerSource(path, chans, groups, H, W, K, tint=tint)
+        src.glossy_bands = int(attrs.get("glossy_bands", 0)) if kg else 0
+        src.shared = bool(kg and shared and not expand)
+        yield src
 
 
 def pack_bounce(bounce: np.ndarray) -> np.ndarray:

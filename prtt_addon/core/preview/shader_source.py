@@ -187,16 +187,21 @@ struct PRTTRelight {
 """
 
 
-def relight_variant(bands: int, glossy_bands: int) -> Variant:
+def relight_variant(bands: int, glossy_bands: int, shared: bool = False) -> Variant:
     """The relight pass: one layer of a bounce texture (pack.pack_bounce
     layout) from a relightable operator (pack.pack_relight_operator) and the
-    light (pack.relight_block); ``glossy_bands`` 0 when it has no glossy rows."""
+    light (pack.relight_block); ``glossy_bands`` 0 when it has no glossy rows;
+    ``shared``: its glossy rows stored once for all colours, tinted in the
+    pass (define RELIGHT_SHARED; pack.relight_operator_layers(expand=False))."""
     k, k4 = sh_sizes(bands)
     kg = glossy_bands * glossy_bands
     defines = (("SH_K", str(k)), ("SH_K4", str(k4)), ("RELIGHT_KG", str(max(kg, 1))),
                ("RELIGHT_KG4", str(max((kg + 3) // 4, 1))))
+    if shared and glossy_bands:
+        defines += (("RELIGHT_SHARED", "1"),)
     return Variant(
-        name=f"prtt_relight_b{bands}_g{glossy_bands}", defines=defines, typedefs=RELIGHT_TYPEDEFS % {"n": 3 * k4},
+        name=f"prtt_relight_b{bands}_g{glossy_bands}" + ("_shared" if shared and glossy_bands else ""),
+        defines=defines, typedefs=RELIGHT_TYPEDEFS % {"n": 3 * k4},
         vertex_in=((0, "VEC2", "pos"),), interface=(), samplers=((0, "FLOAT_2D_ARRAY", "relightTex"),),
         uniform_bufs=((0, "PRTTRelight", "relight"),), push_constants=(("INT", "out_colour"), ("INT", "out_q")),
         vertex_files=("prtt_relight_vert.glsl",), fragment_files=("prtt_relight_frag.glsl",))
