@@ -4,7 +4,7 @@ and triangles, per stage and per process (issue #35).
 Measured in this run, each bake and render in a fresh process:
 
 * **the demo room** (21K triangles, the demo's glossy plank floor and
-  furniture, Smart UV unwrapped once at 512², the forest HDRI), baked with the
+  furniture, Smart UV unwrapped once into a 1024² atlas as the demo does, the forest HDRI), baked with the
   defaults (transfer, per-vertex transfer, one relightable bounce) at each
   ``--sizes`` atlas (512² ... 4096²) by ``python -m prtt_addon bake`` (the
   Blender side: exports the job, runs the worker, saves the .blend), then
@@ -88,10 +88,11 @@ def texture_bytes(folder: str) -> dict:
     return out
 
 
-def demo_blend(folder: str) -> str:
-    """The demo scene, unwrapped at 512² (`prtt demo --no-relight`); its .blend."""
+def demo_blend(folder: str, resolution: int = 1024) -> str:
+    """The demo scene as `prtt demo --no-relight` makes it (Smart UV into a 1024² atlas, its default); its .blend."""
     d = os.path.join(folder, "demo")
-    run_measured(["demo", "--out", d, "--resolution", "512", "--no-relight", "--size", "160x90"], cwd=folder)
+    run_measured(["demo", "--out", d, "--resolution", str(resolution), "--no-relight", "--size", "160x90"],
+                 cwd=folder)
     return os.path.join(d, "prtt_demo.blend")
 
 
@@ -244,10 +245,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     sizes = [int(s) for s in (args.sizes or ("128,256" if args.quick else "512,1024,2048,4096")).split(",")]
     rec = {"command": "python -m prtt_addon.bench memory" + (" --quick" if args.quick else ""),
-           "date": datetime.date.today().isoformat(), "machine": machine(), "demo": []}
+           "date": datetime.date.today().isoformat(), "machine": machine(), "commit": commit(), "demo": []}
     with tempfile.TemporaryDirectory(prefix="prtt-memory-") as tmp:
         t = time.perf_counter()
-        blend = demo_blend(tmp)
+        blend = demo_blend(tmp, 256 if args.quick else 1024)
         print(f"demo scene built and unwrapped in {time.perf_counter() - t:.1f} s")
         for size in sizes:
             r = bake_size(blend, tmp, size)
@@ -267,6 +268,11 @@ def main(argv=None) -> int:
     plot(rec, os.path.join(args.out, "memory.png"))
     print(f"wrote {os.path.join(args.out, 'memory.json')} and memory.png")
     return 0
+
+
+def commit() -> str | None:
+    r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=scene_library.ROOT, capture_output=True, text=True)
+    return r.stdout.strip() or None
 
 
 def machine() -> dict:
