@@ -54,13 +54,13 @@ def test_estimate_within_20_percent_of_the_measured_peak(room_job, tmp_path, siz
 
 def test_estimate_counts_texels_and_the_relightable_operator():
     """Structure: the estimate grows with the atlas (4x texels, >3x bytes beyond
-    the process's base) and a relightable bounce costs more than a baked one."""
+    the process's base and its ray chunks) and a relightable bounce costs more than a baked one."""
     sizes = lambda r: [(r, r, memory_plan.covered_texels(0.5, r, r))]  # noqa: E731
     st = BakeSettings(bounces=1)
     a = bake_stage_bytes(sizes(1024), st, n_triangles=10_000, bouncing=True)
     b = bake_stage_bytes(sizes(2048), st, n_triangles=10_000, bouncing=True)
     base = a["setup"]
-    assert (max(b.values()) - base) > 3.5 * (max(a.values()) - base)
+    assert (max(b.values()) - base) > 3 * (max(a.values()) - base)
     baked = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, bounce_mode="baked", tuning="fixed"),
                              n_triangles=10_000, bouncing=True)
     fixed = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, tuning="fixed"), n_triangles=10_000,
@@ -128,12 +128,12 @@ def test_bake_under_a_memory_limit_fails_cleanly_and_keeps_the_previous_outputs(
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".prtt-tmp")]
 
 
-@pytest.mark.parametrize("size", [128, 512])
+@pytest.mark.parametrize("size", [128, 512, 1024])
 def test_covered_texels_follow_the_uv_area(size):
-    """The estimate's covered texels (from the UV area) against the G-buffer's count, within 5 %."""
+    """The estimate's covered texels (UV area and island boundaries) against the G-buffer's count, within 15 %."""
     from prtt_addon.core.texels.gbuffer import build_gbuffer
     sc = room_scene(256, atlas=True)
     sc.set_resolution[:] = size
     est = scene_set_sizes(sc, [0])[0][2]
     n = build_gbuffer(sc, 0).n
-    assert abs(est / n - 1) < 0.05, (est, n)
+    assert abs(est / n - 1) < 0.15, (est, n)

@@ -375,11 +375,68 @@ def web_block(r: dict | None = None) -> str:
     return "\n".join(lines)
 
 
+#: The goals of issue #35 for the demo's bake, largest process, in MiB (1 GB = 10^9 bytes; 1.5 GB; 4 GB).
+MEMORY_GOALS_MB = {1024: 1e9 / 2 ** 20, 2048: 1.5e9 / 2 ** 20, 4096: 4e9 / 2 ** 20}
+
+
+def memory_block(r: dict | None = None) -> str:
+    """docs/benchmarks.md: peak memory and seconds against the atlas
+    (docs/bench/memory.json, bench memory); ``r``: a record instead of the file."""
+    r = _load("memory.json") if r is None else r
+    rows = r["demo"]
+    code = f" (code at {r['commit']})" if r.get("commit") else ""
+    lines = [
+        f"`{r['command']}`, {r['date']}{code}, on {machine_text(r['machine'])}. The demo room (21K "
+        f"triangles, Smart UV into one atlas as `prtt demo` unwraps it) baked by `prtt bake` at each size with the "
+        f"defaults (256 rays, per-vertex transfer, one relightable bounce, tuning auto), then drawn by "
+        f"`prtt render` at 320 × 180 (llvmpipe: the GPU's textures are in the process's memory). MiB = 2^20 bytes.",
+        "",
+        "| atlas | covered texels | bake s | µs per atlas texel | **worker peak RSS** | estimate before the bake "
+        "| goal (#35) | Blender side (bake command) | render: peak RSS, s | textures (as stored, uncompressed) | on disk |",
+        "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for x in rows:
+        goal = MEMORY_GOALS_MB.get(x["size"])
+        est = x.get("estimate_mb")
+        off = f" ({100 * (est / x['worker_peak_mb'] - 1):+.0f} %)" if est else ""
+        lines.append(
+            f"| {x['size']}² | {x['texels']:,} | {x['seconds']['total']:.1f} | "
+            f"{1e6 * x['seconds']['total'] / x['atlas_texels']:.2f} | **{x['worker_peak_mb']:.0f} MiB** | "
+            f"{est or 0:.0f} MiB{off} | "
+            + (f"≤ {goal:.0f} MiB: {'met' if x['worker_peak_mb'] <= goal else '**not met**'}" if goal else "—")
+            + f" | {x['blender_side_peak_mb']:.0f} MiB | {x['render_peak_mb']:.0f} MiB, {x['render_s']:.1f} s | "
+            f"{x['texture_bytes'] / 2 ** 20:.0f} MiB | {x['disk_bytes'] / 2 ** 20:.0f} MiB |")
+    stages = []
+    for x in rows:
+        for k in x["stages_mb"] or {}:
+            if k not in stages:
+                stages.append(k)
+    lines += ["", "Peak RSS of the worker per stage (MiB; each stage's own peak, including what earlier stages "
+                  "still hold: the manifest's `memory`):", "",
+              "| atlas | " + " | ".join(stages) + " |", "|---|" + "---|" * len(stages)]
+    for x in rows:
+        lines.append(f"| {x['size']}² | " + " | ".join(f"{(x['stages_mb'] or {}).get(k, float('nan')):.0f}"
+                                                       for k in stages) + " |")
+    b = r.get("bunnies")
+    if b:
+        lines += ["", f"{b['scene']}: {b['triangles']:,} triangles in {b['sets']} texture sets, {b['texels']:,} "
+                      f"texels, the same defaults (`bake-job`): **{b['worker_peak_mb']:.0f} MiB** peak "
+                      f"(estimate {b['estimate_mb'] or 0:.0f} MiB, "
+                      f"{100 * ((b['estimate_mb'] or 0) / b['worker_peak_mb'] - 1):+.0f} %), "
+                      f"{b['seconds']['total']:.1f} s."]
+    m = r.get("memray")
+    if m:
+        lines += ["", f"What the {m['size']}² bake's heap peak ({m['heap_peak_mb']:.0f} MiB as memray counts it: "
+                      f"planes already given back page by page still count there) is made of, by allocation site:",
+                  "", "| MiB | where (innermost PRTT frames) |", "|---|---|"]
+        lines += [f"| {s['mb']:.0f} | `{s['where']}` |" for s in m["sites"]]
+    return "\n".join(lines)
+
+
 #: Generated blocks: name -> (pages, maker).
 BLOCKS = {"bake": (("README.md",), bake_block), "render": (("README.md",), render_block),
           "preview": (("docs/preview.md",), preview_block),
           "dask": (("docs/distributed.md",), dask_block), "dask-model": (("docs/distributed.md",), dask_model_block),
-          "web": (("docs/benchmarks.md",), web_block)}
+          "web": (("docs/benchmarks.md",), web_block), "memory": (("docs/benchmarks.md",), memory_block)}
 
 
 def _pattern(name: str):

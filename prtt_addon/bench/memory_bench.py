@@ -276,10 +276,8 @@ def commit() -> str | None:
 
 
 def machine() -> dict:
-    import platform
-    return {"cpus": os.cpu_count(), "python": platform.python_version(), "system": platform.platform(terse=True),
-            "memory_gib": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2 ** 30, 1)}
-
+    from .figures import machine as described  # CPU, cores, memory, OS, library versions
+    return described()
 
 if __name__ == "__main__":
     sys.exit(main())

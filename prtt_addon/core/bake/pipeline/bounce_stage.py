@@ -250,7 +250,8 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         # The steps below are numpy on one core each: independent ones run on the
         # helper threads beside the island labels (choose_grid) on this one.
         fine_job = ctx.helpers.submit(fine_diffuse, r) if asked > 1 else None
-        grid = choose_grid(r.gbuffer, asked)
+        # Chosen from this G-buffer already when the runner refined the memory estimate.
+        grid = ctx.bounce_grids.get(r.index) or choose_grid(r.gbuffer, asked)
         skip[r.index] = r.points.analytic | r.open
         if auto:
             nb, why = choose_bounce_bands(sc, r.index, glossy_tri, st.bands)

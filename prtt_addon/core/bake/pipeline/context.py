@@ -199,6 +199,8 @@ class BakeContext:
     dask: object | None = None                  # distributed.DaskSpec: trace on a Dask cluster (runner opens it)
     remote: object | None = dataclasses.field(init=False)       # the open distributed.DaskBake, else None
     memory: StagePeaks = dataclasses.field(init=False)          # peak RSS per stage (the manifest's "memory")
+    bounce_grids: dict = dataclasses.field(init=False)          # set index -> bounce_stage.BounceGrid, chosen
+                                                                # from its G-buffer (runner; bounce_inputs reads it)
 
     def __post_init__(self):
         self.failed = threading.Event()
@@ -209,6 +211,7 @@ class BakeContext:
         self.tables = None
         self.remote = None
         self.memory = StagePeaks()
+        self.bounce_grids = {}
 
     @classmethod
     def create(cls, scene: Scene, out_dir: str, settings: BakeSettings, *, light=None,

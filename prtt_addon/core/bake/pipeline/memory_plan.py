@@ -51,16 +51,38 @@ SURFACE_SHADING = 120
 FINE_DIFFUSE = 40
 #: Dilation rings: V = N (1 + RING * dilate / sqrt(A)) (the islands' perimeters in texels).
 RING = 18.0
-#: Covered texels: N = UV area x A (1 + EDGE / sqrt(A)) (conservative rasterisation of island edges).
-EDGE = 30.0
+#: Covered texels: N = UV area x A + EDGE x the islands' boundary length x sqrt(A) (conservative
+#: rasterisation of island edges: measured 0.52-0.63 on the demo room and the benches' room, 128² to 1024²).
+EDGE = 0.55
 #: One trace thread's ray chunk: rays x (origin, direction, hits) bytes.
 RAY_BYTES = 66
 
 
-def covered_texels(uv_area: float, width: int, height: int) -> int:
-    """Texels a UV layout of total area ``uv_area`` (unit square = 1) covers at W x H."""
+def covered_texels(uv_area: float, width: int, height: int, boundary: float = 0.0) -> int:
+    """Texels a UV layout of total area ``uv_area`` and island boundary length
+    ``boundary`` (unit square: area 1, side 1) covers at W x H."""
     A = width * height
-    return int(min(A, uv_area * A * (1.0 + EDGE / math.sqrt(max(A, 1)))))
+    return int(min(A, uv_area * A + EDGE * boundary * math.sqrt(max(A, 1))))
+
+
+def uv_boundaries(uvs: np.ndarray, set_id: np.ndarray, n_sets: int) -> np.ndarray:
+    """(S,) length of each set's UV island boundaries: the UV edges only one
+    triangle has (endpoints matched to 2^-20; a hashed key, so a rare
+    collision only moves the estimate)."""
+    uv = np.asarray(uvs, np.float64)
+    a, b = uv, np.roll(uv, -1, axis=1)                                           # (T, 3, 2) edge ends
+    q = np.round(np.concatenate([a, b], axis=2).reshape(-1, 4) * (1 << 20)).astype(np.int64)
+    swap = (q[:, 0] > q[:, 2]) | ((q[:, 0] == q[:, 2]) & (q[:, 1] > q[:, 3]))
+    q[swap] = q[swap][:, [2, 3, 0, 1]]
+    key = (q[:, 0] * np.int64(73856093)) ^ (q[:, 1] * np.int64(19349663)) ^ (q[:, 2] * np.int64(83492791)) \
+        ^ (q[:, 3] * np.int64(2654435761))
+    sid = np.repeat(np.asarray(set_id), 3)
+    key = key ^ (sid.astype(np.int64) * np.int64(0x9E3779B97F4A7C15 & 0x7FFFFFFFFFFFFFFF))
+    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    once = (cnt[inv.reshape(-1)] == 1) & (sid >= 0)
+    length = np.linalg.norm((b - a).reshape(-1, 2), axis=1)
+    ok = once & np.isfinite(length)
+    return np.bincount(sid[ok], weights=length[ok], minlength=n_sets)[:n_sets]
 
 
 def valid_texels(covered: int, width: int, height: int, dilate: int) -> int:
@@ -85,20 +107,26 @@ def scene_bytes(n_triangles: int) -> int:
 
 
 def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int = 2,
-                chunk_rays: int = 1 << 19, mips: bool = False, bounces: int = 0,
+                chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
+    rays, bounce_rays : rays per texel of the transfer and of a bounce level.
     bounces : levels baked (0: none); downscale: the bounce grid's 1/f per
-    side (bounce_stage.asked_downscale); relight_channels: C of a
+    side (bounce_stage.asked_downscale), or one per set once their grids are
+    chosen (bounce_stage.choose_grid); relight_channels: C of a
     relightable texture; glossy_coeffs: Kg² of its glossy exit table (0: none).
     Returns {stage: bytes} with the stage names of the manifest's ``memory``.
     """
     K = bands * bands
     base = BASE + scene_bytes(n_triangles)
-    chunks = max(1, threads) * chunk_rays * RAY_BYTES
+    threads = max(1, threads)
+
+    def chunks(texels: int, per_texel: int) -> int:
+        # A thread's chunk holds chunk_rays, or all of a small set's rays shared out.
+        return threads * min(chunk_rays, -(-texels * per_texel // threads)) * RAY_BYTES
     out = {"setup": base, "gbuffer": 0, "trace": 0, "write transfer": 0}
     held = 0                                   # what earlier sets keep for the bounce
     for w, h, n in sets:
@@ -106,17 +134,19 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         v = valid_texels(n, w, h, dilate)
         planes = 4 * K * A * (4 / 3 if mips else 1)
         out["gbuffer"] = max(out["gbuffer"], base + held + GBUFFER_BUILD * n)
-        out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + int(planes) + chunks)
+        out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + int(planes) + chunks(n, rays))
         keep = SURFACE * n + 4 * K * v if bounces else 0
         out["write transfer"] = max(out["write transfer"], base + held + int(planes) + keep)
         held += keep
     if bounces:
-        f2 = max(1, downscale) ** 2
-        total = base + chunks
-        for w, h, n in sets:
+        total = base + chunks(max((n for _, _, n in sets), default=0), bounce_rays)
+        per_set = downscale if isinstance(downscale, (list, tuple)) else [downscale] * len(sets)
+        for (w, h, n), f in zip(sets, per_set):
+            f = max(1, int(f))
+            f2 = f * f
             A = w * h
             v = valid_texels(n, w, h, dilate)
-            wc, hc = max(1, w // max(1, downscale)), max(1, h // max(1, downscale))
+            wc, hc = max(1, w // f), max(1, h // f)
             nc = max(1, n // f2)
             vc = valid_texels(nc, wc, hc, dilate)
             if bounce_mode == "relightable":

@@ -25,7 +25,7 @@ from ...shading.shade import light_hash
 from ..estimators import denoise
 from ..estimators.relightable import GLOSSY_BANDS, relight_shared_colour
 from .context import MANIFEST, BakeContext, BakeSettings
-from .memory_plan import covered_texels, peak_stage, stage_bytes, uv_areas
+from .memory_plan import covered_texels, peak_stage, stage_bytes, uv_areas, uv_boundaries
 
 
 def settings_hash(settings: BakeSettings) -> str:
@@ -79,10 +79,12 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
     return h.hexdigest()
 
 
-def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool) -> dict[str, int]:
+def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool,
+                     downscales: list[int] | None = None) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake (memory_plan.stage_bytes).
     ``set_sizes``: (width, height, covered texels) per set baked, in order
-    (covered: memory_plan.covered_texels of the set's UV area)."""
+    (covered: memory_plan.covered_texels of the set's UV area); ``downscales``:
+    each set's bounce grid once chosen (default: the grid the settings ask for)."""
     from .bounce_stage import asked_downscale  # deferred: bounce_stage imports this module
 
     K = st.bands ** 2
@@ -90,8 +92,10 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
     colours = 1 if relight_shared_colour(st) else 3
     return stage_bytes([tuple(int(v) for v in s) for s in set_sizes], bands=st.bands, dilate=st.dilate,
                        n_triangles=n_triangles, threads=st.n_threads, chunk_rays=st.chunk_rays, mips=st.mips,
+                       rays=st.rays, bounce_rays=st.bounce_rays,
                        bounces=st.bounces if bouncing else 0, bounce_mode=st.bounce_mode,
-                       downscale=asked_downscale(st.bounces, st.tuning, st.bounce_downscale),
+                       downscale=(downscales if downscales is not None
+                                  else asked_downscale(st.bounces, st.tuning, st.bounce_downscale)),
                        relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg)
 
 
@@ -103,10 +107,11 @@ def bake_memory_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing
 def scene_set_sizes(sc, set_ids) -> list[tuple[int, int, int]]:
     """(width, height, covered texels estimated from the UV area) of sets ``set_ids`` of ``sc``."""
     areas = uv_areas(sc.uvs, sc.set_id, sc.n_sets)
+    edges = uv_boundaries(sc.uvs, sc.set_id, sc.n_sets)
     out = []
     for s in set_ids:
         w, h = (int(v) for v in sc.set_resolution[s])
-        out.append((w, h, covered_texels(float(areas[s]), w, h)))
+        out.append((w, h, covered_texels(float(areas[s]), w, h, float(edges[s]))))
     return out
 
 
@@ -197,14 +202,19 @@ def reusable(ctx: BakeContext, old: dict | None, in_hash: str, set_hash: str, b_
     return transfer_ok, why is None
 
 
-def check_memory(ctx: BakeContext, plan: BakePlan) -> None:
+def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None = None) -> None:
     """MemoryLimitError unless the bake's estimated peak (:func:`bake_stage_bytes`:
     the largest stage) fits in the memory available, before anything of the
     bake is allocated; the estimate goes into the manifest's ``memory``. The
-    refusal names the estimate, the memory available and what to lower."""
+    refusal names the estimate, the memory available and what to lower.
+
+    Called again with ``downscales`` once the first G-buffer has chosen the
+    bounce grids (a grid that cannot be coarser, thin UV margins at this
+    resolution, holds 4x the bounce texels): before the trace allocates."""
     sc, st = ctx.scene, ctx.settings
     sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
-    stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing)
+    stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing,
+                              downscales=downscales)
     stage, need = peak_stage(stages)
     ctx.memory.estimate_mb = round(need / 2 ** 20, 1)
     biggest = max(sizes, key=lambda s: s[0] * s[1], default=None)

@@ -51,7 +51,7 @@ from ...io.outdir import FolderBusyError, FolderLock
 from ...model.scene import Scene
 from ..estimators import hit_kernel
 from ..executors.dask_cluster import DaskBake, parse_spec
-from .bounce_stage import bounce_levels
+from .bounce_stage import asked_downscale, bounce_levels, choose_grid
 from .commit import commit_bake, finish_skipped, make_manifest
 from .context import BAKE_FORMAT_VERSION, BAKE_INT_LIMITS, MANIFEST, BakeContext, BakeSettings, emit
 from .plan import (
@@ -180,6 +180,14 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
         geo = build_geometry(ctx)
         for position, s in enumerate(todo):
             gb = gbuffer_stage(ctx, s, first_gb if position == 0 else None)
+            if plan.bouncing and gb.n and s not in ctx.bounce_grids:
+                # The bounce grid each set gets is known from its G-buffer: the
+                # estimate is checked again with it before the trace allocates.
+                asked = asked_downscale(st.bounces, st.tuning, st.bounce_downscale)
+                ctx.bounce_grids[s] = choose_grid(gb, asked)
+                if ctx.bounce_grids[s].downscale != asked:
+                    check_memory(ctx, plan, [ctx.bounce_grids[i].downscale if i in ctx.bounce_grids else asked
+                                             for i in ctx.set_ids])
             if not plan.transfer_reused:
                 results.append(transfer_set(ctx, geo, plan, gb, position=position,
                                             keep_for_bounce=plan.bouncing))
