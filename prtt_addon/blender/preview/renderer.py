@@ -112,25 +112,56 @@ class Renderer:
         return tex, packed.size * (2 if fmt == "RGBA16F" else 4)
 
     def _layer_texture(self, src: pp.LayerSource):
-        """A LayerSource as an RGBA 2D array texture, filled straight into the
-        GPU module's staging buffer (no float32 copy of the texture beside it);
-        half when that changes no value (checked a layer at a time). Returns
-        (GPUTexture, bytes) as :meth:`_array_texture`."""
+        """A LayerSource as an RGBA 2D array texture, uploaded one layer at a
+        time: each layer is filled from the file's channels into a one-layer
+        staging buffer, goes up as a 2D texture and is drawn into its layer
+        (shaders/prtt_copy_frag.glsl, texel for texel), so the CPU holds one
+        layer, never the texture. Half when that changes no value (known from
+        the file, else checked a layer at a time first). Returns (GPUTexture,
+        bytes) as :meth:`_array_texture`."""
         L, H, W = src.layers, src.height, src.width
         size, layers = gpu.capabilities.max_texture_size_get(), gpu.capabilities.max_texture_layers_get()
         if W > size or H > size or L > layers:
             raise TextureUploadError(f"{src.path}: {W}x{H} texels in {L} layers exceeds this GPU's limits "
                                      f"({size} texels per side, {layers} layers); bake at a lower resolution")
-        buf = gpu.types.Buffer("FLOAT", L * H * W * 4)
-        view = np.asarray(buf).reshape(L, H, W, 4)
-        src.fill(view)
-        fmt = "RGBA16F" if all(pp.half_exact(view[layer]) for layer in range(L)) else "RGBA32F"
+        stage = gpu.types.Buffer("FLOAT", H * W * 4)
+        view = np.asarray(stage).reshape(H, W, 4)
+        exact = src.half_exact
+        if not exact:
+            exact = True
+            for layer in range(L):
+                src.fill_layer(layer, view)
+                if not pp.half_exact(view):
+                    exact = False
+                    break
+        fmt = "RGBA16F" if exact else "RGBA32F"
         try:
-            tex = gpu.types.GPUTexture((W, H), layers=L, format=fmt, data=buf)
+            tex = gpu.types.GPUTexture((W, H), layers=L, format=fmt)
         except RuntimeError as exc:     # out of (GPU) memory
             raise TextureUploadError(f"{src.path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
                                      f"texture ({exc}); bake at a lower resolution") from exc
-        return tex, view.size * (2 if fmt == "RGBA16F" else 4)
+        sh = gpu_shaders.copy_shader()
+        quad = batch_for_shader(sh, "TRI_STRIP", {"pos": ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))})
+        viewport = gpu.state.viewport_get()
+        old_test, old_blend = gpu.state.depth_test_get(), gpu.state.blend_get()
+        gpu.state.depth_test_set("NONE")
+        gpu.state.blend_set("NONE")
+        try:
+            for layer in range(L):
+                src.fill_layer(layer, view)
+                one = gpu.types.GPUTexture((W, H), format="RGBA32F", data=stage)
+                fb = gpu.types.GPUFrameBuffer(color_slots=({"texture": tex, "layer": layer},))
+                with fb.bind():
+                    gpu.state.viewport_set(0, 0, W, H)
+                    sh.bind()
+                    sh.uniform_sampler("layerTex", one)
+                    quad.draw(sh)
+                del fb, one
+        finally:
+            gpu.state.viewport_set(*viewport)
+            gpu.state.depth_test_set(old_test)
+            gpu.state.blend_set(old_blend)
+        return tex, L * H * W * 4 * (2 if fmt == "RGBA16F" else 4)
 
     def _texture_2d(self, rgba_bottom_first: np.ndarray):
         H, W, _ = rgba_bottom_first.shape

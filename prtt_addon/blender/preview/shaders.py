@@ -5,7 +5,7 @@ import atexit
 
 import gpu
 
-from ...core.preview.shader_source import Variant, depth_variant, relight_variant, variant
+from ...core.preview.shader_source import Variant, copy_variant, depth_variant, relight_variant, variant
 
 _CACHE: dict = {}
 
@@ -30,7 +30,8 @@ def create_info(v: Variant):
     info = gpu.types.GPUShaderCreateInfo()
     for name, value in v.defines:
         info.define(name, value)
-    info.typedef_source(v.typedefs)
+    if v.typedefs:
+        info.typedef_source(v.typedefs)
     for slot, typ, name in v.vertex_in:
         info.vertex_in(slot, typ, name)
     if v.interface:
@@ -72,3 +73,7 @@ def depth_shader():
 
 def relight_shader(bands: int, glossy_bands: int, shared: bool = False):
     return build(relight_variant(bands, glossy_bands, shared))
+
+
+def copy_shader():
+    return build(copy_variant())

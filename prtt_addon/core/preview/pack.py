@@ -370,15 +370,26 @@ class LayerSource:
         if out.shape != (self.layers, self.height, self.width, 4):
             raise ValueError(f"{self.path}: layers of shape {out.shape}, expected "
                              f"{(self.layers, self.height, self.width, 4)}")
-        for l, group in enumerate(self.groups):
-            for j, name in enumerate(group):
-                if name is None:
-                    out[l, :, :, j] = 0.0
-                elif isinstance(name, tuple):
-                    n, c = name
-                    np.multiply(self.tint[:, :, c], self.chans[n][::-1], out=out[l, :, :, j], dtype=np.float32)
-                else:
-                    out[l, :, :, j] = self.chans[name][::-1]
+        for layer in range(self.layers):
+            self.fill_layer(layer, out[layer])
+
+    def fill_layer(self, layer: int, out: np.ndarray) -> None:
+        """Write layer ``layer`` into ``out`` (H, W, 4) float32."""
+        for j, name in enumerate(self.groups[layer]):
+            if name is None:
+                out[:, :, j] = 0.0
+            elif isinstance(name, tuple):
+                n, c = name
+                np.multiply(self.tint[:, :, c], self.chans[n][::-1], out=out[:, :, j], dtype=np.float32)
+            else:
+                out[:, :, j] = self.chans[name][::-1]
+
+    @property
+    def half_exact(self) -> bool:
+        """Every value is a half float by construction (half channels, none tinted);
+        False means: check the values (half_exact of each layer)."""
+        return self.tint is None and all(self.chans[n].dtype == np.float16
+                                         for g in self.groups for n in g if n is not None)
 
 
 def _groups(names: list) -> list:

@@ -187,6 +187,14 @@ struct PRTTRelight {
 """
 
 
+def copy_variant() -> Variant:
+    """The upload pass: a 2D texture's texels into one layer of a 2D array texture."""
+    return Variant(
+        name="prtt_copy_layer", defines=(), typedefs="", vertex_in=((0, "VEC2", "pos"),), interface=(),
+        samplers=((0, "FLOAT_2D", "layerTex"),), uniform_bufs=(), push_constants=(),
+        vertex_files=("prtt_relight_vert.glsl",), fragment_files=("prtt_copy_frag.glsl",))
+
+
 def relight_variant(bands: int, glossy_bands: int, shared: bool = False) -> Variant:
     """The relight pass: one layer of a bounce texture (pack.pack_bounce
     layout) from a relightable operator (pack.pack_relight_operator) and the
