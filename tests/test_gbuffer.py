@@ -171,3 +171,21 @@ def test_extreme_normal_map_is_kept_above_the_horizon():
     gb = build_gbuffer(sc, 0)
     cos = np.einsum("nc,nc->n", gb.normal, gb.geo_normal)
     assert np.all(cos >= 0.05 - 1e-9) and np.all(np.isfinite(gb.normal))
+
+
+def test_more_row_bands_build_the_same_gbuffer(monkeypatch):
+    """Large sets are built in more row bands (gbuffer.BAND_TEXELS, bounded
+    temporaries); the G-buffer is the same array for array."""
+    import concurrent.futures as cf
+
+    from prtt_addon.bench.scene_library import room_scene
+    from prtt_addon.core.texels import gbuffer as gbm
+    sc = room_scene(256, atlas=True)
+    sc.set_resolution[:] = 512
+    with cf.ThreadPoolExecutor(3) as ex:
+        two = gbm.build_gbuffer(sc, 0, executor=ex, bands=2)
+        monkeypatch.setattr(gbm, "BAND_TEXELS", 512 * 512 // 7)
+        many = gbm.build_gbuffer(sc, 0, executor=ex, bands=2)
+    for f in ("texel", "tri", "bary", "position", "normal", "geo_normal", "coverage", "normal_mapped"):
+        assert np.array_equal(getattr(two, f), getattr(many, f)), f
+    assert two.stats == many.stats

@@ -25,6 +25,9 @@ from ..model.scene import Scene
 from .raster import rasterize
 from .texsample import bilinear_repeat
 
+#: Texels of one row band of a G-buffer built on a thread pool (build_gbuffer).
+BAND_TEXELS = 1 << 21
+
 #: Minimum cosine between a normal-mapped shading normal and the geometric normal.
 MIN_HORIZON_COS = 0.05
 
@@ -130,6 +133,9 @@ def build_gbuffer(sc: Scene, set_index: int, *, normal_maps: bool = True, execut
     as the rasteriser goes: parallel.Cancelled.
     """
     w, h = (int(v) for v in (resolution if resolution is not None else sc.set_resolution[set_index]))
+    # Bands of at most BAND_TEXELS: the rasteriser's per-band arrays stay bounded
+    # (a 4096² set in two bands held 1.5 GB of them beside the G-buffer).
+    bands = max(bands, -(-w * h // BAND_TEXELS))
     if executor is None or bands < 2 or h < 2 * bands:
         return _build_gbuffer(sc, set_index, normal_maps, None, cancel, (w, h))
     cuts = np.linspace(0, h, bands + 1).astype(int)
