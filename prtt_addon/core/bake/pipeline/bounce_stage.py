@@ -44,7 +44,7 @@ from ..estimators.bounce import (
 )
 from ..estimators.relightable import uniform_energy
 from ..estimators.transfer import TransferSettings, warm_tables
-from .context import BakeContext, BakeSettings
+from .context import AUTO_DOWNSCALE, BakeContext, BakeSettings, asked_downscale  # noqa: F401 (re-exported)
 from .plan import BakePlan
 from .stages import BounceSource, Geometry, write_planes
 
@@ -116,12 +116,11 @@ class BounceGrid:
         return out
 
 
-#: tuning "auto": the bounce grid it asks for (1/2 per side: 4x fewer texels and
-#: bytes), and the rays per coarse texel relative to settings.bounce_rays
+#: tuning "auto": the rays per coarse texel relative to settings.bounce_rays
 #: (x1.5: 0.375x the rays in all; without it the coarse grid's extra noise and
 #: blur cost +0.20 percentage points of preview image error on the room, with
-#: it +0.05: bench auto, docs/benchmarks.md).
-AUTO_DOWNSCALE = 2
+#: it +0.05: bench auto, docs/benchmarks.md). The grid it asks for:
+#: context.AUTO_DOWNSCALE.
 AUTO_RAY_FACTOR = 1.5
 #: A band l is dropped when |A_l(s) / A_0(s)| is below this for every glossy
 #: lobe of the set: the shaded glossy term then changes by less than 5 % of
@@ -157,15 +156,6 @@ def choose_bounce_bands(sc, set_index: int, glossy_tri: np.ndarray, bands: int) 
 
 #: Coarse grids narrower than this get no texels for small islands at all.
 MIN_BOUNCE_SIDE = 16
-
-
-def asked_downscale(bounces: int, tuning: str, bounce_downscale: int) -> int:
-    """The coarsest bounce grid (1/N per side) a bake asks for; choose_grid
-    then takes the coarsest of 1/N, 1/(N/2) ... that mixes no UV islands (the
-    unwrap leaves room for 1/N: blender/export/uv_maps.margin_texels)."""
-    if bounces <= 0:
-        return 1
-    return max(bounce_downscale, AUTO_DOWNSCALE) if tuning == "auto" else bounce_downscale
 
 
 def choose_grid(gb: GBuffer, asked: int) -> BounceGrid:

@@ -41,6 +41,20 @@ AUTO_MANTISSA_BITS = 6
 #: Stage timers (the manifest's "seconds"), zero before the stage runs; "bvh",
 #: "analytic_test" and "total" are added as those steps finish.
 STAGE_SECONDS = ("gbuffer", "trace", "dilate", "write", "vertex", "bounce_exit", "bounce_trace", "bounce_write")
+#: tuning "auto": the bounce grid it asks for, 1/2 per side (4x fewer texels
+#: and bytes; bounce_stage.choose_grid takes it where no UV islands mix).
+AUTO_DOWNSCALE = 2
+
+
+def asked_downscale(bounces: int, tuning: str, bounce_downscale: int) -> int:
+    """The coarsest bounce grid (1/N per side) a bake asks for; choose_grid
+    then takes the coarsest of 1/N, 1/(N/2) ... that mixes no UV islands (the
+    unwrap leaves room for 1/N: blender/export/uv_maps.margin_texels)."""
+    if bounces <= 0:
+        return 1
+    return max(bounce_downscale, AUTO_DOWNSCALE) if tuning == "auto" else bounce_downscale
+
+
 #: The bounce stages among them: exit forms, trace + shade, dilate + write.
 BOUNCE_STAGES = ("bounce_exit", "bounce_trace", "bounce_write")
 

@@ -24,7 +24,7 @@ from ...shading.materials import materials_hash
 from ...shading.shade import light_hash
 from ..estimators import denoise
 from ..estimators.relightable import GLOSSY_BANDS, relight_shared_colour
-from .context import MANIFEST, BakeContext, BakeSettings
+from .context import MANIFEST, BakeContext, BakeSettings, asked_downscale
 from .memory_plan import covered_texels, peak_stage, stage_bytes, uv_areas, uv_boundaries
 
 
@@ -85,8 +85,6 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
     ``set_sizes``: (width, height, covered texels) per set baked, in order
     (covered: memory_plan.covered_texels of the set's UV area); ``downscales``:
     each set's bounce grid once chosen (default: the grid the settings ask for)."""
-    from .bounce_stage import asked_downscale  # deferred: bounce_stage imports this module
-
     K = st.bands ** 2
     kg = min(GLOSSY_BANDS, st.bands) ** 2
     colours = 1 if relight_shared_colour(st) else 3

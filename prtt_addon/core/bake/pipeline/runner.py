@@ -51,9 +51,9 @@ from ...io.outdir import FolderBusyError, FolderLock
 from ...model.scene import Scene
 from ..estimators import hit_kernel
 from ..executors.dask_cluster import DaskBake, parse_spec
-from .bounce_stage import asked_downscale, bounce_levels, choose_grid
+from .bounce_stage import bounce_levels, choose_grid
 from .commit import commit_bake, finish_skipped, make_manifest
-from .context import BAKE_FORMAT_VERSION, BAKE_INT_LIMITS, MANIFEST, BakeContext, BakeSettings, emit
+from .context import BAKE_FORMAT_VERSION, BAKE_INT_LIMITS, MANIFEST, BakeContext, BakeSettings, asked_downscale, emit
 from .plan import (
     bake_memory_bytes,
     bounce_key,
