@@ -244,7 +244,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=OUT, help="folder for memory.json and memory.png (default docs/bench)")
     args = p.parse_args(argv)
     sizes = [int(s) for s in (args.sizes or ("128,256" if args.quick else "512,1024,2048,4096")).split(",")]
-    rec = {"command": "python -m prtt_addon.bench memory" + (" --quick" if args.quick else ""),
+    rec = {"command": " ".join(["python -m prtt_addon.bench memory", *(argv if argv is not None else sys.argv[1:])]),
            "date": datetime.date.today().isoformat(), "machine": machine(), "commit": commit(), "demo": []}
     with tempfile.TemporaryDirectory(prefix="prtt-memory-") as tmp:
         t = time.perf_counter()
