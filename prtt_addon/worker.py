@@ -107,18 +107,29 @@ def job_light(extra: dict, override=None):
 
 
 def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
-    """Refuse (MemoryLimitError) a job whose arrays do not fit in the available
-    memory, from its headers alone (before loading). The bake's own estimate,
-    which needs the loaded UV layout, is checked once the job is loaded
-    (core/bake/pipeline/plan.check_memory); ``st``, ``resolution`` and
-    ``bouncing`` are kept for callers that pass them."""
+    """Refuse (MemoryLimitError) a job whose arrays plus the least any bake of
+    it holds (memory_plan.floor_bytes: its largest set's float32 planes) do
+    not fit in the available memory, from its headers alone (before loading):
+    a refusal here would truly not have fit. The bake's full estimate, which
+    needs the loaded UV layout, is checked once the job is loaded
+    (core/bake/pipeline/plan.check_memory). ``bouncing`` is kept for callers."""
+    import numpy as np
+
     # Deferred imports (start-up): the worker installs its signal handlers
     # before numpy, Embree and the bake load, so a SIGTERM during start-up is a
     # clean cancel (exit 3), not a kill.
+    from .core.bake.pipeline.memory_plan import floor_bytes  # deferred (start-up)
     from .core.base.memory import GiB, check_fits  # deferred (start-up)
+    from .core.model.scene import MAX_RESOLUTION  # deferred (start-up)
+    res = job.set_resolution() if resolution is None else np.full((len(job.set_resolution()), 2), resolution)
+    # An out-of-range resolution fails validation with its own message; here it
+    # must not fail first as an absurd memory need: such sets count as 1 texel.
+    res = np.asarray(res).reshape(-1, 2)
+    res = np.where((res >= 1) & (res <= MAX_RESOLUTION), res, 1).astype(np.int64)
     arrays = job.peak_bytes()
-    check_fits(arrays, f"loading job {job.path} (its arrays {arrays / GiB:.2f} GiB)",
-               advice="the job's scene is too large for this machine")
+    bake = floor_bytes(res, bands=st.bands, n_triangles=job.members["positions"].shape[0])
+    check_fits(arrays + bake, f"job {job.path} (its arrays {arrays / GiB:.2f} GiB, the bake "
+                              f"{bake / GiB:.2f} GiB)")
 
 
 def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,

@@ -37,7 +37,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = dict(os.environ, PYTHONPATH=ROOT, PYTHONUNBUFFERED="1")
 #: Manifest entries that record how long things took (they differ run to run),
 #: and with them how many threads traced (the machine's or the cluster's).
-TIMING_KEYS = ("seconds", "created", "rays_per_second")
+TIMING_KEYS = ("seconds", "created", "rays_per_second", "memory")   # measured, not baked
 EXECUTION_KEYS = TIMING_KEYS + ("threads",)
 
 

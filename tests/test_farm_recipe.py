@@ -46,7 +46,7 @@ REQUIRES = {None: ("embreex", "openexr", "xatlas", "threadpoolctl", "numpy"),
             "farm": ("dask", "distributed"),
             "numba": ("numba", "llvmlite")}
 #: Manifest fields that record how long things took, and how many threads traced.
-EXECUTION_KEYS = ("seconds", "created", "rays_per_second", "threads")
+EXECUTION_KEYS = ("seconds", "created", "rays_per_second", "threads", "memory")
 
 
 # --- the recipe ------------------------------------------------------------------------

@@ -77,7 +77,7 @@ def test_refusal_names_estimate_available_and_settings(monkeypatch, tmp_path):
     with pytest.raises(memory.MemoryLimitError) as e:
         bake_scene(sc, tmp_path, BakeSettings(rays=16))
     msg = str(e.value)
-    assert "needs about" in msg and "0.20 GiB is available" in msg and "--resolution" in msg and "128x128" in msg
+    assert "needs about" in msg and "0.2 GiB is available" in msg and "--resolution" in msg and "128x128" in msg
     assert not [f for f in os.listdir(tmp_path) if not f.startswith(".")]
 
 

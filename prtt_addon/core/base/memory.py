@@ -85,7 +85,7 @@ def check_fits(needed: int, what: str, *, fraction: float = 0.8, advice: str | N
     avail = available_bytes()
     if avail is not None and needed > fraction * avail:
         raise MemoryLimitError(
-            f"{what} needs about {needed / GiB:.2f} GiB but only {avail / GiB:.2f} GiB is "
+            f"{what} needs about {needed / GiB:.1f} GiB but only {avail / GiB:.1f} GiB is "
             f"available; {advice or 'lower the resolution or the bands, or bake fewer sets at once'}")
 
 

@@ -159,6 +159,16 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     return out
 
 
+def floor_bytes(set_resolution, *, bands: int, n_triangles: int) -> int:
+    """A lower bound of any bake's peak, from the set sizes alone (no UV
+    layout yet): the process, the scene and the float32 channel planes of the
+    largest set, which the projection holds whatever the coverage. A job
+    refused by it would truly not fit (the worker's check before loading)."""
+    K = bands * bands
+    largest = max((int(w) * int(h) for w, h in np.asarray(set_resolution).reshape(-1, 2).tolist()), default=0)
+    return BASE + scene_bytes(n_triangles) + 4 * K * largest
+
+
 def peak_stage(stages: dict[str, int]) -> tuple[str, int]:
     """(stage, bytes) of the largest estimate."""
     name = max(stages, key=stages.get)
