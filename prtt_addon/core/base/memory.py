@@ -86,7 +86,8 @@ def check_fits(needed: int, what: str, *, fraction: float = 0.8, advice: str | N
     if avail is not None and needed > fraction * avail:
         raise MemoryLimitError(
             f"{what} needs about {needed / GiB:.1f} GiB but only {avail / GiB:.1f} GiB is "
-            f"available; {advice or 'lower the resolution or the bands, or bake fewer sets at once'}")
+            f"available (at most {fraction:.0%} of it is used); "
+            f"{advice or 'lower the resolution or the bands, or bake fewer sets at once'}")
 
 
 def _numpy_hugepage_switch():
