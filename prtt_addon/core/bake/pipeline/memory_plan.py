@@ -38,7 +38,7 @@ import numpy as np
 MiB = 1 << 20
 
 #: The bake process before any set: interpreter, numpy, numba's compiled kernels, Embree's allocator.
-BASE = 180 * MiB
+BASE = 150 * MiB
 #: Bytes a scene triangle holds: the job's arrays (positions, normals, UVs, ids) and Embree's BVH.
 TRIANGLE = 400
 #: The G-buffer while it is built: the merged arrays and the row bands' rasteriser temporaries.
