@@ -141,26 +141,14 @@ class Renderer:
             raise TextureUploadError(f"{src.path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
                                      f"texture ({exc}); bake at a lower resolution") from exc
         sh = gpu_shaders.copy_shader()
-        quad = batch_for_shader(sh, "TRI_STRIP", {"pos": ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))})
-        viewport = gpu.state.viewport_get()
-        old_test, old_blend = gpu.state.depth_test_get(), gpu.state.blend_get()
-        gpu.state.depth_test_set("NONE")
-        gpu.state.blend_set("NONE")
-        try:
-            for layer in range(L):
-                src.fill_layer(layer, view)
-                one = gpu.types.GPUTexture((W, H), format="RGBA32F", data=stage)
-                fb = gpu.types.GPUFrameBuffer(color_slots=({"texture": tex, "layer": layer},))
-                with fb.bind():
-                    gpu.state.viewport_set(0, 0, W, H)
-                    sh.bind()
-                    sh.uniform_sampler("layerTex", one)
-                    quad.draw(sh)
-                del fb, one
-        finally:
-            gpu.state.viewport_set(*viewport)
-            gpu.state.depth_test_set(old_test)
-            gpu.state.blend_set(old_blend)
+
+        def one_layer(layer):
+            src.fill_layer(layer, view)
+            one = gpu.types.GPUTexture((W, H), format="RGBA32F", data=stage)
+            sh.uniform_sampler("layerTex", one)
+            return one                      # alive until its layer is drawn
+
+        _draw_layers(tex, W, H, sh, range(L), one_layer)
         return tex, L * H * W * 4 * (2 if fmt == "RGBA16F" else 4)
 
     def _texture_2d(self, rgba_bottom_first: np.ndarray):
@@ -225,27 +213,14 @@ class Renderer:
         out = gpu.types.GPUTexture((W, H), layers=3 * K4, format="RGBA32F")
         sh = gpu_shaders.relight_shader(bands, gbands, shared)
         ubo = gpu.types.GPUUniformBuf(_buffer(pp.relight_block(light, bands)))
-        quad = batch_for_shader(sh, "TRI_STRIP", {"pos": ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))})
-        viewport = gpu.state.viewport_get()
-        old_test, old_blend = gpu.state.depth_test_get(), gpu.state.blend_get()
-        gpu.state.depth_test_set("NONE")
-        gpu.state.blend_set("NONE")
-        try:
-            for c in range(3):
-                for q in range(K4):
-                    fb = gpu.types.GPUFrameBuffer(color_slots=({"texture": out, "layer": c * K4 + q},))
-                    with fb.bind():
-                        gpu.state.viewport_set(0, 0, W, H)
-                        sh.bind()
-                        sh.uniform_block("relight", ubo)
-                        sh.uniform_sampler("relightTex", op_tex)
-                        sh.uniform_int("out_colour", c)
-                        sh.uniform_int("out_q", q)
-                        quad.draw(sh)
-        finally:
-            gpu.state.viewport_set(*viewport)
-            gpu.state.depth_test_set(old_test)
-            gpu.state.blend_set(old_blend)
+
+        def relight_layer(layer):
+            sh.uniform_block("relight", ubo)
+            sh.uniform_sampler("relightTex", op_tex)
+            sh.uniform_int("out_colour", layer // K4)
+            sh.uniform_int("out_q", layer % K4)
+
+        _draw_layers(out, W, H, sh, range(3 * K4), relight_layer)
         return out, W * H * 3 * K4 * 16
 
     def _dummy(self, layered: bool):
@@ -410,6 +385,31 @@ class Renderer:
                 sh.uniform_sampler("normalTex", self._image(ps, mat.normal_texture)
                                    if mat.normal_texture >= 0 else dummy)
             batch.draw_range(sh, elem_start=3 * first, elem_count=3 * count)
+
+
+def _draw_layers(target, width: int, height: int, shader, layers, setup) -> None:
+    """Draw a quad over each of ``layers`` of 2D array texture ``target``
+    (width x height) with ``shader``: ``setup(layer)`` sets its inputs after
+    it is bound (what it returns is kept until the layer is drawn). No depth
+    test, no blending; the viewport and those states are restored."""
+    quad = batch_for_shader(shader, "TRI_STRIP", {"pos": ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))})
+    viewport = gpu.state.viewport_get()
+    old_test, old_blend = gpu.state.depth_test_get(), gpu.state.blend_get()
+    gpu.state.depth_test_set("NONE")
+    gpu.state.blend_set("NONE")
+    try:
+        for layer in layers:
+            fb = gpu.types.GPUFrameBuffer(color_slots=({"texture": target, "layer": layer},))
+            with fb.bind():
+                gpu.state.viewport_set(0, 0, width, height)
+                shader.bind()
+                keep = setup(layer)
+                quad.draw(shader)
+            del fb, keep
+    finally:
+        gpu.state.viewport_set(*viewport)
+        gpu.state.depth_test_set(old_test)
+        gpu.state.blend_set(old_blend)
 
 
 def _load(loader, path: str) -> np.ndarray:

@@ -357,22 +357,13 @@ def open_sh_channels(path):
 
 
 def _read_channels(path) -> tuple[dict, dict]:
-    import OpenEXR
-
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise TextureError(f"{path}: no such texture")
-    try:
-        # Copy inside the block: the binding empties its dicts when the file closes.
-        with OpenEXR.File(path) as f:
-            header = dict(f.header())
-            chans = {n: np.array(c.pixels, copy=True) for n, c in f.channels().items()}
-    except Exception as exc:
-        raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
-    attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
-    if "bands" not in attrs or "kind" not in attrs:
-        raise TextureError(f"{path}: not a PRTT texture (no prtt_bands/prtt_kind header)")
-    return chans, attrs
+    """(name -> (H, W) array copied out of the file, attrs): :func:`open_sh_channels`'
+    channels, kept after the file closes."""
+    with open_sh_channels(path) as (chans, attrs):
+        try:
+            return {n: np.array(c, copy=True) for n, c in chans.items()}, attrs
+        except Exception as exc:
+            raise TextureError(f"{os.fspath(path)}: unreadable EXR ({exc})") from exc
 
 
 #: The most SH bands a texture file may declare (the bake's own limit): a
