@@ -21,8 +21,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 
-def _bake_job(job, out, *extra, preexec=None):
-    env = dict(os.environ, PYTHONPATH=ROOT)
+def _bake_job(job, out, *extra, preexec=None, env=None):
+    env = dict(os.environ, PYTHONPATH=ROOT, **(env or {}))
     return subprocess.run([sys.executable, "-m", "prtt_addon", "bake-job", job, "--out", str(out), "--force",
                            "-q", *extra], capture_output=True, text=True, env=env, preexec_fn=preexec, timeout=600)
 
@@ -38,11 +38,18 @@ def room_job(tmp_path_factory):
     return job
 
 
-@pytest.mark.parametrize("size", [256, 512])
-def test_estimate_within_20_percent_of_the_measured_peak(room_job, tmp_path, size):
+@pytest.mark.parametrize("size,kernels", [(256, "cached"), (512, "cached"), (256, "compiled")])
+def test_estimate_within_20_percent_of_the_measured_peak(room_job, tmp_path, size, kernels):
     """The bake's own estimate (recorded before it allocates) against its
-    process's peak RSS, per stage and overall, defaults with one relightable bounce."""
-    r = _bake_job(room_job, tmp_path, "--resolution", str(size))
+    process's peak RSS, per stage and overall, defaults with one relightable
+    bounce; with the bounce's kernels in numba's cache and with an empty cache
+    (a first bake after an install: the compiler keeps ~60 MB, which failed CI
+    at 256² before the estimate counted it)."""
+    cache = tmp_path / "numba-cache"
+    if kernels == "cached":
+        assert _bake_job(room_job, tmp_path / "warm", "--resolution", "64", env={"NUMBA_CACHE_DIR": str(cache)}
+                         ).returncode == 0
+    r = _bake_job(room_job, tmp_path, "--resolution", str(size), env={"NUMBA_CACHE_DIR": str(cache)})
     assert r.returncode == 0, r.stderr
     m = json.load(open(tmp_path / "manifest.json"))
     mem = m["memory"]

@@ -27,7 +27,10 @@ cache directory when that is read-only).
 
 from __future__ import annotations
 
+import inspect
 import math
+import os
+import sys
 import threading
 
 import numpy as np
@@ -111,6 +114,53 @@ def usable(kind: str, bands: int, transfer_bands: int = 0) -> bool:
                     ok = False
             _probed[key] = ok
     return _probed[key]
+
+
+def _entry_points(mod, kind: str, bands: int, transfer_bands: int = 0) -> list:
+    """The dispatchers :func:`_probe` calls for ``kind`` (the loops a bake enters)."""
+    if kind == "relight":
+        loops = [mod.relight_project, mod.relight_for(transfer_bands, bands, True)]
+    elif kind == "columns":
+        loops = [mod.put_columns, mod.put_texel_rows]
+    else:
+        loops = [mod.for_bands(bands)]
+    return [mod.texel_indices, *loops]
+
+
+def _cached(dispatcher) -> bool:
+    """numba's cache holds compiled code of ``dispatcher`` for its current
+    source: the index file numba names ``<file>.<qualname>-<line>.pyXY.nbi``
+    in the dispatcher's cache folder (``stats.cache_path``) exists and is
+    newer than the source file. An edit that keeps the line reads as cached
+    (the estimate is then ~60 MB low, once); False when anything is unlike
+    numba 0.5x-0.6x, so an unknown numba counts as compiling."""
+    try:
+        func = dispatcher.py_func
+        source = inspect.getfile(func)
+        name = (f"{os.path.splitext(os.path.basename(source))[0]}.{func.__qualname__}"
+                f"-{func.__code__.co_firstlineno}.py{sys.version_info[0]}{sys.version_info[1]}"
+                f"{getattr(sys, 'abiflags', '')}.nbi")
+        index = os.path.join(dispatcher.stats.cache_path, name)
+        return os.path.getmtime(index) >= os.path.getmtime(source)
+    except (AttributeError, OSError, TypeError):
+        return False
+
+
+def compile_pending(bands: int, relightable: bool = False, glossy_bands: int = 3) -> bool:
+    """:func:`warm_up` will compile kernels rather than load them from numba's
+    cache (a first bake after an install or an update of PRTT): the compiler
+    keeps ~60 MB resident for the rest of the process, which the memory
+    estimate adds (pipeline/memory_plan.JIT_COMPILE). False without numba."""
+    if not available():
+        return False
+    mod, islands = _jit(), jit.load(_ISLANDS)
+    if mod is None:
+        return False
+    kind = ("relight", glossy_bands, bands) if relightable else ("baked", bands)
+    entries = _entry_points(mod, *kind) + _entry_points(mod, "columns", 0)
+    if islands is not None:
+        entries.append(islands.island_labels)
+    return not all(_cached(d) for d in entries)
 
 
 def warm_up(bands: int, relightable: bool = False, glossy_bands: int = 3) -> threading.Thread | None:

@@ -10,7 +10,8 @@ hold a value once dilated (N and the dilation rings around every island).
 K = bands², C the relightable channels (3K + the glossy rows). Bytes:
 
 * every stage: the process (Python, numpy, numba's kernels, Embree: BASE),
-  the scene's arrays and its BVH (:func:`scene_bytes`);
+  the scene's arrays and its BVH (:func:`scene_bytes`), and on a bake that
+  compiles the bounce's kernels (nothing cached yet) what the compiler keeps;
 * G-buffer: the G-buffer and its rasteriser's temporaries, GBUFFER_BUILD a texel;
 * trace and projection: the G-buffer and kernel points (SURFACE a texel), the
   traced rows 4 K N, the float32 planes 4 K A;
@@ -39,6 +40,9 @@ MiB = 1 << 20
 
 #: The bake process before any set: interpreter, numpy, numba's compiled kernels, Embree's allocator.
 BASE = 150 * MiB
+#: What numba's compiler keeps resident once it has compiled the bounce's kernels (a first bake
+#: after installing or updating PRTT; later bakes load them from numba's cache): measured 55-58 MB.
+JIT_COMPILE = 60 * MiB
 #: Bytes a scene triangle holds: the job's arrays (positions, normals, UVs, ids) and Embree's BVH.
 TRIANGLE = 400
 #: The G-buffer while it is built: the merged arrays and the row bands' rasteriser temporaries.
@@ -109,7 +113,7 @@ def scene_bytes(n_triangles: int) -> int:
 def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int = 2,
                 chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
-                glossy_coeffs: int = 0) -> dict[str, int]:
+                glossy_coeffs: int = 0, compiling: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -117,11 +121,13 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     bounces : levels baked (0: none); downscale: the bounce grid's 1/f per
     side (bounce_stage.asked_downscale), or one per set once their grids are
     chosen (bounce_stage.choose_grid); relight_channels: C of a
-    relightable texture; glossy_coeffs: Kg² of its glossy exit table (0: none).
+    relightable texture; glossy_coeffs: Kg² of its glossy exit table (0: none);
+    compiling: numba compiles the bounce's kernels in this process (JIT_COMPILE
+    from the start: they are compiled on a helper thread while the first set is).
     Returns {stage: bytes} with the stage names of the manifest's ``memory``.
     """
     K = bands * bands
-    base = BASE + scene_bytes(n_triangles)
+    base = BASE + scene_bytes(n_triangles) + (JIT_COMPILE if compiling else 0)
     threads = max(1, threads)
 
     def chunks(texels: int, per_texel: int) -> int:

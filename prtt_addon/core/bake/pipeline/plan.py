@@ -22,7 +22,7 @@ from ...io.outdir import verify_files
 from ...model.scene import geometry_hash
 from ...shading.materials import materials_hash
 from ...shading.shade import light_hash
-from ..estimators import denoise
+from ..estimators import denoise, hit_kernel
 from ..estimators.relightable import GLOSSY_BANDS, relight_shared_colour
 from .context import MANIFEST, BakeContext, BakeSettings, asked_downscale
 from .memory_plan import covered_texels, peak_stage, stage_bytes, uv_areas, uv_boundaries
@@ -80,11 +80,12 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
 
 
 def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool,
-                     downscales: list[int] | None = None) -> dict[str, int]:
+                     downscales: list[int] | None = None, compiling: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake (memory_plan.stage_bytes).
     ``set_sizes``: (width, height, covered texels) per set baked, in order
     (covered: memory_plan.covered_texels of the set's UV area); ``downscales``:
-    each set's bounce grid once chosen (default: the grid the settings ask for)."""
+    each set's bounce grid once chosen (default: the grid the settings ask for);
+    ``compiling``: the bounce's kernels are compiled in this process (:func:`kernels_compile`)."""
     K = st.bands ** 2
     kg = min(GLOSSY_BANDS, st.bands) ** 2
     colours = 1 if relight_shared_colour(st) else 3
@@ -94,7 +95,17 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
                        bounces=st.bounces if bouncing else 0, bounce_mode=st.bounce_mode,
                        downscale=(downscales if downscales is not None
                                   else asked_downscale(st.bounces, st.tuning, st.bounce_downscale)),
-                       relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg)
+                       relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg,
+                       compiling=compiling)
+
+
+def kernels_compile(ctx: BakeContext, plan: BakePlan) -> bool:
+    """This bake's process will compile the bounce's numba kernels (runner's
+    hit_kernel.warm_up finds them missing from numba's cache): a local bake with bounces."""
+    st = ctx.settings
+    return (plan.bouncing and ctx.dask is None
+            and hit_kernel.compile_pending(st.bands, relightable=st.bounce_mode == "relightable",
+                                           glossy_bands=min(GLOSSY_BANDS, st.bands)))
 
 
 def bake_memory_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool) -> int:
@@ -212,7 +223,7 @@ def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None 
     sc, st = ctx.scene, ctx.settings
     sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
     stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing,
-                              downscales=downscales)
+                              downscales=downscales, compiling=kernels_compile(ctx, plan))
     stage, need = peak_stage(stages)
     ctx.memory.estimate_mb = round(need / 2 ** 20, 1)
     biggest = max(sizes, key=lambda s: s[0] * s[1], default=None)
