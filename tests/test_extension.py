@@ -52,7 +52,7 @@ def test_zip_layout(extension_zip):
             "core/preview/shader_source.py", "shaders/prtt_common.glsl", "shaders/prtt_surface_frag.glsl"} <= names
     # Runtime files only: the package's modules, shaders, wheels, the licence.
     assert "demo.py" not in names
-    assert not any(n.startswith(("bench/", "tests/", "docs/", "tools/", "assets/")) or "__pycache__" in n
+    assert not any(n.startswith(("bench/", "fuzz/", "tests/", "docs/", "tools/", "assets/")) or "__pycache__" in n
                    or n.endswith(".pyc") for n in names)
     assert all(n.endswith(".py") or n.startswith(("shaders/", "wheels/")) or n in {"LICENSE", "blender_manifest.toml"}
                for n in names), sorted(names)

@@ -89,7 +89,7 @@ def test_cli_demo_runs():
 PKG = "prtt_addon"
 #: Development-only code the extension zip leaves out: it imports Blender-side
 #: modules lazily so that `bench bake` runs without bpy; held to "no cycles" only.
-DEV_ONLY = ("prtt_addon.bench", "prtt_addon.demo")
+DEV_ONLY = ("prtt_addon.bench", "prtt_addon.demo", "prtt_addon.fuzz")
 
 
 def _modules():

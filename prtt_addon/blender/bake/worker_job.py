@@ -7,7 +7,6 @@ the previous textures untouched).
 """
 from __future__ import annotations
 
-import json
 import os
 import queue
 import signal
@@ -15,6 +14,7 @@ import subprocess
 import threading
 
 from ...core.base.child import child_env, python_executable
+from ...core.io.worker_events import read_event
 
 
 class WorkerJob:
@@ -45,10 +45,11 @@ class WorkerJob:
             line = line.strip()
             if not line:
                 continue
-            try:
-                self._events.put(json.loads(line))
-            except ValueError:
-                self._stderr.append(line)
+            e = read_event(line)
+            if e is not None:
+                self._events.put(e)
+            else:
+                self._stderr.append(line[:2000])
         self._events.put(None)                     # end of stream
 
     def _read_stderr(self):

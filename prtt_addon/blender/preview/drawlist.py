@@ -27,6 +27,7 @@ import zipfile
 import bpy
 import numpy as np
 
+from ...core.io.sidecars import read_generated_uvs, read_vertex_transfer
 from ...core.light.envmap import compose_light
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import MAX_PREVIEW_BANDS
@@ -216,8 +217,7 @@ def _vertex_table(path: str) -> np.ndarray | None:
         return None
     t = _VERTEX_TABLES.get(key)
     if t is None:
-        with np.load(path, allow_pickle=False) as z:
-            t = _VERTEX_TABLES[key] = np.asarray(z["corner_vertex"], np.int64)
+        t = _VERTEX_TABLES[key] = read_vertex_transfer(path)[1]
     return t
 
 
@@ -295,9 +295,7 @@ def generated_uvs(out_dir: str) -> dict:
         return {}
     got = _GENERATED.get(path)
     if got is None or got[0] != key:
-        with np.load(path, allow_pickle=False) as z:
-            keys = [str(k) for k in z["keys"]]
-            got = _GENERATED[path] = (key, {k: np.asarray(z[f"uv_{i}"], np.float32) for i, k in enumerate(keys)})
+        got = _GENERATED[path] = (key, read_generated_uvs(path))
     return got[1]
 
 

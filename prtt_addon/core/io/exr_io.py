@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import subprocess
 
 import numpy as np
 
@@ -299,33 +300,58 @@ def write_sh_exr(path, data: np.ndarray, *, kind: str, half: bool = True,
                            attrs=attrs, atomic=atomic)
 
 
+#: The child that decodes one channel with OpenEXR's legacy InputFile (argv: path, channel).
+_DC_CHILD = ("import sys, Imath, OpenEXR\n"
+             "f = OpenEXR.InputFile(sys.argv[1])\n"
+             "sys.stdout.buffer.write(f.channel(sys.argv[2], Imath.PixelType(Imath.PixelType.FLOAT)))\n")
+#: Seconds the child may take (a 16384² channel decodes in a few).
+DC_CHILD_TIMEOUT = 300
+
+
 def read_dc_plane(path) -> np.ndarray:
     """(H, W) float32, row 0 at the bottom: a PRTT transfer texture's DC
-    channel ``sh000`` alone (what the add-on's AO image shows). OpenEXR's
-    scanline reader decodes it block by block without the other channels
-    (the full read of a 4096² texture held 0.8 GB of half channels for it)."""
-    import Imath
+    channel ``sh000`` alone (what the add-on's AO image shows).
+
+    OpenEXR's legacy scanline reader decodes one channel block by block (the
+    full read of a 4096² texture holds 0.8 GB of half channels for it), but
+    it trusts damaged files: crafted ones crashed it with a segmentation
+    fault (tests/fuzz_corpus/exr). So the header is read and checked here
+    with the current API, and the channel is decoded in a child process whose
+    crash is a TextureError, not the end of Blender."""
     import OpenEXR
 
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise TextureError(f"{path}: no such texture")
     try:
-        f = OpenEXR.InputFile(path)
-        try:
-            header = f.header()
-            if "sh000" not in header["channels"]:
-                raise TextureError(f"{path}: missing channels ['sh000']")
-            box = header["dataWindow"]
-            H, W = int(box.max.y) - int(box.min.y) + 1, int(box.max.x) - int(box.min.x) + 1
-            data = f.channel("sh000", Imath.PixelType(Imath.PixelType.FLOAT))
-        finally:
-            f.close()
-    except TextureError:
-        raise
+        with OpenEXR.File(path, header_only=True) as hf:
+            header = dict(hf.header())
     except Exception as exc:
         raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
-    return np.frombuffer(data, np.float32).reshape(H, W)[::-1].copy()
+    if "prtt_bands" not in header or "prtt_kind" not in header:
+        raise TextureError(f"{path}: not a PRTT texture (no prtt_bands/prtt_kind header)")
+    chans = header.get("channels")
+    if not any(getattr(c, "name", None) == "sh000" for c in (chans or [])):
+        raise TextureError(f"{path}: missing channels ['sh000']")
+    box = header.get("dataWindow")
+    try:
+        (x0, y0), (x1, y1) = (int(v) for v in box[0]), (int(v) for v in box[1])
+    except (TypeError, ValueError, IndexError) as exc:
+        raise TextureError(f"{path}: unreadable EXR (data window {box!r})") from exc
+    H, W = y1 - y0 + 1, x1 - x0 + 1
+    if not (0 < H <= MAX_FILE_SIDE and 0 < W <= MAX_FILE_SIDE):
+        raise TextureError(f"{path}: a {W}x{H} texture; PRTT writes 1..{MAX_FILE_SIDE} texels a side")
+    from ..base.child import child_env, python_executable
+    try:
+        r = subprocess.run([python_executable(), "-c", _DC_CHILD, path, "sh000"], capture_output=True,
+                           env=child_env(), timeout=DC_CHILD_TIMEOUT)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise TextureError(f"{path}: unreadable EXR (its decoder did not finish: {exc})") from exc
+    if r.returncode != 0 or len(r.stdout) != 4 * H * W:
+        how = f"crashed (signal {-r.returncode})" if r.returncode < 0 else "failed"
+        tail = r.stderr.decode("utf-8", "replace").strip().splitlines()[-1:] or [""]
+        raise TextureError(f"{path}: unreadable EXR (OpenEXR's decoder {how}{': ' + tail[0] if tail[0] else ''})")
+    return np.frombuffer(r.stdout, np.float32).reshape(H, W)[::-1].copy()
 
 
 @contextlib.contextmanager
@@ -369,6 +395,8 @@ def _read_channels(path) -> tuple[dict, dict]:
 #: The most SH bands a texture file may declare (the bake's own limit): a
 #: header is untrusted input, and channel names are listed from it.
 MAX_FILE_BANDS = 16
+#: Texels a side a texture file may declare (the bake's own limit).
+MAX_FILE_SIDE = 16384
 
 
 def bands_of_header(path, attrs: dict, key: str = "bands", lo: int = 1, hi: int = MAX_FILE_BANDS) -> int:

@@ -43,8 +43,8 @@ MAX_GLB_JSON_BYTES = 64 << 20
 
 def read_glb_json(path) -> dict:
     """The JSON chunk of the .glb at ``path``. ValueError (naming the file)
-    when it is not a .glb whose first chunk is JSON, or that chunk is over
-    MAX_GLB_JSON_BYTES or truncated."""
+    when it is not a .glb whose first chunk is a JSON object, or that chunk
+    is over MAX_GLB_JSON_BYTES, truncated or not JSON."""
     with open(path, "rb") as f:
         head = f.read(20)
         if len(head) < 20:
@@ -57,7 +57,13 @@ def read_glb_json(path) -> dict:
         data = f.read(n)
     if len(data) != n:
         raise ValueError(f"{path}: its JSON chunk is cut short")
-    return json.loads(data)
+    try:
+        doc = json.loads(data)
+    except (ValueError, RecursionError) as exc:       # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        raise ValueError(f"{path}: its JSON chunk is not JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: its JSON chunk is a {type(doc).__name__}, not a glTF object")
+    return doc
 
 
 def transfer_payload(planes: np.ndarray, *, supercompression: str = "zstd",

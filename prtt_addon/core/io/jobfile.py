@@ -42,6 +42,7 @@ import json
 import math
 import os
 import struct
+import tokenize
 import zipfile
 import zlib
 
@@ -157,6 +158,11 @@ class _Member:
         return math.prod(self.shape) * self.dtype.itemsize     # Python ints: never overflows
 
 
+#: What zipfile and zlib raise for a damaged or unsupported archive (NotImplementedError:
+#: a compression method or zip version it does not know; found by the fuzzer).
+ZIP_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError)
+
+
 def _zip_member_count(path: str, f) -> int:
     """Entries in the zip's end-of-central-directory record (the last 22..65557
     bytes), read before zipfile indexes the directory."""
@@ -208,7 +214,7 @@ class JobFile:
             if n > MAX_MEMBERS:
                 raise self._err(f"{n} archive members; a job has at most {MAX_MEMBERS}")
             self._zf = zipfile.ZipFile(f)
-        except (OSError, zipfile.BadZipFile, EOFError, ValueError, struct.error) as exc:
+        except (*ZIP_ERRORS, struct.error) as exc:
             f.close()
             if isinstance(exc, SceneError):
                 raise
@@ -243,8 +249,7 @@ class JobFile:
                 else:
                     raise ValueError(f".npy version {version} is not supported")
                 header_bytes = fp.tell()
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, SyntaxError,
-                KeyError, TypeError) as exc:
+        except (*ZIP_ERRORS, SyntaxError, KeyError, TypeError, tokenize.TokenError) as exc:
             raise self._err(f"{key}: unreadable array header ({exc})") from exc
         if dtype.hasobject or dtype.fields is not None or dtype.subdtype is not None:
             raise self._err(f"{key}: dtype {dtype} is not a plain number or text array")
@@ -353,7 +358,7 @@ class JobFile:
         try:
             with self._zf.open(self.members[key].info) as fp:
                 return np.lib.format.read_array(fp, allow_pickle=False, max_header_size=MAX_NPY_HEADER)
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        except ZIP_ERRORS as exc:
             raise self._err(f"{key}: unreadable data ({exc})") from exc
 
     def _small(self, key: str):

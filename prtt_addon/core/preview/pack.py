@@ -36,6 +36,7 @@ from ..io.exr_io import (
     read_sh_exr,
     relight_channel_names,
 )
+from ..io.sidecars import read_vertex_transfer
 from ..model.material import DEFAULT
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..shading.materials import dielectric_f0
@@ -293,8 +294,7 @@ class PreviewSet:
         """(V, K) float32 per-vertex transfer, or None."""
         if not self.vertex:
             return None
-        with np.load(self.vertex) as z:
-            return np.asarray(z["coeffs"], np.float32)
+        return read_vertex_transfer(self.vertex)[0]
 
 
 @dataclasses.dataclass
@@ -578,8 +578,7 @@ def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_boun
         set_tris = sc.triangles_of_set(s)
         corner_vertex = None
         if vfile in files:
-            with np.load(os.path.join(out_dir, vfile)) as z:
-                corner_vertex = np.asarray(z["corner_vertex"])
+            corner_vertex = read_vertex_transfer(os.path.join(out_dir, vfile))[1]
         for o in np.unique(sc.object_id[set_tris]):
             rows = np.flatnonzero(sc.object_id[set_tris] == o)
             tris = set_tris[rows]

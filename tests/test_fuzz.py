@@ -1,0 +1,102 @@
+"""The fuzz harnesses (issue #36, prtt_addon/fuzz, docs/fuzzing.md).
+
+CI runs every harness for a short fixed budget from its seeds and saved
+inputs (not the grown corpus of a developer's machine), replays every input
+that once broke a reader (tests/fuzz_corpus/<target>/), and checks that a
+crash put back into a reader is found within that budget.
+"""
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+
+import pytest
+
+from prtt_addon.fuzz import targets
+from prtt_addon.fuzz.seeds import ensure_seeds
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SAVED = os.path.join(ROOT, "tests", "fuzz_corpus")
+#: Executions each harness gets in CI (the slowest, exr, runs ~400 a second).
+CI_RUNS = 3000
+
+pytest.importorskip("atheris")
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fuzz")
+    ensure_seeds(str(root / "seeds"))
+    return root
+
+
+def fuzz(corpus, *args, pythonpath=ROOT):
+    env = dict(os.environ, PYTHONPATH=pythonpath)
+    out = corpus / f"report-{time.monotonic_ns()}.json"
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.fuzz", *args, "--fresh", "--corpus", str(corpus),
+                        "--json", str(out)], capture_output=True, text=True, env=env, timeout=900, cwd=pythonpath)
+    return r, json.loads(out.read_text())["reports"], time.perf_counter() - t0
+
+
+def test_seeds_are_real_files_every_reader_accepts(corpus):
+    """Every seed kind exists and each target takes its seeds without a complaint."""
+    seeds = ensure_seeds(str(corpus / "seeds"))
+    for name, t in targets.TARGETS.items():
+        assert seeds.get(t.seeds), name
+        assert targets.quick_check(name, seeds[t.seeds]) >= 1
+
+
+@pytest.mark.parametrize("name", list(targets.TARGETS))
+def test_each_harness_runs_its_ci_budget_clean(corpus, name):
+    r, reports, _ = fuzz(corpus, name, "--runs", str(CI_RUNS))
+    rep = reports[0]
+    assert r.returncode == 0 and not rep["findings"], r.stdout + rep.get("log", "")
+    assert rep["executions"] >= CI_RUNS and rep["peak_rss_mb"] < 2048
+
+
+def saved_inputs():
+    return [(t, os.path.join(SAVED, t, f)) for t in sorted(os.listdir(SAVED))
+            for f in sorted(os.listdir(os.path.join(SAVED, t)))]
+
+
+@pytest.mark.parametrize("target, path", saved_inputs(), ids=lambda v: os.path.basename(str(v)))
+def test_inputs_that_once_broke_a_reader(target, path):
+    """Each saved input gets the reader's declared error (or a result), never a crash."""
+    with open(path, "rb") as f:
+        targets.TARGETS[target].run(f.read())
+
+
+def test_damaged_exrs_are_texture_errors_from_the_dc_reader(tmp_path):
+    """read_dc_plane decodes in a child: OpenEXR's legacy reader crashed the
+    process on these files (a segmentation fault, which inside Blender ends Blender)."""
+    from prtt_addon.core.io.exr_io import TextureError, read_dc_plane
+    for name in sorted(os.listdir(os.path.join(SAVED, "exr"))):
+        p = tmp_path / name
+        shutil.copy(os.path.join(SAVED, "exr", name), p)
+        with pytest.raises(TextureError, match=re.escape(str(p))):
+            read_dc_plane(p)
+
+
+def test_a_crash_put_back_is_found_within_the_ci_budget(corpus, tmp_path):
+    """The Radiance run-length decoder without its check that a literal run
+    fits the scanline: numpy's broadcast error escapes (a ValueError that is
+    not ImageReadError). The env harness finds it within CI_RUNS executions."""
+    copy = tmp_path / "src"
+    shutil.copytree(os.path.join(ROOT, "prtt_addon"), copy / "prtt_addon",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    src = copy / "prtt_addon" / "core" / "io" / "image_io.py"
+    text = src.read_text()
+    check = "if count == 0 or x + count > w or pos + count > n:"
+    assert check in text
+    src.write_text(text.replace(check, "if count == 0 or pos + count > n:"))
+    r, reports, seconds = fuzz(corpus, "env", "--runs", str(CI_RUNS), pythonpath=str(copy))
+    rep = reports[0]
+    assert r.returncode == 1 and rep["findings"], r.stdout
+    print(f"planted crash found after {rep['executions']} executions, {seconds:.1f} s")
+    with open(rep["findings"][0], "rb") as f:
+        data = f.read()
+    targets.TARGETS["env"].run(data)          # the real decoder refuses it cleanly
