@@ -324,6 +324,38 @@ def case_half_overflow_and_sun(d):
     return res
 
 
+def case_rotation_range(d):
+    """What tests/test_properties.py states, measured over many draws: SH
+    rotation at 16 bands (the most a texture may hold) keeps every band's
+    norm, composes, and the bake's float32 rotate_zyz stays within its bound,
+    for coefficients from 1e-30 to 1e30."""
+    from ..core.sh.rotation import rotate_zyz, rotation_zyz, sh_rotation
+    res = {"failures": []}
+    rng = np.random.default_rng(36)
+    n, draws = 16, 300
+    ang = rng.uniform(-2 * np.pi, 2 * np.pi, (draws, 2, 3))
+    norm_drift = compose = f32 = 0.0
+    for i in range(draws):
+        R1, R2 = rotation_zyz(*ang[i, 0]), rotation_zyz(*ang[i, 1])
+        D1 = sh_rotation(R1, n)
+        c = rng.standard_normal(n * n) * 10.0 ** rng.integers(-30, 31)
+        out = D1 @ c
+        for l in range(n):
+            a, b = np.linalg.norm(c[l * l:(l + 1) ** 2]), np.linalg.norm(out[l * l:(l + 1) ** 2])
+            norm_drift = max(norm_drift, abs(a - b) / a)
+        compose = max(compose, float(np.abs(sh_rotation(R1 @ R2, n) - D1 @ sh_rotation(R2, n)).max()))
+        u = rng.standard_normal(n * n)
+        got = rotate_zyz(u[None].astype(np.float32), *(np.array([v]) for v in ang[i, 0]))[0]
+        f32 = max(f32, float(np.abs(got - D1 @ u).max() / np.linalg.norm(u)))
+    res["band_norm_drift"] = norm_drift
+    res["composition_error"] = compose
+    res["float32_rotation_error"] = f32
+    res["float32_eps_units"] = f32 / float(np.finfo(np.float32).eps)
+    if norm_drift > 1e-12 or compose > 1e-12 or f32 > 64 * n * np.finfo(np.float32).eps:
+        res["failures"].append("SH rotation outside its stated bounds at 16 bands")
+    return res
+
+
 CASES = {
     "scale 1e-3 .. 1e4": case_scale,
     "grazing and flipped normals": case_normals,
@@ -332,6 +364,7 @@ CASES = {
     "huge and sub-texel UV islands": case_islands,
     "16 bands": case_bands16,
     "tiny 1e9 sun, half overflow": case_half_overflow_and_sun,
+    "SH rotation, 16 bands, 1e-30..1e30": case_rotation_range,
 }
 
 
