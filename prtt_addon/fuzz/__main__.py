@@ -57,7 +57,13 @@ def run_target(name: str, *, runs: int | None, seconds: float | None, corpus: st
               "peak_rss_mb": int(stats.get("peak_rss_mb", 0)), "corpus": len(os.listdir(work)),
               "findings": [os.path.join(found, f) for f in new], "exit": p.returncode}
     if new or p.returncode not in (0,):
-        report["log"] = p.stderr[-4000:]
+        log = os.path.join(found, f"log-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.txt")
+        with open(log, "w") as f:
+            f.write(p.stderr)
+        # The readers' own repeated complaints (OpenEXR prints one per damaged chunk) are noise here.
+        lines = [ln for ln in p.stderr.splitlines() if "EXR_ERR" not in ln and not ln.startswith(("Warning:", "INFO:"))]
+        report["log"] = "\n".join(lines[-60:])
+        report["log_file"] = log
     return report
 
 

@@ -37,6 +37,17 @@ CONVENTION = "real-orthonormal,condon-shortley,z-up,k=l*l+l+m"
 HALF_MAX = 65504.0
 
 
+def shown(value, limit: int = 80) -> str:
+    """repr of an untrusted header value for a message: at most ``limit``
+    characters, and never an exception (OpenEXR hands some damaged string
+    attributes over as objects whose repr fails to decode them)."""
+    try:
+        text = repr(value)
+    except Exception:                         # noqa: BLE001 - any failure: say so instead
+        return f"<an unprintable {type(value).__name__}>"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 class TextureError(ValueError):
     """A texture file is missing, unreadable or not a PRTT texture."""
 
@@ -337,7 +348,7 @@ def read_dc_plane(path) -> np.ndarray:
     try:
         (x0, y0), (x1, y1) = (int(v) for v in box[0]), (int(v) for v in box[1])
     except (TypeError, ValueError, IndexError) as exc:
-        raise TextureError(f"{path}: unreadable EXR (data window {box!r})") from exc
+        raise TextureError(f"{path}: unreadable EXR (data window {shown(box)})") from exc
     H, W = y1 - y0 + 1, x1 - x0 + 1
     if not (0 < H <= MAX_FILE_SIDE and 0 < W <= MAX_FILE_SIDE):
         raise TextureError(f"{path}: a {W}x{H} texture; PRTT writes 1..{MAX_FILE_SIDE} texels a side")
@@ -411,7 +422,7 @@ def _bands(path, attrs: dict, key: str, lo: int, hi: int = MAX_FILE_BANDS) -> in
     except (TypeError, ValueError):
         n = -1
     if not lo <= n <= hi:
-        raise TextureError(f"{path}: header prtt_{key} = {attrs.get(key)!r} is not a band count "
+        raise TextureError(f"{path}: header prtt_{key} = {shown(attrs.get(key))} is not a band count "
                            f"from {lo} to {hi}")
     return n
 
@@ -441,12 +452,12 @@ def read_relight_exr(path, *, expand: bool = True) -> tuple[np.ndarray, np.ndarr
     does)."""
     chans, attrs = _read_channels(path)
     if attrs["kind"] != "relight":
-        raise TextureError(f"{path}: a {attrs['kind']!r} texture, not a relightable bounce texture")
+        raise TextureError(f"{path}: a {shown(attrs['kind'])} texture, not a relightable bounce texture")
     bands = _bands(path, attrs, "bands", 1)
     K, kg = bands * bands, _bands(path, attrs, "glossy_bands", 0, bands) ** 2
     colour = attrs.get("glossy_colour", "per-colour")
     if colour not in ("per-colour", "shared"):
-        raise TextureError(f"{path}: unknown prtt_glossy_colour {colour!r} (per-colour or shared)")
+        raise TextureError(f"{path}: unknown prtt_glossy_colour {shown(colour)} (per-colour or shared)")
     shared = colour == "shared"
     names = relight_channel_names(K, kg, shared)
     data = _stack(path, chans, names)

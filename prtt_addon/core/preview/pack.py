@@ -35,6 +35,7 @@ from ..io.exr_io import (
     read_relight_exr,
     read_sh_exr,
     relight_channel_names,
+    shown,
 )
 from ..io.sidecars import read_vertex_transfer
 from ..model.material import DEFAULT
@@ -428,12 +429,12 @@ def relight_operator_layers(path: str, *, expand: bool = True):
     relight_variant(shared=True)); they are then half floats as in the file."""
     with open_sh_channels(path) as (chans, attrs):
         if attrs["kind"] != "relight":
-            raise TextureError(f"{path}: a {attrs['kind']!r} texture, not a relightable bounce texture")
+            raise TextureError(f"{path}: a {shown(attrs['kind'])} texture, not a relightable bounce texture")
         bands = bands_of_header(path, attrs)
         K, kg = bands * bands, bands_of_header(path, attrs, "glossy_bands", 0, bands) ** 2
         colour = attrs.get("glossy_colour", "per-colour")
         if colour not in ("per-colour", "shared"):
-            raise TextureError(f"{path}: unknown prtt_glossy_colour {colour!r} (per-colour or shared)")
+            raise TextureError(f"{path}: unknown prtt_glossy_colour {shown(colour)} (per-colour or shared)")
         shared = colour == "shared"
         _missing(path, chans, relight_channel_names(K, kg, shared))
         groups = [g for c in "RGB" for g in _groups([f"{c}.dc.i{i:03d}" for i in range(K)])]
