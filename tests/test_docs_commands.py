@@ -70,6 +70,8 @@ NOT_HERE = [
     (r"\bdask (scheduler|worker)\b|distributed\.cli", "the farm recipe: run by tests/test_farm_recipe.py"),
     (r"^(python -m )?pip install", "installs packages (the farm recipe's install is run by tests/test_farm_recipe.py)"),
     (r"^\./prtt\.sh (test|slow)$", "the test suite itself"),
+    (r"^\./prtt\.sh fuzz", "fuzzing (a minute or more per reader): tests/test_fuzz.py runs every harness "
+                            "with a fixed budget and its options"),
     (r"tools/build_extension\.py", "builds the extension zips: run by tests/test_extension.py"),
     (r"^python -m http\.server", "a static server for viewer/: tests/test_web_viewer.py serves the same folders "
                                   "and drives the page in headless Chromium"),

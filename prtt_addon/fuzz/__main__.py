@@ -67,6 +67,27 @@ def run_target(name: str, *, runs: int | None, seconds: float | None, corpus: st
     return report
 
 
+def combine(paths: list[str], record: str) -> int:
+    """Write ``record`` (the machine, and each run's command, date and reports) from --json files."""
+    from ..bench.figures import machine
+    from ..core.io.atomic import atomic_write
+    runs = []
+    for p in paths:
+        with open(p, encoding="utf-8") as f:
+            runs.append(json.load(f))
+    for r in runs:
+        for rep in r["reports"]:
+            rep.pop("log", None)
+            rep.pop("log_file", None)
+            rep["findings"] = [os.path.basename(x) for x in rep["findings"]]
+    with atomic_write(record) as tmp:
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump({"machine": machine(), "runs": runs}, f, indent=1)
+            f.write("\n")
+    print(f"wrote {record}: {sum(len(r['reports']) for r in runs)} reports")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m prtt_addon.fuzz", description=__doc__.split("\n\n")[0])
     ap.add_argument("targets", nargs="*", metavar="TARGET", help=f"readers to fuzz (default all: "
@@ -82,7 +103,15 @@ def main(argv=None) -> int:
     ap.add_argument("--fresh", action="store_true", help="start from the seeds and saved inputs only "
                                                          "(what CI does), not the grown corpus")
     ap.add_argument("--json", help="write the reports to this file")
+    ap.add_argument("--combine", nargs="+", metavar="JSON", help="instead of fuzzing: combine the --json "
+                    "reports of earlier runs (e.g. two run side by side) into the record --record names")
+    ap.add_argument("--record", help="with --combine: the record to write (docs/bench/fuzz.json, which "
+                                     "docs/fuzzing.md's figures are made from: python -m prtt_addon.bench figures)")
     a = ap.parse_args(argv)
+    if a.combine:
+        if not a.record:
+            ap.error("--combine needs --record")
+        return combine(a.combine, a.record)
     names = a.targets or list(TARGETS)
     bad = [n for n in names if n not in TARGETS]
     if bad:

@@ -22,7 +22,7 @@ import numpy as np
 SEED_KINDS = ("job", "manifest", "exr", "sidecar", "env", "events", "ktx2", "glb")
 
 
-def _scene(resolution: int = 8):
+def seed_scene(resolution: int = 8):
     from ..core.io import meshgen as mg
     from ..core.model.scene import Scene
     floor = mg.plane(4.0, subdiv=1)
@@ -105,7 +105,7 @@ def write_seeds(root: str) -> dict[str, list[str]]:
             f.write(data)
         out[kind].append(path)
 
-    sc = _scene()
+    sc = seed_scene()
     light = environment_light(builtin_environment_path("forest"), 5)
     with tempfile.TemporaryDirectory() as tmp:
         job = os.path.join(tmp, "job.npz")

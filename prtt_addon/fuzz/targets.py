@@ -89,11 +89,11 @@ def _plan_context():
         from ..core.bake.pipeline.context import BakeContext, BakeSettings
         from ..core.bake.pipeline.runner import bake_scene
         from ..core.light.envmap import builtin_environment_path, environment_light
-        from .seeds import _scene
+        from .seeds import seed_scene
         folder = scratch("out")
         light = environment_light(builtin_environment_path("forest"), 5)
-        bake_scene(_scene(), folder, BakeSettings(**SEED_SETTINGS), light=light)
-        _PLAN["ctx"] = (folder, BakeContext.create(_scene(), folder, BakeSettings(**SEED_SETTINGS), light=light))
+        bake_scene(seed_scene(), folder, BakeSettings(**SEED_SETTINGS), light=light)
+        _PLAN["ctx"] = (folder, BakeContext.create(seed_scene(), folder, BakeSettings(**SEED_SETTINGS), light=light))
     return _PLAN["ctx"]
 
 

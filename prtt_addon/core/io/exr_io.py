@@ -25,6 +25,7 @@ import subprocess
 
 import numpy as np
 
+from ..base.child import child_env, python_executable
 from ..base.memory import discard_pages
 from ..sh.basis import bands_of
 from .atomic import atomic_write
@@ -352,7 +353,6 @@ def read_dc_plane(path) -> np.ndarray:
     H, W = y1 - y0 + 1, x1 - x0 + 1
     if not (0 < H <= MAX_FILE_SIDE and 0 < W <= MAX_FILE_SIDE):
         raise TextureError(f"{path}: a {W}x{H} texture; PRTT writes 1..{MAX_FILE_SIDE} texels a side")
-    from ..base.child import child_env, python_executable
     try:
         r = subprocess.run([python_executable(), "-c", _DC_CHILD, path, "sh000"], capture_output=True,
                            env=child_env(), timeout=DC_CHILD_TIMEOUT)
