@@ -43,7 +43,7 @@ def run_target(name: str, *, runs: int | None, seconds: float | None, corpus: st
     if os.path.isdir(os.path.join(SAVED, name)):
         dirs.append(os.path.join(SAVED, name))
     flags = [f"-timeout={timeout}", f"-rss_limit_mb={rss_mb}", f"-max_len={t.max_len}", f"-seed={seed}",
-             "-print_final_stats=1", f"-artifact_prefix={found}/", "-close_fd_mask=1"]
+             "-print_final_stats=1", f"-artifact_prefix={found}/"]
     flags.append(f"-runs={runs}" if runs is not None else f"-max_total_time={max(1, int(seconds))}")
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     t0 = time.perf_counter()

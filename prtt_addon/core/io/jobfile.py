@@ -159,8 +159,8 @@ class _Member:
 
 
 #: What zipfile and zlib raise for a damaged or unsupported archive (NotImplementedError:
-#: a compression method or zip version it does not know; found by the fuzzer).
-ZIP_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError)
+#: a compression method or zip version it does not know; RuntimeError: an encrypted entry; found by the fuzzer).
+ZIP_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError)
 
 
 def _zip_member_count(path: str, f) -> int:
