@@ -100,3 +100,32 @@ def test_a_crash_put_back_is_found_within_the_ci_budget(corpus, tmp_path):
     with open(rep["findings"][0], "rb") as f:
         data = f.read()
     targets.TARGETS["env"].run(data)          # the real decoder refuses it cleanly
+
+
+def test_the_pages_readers_take_their_ci_budget_clean(corpus):
+    """viewer/prtt_env.js and viewer/prtt.js's KTX2 reader on 3000 mutants in node."""
+    from prtt_addon.fuzz import page
+    if shutil.which("node") is None:
+        pytest.skip("node is not installed")
+    r = page.run(ensure_seeds(str(corpus / "seeds")), CI_RUNS)
+    assert r["executions"] == CI_RUNS and not r["findings"], r["findings"][:5]
+    assert r["accepted"] > CI_RUNS // 50         # the mutants reach the decoders, not only the magic checks
+    assert r["slowest_ms"] < 1000
+
+
+def test_a_page_reader_that_forgets_the_file_name_is_found(corpus, tmp_path):
+    """The page's Radiance decoder with one message that no longer names the
+    file (the page shows it to the user): found within the CI budget."""
+    from prtt_addon.fuzz import page
+    if shutil.which("node") is None:
+        pytest.skip("node is not installed")
+    viewer = tmp_path / "viewer"
+    shutil.copytree(os.path.join(ROOT, "viewer"), viewer)
+    src = viewer / "prtt_env.js"
+    text = src.read_text()
+    line = "throw new Error(`${name}: truncated Radiance run-length data`)"
+    assert line in text
+    src.write_text(text.replace(line, "throw new Error('truncated Radiance run-length data')"))
+    r = page.run(ensure_seeds(str(corpus / "seeds")), CI_RUNS, viewer=str(viewer))
+    assert r["findings"] and all("Error: truncated Radiance run-length data" in f for f in r["findings"])
+    print(f"planted page bug found {len(r['findings'])} times in {CI_RUNS} mutants")

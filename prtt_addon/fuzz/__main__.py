@@ -23,6 +23,7 @@ import subprocess
 import sys
 import time
 
+from . import page
 from .seeds import ensure_seeds
 from .targets import TARGETS
 
@@ -91,7 +92,7 @@ def combine(paths: list[str], record: str) -> int:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m prtt_addon.fuzz", description=__doc__.split("\n\n")[0])
     ap.add_argument("targets", nargs="*", metavar="TARGET", help=f"readers to fuzz (default all: "
-                                                                 f"{', '.join(TARGETS)})")
+                                                                 f"{', '.join(TARGETS)}, page)")
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--runs", type=int, help="executions per target")
     g.add_argument("--seconds", type=float, help="seconds per target (default 60)")
@@ -112,8 +113,8 @@ def main(argv=None) -> int:
         if not a.record:
             ap.error("--combine needs --record")
         return combine(a.combine, a.record)
-    names = a.targets or list(TARGETS)
-    bad = [n for n in names if n not in TARGETS]
+    names = a.targets or [*TARGETS, "page"]
+    bad = [n for n in names if n not in TARGETS and n != "page"]
     if bad:
         ap.error(f"unknown target(s) {bad}; choose from {', '.join(TARGETS)}")
     seconds = a.seconds if a.runs is None and a.seconds is not None else (60.0 if a.runs is None else None)
@@ -121,8 +122,13 @@ def main(argv=None) -> int:
     print(f"{'target':9} {'executions':>11} {'seconds':>8} {'exec/s':>7} {'peak RSS':>9} {'corpus':>7}  findings")
     reports = []
     for n in names:
-        r = run_target(n, runs=a.runs, seconds=seconds, corpus=a.corpus, seeds=seeds, timeout=a.timeout,
-                       rss_mb=a.rss_mb, seed=a.seed, fresh=a.fresh)
+        if n == "page":
+            # The page's JavaScript readers: mutants in node (no coverage across the language boundary).
+            r = page.run(seeds, a.runs if a.runs is not None else int(200 * seconds), seed=a.seed,
+                         found_dir=os.path.join(a.corpus, "findings", "page"))
+        else:
+            r = run_target(n, runs=a.runs, seconds=seconds, corpus=a.corpus, seeds=seeds, timeout=a.timeout,
+                           rss_mb=a.rss_mb, seed=a.seed, fresh=a.fresh)
         reports.append(r)
         print(f"{n:9} {r['executions']:>11,} {r['seconds']:>8.1f} {r['exec_per_s']:>7,} "
               f"{r['peak_rss_mb']:>6} MB {r['corpus']:>7}  {len(r['findings']) or 'none'}", flush=True)

@@ -96,7 +96,7 @@ def write_seeds(root: str) -> dict[str, list[str]]:
     from ..core.io.jobfile import save_scene
     from ..core.light.envmap import builtin_environment_path, environment_light
 
-    out: dict[str, list[str]] = {k: [] for k in SEED_KINDS}
+    out: dict[str, list[str]] = {k: [] for k in SEED_KINDS + ("ktx2-specs",)}
 
     def put(kind: str, name: str, data: bytes) -> None:
         os.makedirs(os.path.join(root, kind), exist_ok=True)
@@ -135,12 +135,15 @@ def write_seeds(root: str) -> dict[str, list[str]]:
             put("events", f"event{i:03d}.json", json.dumps(e, default=str).encode())
 
         planes, _ = read_sh_exr(os.path.join(tmp, "relight", "floor.transfer.exr"))
-        payload, info = transfer_payload(planes.transpose(2, 0, 1))
-        put("ktx2", "transfer-zstd.ktx2", payload)
-        put("ktx2", "transfer-none.ktx2", transfer_payload(planes.transpose(2, 0, 1)[:4],
-                                                           supercompression="none")[0])
         dc, _glossy, _attrs = read_relight_exr(os.path.join(tmp, "relight", "floor.relight.exr"))
-        put("ktx2", "relight-dc-u8.ktx2", relight_dc_payload(dc, encoding="u8")[0])
+        payloads = {"transfer-zstd.ktx2": transfer_payload(planes.transpose(2, 0, 1)),
+                    "transfer-none.ktx2": transfer_payload(planes.transpose(2, 0, 1)[:4], supercompression="none"),
+                    "relight-dc-u8.ktx2": relight_dc_payload(dc, encoding="u8")}
+        payload, info = payloads["transfer-zstd.ktx2"]
+        for name, (blob, meta) in payloads.items():
+            put("ktx2", name, blob)
+            # What the glTF extension says of each payload (the page's reader checks against it).
+            put("ktx2-specs", name + ".json", json.dumps(meta).encode())
         doc = {"asset": {"version": "2.0"}, "extensionsUsed": ["PRTT_radiance_transfer"],
                "buffers": [{"byteLength": len(payload)}],
                "extensions": {"PRTT_radiance_transfer": root_extension(
@@ -165,4 +168,4 @@ def ensure_seeds(root: str) -> dict[str, list[str]]:
         write_seeds(root)
         open(stamp, "w").close()
     return {k: sorted(os.path.join(root, k, n) for n in os.listdir(os.path.join(root, k)))
-            for k in SEED_KINDS if os.path.isdir(os.path.join(root, k))}
+            for k in SEED_KINDS + ("ktx2-specs",) if os.path.isdir(os.path.join(root, k))}
