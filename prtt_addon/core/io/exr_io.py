@@ -26,7 +26,7 @@ import subprocess
 import numpy as np
 
 from ..base.child import child_env, python_executable
-from ..base.memory import discard_pages
+from ..base.memory import MemoryLimitError, check_fits, discard_pages
 from ..sh.basis import bands_of
 from .atomic import atomic_write
 
@@ -312,6 +312,48 @@ def write_sh_exr(path, data: np.ndarray, *, kind: str, half: bool = True,
                            attrs=attrs, atomic=atomic)
 
 
+#: Channels a texture file may declare: a 16-band relightable texture has 3 x 256 DC
+#: channels and 3 x 8 x 9 glossy ones (glossy rows have at most 3 bands).
+MAX_FILE_CHANNELS = 1024
+
+
+def checked_header(path: str) -> dict:
+    """The header of the EXR at ``path``, read without its pixels and checked
+    before anything is decoded: a PRTT texture (prtt_bands, prtt_kind), a
+    data window of 1..MAX_FILE_SIDE texels a side, at most MAX_FILE_CHANNELS
+    channels, and pixels that fit in the memory available once decoded (a
+    small damaged file may declare a huge window: OpenEXR would allocate and
+    fill it). TextureError otherwise, naming the file."""
+    import OpenEXR
+
+    if not os.path.isfile(path):
+        raise TextureError(f"{path}: no such texture")
+    try:
+        with OpenEXR.File(path, header_only=True) as hf:
+            header = dict(hf.header())
+    except Exception as exc:
+        raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
+    if "prtt_bands" not in header or "prtt_kind" not in header:
+        raise TextureError(f"{path}: not a PRTT texture (no prtt_bands/prtt_kind header)")
+    box = header.get("dataWindow")
+    try:
+        (x0, y0), (x1, y1) = (int(v) for v in box[0]), (int(v) for v in box[1])
+    except (TypeError, ValueError, IndexError) as exc:
+        raise TextureError(f"{path}: unreadable EXR (data window {shown(box)})") from exc
+    H, W = y1 - y0 + 1, x1 - x0 + 1
+    if not (0 < H <= MAX_FILE_SIDE and 0 < W <= MAX_FILE_SIDE):
+        raise TextureError(f"{path}: a {W}x{H} texture; PRTT writes 1..{MAX_FILE_SIDE} texels a side")
+    chans = header.get("channels") or []
+    if len(chans) > MAX_FILE_CHANNELS:
+        raise TextureError(f"{path}: {len(chans)} channels; a PRTT texture has at most {MAX_FILE_CHANNELS}")
+    try:
+        check_fits(4 * H * W * max(1, len(chans)), f"reading {path} ({W}x{H}, {len(chans)} channels)")
+    except MemoryLimitError as exc:
+        raise TextureError(str(exc)) from None
+    header["_size"] = (H, W)
+    return header
+
+
 #: The child that decodes one channel with OpenEXR's legacy InputFile (argv: path, channel).
 _DC_CHILD = ("import sys, Imath, OpenEXR\n"
              "f = OpenEXR.InputFile(sys.argv[1])\n"
@@ -330,29 +372,11 @@ def read_dc_plane(path) -> np.ndarray:
     fault (tests/fuzz_corpus/exr). So the header is read and checked here
     with the current API, and the channel is decoded in a child process whose
     crash is a TextureError, not the end of Blender."""
-    import OpenEXR
-
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise TextureError(f"{path}: no such texture")
-    try:
-        with OpenEXR.File(path, header_only=True) as hf:
-            header = dict(hf.header())
-    except Exception as exc:
-        raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
-    if "prtt_bands" not in header or "prtt_kind" not in header:
-        raise TextureError(f"{path}: not a PRTT texture (no prtt_bands/prtt_kind header)")
-    chans = header.get("channels")
-    if not any(getattr(c, "name", None) == "sh000" for c in (chans or [])):
+    header = checked_header(path)
+    if not any(getattr(c, "name", None) == "sh000" for c in header["channels"]):
         raise TextureError(f"{path}: missing channels ['sh000']")
-    box = header.get("dataWindow")
-    try:
-        (x0, y0), (x1, y1) = (int(v) for v in box[0]), (int(v) for v in box[1])
-    except (TypeError, ValueError, IndexError) as exc:
-        raise TextureError(f"{path}: unreadable EXR (data window {shown(box)})") from exc
-    H, W = y1 - y0 + 1, x1 - x0 + 1
-    if not (0 < H <= MAX_FILE_SIDE and 0 < W <= MAX_FILE_SIDE):
-        raise TextureError(f"{path}: a {W}x{H} texture; PRTT writes 1..{MAX_FILE_SIDE} texels a side")
+    H, W = header["_size"]
     try:
         r = subprocess.run([python_executable(), "-c", _DC_CHILD, path, "sh000"], capture_output=True,
                            env=child_env(), timeout=DC_CHILD_TIMEOUT)
@@ -375,8 +399,7 @@ def open_sh_channels(path):
     import OpenEXR
 
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise TextureError(f"{path}: no such texture")
+    checked_header(path)
     try:
         f = OpenEXR.File(path)
     except Exception as exc:
