@@ -81,6 +81,19 @@ def test_damaged_exrs_are_texture_errors_from_the_dc_reader(tmp_path):
             read_dc_plane(p)
 
 
+def test_a_decoder_that_dies_by_a_signal_is_a_texture_error(corpus, monkeypatch):
+    """The child that decodes the AO channel killed by SIGSEGV (what the legacy
+    reader did in process on tests/fuzz_corpus/exr's files): the reader says so
+    in a TextureError naming the file, and the caller's process lives on."""
+    from prtt_addon.core.io import exr_io
+    good = [p for p in ensure_seeds(str(corpus / "seeds"))["exr"] if p.endswith(".transfer.exr")][0]
+    assert exr_io.read_dc_plane(good).shape == (8, 8)
+    monkeypatch.setattr(exr_io, "_DC_CHILD", "import os, signal; os.kill(os.getpid(), signal.SIGSEGV)")
+    with pytest.raises(exr_io.TextureError, match=r"crashed \(signal 11\)") as e:
+        exr_io.read_dc_plane(good)
+    assert good in str(e.value)
+
+
 def test_a_crash_put_back_is_found_within_the_ci_budget(corpus, tmp_path):
     """The Radiance run-length decoder without its check that a literal run
     fits the scanline: numpy's broadcast error escapes (a ValueError that is

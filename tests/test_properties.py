@@ -67,7 +67,9 @@ def test_rotations_compose(n, a, b):
 @given(bands, angles, seeds, scale_exp)
 def test_the_bakes_fast_rotation_is_the_rotation_matrix(n, ang, seed, e):
     """rotate_zyz (the bake's batched float64 path, no matrices) = D(Rz Ry Rz) c:
-    relative 1e-12 of the norm; float32 within 64 float32 epsilons of it."""
+    relative 1e-12 of the norm; float32 within 64 n float32 epsilons of it
+    (n bands: the recurrence's error grows with the band; bench stress
+    measures 0.4 epsilon at 16 bands)."""
     c = coeffs(n, seed, 10.0 ** (e % 20 - 10))
     D = sh_rotation(rotation_zyz(*ang), n)
     fast = rotate_zyz(c[None], *(np.array([v]) for v in ang))[0]
@@ -145,9 +147,10 @@ def test_tpfl_under_a_white_constant_light_is_the_transfer(n, seed, radiance, po
 @PROPS
 @given(st.floats(-14.0, 15.99), seeds, st.integers(1, 10))
 def test_half_storage_keeps_its_relative_error_bound(log2, seed, keep):
-    """Values across the half range (2^-14 .. 65504, both signs) written to a
-    half EXR and read back: relative error at most 2^-11 (half's unit
-    roundoff); quantize_half to ``keep`` mantissa bits: at most 2^-(keep+1)."""
+    """Values across the half range (2^-14 .. 65504, both signs) stored as
+    half (the cast the EXR writer makes; the round trip through the files is
+    the next test): relative error at most 2^-11 (half's unit roundoff);
+    quantize_half to ``keep`` mantissa bits: at most 2^-(keep+1) more."""
     rng = np.random.default_rng(seed)
     v = (np.sign(rng.standard_normal(64)) * np.exp2(log2 + rng.random(64) * 0.01)).astype(np.float32)
     v = np.clip(v, -65504, 65504)
@@ -187,7 +190,7 @@ def test_bake_outputs_do_not_depend_on_threads_or_chunk_size(threads, chunk_rays
     rs = RayScene(sc.positions)
     fn, grp, clear, _ = scene_face_data(sc)
     outs = []
-    for th, cr in ((1, 1 << 19), (threads, chunk_rays)):
+    for th, cr in ((2, 3072), (threads, chunk_rays)):          # a reference no example equals
         gb = build_gbuffer(sc, 1)
         pts = bake_points_input(sc, 1, gb, fn, clear, grp)
         outs.append(bake_points(rs, pts, TransferSettings(rays=64, threads=th, chunk_rays=cr))[0])

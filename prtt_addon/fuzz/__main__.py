@@ -60,9 +60,11 @@ def run_target(name: str, *, runs: int | None, seconds: float | None, corpus: st
     if new or p.returncode not in (0,):
         log = os.path.join(found, f"log-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.txt")
         with open(log, "w") as f:
-            f.write(p.stderr)
-        # The readers' own repeated complaints (OpenEXR prints one per damaged chunk) are noise here.
-        lines = [ln for ln in p.stderr.splitlines() if "EXR_ERR" not in ln and not ln.startswith(("Warning:", "INFO:"))]
+            f.write(p.stdout + "\n--- stderr ---\n" + p.stderr)
+        # The readers' own repeated complaints (OpenEXR prints one per damaged chunk) are noise here;
+        # atheris prints an uncaught exception's traceback on stdout.
+        lines = [ln for ln in (p.stdout + "\n" + p.stderr).splitlines()
+                 if "EXR_ERR" not in ln and not ln.startswith(("Warning:", "INFO:"))]
         report["log"] = "\n".join(lines[-60:])
         report["log_file"] = log
     return report
@@ -106,8 +108,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the reports to this file")
     ap.add_argument("--combine", nargs="+", metavar="JSON", help="instead of fuzzing: combine the --json "
                     "reports of earlier runs (e.g. two run side by side) into the record --record names")
-    ap.add_argument("--record", help="with --combine: the record to write (docs/bench/fuzz.json, which "
-                                     "docs/fuzzing.md's figures are made from: python -m prtt_addon.bench figures)")
+    ap.add_argument("--record", help="with --combine: the record to write (docs/bench/fuzz.json; "
+                                     "python -m prtt_addon.bench figures writes docs/fuzzing.md's table from it)")
     a = ap.parse_args(argv)
     if a.combine:
         if not a.record:

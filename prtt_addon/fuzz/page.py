@@ -89,10 +89,12 @@ def run(seeds: dict, runs: int, *, seed: int = 1, found_dir: str | None = None,
     node = shutil.which("node")
     if node is None:
         raise RuntimeError("node is not installed: the page's readers cannot run (tools/bootstrap.sh)")
-    env_seeds = [open(p, "rb").read() for p in seeds["env"]]
-    ktx = [(open(p, "rb").read(), json.load(open(os.path.join(os.path.dirname(seeds["ktx2-specs"][0]),
-                                                               os.path.basename(p) + ".json"))))
-           for p in seeds["ktx2"]]
+    def read(path: str) -> bytes:
+        with open(path, "rb") as f:
+            return f.read()
+    env_seeds = [read(p) for p in seeds["env"]]
+    specs = os.path.dirname(seeds["ktx2-specs"][0])
+    ktx = [(read(p), json.loads(read(os.path.join(specs, os.path.basename(p) + ".json")))) for p in seeds["ktx2"]]
     rng = random.Random(seed)
     t0 = time.perf_counter()
     done, failures, slowest, rss, accepted = 0, [], 0.0, 0, 0
@@ -113,12 +115,24 @@ def run(seeds: dict, runs: int, *, seed: int = 1, found_dir: str | None = None,
                     items.append(("ktx2", mutate(blob, rng, [b for b, _ in ktx]), spec))
             bundle = os.path.join(tmp, "bundle.bin")
             _bundle(bundle, items)
-            p = subprocess.run([node, "--import", "file://" + os.path.join(tmp, "register.mjs"),
-                                os.path.join(os.path.dirname(__file__), "page_fuzz.mjs"), bundle,
-                                viewer], capture_output=True, text=True, timeout=3600)
-            if p.returncode != 0:
-                raise RuntimeError(f"node failed ({p.returncode}): {p.stderr[-2000:]}")
-            r = json.loads(p.stdout.strip().splitlines()[-1])
+            try:
+                # 1 s an input is the bound: a bundle that takes longer holds an input past it.
+                p = subprocess.run([node, "--import", "file://" + os.path.join(tmp, "register.mjs"),
+                                    os.path.join(os.path.dirname(__file__), "page_fuzz.mjs"), bundle,
+                                    viewer], capture_output=True, text=True, timeout=60 + len(items))
+                r = json.loads(p.stdout.strip().splitlines()[-1]) if p.returncode == 0 else None
+                why = f"node exited with {p.returncode}: {p.stderr.strip()[-300:]}"
+            except subprocess.TimeoutExpired:
+                r, why = None, f"node did not finish {len(items)} inputs in {60 + len(items)} s"
+            if r is None:
+                # Keep the whole bundle: one of its inputs hung or crashed the reader.
+                name = f"page-bundle-{len(failures):03d}"
+                if found_dir:
+                    os.makedirs(found_dir, exist_ok=True)
+                    shutil.copy(bundle, os.path.join(found_dir, name))
+                failures.append(f"{name}: {why}")
+                done += len(items)
+                continue
             for i, why in r["failures"]:
                 kind, data, _ = items[i]
                 name = f"page-{kind}-{len(failures):03d}"

@@ -22,7 +22,7 @@ from ...core.bake.pipeline.context import BakeSettings
 from ...core.bake.pipeline.runner import check_out_dir
 from ...core.base.errors import BakeError
 from ...core.io.atomic import atomic_write, temp_prefix
-from ...core.io.exr_io import read_dc_plane
+from ...core.io.exr_io import TextureError, read_dc_plane
 from ...core.io.jobfile import save_scene
 from ...core.settings_schema import core_from_ui
 from ..export.job import GENERATED_UVS, ExportError, export_scene, output_folder
@@ -140,7 +140,7 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
                "materials_signature": prepared.materials_signature,
                "time": time.strftime("%Y-%m-%d %H:%M:%S")}
     st.last_bake = json.dumps(summary)
-    load_preview_images(prepared.out_dir, m)
+    load_preview_images(prepared.out_dir, m, outcome.warnings.append)
     redraw_viewports(context)
 
 
@@ -169,15 +169,22 @@ def keep_image(img) -> None:
     img.use_fake_user = True
 
 
-def load_preview_images(out_dir: str, manifest: dict) -> list:
+def load_preview_images(out_dir: str, manifest: dict, warn=None) -> list:
     """Per set an image "PRTT AO <set>": the transfer's DC term normalised so
-    open sky is 1 (what Blender can show of a 25-channel EXR)."""
+    open sky is 1 (what Blender can show of a 25-channel EXR). A texture that
+    cannot be read gets no image and ``warn(message)`` (default: print)."""
     made = []
     for name in manifest.get("transfer_files", manifest["files"]):
         if not name.endswith(".transfer.exr"):
             continue
         # The DC channel alone: Blender's process holds no copy of the whole texture.
-        ao = np.clip(read_dc_plane(os.path.join(out_dir, name)) / 0.886226925, 0.0, None)   # A_0 y_00 = pi / (2 sqrt(pi))
+        try:
+            dc = read_dc_plane(os.path.join(out_dir, name))
+        except TextureError as exc:
+            # The bake itself succeeded; the AO picture is a convenience: say why it is missing.
+            (warn or print)(f"no AO image for {name}: {exc}")
+            continue
+        ao = np.clip(dc / 0.886226925, 0.0, None)   # A_0 y_00 = pi / (2 sqrt(pi))
         h, w = ao.shape
         title = f"PRTT AO {name[:-len('.transfer.exr')]}"
         img = bpy.data.images.get(title)

@@ -34,23 +34,29 @@ class WorkerJob:
         kwargs = {}
         if os.name == "posix":
             kwargs["start_new_session"] = True     # a Ctrl+C in Blender's terminal is not a cancel
+        # errors="replace": a stray non-UTF-8 byte (a library printing) must not end the reader.
         self.proc = subprocess.Popen(self.cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     env=child_env(), bufsize=1, **kwargs)
+                                     errors="replace", env=child_env(), bufsize=1, **kwargs)
         threading.Thread(target=self._read_stdout, daemon=True).start()
         threading.Thread(target=self._read_stderr, daemon=True).start()
         return self
 
     def _read_stdout(self):
-        for line in self.proc.stdout:
-            line = line.strip()
-            if not line:
-                continue
-            e = read_event(line)
-            if e is not None:
-                self._events.put(e)
-            else:
-                self._stderr.append(line[:2000])
-        self._events.put(None)                     # end of stream
+        # This thread must outlive any line: if it stopped, the worker would
+        # block on a full pipe and the bake would hang (read_event never raises).
+        try:
+            for line in self.proc.stdout:
+                line = line.strip()
+                if not line:
+                    continue
+                e = read_event(line)
+                if e is not None:
+                    self._events.put(e)
+                else:
+                    self._stderr.append(line[:2000])
+                    del self._stderr[:-40]
+        finally:
+            self._events.put(None)                 # end of stream
 
     def _read_stderr(self):
         for line in self.proc.stderr:

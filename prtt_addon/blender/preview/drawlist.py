@@ -27,7 +27,7 @@ import zipfile
 import bpy
 import numpy as np
 
-from ...core.io.sidecars import read_generated_uvs, read_vertex_transfer
+from ...core.io.sidecars import read_corner_vertex, read_generated_uvs
 from ...core.light.envmap import compose_light
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import MAX_PREVIEW_BANDS
@@ -217,7 +217,7 @@ def _vertex_table(path: str) -> np.ndarray | None:
         return None
     t = _VERTEX_TABLES.get(key)
     if t is None:
-        t = _VERTEX_TABLES[key] = read_vertex_transfer(path)[1]
+        t = _VERTEX_TABLES[key] = read_corner_vertex(path)
     return t
 
 

@@ -317,13 +317,15 @@ def write_sh_exr(path, data: np.ndarray, *, kind: str, half: bool = True,
 MAX_FILE_CHANNELS = 1024
 
 
-def checked_header(path: str) -> dict:
+def checked_header(path: str, decoded: int | None = None) -> dict:
     """The header of the EXR at ``path``, read without its pixels and checked
     before anything is decoded: a PRTT texture (prtt_bands, prtt_kind), a
     data window of 1..MAX_FILE_SIDE texels a side, at most MAX_FILE_CHANNELS
     channels, and pixels that fit in the memory available once decoded (a
     small damaged file may declare a huge window: OpenEXR would allocate and
-    fill it). TextureError otherwise, naming the file."""
+    fill it; ``decoded``: how many channels the caller decodes, default all,
+    at their stored size, plus a float32 copy of each). TextureError
+    otherwise, naming the file."""
     import OpenEXR
 
     if not os.path.isfile(path):
@@ -346,8 +348,9 @@ def checked_header(path: str) -> dict:
     chans = header.get("channels") or []
     if len(chans) > MAX_FILE_CHANNELS:
         raise TextureError(f"{path}: {len(chans)} channels; a PRTT texture has at most {MAX_FILE_CHANNELS}")
+    n = len(chans) if decoded is None else decoded
     try:
-        check_fits(4 * H * W * max(1, len(chans)), f"reading {path} ({W}x{H}, {len(chans)} channels)")
+        check_fits(6 * H * W * max(1, n), f"reading {path} ({W}x{H}, {n} channels)")
     except MemoryLimitError as exc:
         raise TextureError(str(exc)) from None
     header["_size"] = (H, W)
@@ -373,7 +376,7 @@ def read_dc_plane(path) -> np.ndarray:
     with the current API, and the channel is decoded in a child process whose
     crash is a TextureError, not the end of Blender."""
     path = os.fspath(path)
-    header = checked_header(path)
+    header = checked_header(path, decoded=1)
     if not any(getattr(c, "name", None) == "sh000" for c in header["channels"]):
         raise TextureError(f"{path}: missing channels ['sh000']")
     H, W = header["_size"]

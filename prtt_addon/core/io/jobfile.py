@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import lzma
 import math
 import os
 import struct
@@ -159,8 +160,10 @@ class _Member:
 
 
 #: What zipfile and zlib raise for a damaged or unsupported archive (NotImplementedError:
-#: a compression method or zip version it does not know; RuntimeError: an encrypted entry; found by the fuzzer).
-ZIP_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError)
+#: a compression method or zip version it does not know; RuntimeError: an encrypted entry; found by the fuzzer;
+#: lzma.LZMAError: a damaged LZMA entry, found by review).
+ZIP_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError,
+              lzma.LZMAError)
 
 
 def _zip_member_count(path: str, f) -> int:

@@ -21,8 +21,14 @@ MAX_TEXT = 20000
 
 
 def _text(v, default: str = "") -> str:
-    s = v if isinstance(v, str) else default if v is None else json.dumps(v)[:MAX_TEXT]
-    return s[:MAX_TEXT]
+    if isinstance(v, str):
+        return v[:MAX_TEXT]
+    if v is None:
+        return default
+    try:
+        return json.dumps(v)[:MAX_TEXT]
+    except (ValueError, RecursionError):      # nested as deep as json.loads allowed
+        return "(unprintable)"
 
 
 def read_event(line: str) -> dict | None:
@@ -42,7 +48,10 @@ def read_event(line: str) -> dict | None:
     kind = e["type"]
     if kind == "progress":
         f = e.get("fraction", 0.0)
-        f = float(f) if isinstance(f, (int, float)) and not isinstance(f, bool) else 0.0
+        try:
+            f = float(f) if isinstance(f, (int, float)) and not isinstance(f, bool) else 0.0
+        except OverflowError:                  # an integer of hundreds of digits
+            f = 0.0
         e["fraction"] = min(1.0, max(0.0, f)) if math.isfinite(f) else 0.0
         e["stage"] = _text(e.get("stage"))
         e["set"] = _text(e.get("set"))

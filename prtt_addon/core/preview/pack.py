@@ -37,7 +37,7 @@ from ..io.exr_io import (
     relight_channel_names,
     shown,
 )
-from ..io.sidecars import read_vertex_transfer
+from ..io.sidecars import read_corner_vertex, read_vertex_transfer
 from ..model.material import DEFAULT
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..shading.materials import dielectric_f0
@@ -579,7 +579,7 @@ def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_boun
         set_tris = sc.triangles_of_set(s)
         corner_vertex = None
         if vfile in files:
-            corner_vertex = read_vertex_transfer(os.path.join(out_dir, vfile))[1]
+            corner_vertex = read_corner_vertex(os.path.join(out_dir, vfile))
         for o in np.unique(sc.object_id[set_tris]):
             rows = np.flatnonzero(sc.object_id[set_tris] == o)
             tris = set_tris[rows]

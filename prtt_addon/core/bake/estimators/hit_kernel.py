@@ -131,9 +131,11 @@ def _cached(dispatcher) -> bool:
     """numba's cache holds compiled code of ``dispatcher`` for its current
     source: the index file numba names ``<file>.<qualname>-<line>.pyXY.nbi``
     in the dispatcher's cache folder (``stats.cache_path``) exists and is
-    newer than the source file. An edit that keeps the line reads as cached
-    (the estimate is then ~60 MB low, once); False when anything is unlike
-    numba 0.5x-0.6x, so an unknown numba counts as compiling."""
+    newer than the source file. numba also checks the source's exact stamp
+    and its own version: an edit that keeps the line, or a numba upgrade,
+    reads as cached here while numba compiles (the estimate is then ~60 MB
+    low, once). False when anything is unlike numba 0.5x-0.6x, so an unknown
+    numba counts as compiling."""
     try:
         func = dispatcher.py_func
         source = inspect.getfile(func)
