@@ -102,3 +102,31 @@ def test_world_image_without_pixels_is_a_clear_error(tmp_path):
     nt.links.new(env.outputs["Color"], nt.nodes["Background"].inputs["Color"])
     with pytest.raises(WorldLightError, match="'gone' has no pixels"):
         world_light(bpy.context.scene, 2)
+
+
+def test_non_finite_world_settings_are_clear_errors(tmp_path):
+    """A Background strength or Mapping angle that is NaN, or a colour Blender
+    clamped to 3.4e38: WorldLightError naming the setting (the fuzz target
+    `world` found the core making NaN or float32-overflowing lights of them)."""
+    bpy = addon_bpy()
+    from prtt_addon.blender.export.world import WorldLightError, world_light
+    world_with_image(bpy, strength=float("nan"))
+    with pytest.raises(WorldLightError, match="strength is nan"):
+        world_light(bpy.context.scene, 2)
+    world_with_image(bpy, strength=1e6)
+    L, _ = world_light(bpy.context.scene, 2)                   # bright but representable: a light
+    assert np.isfinite(L).all()
+    world_with_image(bpy, strength=3e38)
+    with pytest.raises(WorldLightError, match="beyond 1e.30.*float32"):
+        world_light(bpy.context.scene, 2)
+    w = world_with_image(bpy, rotation=(float("nan"), 0.0, 0.0))
+    mapping = next(n for n in w.node_tree.nodes if n.bl_idname == "ShaderNodeMapping")
+    if math.isnan(mapping.inputs["Rotation"].default_value[0]):        # Blender keeps a NaN angle
+        with pytest.raises(WorldLightError, match="Mapping.*not three finite angles"):
+            world_light(bpy.context.scene, 2)
+    bg = world_with_image(bpy).node_tree.nodes["Background"]
+    bg.inputs["Color"].default_value = (float("inf"), 0.0, 0.0, 1.0)
+    for link in list(bg.inputs["Color"].links):
+        bpy.context.scene.world.node_tree.links.remove(link)
+    with pytest.raises(WorldLightError, match="beyond 1e.30.*float32"):    # Blender stored 3.4e38
+        world_light(bpy.context.scene, 2)

@@ -19,7 +19,7 @@ import tempfile
 import numpy as np
 
 #: Target name -> subfolder of the corpus (one per harness).
-SEED_KINDS = ("job", "manifest", "exr", "sidecar", "env", "events", "ktx2", "glb")
+SEED_KINDS = ("job", "manifest", "exr", "sidecar", "env", "world", "events", "ktx2", "glb")
 
 
 def seed_scene(resolution: int = 8):
@@ -150,6 +150,11 @@ def write_seeds(root: str) -> dict[str, list[str]]:
                    bands=5, light=light, light_description="forest", sets=[{"name": "floor", "transfer": info}])}}
         put("glb", "prtt.glb", _glb(doc, payload))
 
+        # World settings as FuzzedDataProvider reads them: floats, then choices (a default World,
+        # a bright rotated one, a coloured one).
+        for i, vals in enumerate(([1.0, 0.05, 0.05, 0.05, 0.0, 0.0, 0.0], [30.0, 1, 1, 1, 0.3, -1.2, 2.5],
+                                  [0.5, 0.8, 0.4, 0.1, 0.0, 0.0, 3.14])):
+            put("world", f"world{i}.bin", struct.pack("<7d", *vals) + bytes([i % 2, 1, i % 2]))
         env = read_hdr_image(builtin_environment_path("forest"))
         small = env[::max(1, env.shape[0] // 16), ::max(1, env.shape[1] // 32)][:16, :32].astype(np.float32)
         put("env", "forest.hdr", radiance_bytes(small))
@@ -163,7 +168,7 @@ def write_seeds(root: str) -> dict[str, list[str]]:
 def ensure_seeds(root: str) -> dict[str, list[str]]:
     """The seeds under ``root`` (written once; delete the folder to remake them)."""
     stamp = os.path.join(root, ".complete")
-    if not os.path.exists(stamp):
+    if not os.path.exists(stamp) or not all(os.path.isdir(os.path.join(root, k)) for k in SEED_KINDS):
         shutil.rmtree(root, ignore_errors=True)
         write_seeds(root)
         open(stamp, "w").close()

@@ -174,6 +174,40 @@ def run_env(data: bytes) -> None:
             raise Misbehaved("the projection of a read image is not finite")
 
 
+_WORLD = {}
+
+
+def run_world(data: bytes) -> None:
+    """A World's settings as the export and the preview turn them into a light
+    (envmap.constant_light, mapping_rotation, compose_light): strength, colour,
+    the Mapping node's rotation and vector type, any floats including NaN,
+    infinities and 1e308. The light is finite and within envmap.LIGHT_MAX, or a
+    ValueError says which setting."""
+    import atheris
+
+    from ..core.light.envmap import LIGHT_MAX, compose_light, constant_light, mapping_rotation, project_equirect
+    if "proj" not in _WORLD:
+        rng = np.random.default_rng(5)
+        _WORLD["proj"] = project_equirect(rng.random((16, 32, 3)).astype(np.float32) * 3, 3)
+    fdp = atheris.FuzzedDataProvider(data)
+    strength = fdp.ConsumeFloat()
+    colour = [fdp.ConsumeFloat() for _ in range(3)]
+    rotation = [fdp.ConsumeFloat() for _ in range(3)]
+    vector_type = fdp.PickValueInList(["POINT", "TEXTURE"])
+    use_colour = fdp.ConsumeBool()
+    try:
+        proj = constant_light(colour, 3) if use_colour else _WORLD["proj"]
+        R = mapping_rotation(rotation, vector_type) if fdp.ConsumeBool() else None
+        L = compose_light(proj, strength, R)
+    except ValueError as exc:
+        if "World" not in str(exc):
+            raise Misbehaved(f"a ValueError that does not say which setting: {exc}") from exc
+        return
+    if L.shape != (9, 3) or not np.isfinite(L).all() or np.abs(L).max() > LIGHT_MAX:
+        raise Misbehaved(f"a light of shape {L.shape} that is not finite from strength {strength}, "
+                         f"colour {colour}, rotation {rotation}")
+
+
 def run_events(data: bytes) -> None:
     """The worker's stdout lines as the Blender side reads them (read_event)."""
     from ..core.io.worker_events import TYPES, read_event
@@ -229,6 +263,8 @@ TARGETS = {t.name: t for t in [
            (_IO + "sidecars",)),
     Target("env", "read_hdr_image (.exr, .hdr RLE) + SH projection", "env", run_env, 1 << 14,
            (_IO + "image_io", "prtt_addon.core.light.envmap")),
+    Target("world", "a World's strength, colour and Mapping rotation -> light", "world", run_world, 256,
+           ("prtt_addon.core.light.envmap",)),
     Target("events", "read_event (worker stdout lines)", "events", run_events, 1 << 12, (_IO + "worker_events",)),
     Target("ktx2", "parse_ktx2", "ktx2", run_ktx2, 1 << 16, (_IO + "ktx2",)),
     Target("glb", "read_glb_json", "glb", run_glb, 1 << 14, (_IO + "gltf_prtt",)),

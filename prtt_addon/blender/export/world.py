@@ -23,6 +23,7 @@ core.light.envmap's, shared with ``python -m prtt_addon bake-job --env``.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 
 import numpy as np
@@ -70,7 +71,10 @@ def mapping_rotation(node) -> np.ndarray:
     for name in ("Rotation", "Scale"):
         if node.inputs[name].is_linked:
             raise WorldLightError(f"Mapping node {node.name!r}: a linked {name} is not supported")
-    return envmap.mapping_rotation(node.inputs["Rotation"].default_value, node.vector_type)
+    try:
+        return envmap.mapping_rotation(node.inputs["Rotation"].default_value, node.vector_type)
+    except ValueError as exc:
+        raise WorldLightError(f"Mapping node {node.name!r}: {exc}") from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,6 +119,8 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
     if bg.inputs["Strength"].is_linked:
         raise WorldLightError(f"World {world.name!r}: a linked Background strength is not supported")
     strength = float(bg.inputs["Strength"].default_value)
+    if not math.isfinite(strength):
+        raise WorldLightError(f"World {world.name!r}: the Background strength is {strength}, not a finite number")
     col = bg.inputs["Color"]
     if not col.is_linked:
         c = np.array(col.default_value[:3], dtype=np.float64)
@@ -156,4 +162,7 @@ def project_setup(setup: WorldSetup, bands: int) -> np.ndarray:
 def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "forest") -> tuple[np.ndarray, str]:
     """(K, 3) SH light and a one-line description, from the scene's World or a studio HDRI."""
     setup = world_setup(scene, source=source, builtin=builtin)
-    return envmap.compose_light(project_setup(setup, bands), setup.strength, setup.rotation), setup.description
+    try:
+        return envmap.compose_light(project_setup(setup, bands), setup.strength, setup.rotation), setup.description
+    except ValueError as exc:        # a colour or strength that makes no finite light (envmap says which)
+        raise WorldLightError(f"{setup.description}: {exc}") from None

@@ -244,9 +244,21 @@ def euler_xyz_matrix(rx: float, ry: float, rz: float) -> np.ndarray:
 def mapping_rotation(rotation_xyz, vector_type: str = "POINT") -> np.ndarray:
     """The rotation R a World's Mapping node applies to lookup directions
     (the image is read at R w): its Euler XYZ rotation for type Point, the
-    inverse (transpose) for type Texture."""
-    R = euler_xyz_matrix(*rotation_xyz)
+    inverse (transpose) for type Texture. ValueError for angles that are not
+    three finite numbers (a World's settings are user input)."""
+    try:
+        angles = [float(a) for a in rotation_xyz]
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"World rotation {rotation_xyz!r} is not three numbers") from exc
+    if len(angles) != 3 or not all(math.isfinite(a) for a in angles):
+        raise ValueError(f"World rotation {angles} is not three finite angles")
+    R = euler_xyz_matrix(*angles)
     return R if vector_type == "POINT" else R.T
+
+
+#: The largest light coefficient a World may give: the bake's bounce and the
+#: preview multiply it by transfer in float32 (max 3.4e38), with headroom.
+LIGHT_MAX = 1e30
 
 
 def compose_light(projection: np.ndarray, strength: float = 1.0,
@@ -263,16 +275,29 @@ def compose_light(projection: np.ndarray, strength: float = 1.0,
     coefficients of w -> f(Q^T w)). The environment therefore appears turned
     the other way from the Mapping's angles. None: no Mapping node.
     """
-    L = projection * strength
+    if not isinstance(strength, (int, float, np.floating, np.integer)) or not math.isfinite(strength):
+        raise ValueError(f"World strength {strength!r} is not a finite number")
+    with np.errstate(over="ignore", invalid="ignore"):
+        L = np.asarray(projection, np.float64) * float(strength)
+    if not np.isfinite(L).all():
+        raise ValueError(f"World light is not finite at strength {float(strength):g} (the environment's "
+                         f"projection times the strength overflows, or the projection holds NaN/Inf)")
+    if L.size and np.abs(L).max() > LIGHT_MAX:
+        raise ValueError(f"World light of {np.abs(L).max():.3g} is beyond {LIGHT_MAX:g}: the bake and the "
+                         f"preview compute in float32 (lower the strength or the colour)")
     if lookup_rotation is not None:
         L = rotate(L, np.asarray(lookup_rotation).T)
     return L
 
 
 def constant_light(rgb, bands: int) -> np.ndarray:
-    """(K, 3) SH of a constant environment of colour ``rgb`` (the DC term only)."""
+    """(K, 3) SH of a constant environment of colour ``rgb`` (the DC term only);
+    ValueError for a colour that is not three finite numbers."""
+    c = np.asarray(rgb, np.float64).reshape(-1)
+    if c.shape != (3,) or not np.isfinite(c).all() or np.abs(c).max() > 1e300:
+        raise ValueError(f"World colour {c.tolist()} is not three finite numbers")
     L = np.zeros((bands * bands, 3))
-    L[0] = np.asarray(rgb) * math.sqrt(4.0 * math.pi)
+    L[0] = c * math.sqrt(4.0 * math.pi)
     return L
 
 
