@@ -432,11 +432,28 @@ def memory_block(r: dict | None = None) -> str:
     return "\n".join(lines)
 
 
+def fuzz_block(r: dict | None = None) -> str:
+    """docs/fuzzing.md: executions, speed, peak RSS and findings per reader
+    (docs/bench/fuzz.json, ``python -m prtt_addon.fuzz --combine``)."""
+    r = _load("fuzz.json") if r is None else r
+    lines = [f"On {machine_text(r['machine'])}; " + "; ".join(f"`{x['command']}` ({x['date']})" for x in r["runs"])
+             + ". libFuzzer's bounds: 1 s an input, 2048 MB resident.", "",
+             "| reader | what it covers | executions | seconds | executions/s | peak RSS | corpus | findings |",
+             "|---|---|---|---|---|---|---|---|"]
+    for x in r["runs"]:
+        for t in x["reports"]:
+            found = ", ".join(t["findings"]) if t["findings"] else "none"
+            lines.append(f"| `{t['target']}` | {t['reader']} | {t['executions']:,} | {t['seconds']:.0f} | "
+                         f"{t['exec_per_s']:,} | {t['peak_rss_mb']} MB | {t['corpus']} | {found} |")
+    return "\n".join(lines)
+
+
 #: Generated blocks: name -> (pages, maker).
 BLOCKS = {"bake": (("README.md",), bake_block), "render": (("README.md",), render_block),
           "preview": (("docs/preview.md",), preview_block),
           "dask": (("docs/distributed.md",), dask_block), "dask-model": (("docs/distributed.md",), dask_model_block),
-          "web": (("docs/benchmarks.md",), web_block), "memory": (("docs/benchmarks.md",), memory_block)}
+          "web": (("docs/benchmarks.md",), web_block), "memory": (("docs/benchmarks.md",), memory_block),
+          "fuzz": (("docs/fuzzing.md",), fuzz_block)}
 
 
 def _pattern(name: str):

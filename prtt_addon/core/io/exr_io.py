@@ -321,7 +321,7 @@ def checked_header(path: str, decoded: int | None = None) -> dict:
     """The header of the EXR at ``path``, read without its pixels and checked
     before anything is decoded: a PRTT texture (prtt_bands, prtt_kind), a
     data window of 1..MAX_FILE_SIDE texels a side, at most MAX_FILE_CHANNELS
-    channels, and pixels that fit in the memory available once decoded (a
+    channels, none subsampled, and pixels that fit in the memory available once decoded (a
     small damaged file may declare a huge window: OpenEXR would allocate and
     fill it; ``decoded``: how many channels the caller decodes, default all,
     at their stored size, plus a float32 copy of each). TextureError
@@ -348,6 +348,10 @@ def checked_header(path: str, decoded: int | None = None) -> dict:
     chans = header.get("channels") or []
     if len(chans) > MAX_FILE_CHANNELS:
         raise TextureError(f"{path}: {len(chans)} channels; a PRTT texture has at most {MAX_FILE_CHANNELS}")
+    sub = [getattr(c, "name", "?") for c in chans if (getattr(c, "xSampling", 1), getattr(c, "ySampling", 1)) != (1, 1)]
+    if sub:
+        raise TextureError(f"{path}: channels {sub[:4]} are subsampled; PRTT textures have every channel at "
+                           f"full resolution")
     n = len(chans) if decoded is None else decoded
     try:
         check_fits(6 * H * W * max(1, n), f"reading {path} ({W}x{H}, {n} channels)")
