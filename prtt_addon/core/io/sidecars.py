@@ -150,6 +150,19 @@ def read_vertex_transfer(path, bands: int | None = None) -> tuple[np.ndarray, np
     return coeffs, corner
 
 
+def read_vertex_coeffs(path, bands: int | None = None) -> np.ndarray:
+    """coeffs (V, K) float32 of a ``<set>.vertex.npz`` (finite as float32),
+    without its corner_vertex (what the preview's vertex mode uploads)."""
+    path = os.fspath(path)
+    with _open(path) as zf:
+        _vertex_count(zf, path, bands)
+        with np.errstate(over="ignore"):
+            coeffs = _member(zf, path, "coeffs", _FLOAT, 2).astype(np.float32)
+    if not np.isfinite(coeffs).all():
+        raise SidecarError(f"{path}: coeffs holds NaN or infinite values (as float32)")
+    return coeffs
+
+
 def read_corner_vertex(path) -> np.ndarray:
     """corner_vertex (T, 3) int64 of a ``<set>.vertex.npz``, checked against
     the vertex count in the coeffs header, without reading the coefficients."""

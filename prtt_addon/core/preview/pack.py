@@ -37,7 +37,7 @@ from ..io.exr_io import (
     relight_channel_names,
     shown,
 )
-from ..io.sidecars import read_corner_vertex, read_vertex_transfer
+from ..io.sidecars import read_corner_vertex, read_vertex_coeffs
 from ..model.material import DEFAULT
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..shading.materials import dielectric_f0
@@ -295,7 +295,7 @@ class PreviewSet:
         """(V, K) float32 per-vertex transfer, or None."""
         if not self.vertex:
             return None
-        return read_vertex_transfer(self.vertex)[0]
+        return read_vertex_coeffs(self.vertex)
 
 
 @dataclasses.dataclass
