@@ -312,9 +312,9 @@ def write_sh_exr(path, data: np.ndarray, *, kind: str, half: bool = True,
                            attrs=attrs, atomic=atomic)
 
 
-#: Channels a texture file may declare: a 16-band relightable texture has 3 x 256 DC
-#: channels and 3 x 8 x 9 glossy ones (glossy rows have at most 3 bands).
-MAX_FILE_CHANNELS = 1024
+#: Channels a texture file may declare: the largest relightable texture PRTT
+#: writes, 16 bands with 16-band glossy rows per colour (3 K + 3 (K - 1) K, K = 256).
+MAX_FILE_CHANNELS = 3 * 256 + 3 * 255 * 256
 
 
 def checked_header(path: str, decoded: int | None = None) -> dict:
