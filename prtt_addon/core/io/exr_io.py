@@ -317,15 +317,15 @@ def write_sh_exr(path, data: np.ndarray, *, kind: str, half: bool = True,
 MAX_FILE_CHANNELS = 3 * 256 + 3 * 255 * 256
 
 
-def checked_header(path: str, decoded: int | None = None) -> dict:
+def checked_header(path: str, decoded: int | None = None) -> tuple[dict, int, int]:
     """The header of the EXR at ``path``, read without its pixels and checked
     before anything is decoded: a PRTT texture (prtt_bands, prtt_kind), a
     data window of 1..MAX_FILE_SIDE texels a side, at most MAX_FILE_CHANNELS
     channels, none subsampled, and pixels that fit in the memory available once decoded (a
     small damaged file may declare a huge window: OpenEXR would allocate and
     fill it; ``decoded``: how many channels the caller decodes, default all,
-    at their stored size, plus a float32 copy of each). TextureError
-    otherwise, naming the file."""
+    at their stored size, plus a float32 copy of each). Returns (header, H,
+    W). TextureError otherwise, naming the file."""
     import OpenEXR
 
     if not os.path.isfile(path):
@@ -357,8 +357,7 @@ def checked_header(path: str, decoded: int | None = None) -> dict:
         check_fits(6 * H * W * max(1, n), f"reading {path} ({W}x{H}, {n} channels)")
     except MemoryLimitError as exc:
         raise TextureError(str(exc)) from None
-    header["_size"] = (H, W)
-    return header
+    return header, H, W
 
 
 #: The child that decodes one channel with OpenEXR's legacy InputFile (argv: path, channel).
@@ -380,10 +379,9 @@ def read_dc_plane(path) -> np.ndarray:
     with the current API, and the channel is decoded in a child process whose
     crash is a TextureError, not the end of Blender."""
     path = os.fspath(path)
-    header = checked_header(path, decoded=1)
+    header, H, W = checked_header(path, decoded=1)
     if not any(getattr(c, "name", None) == "sh000" for c in header["channels"]):
         raise TextureError(f"{path}: missing channels ['sh000']")
-    H, W = header["_size"]
     try:
         r = subprocess.run([python_executable(), "-c", _DC_CHILD, path, "sh000"], capture_output=True,
                            env=child_env(), timeout=DC_CHILD_TIMEOUT)
@@ -417,9 +415,8 @@ def open_sh_channels(path):
             chans = {n: c.pixels for n, c in f.channels().items()}
         except Exception as exc:
             raise TextureError(f"{path}: unreadable EXR ({exc})") from exc
+        # checked_header made sure prtt_bands and prtt_kind are there.
         attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
-        if "bands" not in attrs or "kind" not in attrs:
-            raise TextureError(f"{path}: not a PRTT texture (no prtt_bands/prtt_kind header)")
         yield chans, attrs
 
 
