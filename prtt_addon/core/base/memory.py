@@ -250,6 +250,12 @@ def _status_mb(key: str) -> float | None:
     return None
 
 
+def resident_bytes() -> int | None:
+    """This process's resident memory now (VmRSS, bytes; Linux), else None."""
+    mb = _status_mb("VmRSS:")
+    return None if mb is None else int(mb * 1024 * 1024)
+
+
 class StagePeaks:
     """Peak resident memory (RSS, MiB) of this process per stage of a bake.
 

@@ -10,8 +10,10 @@ hold a value once dilated (N and the dilation rings around every island).
 K = bands², C the relightable channels (3K + the glossy rows). Bytes:
 
 * every stage: the process (Python, numpy, numba's kernels, Embree: BASE),
-  the scene's arrays and its BVH (:func:`scene_bytes`), and on a bake that
-  compiles the bounce's kernels (nothing cached yet) what the compiler keeps;
+  the scene's arrays and its BVH (:func:`scene_bytes`), what the process
+  already holds beyond a bare bake worker and its job (:func:`process_extra`:
+  a CLI's or a test runner's imports), and on a bake that compiles the
+  bounce's kernels (nothing cached yet) what the compiler keeps;
 * G-buffer: the G-buffer and its rasteriser's temporaries, GBUFFER_BUILD a texel;
 * trace and projection: the G-buffer and kernel points (SURFACE a texel), the
   traced rows 4 K N, the float32 planes 4 K A;
@@ -43,6 +45,9 @@ BASE = 150 * MiB
 #: What numba's compiler keeps resident once it has compiled the bounce's kernels (a first bake
 #: after installing or updating PRTT; later bakes load them from numba's cache): measured 55-58 MB.
 JIT_COMPILE = 60 * MiB
+#: What a bake worker holds once its job is loaded, beyond the job's arrays (interpreter, numpy,
+#: embreex imported): measured 62 MB at the "setup" stage of bench memory's worker.
+BARE_PROCESS = 64 * MiB
 #: Bytes a scene triangle holds: the job's arrays (positions, normals, UVs, ids) and Embree's BVH.
 TRIANGLE = 400
 #: The G-buffer while it is built: the merged arrays and the row bands' rasteriser temporaries.
@@ -105,6 +110,18 @@ def uv_areas(uvs: np.ndarray, set_id: np.ndarray, n_sets: int) -> np.ndarray:
     return np.bincount(sid[ok], weights=a[ok], minlength=n_sets)[:n_sets]
 
 
+def process_extra(resident: int | None, job_arrays: int) -> int:
+    """Bytes this process holds beyond what BASE assumes of it: its resident
+    memory now (``resident``, memory.resident_bytes; None: unknown) less a
+    bare worker (BARE_PROCESS) and its job's arrays (``job_arrays`` bytes,
+    counted by scene_bytes). A bake run in a CLI or a test process that
+    imported more (measured 98 MB and, on CI, 142 MB at "setup" against the
+    worker's 62 MB) holds that through every stage."""
+    if resident is None:
+        return 0
+    return max(0, int(resident) - BARE_PROCESS - int(job_arrays))
+
+
 def scene_bytes(n_triangles: int) -> int:
     """The scene's arrays and Embree's BVH (per triangle)."""
     return TRIANGLE * int(n_triangles)
@@ -113,7 +130,7 @@ def scene_bytes(n_triangles: int) -> int:
 def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int = 2,
                 chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
-                glossy_coeffs: int = 0, compiling: bool = False) -> dict[str, int]:
+                glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -124,10 +141,11 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     relightable texture; glossy_coeffs: Kg² of its glossy exit table (0: none);
     compiling: numba compiles the bounce's kernels in this process (JIT_COMPILE
     from the start: they are compiled on a helper thread while the first set is).
+    extra: bytes the process holds beyond BASE's assumption (:func:`process_extra`).
     Returns {stage: bytes} with the stage names of the manifest's ``memory``.
     """
     K = bands * bands
-    base = BASE + scene_bytes(n_triangles) + (JIT_COMPILE if compiling else 0)
+    base = BASE + scene_bytes(n_triangles) + (JIT_COMPILE if compiling else 0) + max(0, int(extra))
     threads = max(1, threads)
 
     def chunks(texels: int, per_texel: int) -> int:

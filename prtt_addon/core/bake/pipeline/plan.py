@@ -17,7 +17,7 @@ import os
 import numpy as np
 
 from ...base.errors import BakeError
-from ...base.memory import check_fits
+from ...base.memory import check_fits, resident_bytes
 from ...io.outdir import verify_files
 from ...model.scene import geometry_hash
 from ...shading.materials import materials_hash
@@ -25,7 +25,7 @@ from ...shading.shade import light_hash
 from ..estimators import denoise, hit_kernel
 from ..estimators.relightable import GLOSSY_BANDS, relight_shared_colour
 from .context import MANIFEST, BakeContext, BakeSettings, asked_downscale
-from .memory_plan import covered_texels, peak_stage, stage_bytes, uv_areas, uv_boundaries
+from .memory_plan import covered_texels, peak_stage, process_extra, stage_bytes, uv_areas, uv_boundaries
 
 
 def settings_hash(settings: BakeSettings) -> str:
@@ -80,12 +80,14 @@ def bounce_key(in_hash: str, set_hash: str, light: np.ndarray | None, mat_hash: 
 
 
 def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool,
-                     downscales: list[int] | None = None, compiling: bool = False) -> dict[str, int]:
+                     downscales: list[int] | None = None, compiling: bool = False,
+                     extra: int = 0) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake (memory_plan.stage_bytes).
     ``set_sizes``: (width, height, covered texels) per set baked, in order
     (covered: memory_plan.covered_texels of the set's UV area); ``downscales``:
     each set's bounce grid once chosen (default: the grid the settings ask for);
-    ``compiling``: the bounce's kernels are compiled in this process (:func:`kernels_compile`)."""
+    ``compiling``: the bounce's kernels are compiled in this process (:func:`kernels_compile`);
+    ``extra``: what the process holds beyond a bare worker (memory_plan.process_extra)."""
     K = st.bands ** 2
     kg = min(GLOSSY_BANDS, st.bands) ** 2
     colours = 1 if relight_shared_colour(st) else 3
@@ -96,7 +98,12 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
                        downscale=(downscales if downscales is not None
                                   else asked_downscale(st.bounces, st.tuning, st.bounce_downscale)),
                        relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg,
-                       compiling=compiling)
+                       compiling=compiling, extra=extra)
+
+
+def job_array_bytes(scene) -> int:
+    """Bytes of the scene's numpy arrays (what the loaded job holds)."""
+    return sum(a.nbytes for a in vars(scene).values() if isinstance(a, np.ndarray))
 
 
 def kernels_compile(ctx: BakeContext, plan: BakePlan) -> bool:
@@ -223,7 +230,8 @@ def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None 
     sc, st = ctx.scene, ctx.settings
     sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
     stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing,
-                              downscales=downscales, compiling=kernels_compile(ctx, plan))
+                              downscales=downscales, compiling=kernels_compile(ctx, plan),
+                              extra=process_extra(resident_bytes(), job_array_bytes(sc)))
     stage, need = peak_stage(stages)
     ctx.memory.estimate_mb = round(need / 2 ** 20, 1)
     biggest = max(sizes, key=lambda s: s[0] * s[1], default=None)
