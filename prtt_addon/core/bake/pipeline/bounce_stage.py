@@ -202,7 +202,8 @@ def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: Boun
     traced = np.bincount(block, weights=(~skip_full).astype(np.float64), minlength=grid.width * grid.height)
     skip = ((covered > 0) & (traced == 0))[coarse.texel]
     skip |= pts.analytic
-    return dataclasses.replace(src, gbuffer=coarse, points=pts, open=None, incident=None), skip
+    return dataclasses.replace(src, gbuffer=coarse, points=pts, open=None, incident=None, fine=None,
+                               analytic=None), skip
 
 
 def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry | None = None, *,
@@ -228,7 +229,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
     K = st.bands ** 2
 
     def fine_diffuse(r):
-        full = surface_texels(sc, r.gbuffer, st.dilate, diffuse_only=True)
+        full = r.fine if r.fine is not None else surface_texels(sc, r.gbuffer, st.dilate, diffuse_only=True)
         if not lit:
             return full, r.incident.at(full.valid, K, padded=True)
         return full, incident_dc_at(full, r.incident, ctx.light, st.bands)
@@ -242,7 +243,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         fine_job = ctx.helpers.submit(fine_diffuse, r) if asked > 1 else None
         # Chosen from this G-buffer already when the runner refined the memory estimate.
         grid = ctx.bounce_grids.get(r.index) or choose_grid(r.gbuffer, asked)
-        skip[r.index] = r.points.analytic | r.open
+        skip[r.index] = (r.points.analytic if r.points is not None else r.analytic) | r.open
         if auto:
             nb, why = choose_bounce_bands(sc, r.index, glossy_tri, st.bands)
             rays = int(round(st.bounce_rays * AUTO_RAY_FACTOR)) if grid.downscale > 1 else st.bounce_rays
