@@ -105,7 +105,8 @@ class DilatedRows:
     in order as stacks would be. Only one plane per thread is resident,
     instead of the stack.
 
-    levels : list of (C, N) float32, column i the value at texel ``texel[i]``.
+    levels : list of (C, N) float32, column i the value at texel ``texel[i]``
+             (or one half_columns.HalfColumns: ``levels[0][c]`` is channel c's row).
     texel : (N,) int64 flat texel indices (row 0 = bottom) of ``mask`` (H, W).
     """
 
@@ -135,6 +136,9 @@ class DilatedRows:
         """(min, max) of the planes: the levels' sum at the covered texels, and 0
         where texels stay empty (dilated texels average covered ones, within
         that range to rounding)."""
+        if len(self.levels) == 1 and hasattr(self.levels[0], "value_range"):    # half_columns.HalfColumns
+            lo, hi = self.levels[0].value_range()
+            return (min(lo, 0.0), max(hi, 0.0)) if not self.grown.all() else (lo, hi)
         total = self.levels[0]
         for rows in self.levels[1:]:
             total = total + rows

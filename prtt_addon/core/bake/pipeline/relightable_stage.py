@@ -51,6 +51,9 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
     glossy_sets = {s.index: bool(inputs.glossy_tri[sc.triangles_of_set(s.index)].any()) for s in inputs.sources}
     sums: dict[int, list] = {}
     reports, stopped, rows = [], None, {}
+    # One level, written as float16: each set's rows are held at the file's
+    # precision (texels.half_columns), half the bytes of the bounce's largest table.
+    one_half_level = st.bounces == 1 and st.half
     for level in range(1, st.bounces + 1):
         ctx.check_cancel()
         t = time.perf_counter()
@@ -73,11 +76,12 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
             lbst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
             cols, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
                                                  glossy_out=glossy_sets[src.index], shared_colour=shared,
+                                                 half_dilate=st.dilate if one_half_level else None,
                                                  progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
             ctx.seconds["bounce_trace"] += time.perf_counter() - t
             t = time.perf_counter()
             # The early stop reads only the DC responses to the light's DC (channels c K).
-            energy += uniform_energy(cols[0:3 * K:K].T[:, :, None])
+            energy += uniform_energy(np.stack([cols[c] for c in range(0, 3 * K, K)]).T[:, :, None])
             # Each level is kept at its covered texels; dilated, and the levels
             # summed, one plane at a time as the texture is written (DilatedRows).
             if src.index in sums:
