@@ -210,19 +210,29 @@ class SurfaceTexels:
         return bool(self.spec.strides[0] != 0 and np.any(self.spec > 0.0))
 
 
+#: Texels whose materials surface_texels evaluates at a time.
+SURFACE_BLOCK = 1 << 18
+
+
 def surface_texels(sc, gb: GBuffer, dilate_iterations: int, *, diffuse_only: bool = False) -> SurfaceTexels:
     """Material and shading normal at every texel centre of ``gb``, dilated by
     ``dilate_iterations`` rings (the mean of filled neighbours, the textures'
     rule; normals renormalised). ``diffuse_only``: the albedo alone (spec,
     exponent and normal are zeros), for a grid only the diffuse term leaves from."""
-    p = eval_materials(sc, gb.tri, gb.bary)
     H, W = gb.height, gb.width
     n_planes = 3 if diffuse_only else 10
     planes = np.zeros((n_planes, H * W))
-    planes[0:3, gb.texel] = p.albedo.T
+    # The materials in blocks of texels (their formulas are per texel): the
+    # per-texel temporaries of a whole 2048² G-buffer were ~250 MB.
+    for a in range(0, gb.n, SURFACE_BLOCK):
+        b = min(a + SURFACE_BLOCK, gb.n)
+        p = eval_materials(sc, gb.tri[a:b], gb.bary[a:b])
+        at = gb.texel[a:b]
+        planes[0:3, at] = p.albedo.T
+        if not diffuse_only:
+            planes[3:6, at] = p.spec.T
+            planes[6, at] = p.exponent
     if not diffuse_only:
-        planes[3:6, gb.texel] = p.spec.T
-        planes[6, gb.texel] = p.exponent
         planes[7:10, gb.texel] = gb.normal.T
     planes = planes.reshape(n_planes, H, W)
     grown = dilate(planes, gb.mask(), dilate_iterations).reshape(-1)

@@ -36,11 +36,14 @@ same inputs give bit-identical patterns on every machine.
 from __future__ import annotations
 
 import collections
+import concurrent.futures as cf
 import math
+import os
 import threading
 
 import numpy as np
 
+from ...base.blas import single_threaded_blas
 from ...base.errors import Cancelled
 from ...settings_schema import SAMPLERS
 from ...sh.basis import eval_basis
@@ -274,18 +277,29 @@ def _exact_tables(n_patterns, n_rays, bands, sampler, distribution, seed, prefix
     _, W, _ = pattern_bank(n_patterns, n_rays, bands, sampler, distribution, seed, cancel=cancel)
     A = unoccluded_local(bands)
     out = np.empty((n_patterns, prefix, bands * bands), np.float32)
-    for g in range(n_patterns):
+
+    def one(g):
         _check(cancel)
         Wg = W[g, :prefix].astype(np.float64)
         if prefix < bands * bands:
             # Fewer rays than coefficients: K constraints on N < K weights have no
             # exact solution in general, and the Newton search costs ~10 ms a pattern.
             out[g] = (Wg / prefix).astype(np.float32)
-            continue
+            return
         w, res = balance_weights(Wg, A)
         if not (res <= BALANCE_TOLERANCE and w.max() <= BALANCE_MAX_SPREAD * w.min()):
             w = np.full(prefix, 1.0 / prefix)
         out[g] = (w[:, None] * Wg).astype(np.float32)
+
+    if prefix < bands * bands or bands < 8:
+        for g in range(n_patterns):
+            one(g)
+    else:
+        # Many bands: each pattern's Newton steps are (K x K) least squares, 0.7 s
+        # a pattern at 16 bands; patterns are independent and LAPACK lets go of the
+        # GIL, so one thread per core (each single-threaded BLAS: the same bytes).
+        with single_threaded_blas(), cf.ThreadPoolExecutor(max(1, os.cpu_count() or 1)) as ex:
+            list(ex.map(one, range(n_patterns)))
     out.setflags(write=False)
     return out
 

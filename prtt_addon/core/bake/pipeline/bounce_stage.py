@@ -216,7 +216,8 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
     inputs' ``sources`` are what the levels bake. Not ``lit`` (relightable
     bounces): the transfer rows T (M, K) instead of Lp, and in
     ``level1_diffuse`` the fine grid's T rows; ``direct`` is then the energy
-    under a uniform unit light (relight.uniform_energy)."""
+    under a uniform unit light (relight.uniform_energy). ``sources`` is
+    consumed (its items become None)."""
     st, sc = ctx.settings, ctx.scene
     skip, surf, level1_diffuse, grids, baked, Lp = {}, {}, {}, {}, [], {}
     t = time.perf_counter()
@@ -234,7 +235,10 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
             return full, r.incident.at(full.valid, K, padded=True)
         return full, incident_dc_at(full, r.incident, ctx.light, st.bands)
 
-    for r in sources:
+    for at, r in enumerate(sources):
+        # Consumed: the full-resolution source (its G-buffer's layout, open mask)
+        # is not held through the levels once its coarse source replaces it.
+        sources[at] = None
         ctx.check_cancel()
         # Zero without rays: analytic texels, and texels no transfer ray saw geometry
         # from (tested against half-float rounding when read back from disk).
@@ -251,7 +255,8 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         grids[r.index] = grid
         incident = r.incident
         fine = fine_job.result() if fine_job is not None else None
-        r.incident = None                  # the exit textures replace it
+        # The exit textures replace them (the caller's results still hold the source).
+        r.incident = r.fine = r.analytic = None
         if grid.downscale > 1:
             # Level 1's diffuse light leaves from the transfer's grid (contact shadows
             # on the surfaces it bounces off stay sharp: 0.04 pp of image error on the
@@ -268,6 +273,8 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
             surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
         else:
             surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
+        # The levels read the points (which keep positions and normals) and the surface texels.
+        r.gbuffer.release_surface()
         if lit:
             Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
         else:

@@ -197,7 +197,10 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
     bounce = None
     if plan.bouncing:
         levels = relight_levels if st.bounce_mode == "relightable" else bounce_levels
-        bounce = levels(ctx, geo, plan, [r.bounce for r in results if r.bounce is not None])
+        sources = [r.bounce for r in results if r.bounce is not None]
+        for r in results:
+            r.bounce = None         # bounce_inputs consumes the sources: held by the list alone
+        bounce = levels(ctx, geo, plan, sources)
     if ctx.remote is not None:
         # Every ray is traced: shut the cluster down (its summary event) before
         # the commit, whose "done" event must be the bake's last.
