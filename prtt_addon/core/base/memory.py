@@ -272,6 +272,7 @@ class StagePeaks:
         self._peaks: dict[str, float] = {}
         self.process: float | None = None
         self.estimate_mb: float | None = None     # what the bake said it would need (plan.check_memory)
+        self.held_extra: int | None = None        # bytes held beyond a bare worker at the first check
         # Not reset here: "setup" keeps what the process held before the bake (its job, imports).
         self.resettable = _status_mb("VmHWM:") is not None and os.access("/proc/self/clear_refs", os.W_OK)
 

@@ -22,11 +22,13 @@ K = bands², C the relightable channels (3K + the glossy rows). Bytes:
 * bounce (relightable): on the bounce grid (1/f per side: A/f², N/f², V/f²
   texels) the G-buffer and points, the surface (SURFACE_SHADING a valid
   texel), the glossy exit table 4 Kg² V, and each set's traced columns
-  4 C N (held until written); on the transfer's grid the diffuse exit table
+  4 C N (held until written; HALF_TABLE C N for one level written as
+  half); on the transfer's grid the diffuse exit table
   4 K V and the albedo (FINE_DIFFUSE a valid texel). Baked bounces hold the
   level's (3K, A) planes and exit rows instead;
 * sets baked earlier keep, when bouncing, their surface and texture (SURFACE
-  N + 4 K V) until the bounce.
+  N + 4 K V; with a coarser bounce grid the albedo instead of the surface,
+  FINE_DIFFUSE V + 4 K V) until the bounce.
 
 The constants are measured (bench memory: the demo room at 512² to 4096²,
 the 1.27M-triangle room and bunnies); docs/benchmarks.md tabulates the
@@ -58,6 +60,10 @@ SURFACE = 134
 SURFACE_SHADING = 120
 #: A valid texel of the transfer's grid that level 1's diffuse light leaves from: albedo, scale, row.
 FINE_DIFFUSE = 40
+#: Bytes a channel of a covered texel takes in one relightable level written as half
+#: (texels.half_columns: float16, and float32 at the island borders, 4 % of the
+#: demo's texels at 2048²; more on small islands).
+HALF_TABLE = 2.4
 #: Dilation rings: V = N (1 + RING * dilate / sqrt(A)) (the islands' perimeters in texels).
 RING = 18.0
 #: Covered texels: N = UV area x A + EDGE x the islands' boundary length x sqrt(A) (conservative
@@ -130,7 +136,8 @@ def scene_bytes(n_triangles: int) -> int:
 def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int = 2,
                 chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
-                glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0) -> dict[str, int]:
+                glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
+                half: bool = True) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -142,6 +149,8 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     compiling: numba compiles the bounce's kernels in this process (JIT_COMPILE
     from the start: they are compiled on a helper thread while the first set is).
     extra: bytes the process holds beyond BASE's assumption (:func:`process_extra`).
+    half: the textures are written as float16 (one relightable level is then
+    held at that precision: HALF_TABLE).
     Returns {stage: bytes} with the stage names of the manifest's ``memory``.
     """
     K = bands * bands
@@ -153,18 +162,20 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         return threads * min(chunk_rays, -(-texels * per_texel // threads)) * RAY_BYTES
     out = {"setup": base, "gbuffer": 0, "trace": 0, "write transfer": 0}
     held = 0                                   # what earlier sets keep for the bounce
-    for w, h, n in sets:
+    per_set = downscale if isinstance(downscale, (list, tuple)) else [downscale] * len(sets)
+    for (w, h, n), f in zip(sets, per_set):
         A = w * h
         v = valid_texels(n, w, h, dilate)
         planes = 4 * K * A * (4 / 3 if mips else 1)
         out["gbuffer"] = max(out["gbuffer"], base + held + GBUFFER_BUILD * n)
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + int(planes) + chunks(n, rays))
-        keep = SURFACE * n + 4 * K * v if bounces else 0
+        # A coarser bounce grid keeps the albedo, not the surface (stages.transfer_set).
+        keep = ((FINE_DIFFUSE * v if f > 1 else SURFACE * n) + 4 * K * v) if bounces else 0
         out["write transfer"] = max(out["write transfer"], base + held + int(planes) + keep)
         held += keep
     if bounces:
         total = base + chunks(max((n for _, _, n in sets), default=0), bounce_rays)
-        per_set = downscale if isinstance(downscale, (list, tuple)) else [downscale] * len(sets)
+        table = HALF_TABLE if bounces == 1 and half else 4 * min(bounces, 2)
         for (w, h, n), f in zip(sets, per_set):
             f = max(1, int(f))
             f2 = f * f
@@ -175,7 +186,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
             vc = valid_texels(nc, wc, hc, dilate)
             if bounce_mode == "relightable":
                 total += (SURFACE * nc + SURFACE_SHADING * vc + 4 * glossy_coeffs * vc
-                          + 4 * relight_channels * nc * min(bounces, 2) + 12 * wc * hc)
+                          + int(table * relight_channels * nc) + 12 * wc * hc)
             else:
                 total += SURFACE * nc + SURFACE_SHADING * vc + 4 * 3 * K * (wc * hc + 2 * vc)
             total += 4 * K * v + FINE_DIFFUSE * v + 8 * A if f2 > 1 else 4 * K * v

@@ -98,7 +98,7 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
                        downscale=(downscales if downscales is not None
                                   else asked_downscale(st.bounces, st.tuning, st.bounce_downscale)),
                        relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg,
-                       compiling=compiling, extra=extra)
+                       compiling=compiling, extra=extra, half=st.half)
 
 
 def job_array_bytes(scene) -> int:
@@ -228,10 +228,13 @@ def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None 
     bounce grids (a grid that cannot be coarser, thin UV margins at this
     resolution, holds 4x the bounce texels): before the trace allocates."""
     sc, st = ctx.scene, ctx.settings
+    if ctx.memory.held_extra is None:
+        # Read once, before the bake (or numba's import for the check below) allocates.
+        ctx.memory.held_extra = process_extra(resident_bytes(), job_array_bytes(sc))
     sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
     stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing,
                               downscales=downscales, compiling=kernels_compile(ctx, plan),
-                              extra=process_extra(resident_bytes(), job_array_bytes(sc)))
+                              extra=ctx.memory.held_extra)
     stage, need = peak_stage(stages)
     ctx.memory.estimate_mb = round(need / 2 ** 20, 1)
     biggest = max(sizes, key=lambda s: s[0] * s[1], default=None)
