@@ -75,7 +75,8 @@ class HalfColumns:
         if src.size and not self.overflow and float(np.abs(src).max(initial=0.0)) > HALF_MAX:
             self.overflow = True
         last = first + src.shape[0]
-        self.half[first:last, cols] = src
+        with np.errstate(over="ignore"):        # flagged above: the caller re-traces into float32
+            self.half[first:last, cols] = src
         at = self.slot[cols]
         on = at >= 0
         if on.any():
