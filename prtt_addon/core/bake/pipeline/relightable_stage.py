@@ -64,6 +64,10 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         else:
             exits = {i: later_exit(inputs.surface[i], r, gbands) for i, r in rows.items()}
         shader = RelightShader(sc, exits, st.bands, gbands, inputs.glossy_tri)
+        if level == st.bounces:
+            # The exits hold what the last level reads: the surface texels' float64
+            # albedo, spec and normals (~80 B a bounce texel) are not held through its trace.
+            inputs.surface = {}
         ctx.seconds["bounce_exit"] += time.perf_counter() - t
         nxt, energy = {}, 0.0
         for src in inputs.sources:
