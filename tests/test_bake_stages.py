@@ -94,8 +94,10 @@ def test_bounce_stage_from_the_transfer_on_disk_matches_the_full_bake(tmp_path, 
     for s in ctx.set_ids:
         gb = stages.gbuffer_stage(ctx, s)
         sources.append(stages.load_transfer_set(ctx, geo, gb, {}).bounce)
+    held = list(sources)
     result = bounce_stage.bounce_levels(ctx, geo, plan, sources)
-    assert all(src.incident is None for src in sources)        # dropped once level 1 is lit
+    assert all(src.incident is None for src in held)           # dropped once level 1 is lit
+    assert sources == [None] * len(held)                       # and the list consumed
     assert result.files == m["bounce"]["files"] and len(result.files) == 4 and result.stopped is None
     staged = {os.path.basename(final): tmp for tmp, final in ctx.staging.files}
     for name in result.files:

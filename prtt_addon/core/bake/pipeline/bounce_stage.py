@@ -273,8 +273,9 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
             surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
         else:
             surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
-        # The levels read the points (which keep positions and normals) and the surface texels.
-        r.gbuffer.release_surface()
+        # The levels read the points and the surface texels; the denoiser the
+        # positions and normals (the points' own arrays): the rest is dropped.
+        r.gbuffer.tri = r.gbuffer.bary = r.gbuffer.normal_mapped = None
         if lit:
             Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
         else:
