@@ -82,9 +82,15 @@ def test_estimate_counts_texels_and_the_relightable_operator():
     assert (max(b.values()) - base) > 3 * (max(a.values()) - base)
     baked = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, bounce_mode="baked", tuning="fixed"),
                              n_triangles=10_000, bouncing=True)
-    fixed = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, tuning="fixed"), n_triangles=10_000,
+    fixed = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, tuning="fixed", half=False), n_triangles=10_000,
                              bouncing=True)
     assert fixed["bounce"] > baked["bounce"]
+    # One relightable level written as half holds its columns at about half the bytes (half_columns).
+    halfed = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, tuning="fixed"), n_triangles=10_000,
+                              bouncing=True)
+    two = bake_stage_bytes(sizes(1024), BakeSettings(bounces=2, tuning="fixed"), n_triangles=10_000,
+                           bouncing=True)
+    assert halfed["bounce"] < fixed["bounce"] < two["bounce"]
     none = bake_stage_bytes(sizes(1024), st, n_triangles=10_000, bouncing=False)
     assert "bounce" not in none and none["write transfer"] < a["write transfer"]
 
