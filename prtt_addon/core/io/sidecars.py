@@ -135,19 +135,24 @@ def _corners(zf, path: str, V: int) -> np.ndarray:
     return corner.astype(np.int64)
 
 
+def _coeffs(zf, path: str, bands: int | None) -> np.ndarray:
+    """The file's ``coeffs`` (V, K) as float32, its header checked first (_vertex_count), finite."""
+    _vertex_count(zf, path, bands)
+    with np.errstate(over="ignore"):          # an overflow is refused below, as a non-finite value
+        coeffs = _member(zf, path, "coeffs", _FLOAT, 2).astype(np.float32)
+    if not np.isfinite(coeffs).all():
+        raise SidecarError(f"{path}: coeffs holds NaN or infinite values (as float32)")
+    return coeffs
+
+
 def read_vertex_transfer(path, bands: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(coeffs (V, K) float32, corner_vertex (T, 3) int64) of a ``<set>.vertex.npz``:
     K a square (bands² when ``bands`` is given), every index in [0, V), the
     coefficients finite as float32."""
     path = os.fspath(path)
     with _open(path) as zf:
-        V, _ = _vertex_count(zf, path, bands)
-        with np.errstate(over="ignore"):          # an overflow is refused below, as a non-finite value
-            coeffs = _member(zf, path, "coeffs", _FLOAT, 2).astype(np.float32)
-        corner = _corners(zf, path, V)
-    if not np.isfinite(coeffs).all():
-        raise SidecarError(f"{path}: coeffs holds NaN or infinite values (as float32)")
-    return coeffs, corner
+        coeffs = _coeffs(zf, path, bands)
+        return coeffs, _corners(zf, path, coeffs.shape[0])
 
 
 def read_vertex_coeffs(path, bands: int | None = None) -> np.ndarray:
@@ -155,12 +160,7 @@ def read_vertex_coeffs(path, bands: int | None = None) -> np.ndarray:
     without its corner_vertex (what the preview's vertex mode uploads)."""
     path = os.fspath(path)
     with _open(path) as zf:
-        _vertex_count(zf, path, bands)
-        with np.errstate(over="ignore"):
-            coeffs = _member(zf, path, "coeffs", _FLOAT, 2).astype(np.float32)
-    if not np.isfinite(coeffs).all():
-        raise SidecarError(f"{path}: coeffs holds NaN or infinite values (as float32)")
-    return coeffs
+        return _coeffs(zf, path, bands)
 
 
 def read_corner_vertex(path) -> np.ndarray:

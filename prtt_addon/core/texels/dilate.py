@@ -138,11 +138,11 @@ class DilatedRows:
         that range to rounding)."""
         if len(self.levels) == 1 and hasattr(self.levels[0], "value_range"):    # half_columns.HalfColumns
             lo, hi = self.levels[0].value_range()
-            return (min(lo, 0.0), max(hi, 0.0)) if not self.grown.all() else (lo, hi)
-        total = self.levels[0]
-        for rows in self.levels[1:]:
-            total = total + rows
-        lo, hi = (float(np.min(total)), float(np.max(total))) if total.size else (0.0, 0.0)
+        else:
+            total = self.levels[0]
+            for rows in self.levels[1:]:
+                total = total + rows
+            lo, hi = (float(np.min(total)), float(np.max(total))) if total.size else (0.0, 0.0)
         if not self.grown.all():
             lo, hi = min(lo, 0.0), max(hi, 0.0)
         return lo, hi

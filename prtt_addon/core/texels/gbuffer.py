@@ -57,12 +57,14 @@ class GBuffer:
         m[self.texel] = True
         return m.reshape(self.height, self.width)
 
-    def release_surface(self) -> None:
+    def release_surface(self, keep_geometry: bool = False) -> None:
         """Drop the per-texel surface arrays (~110 B a texel), keeping the layout
         (texel, coverage, size, stats): what a set needs once its rays are traced.
-        Afterwards the dropped fields are None."""
-        self.tri = self.bary = self.position = self.normal = self.geo_normal = None
-        self.normal_mapped = None
+        ``keep_geometry``: keep position, normal and geo_normal (the kernel
+        points share them), drop the rest. Afterwards the dropped fields are None."""
+        self.tri = self.bary = self.normal_mapped = None
+        if not keep_geometry:
+            self.position = self.normal = self.geo_normal = None
 
 
 def face_normals(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

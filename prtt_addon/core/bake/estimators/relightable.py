@@ -367,7 +367,8 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
     column[gb.texel] = np.arange(gb.n, dtype=np.int64)
     projection = RelightProjection(shader, K, kg, glossy_out, shared_colour)
     if half_dilate is not None:
-        table = HalfColumns(C, gb.texel, gb.mask(), half_dilate, exact_channels=range(0, 3 * K, K))
+        mask = gb.mask()
+        table = HalfColumns(C, gb.texel, mask, half_dilate, exact_channels=range(0, 3 * K, K))
 
         def store_half(cols, result):
             at = column[cols]
@@ -379,7 +380,7 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
                                    progress=progress, cancel=cancel, remote=remote)
         if not table.overflow:
             stats["hit_shading"] = shader.path()
-            return table, gb.mask(), stats
+            return table, mask, stats
         table = None        # a value float16 cannot hold: the file will be float32
     planes = np.zeros((C, gb.n), np.float32)
     dc = planes[:3 * K]

@@ -275,7 +275,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
             surf[r.index] = surface_texels(sc, r.gbuffer, st.dilate)
         # The levels read the points and the surface texels; the denoiser the
         # positions and normals (the points' own arrays): the rest is dropped.
-        r.gbuffer.tri = r.gbuffer.bary = r.gbuffer.normal_mapped = None
+        r.gbuffer.release_surface(keep_geometry=True)
         if lit:
             Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
         else:
