@@ -228,13 +228,16 @@ def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None 
     bounce grids (a grid that cannot be coarser, thin UV margins at this
     resolution, holds 4x the bounce texels): before the trace allocates."""
     sc, st = ctx.scene, ctx.settings
-    if ctx.memory.held_extra is None:
-        # Read once, before the bake (or numba's import for the check below) allocates.
-        ctx.memory.held_extra = process_extra(resident_bytes(), job_array_bytes(sc))
+    first = ctx.memory.held_extra is None
+    before = resident_bytes() if first else None
+    compiling = kernels_compile(ctx, plan)        # imports numba for a bake with bounces
+    if first:
+        # Read once, before the bake allocates: what the process holds, and what
+        # numba's import took (both vary with the machine: file-backed pages).
+        ctx.memory.held_extra = process_extra(before, job_array_bytes(sc), resident_bytes())
     sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
     stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing,
-                              downscales=downscales, compiling=kernels_compile(ctx, plan),
-                              extra=ctx.memory.held_extra)
+                              downscales=downscales, compiling=compiling, extra=ctx.memory.held_extra)
     stage, need = peak_stage(stages)
     ctx.memory.estimate_mb = round(need / 2 ** 20, 1)
     biggest = max(sizes, key=lambda s: s[0] * s[1], default=None)
