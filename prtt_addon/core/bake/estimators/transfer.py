@@ -231,24 +231,31 @@ def chunk_plan(pts: Points, settings: TransferSettings):
 
     Deterministic in (seed, ids, frame groups); shared by the bake and the
     benchmark (which re-traces the very same rays with bare Embree calls).
+    Its temporaries are freed as it goes (~20 B a point at most beside the
+    chunks' indices, #35: they had peaked at 83 B a texel beside the G-buffer).
     """
     st = settings
     analytic = pts.analytic if st.analytic else np.zeros(pts.n, bool)
     traced = np.flatnonzero(~analytic)
     G = pattern_count(st)
-    pattern = (hash_u32(st.seed, pts.ids[traced], 0x9A77) % np.uint32(G)).astype(np.int64)
+    # Patterns fit int32 (G is capped by the bank's size); indices of traced fit int32 below 2^31 points.
+    idx_t = np.int32 if traced.size < 1 << 31 else np.int64
+    pattern = (hash_u32(st.seed, pts.ids[traced], 0x9A77) % np.uint32(G)).astype(np.int32)
     per_chunk = max(1, st.chunk_rays // st.round_sizes()[0])
     chunks = []
     solo = np.ones(traced.size, bool)
     if pts.frame_group is not None:
         grp = pts.frame_group[traced]
-        cand = np.flatnonzero(grp >= 0)
+        cand = np.flatnonzero(grp >= 0).astype(idx_t)
         if cand.size:
-            key = grp[cand] * G + pattern[cand]
-            o = _stable_order(grp[cand], pattern[cand])
-            key_s, cand_s = key[o], cand[o]
+            grp = grp[cand]
+            o = _stable_order(grp, pattern[cand])
+            cand_s = cand[o]
+            key_s = grp[o] * G + pattern[cand_s]
+            o = None
             starts = np.flatnonzero(np.r_[True, key_s[1:] != key_s[:-1]])
             ends = np.r_[starts[1:], key_s.size]
+            del key_s
             big = per_chunk * SHARED_FACTOR
             for a, b in zip(starts, ends):
                 if b - a < SHARED_MIN:
@@ -257,10 +264,17 @@ def chunk_plan(pts: Points, settings: TransferSettings):
                     sel = cand_s[c:min(c + big, b)]
                     chunks.append(Chunk(int(pattern[sel[0]]), traced[sel], True))
                     solo[sel] = False
-    rest = np.flatnonzero(solo)
+            cand_s = None
+        grp = cand = None
+    rest = np.flatnonzero(solo).astype(idx_t)
+    del solo
     p_rest = pattern[rest]
+    del pattern
     o = _stable_order(p_rest)
-    order, p_sorted = traced[rest[o]], p_rest[o]
+    p_sorted = p_rest[o]
+    del p_rest
+    order = traced[rest[o]]
+    del rest, o, traced
     for g in range(G):
         lo, hi = np.searchsorted(p_sorted, [g, g + 1])
         for a in range(lo, hi, per_chunk):
@@ -491,16 +505,17 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
     st = settings.validate()
     K = st.bands ** 2
     N = pts.n
-    out = np.zeros((N, K), np.float32)
     stats = _Stats()
     t0 = time.perf_counter()
+    # Planned before the rows exist: the planner's temporaries and the rows are never held together.
+    chunks, G = chunk_plan(pts, st)
+    out = np.zeros((N, K), np.float32)
 
     analytic = pts.analytic if st.analytic else np.zeros(N, bool)
     ia = np.flatnonzero(analytic)
     if ia.size:
         out[ia] = unoccluded_transfer(pts.normal[ia], st.bands)
-    traced = np.flatnonzero(~analytic)
-    chunks, G = chunk_plan(pts, st)
+    n_traced = N - int(ia.size)
     done = int(ia.size)
     if progress:
         progress(done, N, 0)
@@ -535,7 +550,7 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
     info = {
         "points": N,
         "analytic_points": int(ia.size),
-        "traced_points": int(traced.size),
+        "traced_points": n_traced,
         "rays_traced": stats.rays_traced,
         "rays_below_horizon_skipped": stats.rays_below_horizon,
         "rays_naive": N * st.rays,
