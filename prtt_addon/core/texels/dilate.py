@@ -56,6 +56,21 @@ def apply_dilation(tex: np.ndarray, rings) -> None:
         tex[:, ys, xs] = (acc / cnt).astype(tex.dtype)
 
 
+def dilate_rows(arrays: list, row_of: np.ndarray, width: int, rings) -> None:
+    """:func:`apply_dilation` on per-texel rows instead of planes: each of
+    ``arrays`` (M, ...) float holds texel t's value at row ``row_of[t]`` (t =
+    y * width + x), every texel the rings read or fill having a row. The same
+    sums in the same order as the planes' dilation, so the same values."""
+    for ys, xs, taps, cnt in rings:
+        dst = row_of[ys * width + xs]
+        src = [(sel, row_of[y * width + x]) for sel, y, x in taps]
+        for a in arrays:
+            acc = np.zeros((ys.size,) + a.shape[1:], np.float64)
+            for sel, rows in src:
+                acc[sel] += a[rows]
+            a[dst] = (acc / cnt.reshape((-1,) + (1,) * (a.ndim - 1))).astype(a.dtype)
+
+
 def dilate(tex: np.ndarray, mask: np.ndarray, iterations: int = 3, executor=None) -> np.ndarray:
     """Grow filled regions of ``tex`` (C, H, W) by ``iterations`` texels, in place.
 

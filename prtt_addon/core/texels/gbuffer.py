@@ -64,7 +64,12 @@ class GBuffer:
         points share them), drop the rest. Afterwards the dropped fields are None."""
         self.tri = self.bary = self.normal_mapped = None
         if not keep_geometry:
-            self.position = self.normal = self.geo_normal = None
+            self.release_geometry()
+
+    def release_geometry(self) -> None:
+        """Drop position, normal and geo_normal (72 B a texel), keeping what the
+        materials are evaluated from (tri, bary) and the layout."""
+        self.position = self.normal = self.geo_normal = None
 
 
 def face_normals(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -73,7 +73,7 @@ from ...sh.gaunt import tpfl_matrix
 from ...sh.rotation import rotate_zyz
 from ...shading.materials import eval_materials
 from ...shading.shade import lobe_factors
-from ...texels.dilate import dilate
+from ...texels.dilate import dilate, dilate_rows, dilation_rings
 from ...texels.gbuffer import GBuffer
 from . import hit_kernel
 from .raytrace import RayScene
@@ -218,40 +218,40 @@ def surface_texels(sc, gb: GBuffer, dilate_iterations: int, *, diffuse_only: boo
     """Material and shading normal at every texel centre of ``gb``, dilated by
     ``dilate_iterations`` rings (the mean of filled neighbours, the textures'
     rule; normals renormalised). ``diffuse_only``: the albedo alone (spec,
-    exponent and normal are zeros), for a grid only the diffuse term leaves from."""
+    exponent and normal are zeros), for a grid only the diffuse term leaves from.
+
+    Built at the valid texels' rows, dilated there (texels.dilate.dilate_rows,
+    the same sums as the planes' dilation): no (channels, H, W) planes, which
+    with their copies at the valid texels had held ~2x the result (#35)."""
     H, W = gb.height, gb.width
-    n_planes = 3 if diffuse_only else 10
-    planes = np.zeros((n_planes, H * W))
+    rings, grown = dilation_rings(gb.mask(), dilate_iterations)
+    valid = np.flatnonzero(grown.reshape(-1))
+    grown = None
+    M = valid.size
+    row_of = np.full(H * W, M, np.int32)
+    row_of[valid] = np.arange(M, dtype=np.int32)
+    albedo = np.zeros((M, 3))
+    spec = exponent = normal = None
+    if not diffuse_only:
+        spec, exponent, normal = np.zeros((M, 3)), np.zeros(M), np.zeros((M, 3))
     # The materials in blocks of texels (their formulas are per texel): the
     # per-texel temporaries of a whole 2048² G-buffer were ~250 MB.
     for a in range(0, gb.n, SURFACE_BLOCK):
         b = min(a + SURFACE_BLOCK, gb.n)
         p = eval_materials(sc, gb.tri[a:b], gb.bary[a:b])
-        at = gb.texel[a:b]
-        planes[0:3, at] = p.albedo.T
+        at = row_of[gb.texel[a:b]]
+        albedo[at] = p.albedo
         if not diffuse_only:
-            planes[3:6, at] = p.spec.T
-            planes[6, at] = p.exponent
-    if not diffuse_only:
-        planes[7:10, gb.texel] = gb.normal.T
-    planes = planes.reshape(n_planes, H, W)
-    grown = dilate(planes, gb.mask(), dilate_iterations).reshape(-1)
-    valid = np.flatnonzero(grown)
-    row_of = np.full(H * W, valid.size, np.int32)
-    row_of[valid] = np.arange(valid.size, dtype=np.int32)
+            spec[at] = p.spec
+            exponent[at] = p.exponent
+            normal[at] = gb.normal[a:b]
+    dilate_rows([albedo] if diffuse_only else [albedo, spec, exponent, normal], row_of, W, rings)
     if diffuse_only:
-        albedo = np.ascontiguousarray(planes.reshape(n_planes, H * W)[:, valid].T)
-        planes = None
         # Read-only zeros that take no memory (a full-resolution grid has millions of texels).
-        zeros3 = np.broadcast_to(np.zeros(3), (valid.size, 3))
-        return SurfaceTexels(W, H, valid, albedo, zeros3, np.broadcast_to(np.zeros(()), (valid.size,)), zeros3,
-                             row_of)
-    rows = planes.reshape(n_planes, H * W)[:, valid].T
-    albedo = np.ascontiguousarray(rows[:, 0:3])
-    n = rows[:, 7:10]
-    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    return SurfaceTexels(W, H, valid, albedo, np.ascontiguousarray(rows[:, 3:6]),
-                         np.ascontiguousarray(rows[:, 6]), np.ascontiguousarray(n), row_of)
+        zeros3 = np.broadcast_to(np.zeros(3), (M, 3))
+        return SurfaceTexels(W, H, valid, albedo, zeros3, np.broadcast_to(np.zeros(()), (M,)), zeros3, row_of)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    return SurfaceTexels(W, H, valid, albedo, spec, exponent, normal, row_of)
 
 
 @dataclasses.dataclass
@@ -524,15 +524,13 @@ def open_texels(T_texels: np.ndarray, normals: np.ndarray, bands: int,
     return out
 
 
-def level_points(pts: Points, skip: np.ndarray, level: int) -> tuple[np.ndarray, Points]:
-    """The texels a bounce level traces (indices into ``pts``) and their Points,
-    with ids tagged by the level so every level draws its own patterns and
-    frames from the one seed scheme (transfer.chunk_plan, chunk_frames)."""
-    todo = np.flatnonzero(~skip)
-    ids = pts.ids[todo] + (np.int64(level) << 50)
-    group = None if pts.frame_group is None else pts.frame_group[todo]
-    return todo, Points(pts.position[todo], pts.normal[todo], pts.geo_normal[todo], ids,
-                        np.zeros(todo.size, bool), group)
+def level_points(pts: Points, skip: np.ndarray, level: int) -> Points:
+    """A bounce level's Points: ``pts``' own arrays (not copies) with ids tagged
+    by the level, so every level draws its own patterns and frames from the
+    one seed scheme (transfer.chunk_plan, chunk_frames); ``analytic`` is
+    ``skip`` (N,): the texels the level does not trace."""
+    return Points(pts.position, pts.normal, pts.geo_normal, pts.ids + (np.int64(level) << 50), skip,
+                  pts.frame_group)
 
 
 @dataclasses.dataclass
@@ -589,8 +587,8 @@ class ChunkHits:
 @dataclasses.dataclass(eq=False)
 class LevelRays:
     """What every chunk of one set's bounce level traces from (level_rays):
-    the texels' Points ``sub`` (ids tagged by the level), their texture
-    columns ``cols`` and the settings. Picklable: a Dask worker receives it
+    the set's Points ``sub`` (ids tagged by the level; chunks index them),
+    their texture columns ``cols`` and the settings. Picklable: a Dask worker receives it
     once per level (core/bake/executors/dask_cluster.py) and traces chunks from it
     exactly as the local threads do."""
 
@@ -598,6 +596,7 @@ class LevelRays:
     cols: np.ndarray
     st: TransferSettings
     G: int                             # ray patterns (transfer.chunk_plan)
+    n: int = 0                         # texels traced (the others are skipped)
 
     def tables(self) -> tuple[np.ndarray, np.ndarray]:
         """(directions (G, S, 3), estimator table (G, S, K)) of the level's patterns (cached)."""
@@ -609,10 +608,14 @@ class LevelRays:
 
 def level_rays(gb: GBuffer, pts: Points, skip: np.ndarray, st: TransferSettings, level: int):
     """(LevelRays, chunks) of one set's level: the texels not skipped, planned
-    by transfer.chunk_plan (biggest chunks first)."""
-    todo, sub = level_points(pts, skip, level)
-    chunks, G = chunk_plan(sub, st)
-    return LevelRays(sub, gb.texel[todo], st, G), sorted(chunks, key=lambda c: -c.idx.size)
+    by transfer.chunk_plan (biggest chunks first). The planner passes over
+    skipped texels as it does over analytic ones: the same chunks, in the
+    same order, as planning the traced texels alone, without copying their
+    points (88 B a texel, #35)."""
+    sub = level_points(pts, skip, level)
+    chunks, G = chunk_plan(sub, dataclasses.replace(st, analytic=True))
+    return (LevelRays(sub, gb.texel, st, G, int(skip.size - np.count_nonzero(skip))),
+            sorted(chunks, key=lambda c: -c.idx.size))
 
 
 def trace_chunk(rs: RayScene, lr: LevelRays, tables, chunk) -> ChunkHits:
@@ -658,7 +661,7 @@ def trace_bounce_level(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray,
 
     def on_result(_):
         if progress:
-            progress(done, lr.cols.size, stats["rays_traced"])
+            progress(done, lr.n, stats["rays_traced"])
 
     if remote is not None:
         remote.trace_level(lr, chunks, project, sink, on_result, cancel)

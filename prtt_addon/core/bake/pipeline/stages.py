@@ -403,8 +403,12 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
         # Taken now, the points and surface (134 B a texel) are not held through
         # the projection and the write (1.2 GB less at 4096², #35).
         is_open = open_texels(traced.rows, gb.normal, ctx.settings.bands, OPEN_TOLERANCE)
-        fine = surface_texels(ctx.scene, gb, ctx.settings.dilate, diffuse_only=True)
         analytic = traced.points.analytic
+        # The points and positions and normals first: the albedo needs only
+        # tri and bary, and is then built beside the rows without them.
+        traced.points = None
+        gb.release_geometry()
+        fine = surface_texels(ctx.scene, gb, ctx.settings.dilate, diffuse_only=True)
         traced.release_surface()
         sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=False), gb)
     else:
