@@ -58,6 +58,8 @@ _NO_FORMS = np.zeros((1, 1, 1, 1), np.float32)      # placeholders for a set wit
 _NO_SCALE = np.zeros((1, 3), np.float32)
 #: Default bands of the glossy part (in and out): 9 x 9 per colour.
 GLOSSY_BANDS = 3
+#: Rows of an exit table scaled at a time (level1_exit).
+EXIT_BLOCK = 1 << 18
 
 
 def relight_shared_colour(st) -> bool:
@@ -132,14 +134,25 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
         raise ValueError("level1_exit: transfer rows must be (M + 1, K) float32 with a last row of zeros")
     grid = TexelRows.of(surf)
     dgrid = grid if fine is None else TexelRows.of(dsurf)
-    ex = RelightExit(dgrid, np.ascontiguousarray(dT)[:, None, :], _with_zero_row(dsurf.albedo / math.pi))
+    # Scales and lobes in blocks of rows (the same values): no whole-grid float64
+    # temporaries beside the tables (they made the bounce's peak at 2048², #35).
+    d_scale = np.zeros((dsurf.valid.size + 1, 3), np.float32)
+    for a in range(0, dsurf.valid.size, EXIT_BLOCK):
+        b = min(a + EXIT_BLOCK, dsurf.valid.size)
+        d_scale[a:b] = dsurf.albedo[a:b] / math.pi
+    ex = RelightExit(dgrid, np.ascontiguousarray(dT)[:, None, :], d_scale)
     if surf.glossy:
         kg = glossy_bands * glossy_bands
-        A = lobe_factors(surf.exponent, glossy_bands)                                   # (M, Kg)
+        # lobe_factors per distinct exponent, gathered a block at a time.
+        u, inv = np.unique(np.asarray(surf.exponent, np.float64), return_inverse=True)
+        A = lobe_factors(u, glossy_bands).astype(np.float32)                          # (U, Kg)
         # Built in the table with its zero row, in place: no (M, Kg, Kg) temporaries.
         g_rows = np.zeros((surf.valid.size + 1, 1, kg, kg), np.float32)
         E = transfer_product_rows(T_rows[:-1], kg, out=g_rows[:-1, 0])                     # (M, Kg, Kg)
-        E *= A[:, :, None].astype(np.float32)
+        inv = inv.reshape(-1)
+        for a in range(0, inv.size, EXIT_BLOCK):
+            E[a:a + EXIT_BLOCK] *= A[inv[a:a + EXIT_BLOCK]][:, :, None]
+        inv = None
         ex.glossy_grid = grid
         ex.g_rows = g_rows
         ex.g_scale = _with_zero_row(surf.spec)

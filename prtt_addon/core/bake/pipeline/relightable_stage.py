@@ -58,9 +58,12 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
         ctx.check_cancel()
         t = time.perf_counter()
         if level == 1:
-            exits = {i: level1_exit(inputs.surface[i], v, gbands, fine=inputs.level1_diffuse.get(i))
-                     for i, v in T.items()}
-            T, inputs.level1_diffuse = None, {}       # the exits hold what later levels read
+            # Each set's transfer rows and fine albedo are dropped as its exit is built:
+            # the exits hold what later levels read.
+            exits = {}
+            for i in list(T):
+                exits[i] = level1_exit(inputs.surface[i], T.pop(i), gbands, fine=inputs.level1_diffuse.pop(i, None))
+            T = None
         else:
             exits = {i: later_exit(inputs.surface[i], r, gbands) for i, r in rows.items()}
         shader = RelightShader(sc, exits, st.bands, gbands, inputs.glossy_tri)
