@@ -160,6 +160,10 @@ def test_cluster_bake_is_bit_identical(tmp_path, room, small_units, mode):
     # The cluster's summary comes before "done", which stays the last event (the worker protocol).
     assert any("dask" in e for e in events) and events[-1]["type"] == "done"
     assert {e.get("stage") for e in events if e.get("type") == "progress"} >= {"trace", "vertex", "bounce"}
+    # Each worker's measured peak is in the manifest, beside the estimate its checks made.
+    mem = json.loads((tmp_path / "dask" / "manifest.json").read_text())["memory"]["dask_workers"]
+    assert len(mem["peak_rss_mb"]) == 2 and mem["max_peak_rss_mb"] == max(mem["peak_rss_mb"].values())
+    assert 0.8 <= mem["estimate_mb"] / mem["max_peak_rss_mb"] <= 1.25, mem
     assert no_workers_left()
 
 
@@ -250,6 +254,27 @@ def test_worker_state_keeps_each_tasks_own_scene():
     assert state.forget("run1-") == dd.KEEP_PER_SLOT and not state.slots["points"]
 
 
+def test_worker_memory_check_adds_up_each_hosts_workers():
+    """Workers of one machine share its memory: their needs add up against
+    the most limited one's; another host is checked on its own; a worker
+    that knows no limit passes."""
+    need = dd.WorkerNeed(data=300 * 2 ** 20, chunks=40 * 2 ** 20, code=60 * 2 ** 20)
+    MiB = 2 ** 20
+    a = {"tcp://10.0.0.1:1": {"available": 2000 * MiB, "rss": 100 * MiB, "nthreads": 2, "numba": True},
+         "tcp://10.0.0.1:2": {"available": 1900 * MiB, "rss": 100 * MiB, "nthreads": 1, "numba": False},
+         "tcp://10.0.0.2:1": {"available": None, "rss": 50 * MiB, "nthreads": 4, "numba": True}}
+    est = dd.check_worker_memory("bounce", need, a)
+    assert est == {"tcp://10.0.0.1:1": (100 + 300 + 80) * MiB, "tcp://10.0.0.1:2": (100 + 300 + 40 + 60) * MiB,
+                   "tcp://10.0.0.2:1": (50 + 300 + 160) * MiB}
+    # 380 + 400 = 780 MiB on 10.0.0.1 against 0.8 x 950: refused, naming the host and what to change.
+    a["tcp://10.0.0.1:2"]["available"] = 950 * MiB
+    with pytest.raises(dd.MemoryLimitError, match=r"bounce pass needs about 0\.76 GiB on Dask host 10\.0\.0\.1 "
+                                                  r"\(2 workers.*only 0\.93 GiB is available there.*previous "
+                                                  r"outputs are intact.*--bounce-downscale"):
+        dd.check_worker_memory("bounce", need, a)
+    assert dd.host_of("tls://[::1]:8786") == "[::1]" and dd.host_of("tcp://h:1") == "h"
+
+
 @pytest.fixture
 def external_cluster(tmp_path):
     """A `dask scheduler` process and a `dask worker` process with 2 threads;
@@ -265,15 +290,42 @@ def external_cluster(tmp_path):
             time.sleep(0.1)
         time.sleep(0.3)
         addr = json.loads(sfile.read_text())["address"]
+        # Dask's own reactions to a memory limit (spill, pause, restart) off: a
+        # test gives the worker a limit to see PRTT's check, not Dask's.
+        quiet = {f"DASK_DISTRIBUTED__WORKER__MEMORY__{k}": "False" for k in ("TARGET", "SPILL", "PAUSE", "TERMINATE")}
         worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", addr, "--nthreads", "2",
-                                   "--nworkers", "1", "--no-dashboard"], env=ENV, stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.DEVNULL)
+                                   "--nworkers", "1", "--no-dashboard"], env=dict(ENV, **quiet),
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         yield addr, sched
     finally:
         for p in (sched, worker):
             if p is not None:
                 p.kill()
                 p.wait(30)
+
+
+def test_worker_memory_limit_refuses_a_pass_it_cannot_fit(tmp_path, external_cluster):
+    """A worker whose ``--memory-limit`` leaves ~100 MB (set on the running
+    worker, the limit a user gives `dask worker`): the scene fits, the
+    transfer pass of a 1024² set (its points and a ray chunk per thread, ~170
+    MB) does not. The bake is refused before the pass is sent, naming the
+    worker's host; the previous outputs are intact and nothing is staged."""
+    import distributed
+    addr, _ = external_cluster
+    sc = floor_and_box(res=1024)
+    out = tmp_path / "out"
+    bake_scene(floor_and_box(res=64), out, BakeSettings(rays=8, bounces=0))
+    before, names = files(out), sorted(os.listdir(out))
+    with distributed.Client(addr, set_as_default=False) as c:
+        c.wait_for_workers(1, timeout=60)
+        rss = max(m["rss"] for m in c.run(dd.worker_memory).values())
+        c.run(lambda dask_worker, limit=rss + 100 * 2 ** 20: setattr(dask_worker.memory_manager, "memory_limit",
+                                                                      limit))
+        with pytest.raises(dd.MemoryLimitError, match=r"the transfer pass needs about .* on Dask host 127\.0\.0\.1 "
+                                                      r".*only 0\.\d+ GiB is available there.*previous outputs are intact"):
+            bake_scene(sc, out, BakeSettings(rays=64, bounces=0), dask=addr)
+        assert max(m["peak"] for m in c.run(dd.worker_memory).values()) < rss + 100 * 2 ** 20
+    assert files(out) == before and sorted(os.listdir(out)) == names
 
 
 def test_shared_cluster_with_threaded_workers(tmp_path, room, small_units, external_cluster):

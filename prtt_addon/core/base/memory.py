@@ -250,6 +250,12 @@ def _status_mb(key: str) -> float | None:
     return None
 
 
+def peak_resident_bytes() -> int | None:
+    """This process's peak resident memory so far (VmHWM, bytes; Linux), else None."""
+    mb = _status_mb("VmHWM:")
+    return None if mb is None else int(mb * 1024 * 1024)
+
+
 def resident_bytes() -> int | None:
     """This process's resident memory now (VmRSS, bytes; Linux), else None."""
     mb = _status_mb("VmRSS:")
@@ -273,6 +279,7 @@ class StagePeaks:
         self.process: float | None = None
         self.estimate_mb: float | None = None     # what the bake said it would need (plan.check_memory)
         self.held_extra: int | None = None        # bytes held beyond a bare worker at the first check
+        self.dask_workers: dict | None = None      # the Dask workers' peaks and estimate (DaskBake.memory_report)
         # Not reset here: "setup" keeps what the process held before the bake (its job, imports).
         self.resettable = _status_mb("VmHWM:") is not None and os.access("/proc/self/clear_refs", os.W_OK)
 

@@ -68,6 +68,14 @@ from threadpoolctl import threadpool_limits
 
 from ...base import jit
 from ...base.errors import BakeError, Cancelled
+from ...base.memory import (
+    GiB,
+    MemoryLimitError,
+    available_bytes,
+    peak_resident_bytes,
+    release_free_memory,
+    resident_bytes,
+)
 from ..estimators.bounce import trace_chunk
 from ..estimators.raytrace import RayScene
 from ..estimators.transfer import SWITCH_INTERVAL, ChunkKernel
@@ -300,6 +308,69 @@ def heap_like_a_normal_process() -> bool:
         return False
 
 
+def worker_memory(dask_worker=None) -> dict:
+    """Run on every worker (DaskBake.check_workers, close): this process's
+    memory in bytes: ``available`` (what it can still allocate: the least of
+    core.base.memory.available_bytes, which reads the machine, its cgroup and
+    ``ulimit -v``, and the Dask worker's own ``--memory-limit`` less what it
+    holds; None where nothing is known), ``rss`` and ``peak`` (VmRSS, VmHWM),
+    ``numba``: whether numba is imported. ``dask_worker``: the Worker, which
+    Dask's ``Client.run`` passes to a function taking that argument."""
+    rss = resident_bytes()
+    avail = available_bytes()
+    limit = getattr(getattr(dask_worker, "memory_manager", None), "memory_limit", None)
+    if limit and rss is not None:
+        avail = limit - rss if avail is None else min(avail, limit - rss)
+    return {"available": avail, "rss": rss, "peak": peak_resident_bytes(), "numba": "numba" in sys.modules}
+
+
+def host_of(address: str) -> str:
+    """The host part of a worker's address (``tcp://10.0.0.5:40123`` -> ``10.0.0.5``)."""
+    return address.split("://", 1)[-1].rsplit(":", 1)[0]
+
+
+@dataclasses.dataclass
+class WorkerNeed:
+    """What one worker will hold during a pass beyond what it holds now
+    (bytes): the pass's data it receives (every worker gets a copy), a ray
+    chunk per thread, and ``code``: numba and the compiled hit kernels, which
+    a worker that has not imported numba yet loads for its first bounce pass."""
+
+    data: int
+    chunks: int
+    code: int = 0
+
+
+def check_worker_memory(what: str, need: WorkerNeed, workers: dict, *, fraction: float = 0.8) -> dict:
+    """MemoryLimitError unless each host's workers fit ``need`` (with their
+    threads' chunks: ``workers`` maps address -> {"nthreads", and
+    worker_memory()'s keys}) in ``fraction`` of what the host's most limited
+    worker can still allocate: the workers of one machine share its memory,
+    so their needs add up. Returns {address: estimated peak bytes} (what the
+    worker holds now plus its need)."""
+    by_host: dict[str, list] = collections.defaultdict(list)
+    for addr, w in workers.items():
+        by_host[host_of(addr)].append((addr, w))
+    out = {}
+    for host, ws in sorted(by_host.items()):
+        per = {addr: need.data + int(w.get("nthreads", 1)) * need.chunks + (0 if w.get("numba") else need.code)
+               for addr, w in ws}
+        total = sum(per.values())
+        known = [w["available"] for _, w in ws if w.get("available") is not None]
+        if known and total > fraction * min(known):
+            avail = min(known)
+            raise MemoryLimitError(
+                f"the {what} pass needs about {total / GiB:.2f} GiB on Dask host {host} ({len(ws)} "
+                f"worker{'s' if len(ws) > 1 else ''}: {need.data / GiB:.2f} GiB of the pass's data each, "
+                f"{need.chunks / 2 ** 20:.0f} MiB a thread for its rays) but only {max(avail, 0) / GiB:.2f} GiB "
+                f"is available there (at most {fraction:.0%} of it is used); nothing was written, the previous "
+                f"outputs are intact. Lower the resolution or the bands, bake the bounce on a coarser grid "
+                f"(--bounce-downscale), or run fewer workers a machine or workers with more memory")
+        for addr, w in ws:
+            out[addr] = int(w.get("rss") or 0) + per[addr]
+    return out
+
+
 def forget_bake(prefix: str) -> int:
     """Run on every worker when a bake ends (DaskBake.close): drop its objects."""
     return STATE.forget(prefix)
@@ -393,6 +464,24 @@ def units_of(chunks: list, rays_per_point: int, threads: int, unit_rays: int = U
     return units
 
 
+#: Finished units' results a worker holds at once (the one it builds, one the client has not fetched yet).
+HELD_RESULTS = 2
+
+
+def held_results(units: list, bytes_per_point: int) -> int:
+    """What a worker holds of its units' results: HELD_RESULTS of the largest unit's."""
+    return HELD_RESULTS * bytes_per_point * max((sum(c.idx.size for c in u) for u in units), default=0)
+
+
+def result_channels(project) -> int:
+    """float32 values a bounce projection returns per texel (BakedProjection: 3 K;
+    relight.RelightProjection: 3 K and, with glossy rows, C (Kg - 1) Kg)."""
+    n = 3 * project.K
+    if getattr(project, "glossy_out", False):
+        n += (1 if project.shared_colour else 3) * (project.kg - 1) * project.kg
+    return n
+
+
 def payload_bytes(obj, _depth: int = 0) -> int:
     """Bytes of the numpy arrays in ``obj`` (dataclasses, objects, dicts, lists,
     tuples; what pickling it ships, to within its small fields)."""
@@ -438,8 +527,16 @@ class DaskBake:
     planning; BakeContext.close closes it). Passed as ``remote`` to
     transfer.bake_points and bounce.trace_bounce_level."""
 
-    def __init__(self, spec: DaskSpec, *, emit=None, unit_rays: int | None = None):
+    def __init__(self, spec: DaskSpec, *, emit=None, unit_rays: int | None = None, ray_bytes: int = 0,
+                 scene_need: int = 0, kernel_code: int = 0):
+        """``ray_bytes``: what a worker thread holds a ray of its chunk;
+        ``scene_need``: what the scene's arrays and BVH take on a worker;
+        ``kernel_code``: what loading (or compiling) the bounce's numba kernels
+        takes (all three for the workers' memory checks, check_workers)."""
         self.spec = spec
+        self.ray_bytes, self.scene_need, self.kernel_code = int(ray_bytes), int(scene_need), int(kernel_code)
+        self.worker_estimate: dict[str, int] = {}   # address -> largest estimated peak bytes (check_workers)
+        self.worker_report: dict | None = None      # what close() measured on the workers (memory_report)
         self.emit = emit or (lambda **e: None)
         self.unit_rays = unit_rays or UNIT_RAYS
         self.client = self.cluster = None
@@ -495,6 +592,8 @@ class DaskBake:
             self.client.rpc.timeout = self.spec.peer_timeout
             self.start_seconds = time.perf_counter() - t
             self.scene_token = scene_token
+            # The scene's arrays and BVH on every worker (a MemoryLimitError passes through).
+            self.check_workers("scene", self.scene_need, 0)
             self.scene_f = self._scatter(scene)
             self.scene_bytes, self._sent = self._sent, 0
             workers = self.client.scheduler_info().get("workers", {})
@@ -502,7 +601,7 @@ class DaskBake:
             self.close()
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
-            if isinstance(exc, BakeError):
+            if isinstance(exc, (BakeError, MemoryLimitError)):
                 raise
             raise BakeError(f"cannot use {self.spec.describe()}: {type(exc).__name__}: {exc}") from None
         self.workers = len(workers)
@@ -511,10 +610,47 @@ class DaskBake:
                                        f"({self.spec.describe()}), ready in {time.perf_counter() - t:.1f} s")
         return self
 
+    def check_workers(self, what: str, data: int, chunk_rays: int, code: int = 0) -> None:
+        """Before a pass sends ``data`` bytes to every worker and its threads
+        trace chunks of ``chunk_rays`` rays: check_worker_memory on what the
+        workers report now (MemoryLimitError, before anything is sent); keeps
+        each worker's estimated peak for the manifest."""
+        self._connected()
+        try:
+            info = self.client.scheduler_info().get("workers", {})
+            mem = self.client.run(worker_memory)
+        except Exception as exc:
+            self.emit(type="warning", message=f"Dask: could not read the workers' memory before the {what} pass "
+                                              f"({type(exc).__name__}: {exc}); not checked")
+            return
+        workers = {a: dict(mem[a], nthreads=int(w.get("nthreads", 1))) for a, w in info.items() if a in mem}
+        est = check_worker_memory(what, WorkerNeed(int(data), int(chunk_rays) * self.ray_bytes, int(code)), workers)
+        for a, v in est.items():
+            self.worker_estimate[a] = max(self.worker_estimate.get(a, 0), v)
+
+    def memory_report(self) -> dict | None:
+        """The workers' memory for the manifest (MiB): each worker's measured
+        peak (VmHWM, read as the bake ends) and the largest of them, beside
+        the largest estimate check_workers made; None before close() read it."""
+        return self.worker_report
+
+    def _read_worker_peaks(self) -> None:
+        try:
+            mem = self.client.run(worker_memory)
+        except Exception:
+            return
+        peaks = {a: round(m["peak"] / 2 ** 20, 1) for a, m in sorted(mem.items()) if m.get("peak") is not None}
+        if peaks:
+            self.worker_report = {
+                "peak_rss_mb": peaks, "max_peak_rss_mb": max(peaks.values()),
+                "estimate_mb": round(max(self.worker_estimate.values()) / 2 ** 20, 1) if self.worker_estimate else None}
+
     def close(self) -> None:
         """Cancel what is still pending and disconnect (a local cluster is shut
         down). After passes, says what they cost (an "info" event with the
-        numbers as ``dask``)."""
+        numbers as ``dask``) and reads the workers' peak memory (memory_report)."""
+        if self.passes and self.client is not None and self.client.status == "running":
+            self._read_worker_peaks()
         if self.passes:
             sm = self.summary()
             self.emit(type="info", dask=sm,
@@ -588,9 +724,11 @@ class DaskBake:
     def trace_points(self, pts, st, chunks, G, sink, on_result, cancel) -> None:
         """A transfer/vertex pass (transfer.bake_points' chunks): ``sink(chunk,
         rows, counts, thread)`` per chunk, then ``on_result(points)`` per unit."""
+        units = units_of(chunks, st.rays, self.threads(), self.unit_rays)
+        self.check_workers("transfer", payload_bytes(pts) + held_results(units, 4 * st.bands ** 2),
+                           min(st.chunk_rays, sum(c.idx.size for c in chunks) * st.rays))
         pts_f = self._scatter(pts)
         token = f"{self.run_id}-p{self._next()}"
-        units = units_of(chunks, st.rays, self.threads(), self.unit_rays)
 
         def handle(unit, res: UnitResult):
             n = 0
@@ -607,11 +745,16 @@ class DaskBake:
     def trace_level(self, lr, chunks, project, sink, on_result, cancel) -> None:
         """A bounce level of one set (bounce.trace_bounce_level):
         ``sink(texels, cols, result, hits)`` per chunk, ``on_result`` per unit."""
+        units = units_of(chunks, lr.st.rays, self.threads(), self.unit_rays)
+        new_shader = self._shader is None or self._shader[0]() is not project.shader
+        shader_bytes = payload_bytes({k: v for k, v in vars(project.shader).items() if k != "sc"})   # shipped without its scene
+        self.check_workers("bounce", payload_bytes(lr) + (shader_bytes if new_shader else 0)
+                           + held_results(units, 4 * result_channels(project)),
+                           min(lr.st.chunk_rays, sum(c.idx.size for c in chunks) * lr.st.rays), self.kernel_code)
         shader_f, shader_token = self._level_shader(project.shader)
         lr_f = self._scatter(lr)
         tpl = copy.copy(project)
         tpl.shader = None
-        units = units_of(chunks, lr.st.rays, self.threads(), self.unit_rays)
 
         def handle(unit, res: UnitResult):
             for n, cols, result, hits in res.items:
@@ -640,9 +783,30 @@ class DaskBake:
         shipped.sc = None
         fut = self._scatter(shipped)
         # A weak reference: the bake drops a level's shader before the next
-        # level's exit radiance is made (memory.check counts one at a time).
-        self._shader = (weakref.ref(shader), fut, f"{self.run_id}-s{self._next()}")
+        # level's exit radiance is made (memory.check counts one at a time),
+        # and its scattered copy (which shares its exit tables) goes with it.
+        self._shader = (weakref.ref(shader, self._shader_gone), fut, f"{self.run_id}-s{self._next()}")
         return fut, self._shader[2]
+
+    def forget_shader(self) -> None:
+        """The bake is done with the current level's shader: release its
+        scattered copy now (the weak reference's callback would wait for
+        Python's cycle collector when the shader sits in a reference cycle)."""
+        if self._shader is not None:
+            self._shader_gone(self._shader[0])
+
+    def _shader_gone(self, ref) -> None:
+        """The level's shader was dropped by the bake: release its scattered
+        copy, whose exit tables ``_sources`` kept alive (through the texture
+        writes: 350 MiB of the client's 794 at 1024², #35)."""
+        cur = self._shader
+        if cur is None or cur[0] is not ref:
+            return
+        self._shader = None
+        try:
+            self._release(cur[1])
+        except Exception:
+            self._sources.pop(getattr(cur[1], "key", None), None)
 
     def _run(self, what: str, fn, args: tuple, units: list, handle, cancel, rays_per_point: int) -> None:
         """Submit one task per unit, hand results to ``handle(unit, result)`` in
@@ -707,6 +871,9 @@ class DaskBake:
         finally:
             for f in reshipped:
                 self._release(f)
+        # The results were unpickled on Dask's I/O thread: glibc keeps what they
+        # freed in that thread's arena unless it is trimmed.
+        release_free_memory()
         rays = sum(c.idx.size for u in units for c in u) * rays_per_point
         self.passes.append(PassStats(what, len(units), task_s, time.perf_counter() - t0, threads, rays,
                                      self._sent, result_bytes))
@@ -786,4 +953,5 @@ class DaskBake:
                 "sent_bytes": sum(p.sent_bytes for p in self.passes),
                 "result_bytes": sum(p.result_bytes for p in self.passes),
                 "overhead": max(0.0, 1.0 - task_s / avail) if avail > 0 else 0.0,
+                "worker_memory": self.worker_report,
                 "passes": [dataclasses.asdict(p) | {"overhead": p.overhead} for p in self.passes]}

@@ -420,6 +420,8 @@ def bounce_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list
             if out.incident is not None:
                 nxt[src.index] = out.incident
             energy += out.energy
+        if ctx.remote is not None:
+            ctx.remote.forget_shader()        # its scattered copy shares the exit textures
         del shader
         Lp = nxt
         if not Lp:

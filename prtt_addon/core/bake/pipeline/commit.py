@@ -65,7 +65,8 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
         "rays_per_second_trace": totals["rays_traced"] / trace_s if trace_s > 0 and not reused else 0.0,
         "rays_per_second_end_to_end": totals["rays_traced"] / ctx.seconds["total"] if not reused else 0.0,
         "memory": {"peak_rss_mb": ctx.memory.peaks(), "process_peak_rss_mb": ctx.memory.process,
-                   "estimate_mb": ctx.memory.estimate_mb},
+                   "estimate_mb": ctx.memory.estimate_mb,
+                   **({"dask_workers": ctx.memory.dask_workers} if ctx.memory.dask_workers else {})},
         "warnings": ctx.warnings, "skipped": False,
     }
 

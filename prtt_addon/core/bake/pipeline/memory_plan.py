@@ -53,6 +53,9 @@ BARE_PROCESS = 64 * MiB
 #: What importing numba (llvmlite, PRTT's kernels module) adds to a process: measured 59 MB
 #: (the worker's venv here; a freshly installed one measured 98 MB, process_extra counts the rest).
 NUMBA_IMPORT = 60 * MiB
+#: What a Dask client adds to the bake process (dask and distributed imported, the client's I/O loop):
+#: measured 31 MiB (the demo's "dask" stage against a local bake's "setup", 1024² and 2048²).
+DASK_CLIENT = 32 * MiB
 #: Bytes a scene triangle holds: the job's arrays (positions, normals, UVs, ids) and Embree's BVH.
 TRIANGLE = 400
 #: The G-buffer while it is built: the merged arrays and the row bands' rasteriser temporaries.
@@ -146,7 +149,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
-                half: bool = True) -> dict[str, int]:
+                half: bool = True, dask: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -160,10 +163,15 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     extra: bytes the process holds beyond BASE's assumption (:func:`process_extra`).
     half: the textures are written as float16 (one relightable level is then
     held at that precision: HALF_TABLE).
+    dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
+    and while a level's exit tables are sent to the workers, Dask's serialised
+    copy of them beside them; a worker's own need is checked before each pass,
+    executors/dask_cluster.check_worker_memory).
     Returns {stage: bytes} with the stage names of the manifest's ``memory``.
     """
     K = bands * bands
-    base = BASE + scene_bytes(n_triangles) + (JIT_COMPILE if compiling else 0) + max(0, int(extra))
+    base = (BASE + scene_bytes(n_triangles) + (JIT_COMPILE if compiling else 0) + max(0, int(extra))
+            + (DASK_CLIENT if dask else 0))
     threads = max(1, threads)
 
     def chunks(texels: int, per_texel: int) -> int:
@@ -196,9 +204,14 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
             if bounce_mode == "relightable":
                 total += (SURFACE * nc + SURFACE_SHADING * vc + 4 * glossy_coeffs * vc
                           + int(table * relight_channels * nc) + 12 * wc * hc)
+                exits = 4 * glossy_coeffs * vc + 24 * vc
             else:
                 total += SURFACE * nc + SURFACE_SHADING * vc + 4 * 3 * K * (wc * hc + 2 * vc)
+                exits = 4 * 3 * K * vc
             total += 4 * K * v + FINE_DIFFUSE * v + 8 * A if f2 > 1 else 4 * K * v
+            if dask:
+                # Dask serialises what it scatters into a copy as it sends it.
+                total += exits + 4 * K * v + 12 * v
         out["bounce"] = total
     return out
 

@@ -114,6 +114,8 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
                 stats["glossy_colour"] = "shared: tuning auto stores the glossy rows once, tinted per colour on reading"
             reports.append(stats)
             ctx.seconds["bounce_write"] += time.perf_counter() - t
+        if ctx.remote is not None:
+            ctx.remote.forget_shader()        # its scattered copy shares the exit tables
         rows = nxt
         if not rows:
             break

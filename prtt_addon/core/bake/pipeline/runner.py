@@ -51,6 +51,7 @@ from ...io.outdir import FolderBusyError, FolderLock
 from ...model.scene import Scene
 from ..estimators import hit_kernel
 from ..executors.dask_cluster import DaskBake, parse_spec
+from . import memory_plan
 from .bounce_stage import bounce_levels, choose_grid
 from .commit import commit_bake, finish_skipped, make_manifest
 from .context import BAKE_FORMAT_VERSION, BAKE_INT_LIMITS, MANIFEST, BakeContext, BakeSettings, asked_downscale, emit
@@ -163,7 +164,10 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
         return finish_skipped(ctx, plan)
     check_memory(ctx, plan)
     if ctx.dask is not None:
-        ctx.remote = DaskBake(ctx.dask, emit=ctx.emit).open(ctx.scene, f"{plan.input_hash}-{plan.materials_hash}")
+        ctx.remote = DaskBake(ctx.dask, emit=ctx.emit, ray_bytes=memory_plan.RAY_BYTES,
+                              scene_need=memory_plan.scene_bytes(ctx.scene.n_triangles),
+                              kernel_code=memory_plan.NUMBA_IMPORT + memory_plan.JIT_COMPILE
+                              ).open(ctx.scene, f"{plan.input_hash}-{plan.materials_hash}")
     todo = ctx.set_ids if st.textures else []
     old_reports = {r.get("name"): r for r in manifest_dicts((plan.old_manifest or {}).get("sets"))}
     results = []
@@ -205,6 +209,7 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
         # Every ray is traced: shut the cluster down (its summary event) before
         # the commit, whose "done" event must be the bake's last.
         ctx.remote.close()
+        ctx.memory.dask_workers = ctx.remote.memory_report()
         ctx.remote = None
     manifest = make_manifest(ctx, plan, geo, results, vertex, bounce, t_start)
     return commit_bake(ctx, plan, manifest)
