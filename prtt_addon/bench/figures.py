@@ -423,6 +423,23 @@ def memory_block(r: dict | None = None) -> str:
                       f"(estimate {b['estimate_mb'] or 0:.0f} MiB, "
                       f"{100 * ((b['estimate_mb'] or 0) / b['worker_peak_mb'] - 1):+.0f} %), "
                       f"{b['seconds']['total']:.1f} s."]
+    d = r.get("dask")
+    if d:
+        code = f", code at {d['commit']}" if d.get("commit") else ""
+        lines += ["", f"On a local Dask cluster of 2 worker processes (`bake-job --dask local:2`, the demo's job; "
+                      f"`{d['command']}`, {d['date']}{code}): the client plans, builds the G-buffers and exit "
+                      f"tables and writes; each worker holds the scene and what a pass sends it "
+                      f"(the manifest's `memory.dask_workers`):", "",
+                  "| atlas | client peak | client estimate | worker peaks | worker estimate (largest check) |",
+                  "|---|---|---|---|---|"]
+        for x in d["runs"]:
+            top = max(x["worker_peaks_mb"]) if x["worker_peaks_mb"] else None
+            west = x.get("worker_estimate_mb")
+            lines.append(
+                f"| {x['size']}² | **{x['client_peak_mb']:.0f} MiB** | {x['client_estimate_mb']:.0f} MiB "
+                f"({100 * (x['client_estimate_mb'] / x['client_peak_mb'] - 1):+.0f} %) | "
+                + ", ".join(f"{v:.0f}" for v in x["worker_peaks_mb"]) + " MiB | "
+                + (f"{west:.0f} MiB ({100 * (west / top - 1):+.0f} %) |" if west and top else "— |"))
     m = r.get("memray")
     if m:
         lines += ["", f"What the {m['size']}² bake's heap peak ({m['heap_peak_mb']:.0f} MiB as memray counts it: "

@@ -163,6 +163,23 @@ def memray_sites(blend_job: str, folder: str, size: int, top: int = 12) -> dict:
             "sites": [{"mb": round(v / 2 ** 20, 1), "where": k} for k, v in by.most_common(top)]}
 
 
+def dask_bake(job: str, folder: str, size: int, workers: int = 2) -> dict:
+    """The demo's worker job baked by ``bake-job --dask local:N`` at ``size``:
+    the client's peak (this process: it plans, builds G-buffers, exit tables
+    and writes) and estimate, each worker's measured peak and the largest
+    estimate its checks made (the manifest's memory.dask_workers)."""
+    out = os.path.join(folder, f"dask{size}")
+    r = run_measured(["bake-job", job, "--out", out, "--resolution", str(size), "--force", "-q",
+                      "--dask", f"local:{workers}"], cwd=folder)
+    with open(os.path.join(out, "manifest.json"), encoding="utf-8") as f:
+        mem = json.load(f)["memory"]
+    w = mem.get("dask_workers") or {}
+    return {"size": size, "workers": workers, "client_peak_mb": mem.get("process_peak_rss_mb"),
+            "client_estimate_mb": mem.get("estimate_mb"), "client_stages_mb": mem.get("peak_rss_mb"),
+            "worker_peaks_mb": sorted((w.get("peak_rss_mb") or {}).values()),
+            "worker_estimate_mb": w.get("estimate_mb"), "wall_s": round(r["seconds"], 2)}
+
+
 def export_job(blend: str, folder: str) -> str:
     """The worker's job file for ``blend`` (what `prtt bake` hands its worker), for memray."""
     code = (
@@ -242,21 +259,44 @@ def main(argv=None) -> int:
     p.add_argument("--no-bunnies", action="store_true", help="skip the 1.27M-triangle scene")
     p.add_argument("--memray", action="store_true", help="also attribute the peak at the second largest size")
     p.add_argument("--out", default=OUT, help="folder for memory.json and memory.png (default docs/bench)")
+    p.add_argument("--dask-sizes", default=None,
+                   help="atlas sizes baked on a local Dask cluster of 2 workers (default 1024,2048; 'none': skip)")
+    p.add_argument("--dask-only", action="store_true",
+                   help="only the Dask bakes, replacing the \"dask\" part of the record in --out")
     args = p.parse_args(argv)
     sizes = [int(s) for s in (args.sizes or ("128,256" if args.quick else "512,1024,2048,4096")).split(",")]
-    rec = {"command": " ".join(["python -m prtt_addon.bench memory", *(argv if argv is not None else sys.argv[1:])]),
-           "date": datetime.date.today().isoformat(), "machine": machine(), "commit": commit(), "demo": []}
+    dask_text = args.dask_sizes or ("none" if args.quick else "1024,2048")
+    dask_sizes = [] if dask_text == "none" else [int(s) for s in dask_text.split(",")]
+    command = " ".join(["python -m prtt_addon.bench memory", *(argv if argv is not None else sys.argv[1:])])
+    if args.dask_only:
+        with open(os.path.join(args.out, "memory.json"), encoding="utf-8") as f:
+            rec = json.load(f)
+    else:
+        rec = {"command": command, "date": datetime.date.today().isoformat(), "machine": machine(),
+               "commit": commit(), "demo": []}
     with tempfile.TemporaryDirectory(prefix="prtt-memory-") as tmp:
         t = time.perf_counter()
         blend = demo_blend(tmp, 256 if args.quick else 1024)
         print(f"demo scene built and unwrapped in {time.perf_counter() - t:.1f} s")
+        if dask_sizes:
+            job = export_job(blend, tmp)
+            rec["dask"] = {"command": command, "date": datetime.date.today().isoformat(), "commit": commit(),
+                           "runs": []}
+            for size in dask_sizes:
+                d = dask_bake(job, tmp, size)
+                rec["dask"]["runs"].append(d)
+                print(f"{size}² on Dask local:2: client peak {d['client_peak_mb']:.0f} MB (estimate "
+                      f"{d['client_estimate_mb']:.0f}), workers {', '.join(f'{v:.0f}' for v in d['worker_peaks_mb'])} "
+                      f"MB (estimate {d['worker_estimate_mb']:.0f})", flush=True)
+        if args.dask_only:
+            sizes = []
         for size in sizes:
             r = bake_size(blend, tmp, size)
             rec["demo"].append(r)
             print(f"{size}²: bake {r['seconds']['total']:.1f} s, worker peak {r['worker_peak_mb']:.0f} MB "
                   f"(estimate {r['estimate_mb'] or 0:.0f}), Blender side {r['blender_side_peak_mb']:.0f} MB, "
                   f"render {r['render_peak_mb']:.0f} MB in {r['render_s']:.1f} s", flush=True)
-        if not (args.quick or args.no_bunnies):
+        if not (args.quick or args.no_bunnies or args.dask_only):
             rec["bunnies"] = bunnies_bake(tmp, 1024)
         if args.memray and len(sizes) > 1:
             rec["memray"] = memray_sites(export_job(blend, tmp), tmp, sorted(sizes)[-2])
