@@ -55,3 +55,16 @@ def floor_and_box_with_every_part(res=8) -> Scene:
     sc.mat_uvs = sc.uvs.copy()
     validate(sc)
     return sc
+
+
+def random_islands(rng, H: int, W: int, *, rects: int = 12, most: int = 8, margin: int = 4,
+                   singles: int = 20) -> np.ndarray:
+    """(H, W) bool coverage of ``rects`` random rectangles (sides 1..``most``,
+    corners at least ``margin`` texels from the far edges) and ``singles``
+    single texels: small islands have the most border."""
+    m = np.zeros((H, W), bool)
+    for _ in range(rects):
+        y, x = rng.integers(0, H - margin), rng.integers(0, W - margin)
+        m[y:y + rng.integers(1, most + 1), x:x + rng.integers(1, most + 1)] = True
+    m[rng.integers(0, H, singles), rng.integers(0, W, singles)] = True
+    return m

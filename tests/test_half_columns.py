@@ -13,21 +13,12 @@ import pytest
 from prtt_addon.core.texels import half_columns
 from prtt_addon.core.texels.dilate import DilatedRows, dilation_rings
 from prtt_addon.core.texels.half_columns import HalfColumns, border_texels
-
-
-def _islands(rng, H, W):
-    """A coverage mask of random rectangles and single texels (small islands have the most border)."""
-    m = np.zeros((H, W), bool)
-    for _ in range(12):
-        y, x = rng.integers(0, H - 4), rng.integers(0, W - 4)
-        m[y:y + rng.integers(1, 9), x:x + rng.integers(1, 9)] = True
-    m[rng.integers(0, H, 20), rng.integers(0, W, 20)] = True
-    return m
+from tests.scenes_util import random_islands
 
 
 def test_border_texels_are_the_covered_texels_the_first_ring_reads():
     rng = np.random.default_rng(1)
-    m = _islands(rng, 40, 56)
+    m = random_islands(rng, 40, 56)
     rings, _ = dilation_rings(m, 1)
     read = np.zeros_like(m)
     for _, _, taps, _ in rings:
@@ -45,7 +36,7 @@ def test_half_table_writes_the_float32_tables_float16_planes(seed, dilate):
     bit for bit the float32 table's, for values from 1e-7 to 6e4, either sign."""
     rng = np.random.default_rng(seed)
     H, W, C = 48, 64, 7
-    mask = _islands(rng, H, W)
+    mask = random_islands(rng, H, W)
     texel = np.flatnonzero(mask.reshape(-1)).astype(np.int64)
     n = texel.size
     mag = 10.0 ** rng.uniform(-7, np.log10(6e4), (C, n))

@@ -10,15 +10,7 @@ from prtt_addon.core.bake.estimators.bounce import surface_texels
 from prtt_addon.core.shading.materials import eval_materials
 from prtt_addon.core.texels.dilate import dilate, dilate_rows, dilation_rings
 from prtt_addon.core.texels.gbuffer import build_gbuffer
-
-
-def _mask(rng, H, W):
-    m = np.zeros((H, W), bool)
-    for _ in range(10):
-        y, x = rng.integers(0, H - 3), rng.integers(0, W - 3)
-        m[y:y + rng.integers(1, 12), x:x + rng.integers(1, 12)] = True
-    m[rng.integers(0, H, 15), rng.integers(0, W, 15)] = True
-    return m
+from tests.scenes_util import random_islands
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
@@ -26,7 +18,7 @@ def _mask(rng, H, W):
 def test_dilate_rows_equals_the_planes_dilation(dtype, iterations):
     rng = np.random.default_rng(iterations)
     H, W = 37, 53
-    m = _mask(rng, H, W)
+    m = random_islands(rng, H, W, rects=10, most=11, margin=3, singles=15)
     planes = np.zeros((4, H, W), dtype)
     planes[:, m] = rng.normal(size=(4, int(m.sum()))) * 10.0 ** rng.integers(-30, 30, size=(4, 1))
     ref = planes.copy()

@@ -264,7 +264,8 @@ def main(argv=None) -> int:
     p.add_argument("--dask-only", action="store_true",
                    help="only the Dask bakes, replacing the \"dask\" part of the record in --out")
     args = p.parse_args(argv)
-    sizes = [int(s) for s in (args.sizes or ("128,256" if args.quick else "512,1024,2048,4096")).split(",")]
+    sizes = [] if args.dask_only else [
+        int(s) for s in (args.sizes or ("128,256" if args.quick else "512,1024,2048,4096")).split(",")]
     dask_text = args.dask_sizes or ("none" if args.quick else "1024,2048")
     dask_sizes = [] if dask_text == "none" else [int(s) for s in dask_text.split(",")]
     command = " ".join(["python -m prtt_addon.bench memory", *(argv if argv is not None else sys.argv[1:])])
@@ -288,8 +289,6 @@ def main(argv=None) -> int:
                 print(f"{size}² on Dask local:2: client peak {d['client_peak_mb']:.0f} MB (estimate "
                       f"{d['client_estimate_mb']:.0f}), workers {', '.join(f'{v:.0f}' for v in d['worker_peaks_mb'])} "
                       f"MB (estimate {d['worker_estimate_mb']:.0f})", flush=True)
-        if args.dask_only:
-            sizes = []
         for size in sizes:
             r = bake_size(blend, tmp, size)
             rec["demo"].append(r)

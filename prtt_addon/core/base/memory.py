@@ -279,7 +279,7 @@ class StagePeaks:
         self.process: float | None = None
         self.estimate_mb: float | None = None     # what the bake said it would need (plan.check_memory)
         self.held_extra: int | None = None        # bytes held beyond a bare worker at the first check
-        self.dask_workers: dict | None = None      # the Dask workers' peaks and estimate (DaskBake.memory_report)
+        self.dask_workers: dict | None = None      # the Dask workers' peaks and estimate (DaskBake.worker_report)
         # Not reset here: "setup" keeps what the process held before the bake (its job, imports).
         self.resettable = _status_mb("VmHWM:") is not None and os.access("/proc/self/clear_refs", os.W_OK)
 

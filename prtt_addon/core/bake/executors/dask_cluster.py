@@ -536,7 +536,9 @@ class DaskBake:
         self.spec = spec
         self.ray_bytes, self.scene_need, self.kernel_code = int(ray_bytes), int(scene_need), int(kernel_code)
         self.worker_estimate: dict[str, int] = {}   # address -> largest estimated peak bytes (check_workers)
-        self.worker_report: dict | None = None      # what close() measured on the workers (memory_report)
+        # The workers' memory for the manifest (MiB), read by close(): each worker's peak
+        # (VmHWM), the largest, and the largest estimate check_workers made; None before.
+        self.worker_report: dict | None = None
         self.emit = emit or (lambda **e: None)
         self.unit_rays = unit_rays or UNIT_RAYS
         self.client = self.cluster = None
@@ -628,12 +630,6 @@ class DaskBake:
         for a, v in est.items():
             self.worker_estimate[a] = max(self.worker_estimate.get(a, 0), v)
 
-    def memory_report(self) -> dict | None:
-        """The workers' memory for the manifest (MiB): each worker's measured
-        peak (VmHWM, read as the bake ends) and the largest of them, beside
-        the largest estimate check_workers made; None before close() read it."""
-        return self.worker_report
-
     def _read_worker_peaks(self) -> None:
         try:
             mem = self.client.run(worker_memory)
@@ -648,7 +644,7 @@ class DaskBake:
     def close(self) -> None:
         """Cancel what is still pending and disconnect (a local cluster is shut
         down). After passes, says what they cost (an "info" event with the
-        numbers as ``dask``) and reads the workers' peak memory (memory_report)."""
+        numbers as ``dask``) and reads the workers' peak memory (worker_report)."""
         if self.passes and self.client is not None and self.client.status == "running":
             self._read_worker_peaks()
         if self.passes:
@@ -746,10 +742,11 @@ class DaskBake:
         """A bounce level of one set (bounce.trace_bounce_level):
         ``sink(texels, cols, result, hits)`` per chunk, ``on_result`` per unit."""
         units = units_of(chunks, lr.st.rays, self.threads(), self.unit_rays)
-        new_shader = self._shader is None or self._shader[0]() is not project.shader
-        shader_bytes = payload_bytes({k: v for k, v in vars(project.shader).items() if k != "sc"})   # shipped without its scene
-        self.check_workers("bounce", payload_bytes(lr) + (shader_bytes if new_shader else 0)
-                           + held_results(units, 4 * result_channels(project)),
+        shader_bytes = 0
+        if self._shader is None or self._shader[0]() is not project.shader:
+            # This level's shader is sent with this pass (without its scene).
+            shader_bytes = payload_bytes({k: v for k, v in vars(project.shader).items() if k != "sc"})
+        self.check_workers("bounce", payload_bytes(lr) + shader_bytes + held_results(units, 4 * result_channels(project)),
                            min(lr.st.chunk_rays, sum(c.idx.size for c in chunks) * lr.st.rays), self.kernel_code)
         shader_f, shader_token = self._level_shader(project.shader)
         lr_f = self._scatter(lr)

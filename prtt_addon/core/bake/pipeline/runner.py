@@ -209,7 +209,7 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
         # Every ray is traced: shut the cluster down (its summary event) before
         # the commit, whose "done" event must be the bake's last.
         ctx.remote.close()
-        ctx.memory.dask_workers = ctx.remote.memory_report()
+        ctx.memory.dask_workers = ctx.remote.worker_report
         ctx.remote = None
     manifest = make_manifest(ctx, plan, geo, results, vertex, bounce, t_start)
     return commit_bake(ctx, plan, manifest)
