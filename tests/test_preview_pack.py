@@ -125,8 +125,8 @@ def test_shader_variants_are_described():
 
 @pytest.mark.parametrize("tuning", ["auto", "fixed"])
 def test_layer_sources_fill_the_packed_layers_exactly(tmp_path, tuning):
-    """The renderer's uploads (LayerSource: one layer at a time from the file's
-    channels, no float32 copy of the texture) equal pack_layers /
+    """The renderer's uploads (LayerSource: bands of rows of the file's
+    channels decoded in a child, no copy of the texture) equal pack_layers /
     pack_relight_operator of the readers' arrays, bit for bit: shared glossy
     rows (tuning auto) tinted per colour as expand_shared_glossy, per-colour
     rows (fixed) as stored."""
@@ -139,17 +139,17 @@ def test_layer_sources_fill_the_packed_layers_exactly(tmp_path, tuning):
     bake_scene(sc, tmp_path, BakeSettings(rays=16, bounce_rays=8, bounces=1, tuning=tuning),
                light=environment_light(builtin_environment_path("forest"), 5))
     t = str(tmp_path / "atlas.transfer.exr")
-    with pp.transfer_layers(t) as src:
-        got = np.full((src.layers, src.height, src.width, 4), np.nan, np.float32)
-        src.fill(got)
-        assert src.coeffs == 25 and not src.rgb
+    src = pp.transfer_layers(t)
+    got = np.full((src.layers, src.height, src.width, 4), np.nan, np.float32)
+    src.fill(got)
+    assert src.coeffs == 25 and not src.rgb
     want = pp.pack_layers(read_sh_exr(t)[0])
     assert got.tobytes() == want.tobytes()
     r = str(tmp_path / "atlas.relight.exr")
-    with pp.relight_operator_layers(r) as src:
-        got = np.full((src.layers, src.height, src.width, 4), np.nan, np.float32)
-        src.fill(got)
-        assert src.glossy_bands == 3 and (src.tint is not None) == (tuning == "auto")
+    src = pp.relight_operator_layers(r)
+    got = np.full((src.layers, src.height, src.width, 4), np.nan, np.float32)
+    src.fill(got, rows=5)               # bands of 5 rows: a short last band, tints made per band
+    assert src.glossy_bands == 3 and (src.tint_from is not None) == (tuning == "auto")
     dc, glossy, _ = read_relight_exr(r)
     assert glossy is not None
     assert got.tobytes() == pp.pack_relight_operator(dc, glossy).tobytes()
@@ -160,5 +160,53 @@ def test_layer_source_names_a_missing_channel(tmp_path):
     p = str(tmp_path / "t.exr")
     write_sh_planes(p, np.ones((9, 4, 4), np.float32), kind="transfer", attrs={"bands": 4}, names=None, bands=None)
     with pytest.raises(TextureError, match="missing channels"):
-        with pp.transfer_layers(p):
+        pp.transfer_layers(p)
+
+
+def test_level_sum_source_is_load_bounce_packed_exactly(tmp_path):
+    """Baked bounce levels go up as a band-by-band sum (LevelSumSource) equal
+    to pack_bounce(PreviewSet.load_bounce(K)) bit for bit: two levels, one
+    band-limited (tuning auto) and padded, bands of 7 rows (a short last
+    band); the sum is not half-exact, so the renderer checks it."""
+    from prtt_addon.bench.scene_library import room_scene
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.runner import bake_scene
+    from prtt_addon.core.light.envmap import builtin_environment_path, environment_light
+    sc = room_scene(48, atlas=True, materials=True)
+    bake_scene(sc, tmp_path, BakeSettings(rays=16, bounce_rays=8, bounces=2, bounce_mode="baked", tuning="auto"),
+               light=environment_light(builtin_environment_path("forest"), 5))
+    levels = sorted(str(p) for p in tmp_path.glob("atlas.bounce*.exr"))
+    assert len(levels) == 2
+    want = pp.pack_bounce(pp.PreviewSet("atlas", "", tuple(levels)).load_bounce(25))
+    src = pp.bounce_level_layers(levels, 25)
+    got = np.full((src.layers, src.height, src.width, 4), np.nan, np.float32)
+    src.fill(got, rows=7)
+    assert got.tobytes() == want.tobytes()
+    assert not src.half_exact and src.dtypes
+
+
+def test_band_stream_refuses_what_it_cannot_decode(tmp_path):
+    """The band reader's child: a missing channel, a cut file and a decoder
+    that dies are each a TextureError naming the file, never a hang or a
+    short band."""
+    from prtt_addon.core.io import exr_bands
+    from prtt_addon.core.io.exr_io import TextureError, read_sh_exr, write_sh_planes
+    p = tmp_path / "t.exr"
+    write_sh_planes(p, np.random.default_rng(1).normal(size=(9, 64, 64)).astype(np.float32), kind="transfer",
+                    attrs={"bands": 3}, names=None, bands=None)
+    names = [f"sh{k:03d}" for k in range(9)]
+    with exr_bands.channel_bands(p, names, 64, 64, 10, error=TextureError) as st:
+        got = np.concatenate([c["sh004"].astype(np.float32) for _, _, c in st])   # file rows, top first
+    assert got.tobytes() == np.ascontiguousarray(read_sh_exr(p)[0][::-1, :, 4]).tobytes()
+    with pytest.raises(TextureError, match=r"t\.exr: unreadable EXR \(missing channels \['sh009'\]"):
+        with exr_bands.channel_bands(p, names + ["sh009"], 64, 64, 10, error=TextureError):
+            pass
+    cut = tmp_path / "cut.exr"
+    cut.write_bytes(p.read_bytes()[:-4000])
+    with pytest.raises(TextureError, match=r"cut\.exr: unreadable EXR"):
+        with exr_bands.channel_bands(cut, names, 64, 64, 10, error=TextureError) as st:
+            for _ in st:
+                pass
+    with pytest.raises(TextureError, match="data window"):
+        with exr_bands.channel_bands(p, names, 32, 64, 10, error=TextureError):
             pass

@@ -15,7 +15,9 @@ Measured in this run, each bake and render in a fresh process:
     (plan.check_memory), seconds per stage;
   - the Blender-side process's own peak RSS (VmHWM read in that process);
   - the render process's peak RSS and wall seconds, beside the bytes of the
-    textures it draws (channels x texels x bytes a sample in the files);
+    textures it draws (channels x texels x bytes a sample in the files), the
+    bytes its textures take on the GPU, what it held before loading them and
+    its own estimate of its peak (what ``prtt render`` prints);
 * **room and bunnies** (1.27M triangles: the room plus 18 bunnies of 69K
   triangles, each its own 256² set) baked with ``bake-job`` at the room's
   1024² atlas, the same defaults;
@@ -32,6 +34,7 @@ import argparse
 import datetime
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -69,7 +72,8 @@ def run_measured(args: list, *, cwd: str, timeout: float = 3600) -> dict:
         rec = {}
     if r.returncode != 0 or "peak_rss_kb" not in rec:
         raise RuntimeError(f"prtt_addon {' '.join(args)} failed ({r.returncode}): {(r.stderr or r.stdout)[-2000:]}")
-    return {"code": rec["code"], "peak_rss_mb": rec["peak_rss_kb"] / 1024.0, "seconds": rec["seconds"]}
+    return {"code": rec["code"], "peak_rss_mb": rec["peak_rss_kb"] / 1024.0, "seconds": rec["seconds"],
+            "stdout": r.stdout}
 
 
 def texture_bytes(folder: str) -> dict:
@@ -115,6 +119,13 @@ def bake_size(blend: str, folder: str, size: int) -> dict:
                      cwd=folder)
     rec["render_peak_mb"] = round(r["peak_rss_mb"], 1)
     rec["render_s"] = round(r["seconds"], 2)
+    # What `prtt render` says of its memory (offscreen.check_memory): textures on the GPU, what it held
+    # before loading them, its estimate of the peak.
+    m = re.search(r"prtt: memory: (\d+) MiB of textures on the GPU, (\d+) MiB held before them, "
+                  r"estimated peak (\d+) MiB", r["stdout"])
+    if m is None:
+        raise RuntimeError(f"prtt render did not report its memory: {r['stdout'][-1000:]}")
+    rec["render_gpu_mb"], rec["render_base_mb"], rec["render_estimate_mb"] = (int(v) for v in m.groups())
     return rec
 
 
@@ -205,6 +216,8 @@ def plot(rec: dict, path: str) -> None:
     ax.loglog(tx, [r["estimate_mb"] for r in rows], "x--", label="its estimate before the bake")
     ax.loglog(tx, [r["blender_side_peak_mb"] for r in rows], "s-", label="Blender side (bake command)")
     ax.loglog(tx, [r["render_peak_mb"] for r in rows], "^-", label="render (preview, 320x180)")
+    ax.loglog(tx, [r.get("render_estimate_mb", float("nan")) for r in rows], "^--", alpha=0.6,
+              label="render's estimate")
     ax.loglog(tx, [r["texture_bytes"] / 2 ** 20 for r in rows], ":", color="grey", label="texture bytes drawn")
     stages = sorted({k for r in rows for k in (r["stages_mb"] or {})})
     for s in stages:
@@ -233,12 +246,12 @@ def plot(rec: dict, path: str) -> None:
 
 def print_table(rec: dict) -> None:
     print(f"{'atlas':>7} {'texels':>10} {'bake s':>7} {'us/texel':>8} {'worker MB':>9} {'estimate':>8} "
-          f"{'Blender MB':>10} {'render MB':>9} {'render s':>8} {'textures MB':>11}")
+          f"{'Blender MB':>10} {'render MB':>9} {'its est.':>8} {'GPU MB':>7} {'render s':>8} {'textures MB':>11}")
     for r in rec["demo"]:
         print(f"{r['size']:>6}² {r['texels']:>10,} {r['seconds']['total']:>7.1f} "
               f"{1e6 * r['seconds']['total'] / r['atlas_texels']:>8.2f} {r['worker_peak_mb']:>9.0f} "
               f"{r['estimate_mb'] or 0:>8.0f} {r['blender_side_peak_mb']:>10.0f} {r['render_peak_mb']:>9.0f} "
-              f"{r['render_s']:>8.1f} {r['texture_bytes'] / 2 ** 20:>11.0f}")
+              f"{r.get('render_estimate_mb', 0):>8.0f} {r.get('render_gpu_mb', 0):>7.0f} {r['render_s']:>8.1f} {r['texture_bytes'] / 2 ** 20:>11.0f}")
         print("        stages: " + ", ".join(f"{k} {v:.0f}" for k, v in (r["stages_mb"] or {}).items()))
     b = rec.get("bunnies")
     if b:

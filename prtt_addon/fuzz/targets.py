@@ -117,7 +117,8 @@ def run_manifest(data: bytes) -> None:
 def run_exr(data: bytes) -> None:
     """The texture readers of the preview, `render` and the next bake:
     read_sh_exr, read_relight_exr and the preview's per-layer sources
-    (transfer_layers, relight_operator_layers) with their fills. read_dc_plane
+    (transfer_layers, relight_operator_layers) with their bands' fills (decoded
+    in a child process, exr_bands). read_dc_plane
     decodes in a child process (a crash there is its TextureError): its
     inputs are tests/fuzz_corpus/exr, replayed by tests/test_fuzz.py."""
     from ..core.io.exr_io import TextureError, read_relight_exr, read_sh_exr
@@ -125,11 +126,13 @@ def run_exr(data: bytes) -> None:
     path = _put("texture.exr", data)
 
     def layered(opener, **kw):
-        with opener(path, **kw) as src:
-            out = np.empty((src.height, src.width, 4), np.float32) if src.height * src.width <= 1 << 20 else None
-            if out is not None:
-                for i in range(min(src.layers, 64)):
-                    src.fill_layer(i, out)
+        src = opener(path, **kw)
+        if src.height * src.width <= 1 << 20:
+            with src.bands() as bands:
+                for band in bands:
+                    out = np.empty((band.n, src.width, 4), np.float32)
+                    for i in range(min(src.layers, 64)):
+                        band.fill_layer(i, out)
     for reader in (read_sh_exr, read_relight_exr, lambda p: layered(transfer_layers),
                    lambda p: layered(relight_operator_layers, expand=False),
                    lambda p: layered(relight_operator_layers)):

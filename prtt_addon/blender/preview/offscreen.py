@@ -28,7 +28,7 @@ import bpy
 import numpy as np
 
 from ...cli_options import choice_option, parse_size
-from ...core.base.memory import GiB, available_bytes
+from ...core.base.memory import GiB, MiB, available_bytes, resident_bytes
 from ...core.io.atomic import TMP_PREFIX
 from ...core.io.image_write import WRITE_BYTES_PER_PIXEL, ImageWriteError, write_image
 from ...core.preview.shader_source import MODES
@@ -144,6 +144,24 @@ def check_frame(width: int, height: int, what: str, ext: str | None = None) -> N
                           f"render smaller (--size WxH)")
 
 
+def check_memory(renderer, ps, mode: str, width: int, height: int, ext: str | None = None) -> tuple:
+    """Refuse a render whose textures, staging and frame would not fit in the
+    memory available, before any is read. This process's peak RSS is then
+    estimated as what it holds now, the textures still to upload
+    (Renderer.planned_bytes: on llvmpipe the GPU's memory is this process's),
+    the largest upload band and the frame (:func:`frame_bytes`). Returns
+    (bytes held now, bytes to come): their sum is the estimated peak RSS."""
+    textures, staging = renderer.planned_bytes(ps, mode)
+    needed = textures + staging + frame_bytes(width, height, ext)
+    avail = available_bytes()
+    if avail is not None and needed > MEMORY_FRACTION * avail:
+        raise RenderError(f"the baked textures ({textures / GiB:.2f} GiB on the GPU) and the {width}x{height} image need "
+                          f"about {needed / GiB:.1f} GiB of memory, more than {MEMORY_FRACTION:.0%} of the "
+                          f"{avail / GiB:.1f} GiB available; bake at a lower resolution or a larger Bounce "
+                          f"Downscale, render --no-bounces, or render smaller (--size WxH)")
+    return resident_bytes() or 0, needed
+
+
 def scene_camera(scene, camera: str | None):
     """The named camera object, else the scene's; RenderError when there is none."""
     cam = scene.objects.get(camera) if camera else scene.camera
@@ -214,6 +232,7 @@ def render_scene(context, *, mode: str = "tpfl", camera: str | None = None, size
     ps, status = drawlist.collect(context, use_bounces=bounces)
     check_collected(ps, status)
     renderer = renderer or gpu_preview.Renderer()
+    base, coming = check_memory(renderer, ps, mode, w, h, out_ext)
     skipped = renderer.prepare(ps, mode)      # reads and uploads every texture the frame needs
     if skipped:
         raise RenderError(undrawable_message(mode, skipped))
@@ -226,6 +245,7 @@ def render_scene(context, *, mode: str = "tpfl", camera: str | None = None, size
         raise RenderError(f"{what}: {exc}; render smaller (--size WxH)") from exc
     if stats.skipped:           # a texture changed on disk since prepare()
         raise RenderError(undrawable_message(mode, stats.skipped))
+    stats.base_bytes, stats.estimate_bytes = base, base + coming
     return pixels, stats, status, time.perf_counter() - t
 
 
@@ -310,4 +330,6 @@ def render_file(argv, prog="prtt render") -> int:
     h, w = pixels.shape[:2]
     print(f"prtt: rendered {args.mode} {w}x{h}, {len(stats.drawn)} object(s), {stats.triangles} triangles, "
           f"{1000 * seconds:.0f} ms -> {os.path.abspath(args.out)}")
+    print(f"prtt: memory: {stats.texture_bytes / MiB:.0f} MiB of textures on the GPU, "
+          f"{stats.base_bytes / MiB:.0f} MiB held before them, estimated peak {stats.estimate_bytes / MiB:.0f} MiB")
     return 0

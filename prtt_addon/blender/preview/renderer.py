@@ -32,6 +32,7 @@ import gpu
 import numpy as np
 from gpu_extras.batch import batch_for_shader
 
+from ...core.base.memory import GiB, MemoryLimitError, check_fits
 from ...core.io.exr_io import TextureError
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import FRAGMENT_MODES, GAUNT_WIDTH, MODES, VERTEX_MODES
@@ -55,6 +56,12 @@ def _matrix(M: np.ndarray):
     return mathutils.Matrix(np.asarray(M, np.float64).tolist())
 
 
+#: The largest share of available memory the preview's textures may take (as the bake's check).
+MEMORY_FRACTION = 0.8
+#: What to do when a set's textures do not fit.
+MEMORY_ADVICE = ("bake at a lower resolution or with a larger Bounce Downscale, hide the objects of other "
+                 "texture sets, or close what else holds memory")
+
 #: Why an object is left out of a vertex-mode frame, with what to do about it.
 NO_VERTEX_TRANSFER = ("the bake has no per-vertex transfer: bake again with Vertex Transfer on "
                       "(PRTT > Bake Settings > Vertex Transfer)")
@@ -72,7 +79,9 @@ class FrameStats:
     drawn: list = dataclasses.field(default_factory=list)
     skipped: dict = dataclasses.field(default_factory=dict)   # mesh name -> reason
     triangles: int = 0
-    texture_bytes: int = 0
+    texture_bytes: int = 0          # the baked textures on the GPU (transfer, bounce, vertex, relight operator)
+    base_bytes: int = 0             # an offscreen render's RSS before its textures (offscreen.check_memory)
+    estimate_bytes: int = 0         # and its estimated peak RSS
 
 
 class Renderer:
@@ -111,72 +120,148 @@ class Renderer:
                                      f"texture ({exc}); bake at a lower resolution") from exc
         return tex, packed.size * (2 if fmt == "RGBA16F" else 4)
 
-    def _layer_texture(self, src: pp.LayerSource):
-        """A LayerSource as an RGBA 2D array texture, uploaded one layer at a
-        time: each layer is filled from the file's channels into a one-layer
-        staging buffer, goes up as a 2D texture and is drawn into its layer
-        (shaders/prtt_copy_frag.glsl, texel for texel), so the CPU holds one
-        layer, never the texture. Half when that changes no value (known from
-        the file, else checked a layer at a time first). Returns (GPUTexture,
-        bytes) as :meth:`_array_texture`."""
+    def _layer_texture(self, src):
+        """A LayerSource (or LevelSumSource) as an RGBA 2D array texture, uploaded a band of rows
+        of a layer at a time: each band of the file's channels (decoded in a
+        child, exr_bands) is staged layer by layer into a float32 buffer of
+        that band, goes up as a 2D texture and is drawn into its rows of its
+        layer (shaders/prtt_copy_frag.glsl, texel for texel), so the CPU holds
+        one band (pack.STAGING_BYTES), never the texture. Half when that
+        changes no value (known from the file's types, else checked band by
+        band first). Returns (GPUTexture, bytes) as :meth:`_array_texture`."""
         L, H, W = src.layers, src.height, src.width
         size, layers = gpu.capabilities.max_texture_size_get(), gpu.capabilities.max_texture_layers_get()
         if W > size or H > size or L > layers:
             raise TextureUploadError(f"{src.path}: {W}x{H} texels in {L} layers exceeds this GPU's limits "
                                      f"({size} texels per side, {layers} layers); bake at a lower resolution")
-        stage = gpu.types.Buffer("FLOAT", H * W * 4)
-        view = np.asarray(stage).reshape(H, W, 4)
-        exact = src.half_exact
-        if not exact:
-            exact = True
-            for layer in range(L):
-                src.fill_layer(layer, view)
-                if not pp.half_exact(view):
-                    exact = False
-                    break
-        fmt = "RGBA16F" if exact else "RGBA32F"
-        try:
-            tex = gpu.types.GPUTexture((W, H), layers=L, format=fmt)
-        except RuntimeError as exc:     # out of (GPU) memory
-            raise TextureUploadError(f"{src.path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
-                                     f"texture ({exc}); bake at a lower resolution") from exc
-        sh = gpu_shaders.copy_shader()
-
-        def one_layer(layer):
-            src.fill_layer(layer, view)
-            one = gpu.types.GPUTexture((W, H), format="RGBA32F", data=stage)
-            sh.uniform_sampler("layerTex", one)
-            return one                      # alive until its layer is drawn
-
-        _draw_layers(tex, W, H, sh, range(L), one_layer)
+        rows = src.band_rows()
+        stage = gpu.types.Buffer("FLOAT", rows * W * 4)
+        view = np.asarray(stage).reshape(rows, W, 4)
+        tex = fmt = None
+        with src.bands(rows) as bands:
+            if src.half_exact:
+                fmt = "RGBA16F"
+                tex = _new_layered(src.path, W, H, L, fmt)
+                self._upload_bands(tex, src, bands, stage, view)
+            else:
+                fmt = "RGBA16F" if _bands_half_exact(src, bands, view) else "RGBA32F"
+        if tex is None:
+            tex = _new_layered(src.path, W, H, L, fmt)
+            with src.bands(rows) as bands:
+                self._upload_bands(tex, src, bands, stage, view)
         return tex, L * H * W * 4 * (2 if fmt == "RGBA16F" else 4)
+
+    @staticmethod
+    def _upload_bands(tex, src: pp.LayerSource, bands, stage, view: np.ndarray) -> None:
+        """Every layer of every band into ``tex`` through the copy pass."""
+        sh = gpu_shaders.copy_shader()
+        W = src.width
+        for band in bands:
+            n = band.n
+            # A band's texture takes exactly its texels: the last, shorter band gets a buffer of its own.
+            data = stage if n == view.shape[0] else gpu.types.Buffer("FLOAT", n * W * 4)
+            rows = view[:n] if data is stage else np.asarray(data).reshape(n, W, 4)
+
+            def one_layer(layer, band=band, data=data, rows=rows):
+                band.fill_layer(layer, rows)
+                one = gpu.types.GPUTexture((W, band.n), format="RGBA32F", data=data)
+                sh.uniform_sampler("layerTex", one)
+                sh.uniform_int("row0", band.gpu_row)
+                return one                      # alive until its layer is drawn
+
+            _draw_layers(tex, W, n, sh, range(src.layers), one_layer, y=band.gpu_row)
 
     def _texture_2d(self, rgba_bottom_first: np.ndarray):
         H, W, _ = rgba_bottom_first.shape
         return gpu.types.GPUTexture((W, H), format="RGBA32F", data=_buffer(rgba_bottom_first))
 
+    def set_needs(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int, light) -> tuple:
+        """(GPU bytes, staging bytes) of the set's textures that are not on the
+        GPU yet, from the files' headers (pack's ``plan``): what uploading them
+        adds to memory (on a software GPU such as llvmpipe the textures are
+        this process's memory; on a GPU this errs on the safe side). A file
+        whose header cannot be read counts nothing: its upload names it."""
+        K = bands * bands
+        total = staging = 0
+
+        def add(key, planner):
+            nonlocal total, staging
+            if key in self._res:
+                return
+            try:
+                nbytes, stage = planner()
+            except (TextureError, OSError, ValueError, KeyError):
+                return
+            total += nbytes
+            staging = max(staging, stage)
+
+        add(("transfer", s.key), lambda: pp.transfer_layers(s.transfer).plan())
+        if want_bounce and s.has_bounce and s.relight:
+            op = lambda: pp.relight_operator_layers(s.relight, expand=False)     # noqa: E731
+            add(("relight-op", s.key), lambda: op().plan())
+            add(("bounce", s.bounce_key(light)), lambda: (pp.relit_bytes(op()), 0))
+        elif want_bounce and s.has_bounce:
+            add(("bounce", s.key), lambda: pp.bounce_level_layers(s.bounces, K).plan())
+        if want_vertex and s.vertex:
+            add(("vertex", s.key), lambda: (2 * _npz_bytes(s.vertex),) * 2)
+        return total, staging
+
+    def planned_bytes(self, ps: pp.PreviewScene, mode: str) -> tuple:
+        """(GPU bytes, largest staging) a frame of ``ps`` in ``mode`` still has
+        to load: every drawable set's textures (:meth:`set_needs`) and the
+        material images, float32 RGBA, not yet uploaded."""
+        vertex_mode = mode in VERTEX_MODES
+        total = staging = 0
+        seen = set()
+        for m in ps.meshes:
+            s = ps.sets.get(m.set_name)
+            if s is None or s.name in seen or (vertex_mode and not s.vertex):
+                continue
+            seen.add(s.name)
+            t, st = self.set_needs(s, ps.use_bounces, vertex_mode, ps.bands, ps.light)
+            total, staging = total + t, max(staging, st)
+        for i, img in enumerate(ps.images):
+            key = ps.image_keys[i] if i < len(ps.image_keys) else None
+            if ("image", key) not in self._res:
+                texels = int(np.prod(np.shape(img)[:2]))
+                total, staging = total + 16 * texels, max(staging, 16 * texels)
+        return total, staging
+
     def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int, light):
         """The set's (transfer, bounce, vertex) textures, each (GPUTexture, bytes) or
         None; loaded, checked against the bake's band count and uploaded once
-        (relightable bounces once per ``light``, (K, 3): :meth:`_relit_bounce`)."""
+        (relightable bounces once per ``light``, (K, 3): :meth:`_relit_bounce`).
+        TextureUploadError before anything is read when they would not fit in
+        the memory available (:meth:`set_needs`)."""
         key, K = s.key, bands * bands
+        need, stage = self.set_needs(s, want_bounce, want_vertex, bands, light)
+        try:
+            check_fits(need + stage, f"{s.transfer}: uploading its set's textures ({need / GiB:.2f} GiB on the GPU)",
+                       fraction=MEMORY_FRACTION, advice=MEMORY_ADVICE)
+        except MemoryLimitError as exc:
+            raise TextureUploadError(str(exc)) from None
 
         def transfer():
             def upload():
-                with pp.transfer_layers(s.transfer) as src:
-                    if src.rgb or src.coeffs < K:
-                        raise TextureUploadError(f"{s.transfer}: holds {src.coeffs} SH coefficients"
-                                                 f"{' per colour' if src.rgb else ''}, the bake has {K}; bake again")
-                    return self._layer_texture(src)
+                src = pp.transfer_layers(s.transfer)
+                if src.rgb or src.coeffs < K:
+                    raise TextureUploadError(f"{s.transfer}: holds {src.coeffs} SH coefficients"
+                                             f"{' per colour' if src.rgb else ''}, the bake has {K}; bake again")
+                return self._layer_texture(src)
             return _load(upload, s.transfer)
 
         def bounce():
             if s.relight:
                 return self._relit_bounce(s, light, bands)
             where = ", ".join(s.bounces)
-            data = _load(lambda: s.load_bounce(K), where)
-            _check_coeffs(data, 4, K, where)
-            return self._array_texture(pp.pack_bounce(data), where)
+
+            def upload():
+                src = pp.bounce_level_layers(s.bounces, K)
+                if src.coeffs < K:
+                    raise TextureUploadError(f"{where}: holds {src.coeffs} SH coefficients per colour, "
+                                             f"the bake has {K}; bake again")
+                return self._layer_texture(src)
+            return _load(upload, where)
 
         def vertex():
             data = _load(s.load_vertex, s.vertex)
@@ -199,12 +284,12 @@ class Renderer:
             def upload():
                 # Shared glossy rows stay shared on the GPU (a third of the layers,
                 # half floats): the pass tints them (RELIGHT_SHARED).
-                with pp.relight_operator_layers(where, expand=False) as src:
-                    if src.coeffs != K:          # the pass reads exactly the bake's K4 layers per colour
-                        raise TextureUploadError(f"{where}: holds {src.coeffs} light coefficients, the bake has "
-                                                 f"{K}; bake again")
-                    tex, nbytes = self._layer_texture(src)
-                    return tex, nbytes, src.width, src.height, src.glossy_bands, src.shared
+                src = pp.relight_operator_layers(where, expand=False)
+                if src.coeffs != K:          # the pass reads exactly the bake's K4 layers per colour
+                    raise TextureUploadError(f"{where}: holds {src.coeffs} light coefficients, the bake has "
+                                             f"{K}; bake again")
+                tex, nbytes = self._layer_texture(src)
+                return tex, nbytes, src.width, src.height, src.glossy_bands, src.shared
             return _load(upload, where)
 
         op_tex, _, W, H, gbands, shared = self._get(("relight-op", s.key), operator)
@@ -275,7 +360,7 @@ class Renderer:
         return list(self._res)
 
     def resource_bytes(self) -> int:
-        return sum(v[1] for k, v in self._res.items() if k[0] in ("transfer", "bounce", "vertex"))
+        return sum(v[1] for k, v in self._res.items() if k[0] in ("transfer", "bounce", "vertex", "relight-op"))
 
     # --- drawing --------------------------------------------------------------------
     def _plan(self, ps: pp.PreviewScene, mode: str, skipped: dict) -> list:
@@ -387,11 +472,12 @@ class Renderer:
             batch.draw_range(sh, elem_start=3 * first, elem_count=3 * count)
 
 
-def _draw_layers(target, width: int, height: int, shader, layers, setup) -> None:
-    """Draw a quad over each of ``layers`` of 2D array texture ``target``
-    (width x height) with ``shader``: ``setup(layer)`` sets its inputs after
-    it is bound (what it returns is kept until the layer is drawn). No depth
-    test, no blending; the viewport and those states are restored."""
+def _draw_layers(target, width: int, height: int, shader, layers, setup, y: int = 0) -> None:
+    """Draw a quad over rows ``y`` .. ``y + height - 1`` (all ``width``
+    columns) of each of ``layers`` of 2D array texture ``target`` with
+    ``shader``: ``setup(layer)`` sets its inputs after it is bound (what it
+    returns is kept until the layer is drawn). No depth test, no blending;
+    the viewport and those states are restored."""
     quad = batch_for_shader(shader, "TRI_STRIP", {"pos": ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))})
     viewport = gpu.state.viewport_get()
     old_test, old_blend = gpu.state.depth_test_get(), gpu.state.blend_get()
@@ -401,7 +487,7 @@ def _draw_layers(target, width: int, height: int, shader, layers, setup) -> None
         for layer in layers:
             fb = gpu.types.GPUFrameBuffer(color_slots=({"texture": target, "layer": layer},))
             with fb.bind():
-                gpu.state.viewport_set(0, 0, width, height)
+                gpu.state.viewport_set(0, y, width, height)
                 shader.bind()
                 keep = setup(layer)
                 quad.draw(shader)
@@ -410,6 +496,32 @@ def _draw_layers(target, width: int, height: int, shader, layers, setup) -> None
         gpu.state.viewport_set(*viewport)
         gpu.state.depth_test_set(old_test)
         gpu.state.blend_set(old_blend)
+
+
+def _npz_bytes(path: str) -> int:
+    """Uncompressed bytes of a .npz's arrays (what loading it takes), from its zip directory."""
+    with zipfile.ZipFile(path) as z:
+        return sum(i.file_size for i in z.infolist())
+
+
+def _new_layered(path: str, W: int, H: int, L: int, fmt: str):
+    """An empty W x H x L 2D array texture; TextureUploadError naming ``path``
+    when the GPU cannot allocate it."""
+    try:
+        return gpu.types.GPUTexture((W, H), layers=L, format=fmt)
+    except RuntimeError as exc:     # out of (GPU) memory
+        raise TextureUploadError(f"{path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
+                                 f"texture ({exc}); bake at a lower resolution") from exc
+
+
+def _bands_half_exact(src: pp.LayerSource, bands, view: np.ndarray) -> bool:
+    """Whether every layer of every band is a half float (stops at the first that is not)."""
+    for band in bands:
+        for layer in range(src.layers):
+            band.fill_layer(layer, view[:band.n])
+            if not pp.half_exact(view[:band.n]):
+                return False
+    return True
 
 
 def _load(loader, path: str) -> np.ndarray:

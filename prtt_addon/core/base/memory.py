@@ -16,6 +16,7 @@ import functools
 import os
 
 GiB = 1024 ** 3
+MiB = 1024 ** 2
 
 
 class MemoryLimitError(RuntimeError):

@@ -26,12 +26,13 @@ import os
 
 import numpy as np
 
+from ..io.exr_bands import channel_bands
 from ..io.exr_io import (
     TextureError,
     bands_of_header,
     channel_names,
+    checked_header,
     glossy_tint,
-    open_sh_channels,
     read_relight_exr,
     read_sh_exr,
     relight_channel_names,
@@ -338,45 +339,59 @@ def pack_layers(tex: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(out.reshape(H, W, L, 4).transpose(2, 0, 1, 3))
 
 
+#: Bytes a texture's upload may hold beside the GPU's copy: one band of the
+#: file's channels plus its float32 staging (twice: the buffer and the band's
+#: texture). Bands are whole 32-row blocks where they can be (PIZ decodes 32
+#: rows at a time, ZIP 16), and at least one row.
+STAGING_BYTES = 32 << 20
+#: Bytes per texel of the staging (float32 RGBA, held twice).
+STAGE_TEXEL_BYTES = 32
+
+
+def band_rows(height: int, width: int, channels: int, channel_bytes: int = 4,
+              budget: int = STAGING_BYTES) -> int:
+    """Rows per upload band of a ``height`` x ``width`` texture read from
+    ``channels`` channels of ``channel_bytes`` each: as many as ``budget``
+    holds (staging included), whole 32-row blocks where that is at least one."""
+    per_row = width * (STAGE_TEXEL_BYTES + channels * channel_bytes)
+    rows = max(1, budget // max(1, per_row))
+    if rows >= 32:
+        rows -= rows % 32
+    return int(min(rows, height))
+
+
+def _staging(rows: int, width: int, channels: int, channel_bytes: int) -> int:
+    """Bytes an upload holds for one band: the channels as received and the
+    float32 staging (twice), in this process; the decoding child holds about
+    the channels' share again in its own."""
+    return rows * width * (STAGE_TEXEL_BYTES + channels * channel_bytes)
+
+
+def relit_bytes(op: "LayerSource") -> int:
+    """Bytes of the float32 bounce texture a relightable operator's relight pass
+    draws (3 ceil(K/4) RGBA32F layers at the operator's size)."""
+    return op.height * op.width * 3 * layers(op.coeffs) * 16
+
+
 @dataclasses.dataclass(eq=False)
-class LayerSource:
-    """A texture's GPU layers (L, H, W, 4) float32, row 0 at the bottom, made
-    one layer at a time from its file's channels (exr_io.open_sh_channels):
-    :meth:`fill` writes them straight into the caller's buffer (the GPU's
-    staging buffer), with no float32 copy of the whole texture beside it. The
-    values are :func:`pack_layers` / :func:`pack_relight_operator`'s of the
-    texture as read_sh_exr / read_relight_exr return it.
+class Band:
+    """Rows ``top`` .. ``top + n - 1`` (file order, top first) of a
+    :class:`LayerSource`'s channels; :meth:`fill_layer` writes one layer's
+    rows of it bottom first, GPU rows ``gpu_row`` .. ``gpu_row + n - 1``."""
 
-    ``groups``: per layer the four channel names (None: zero), or for a
-    shared glossy row (name, colour): the channel tinted by that colour's
-    exr_io.glossy_tint. ``coeffs``: SH coefficients in the last axis of the
-    texture as read (the renderer's band check); ``rgb``: a bounce texture
-    where a transfer was expected."""
-
-    path: str
+    source: "LayerSource"
+    top: int
+    n: int
     chans: dict
-    groups: list
-    height: int
-    width: int
-    coeffs: int
-    rgb: bool = False
-    tint: np.ndarray | None = None      # (H, W, 3) float32 glossy tints, row 0 at the bottom
+    tint: np.ndarray | None = None      # (n, W, 3) float32, rows bottom first
 
     @property
-    def layers(self) -> int:
-        return len(self.groups)
-
-    def fill(self, out: np.ndarray) -> None:
-        """Write every layer into ``out`` (L, H, W, 4) float32."""
-        if out.shape != (self.layers, self.height, self.width, 4):
-            raise ValueError(f"{self.path}: layers of shape {out.shape}, expected "
-                             f"{(self.layers, self.height, self.width, 4)}")
-        for layer in range(self.layers):
-            self.fill_layer(layer, out[layer])
+    def gpu_row(self) -> int:
+        return self.source.height - self.top - self.n
 
     def fill_layer(self, layer: int, out: np.ndarray) -> None:
-        """Write layer ``layer`` into ``out`` (H, W, 4) float32."""
-        for j, name in enumerate(self.groups[layer]):
+        """Write this band of layer ``layer`` into ``out`` (n, W, 4) float32."""
+        for j, name in enumerate(self.source.groups[layer]):
             if name is None:
                 out[:, :, j] = 0.0
             elif isinstance(name, tuple):
@@ -385,12 +400,94 @@ class LayerSource:
             else:
                 out[:, :, j] = self.chans[name][::-1]
 
+
+@dataclasses.dataclass(eq=False)
+class LayerSource:
+    """A texture's GPU layers (L, H, W, 4) float32, row 0 at the bottom, made
+    from its file's channels a band of rows at a time (exr_bands: decoded in
+    a child process, never the whole file in this one): :meth:`bands` yields
+    :class:`Band` s whose layers the renderer stages and uploads, so no copy
+    of the whole texture (half or float32) sits beside the GPU's. The values
+    are :func:`pack_layers` / :func:`pack_relight_operator`'s of the texture
+    as read_sh_exr / read_relight_exr return it.
+
+    ``groups``: per layer the four channel names (None: zero), or for a
+    shared glossy row (name, colour): the channel tinted by that colour's
+    exr_io.glossy_tint of the DC channels ``tint_from``. ``coeffs``: SH
+    coefficients in the last axis of the texture as read (the renderer's band
+    check); ``rgb``: a bounce texture where a transfer was expected;
+    ``channel_bytes``: bytes per stored value the header declares (2 half, 4
+    float), for sizing bands."""
+
+    path: str
+    groups: list
+    height: int
+    width: int
+    coeffs: int
+    rgb: bool = False
+    tint_from: tuple | None = None       # the three DC channel names the glossy tints come from
+    channel_bytes: int = 4
+    dtypes: dict = dataclasses.field(default_factory=dict)    # name -> stored dtype, once a band stream started
+
+    @property
+    def layers(self) -> int:
+        return len(self.groups)
+
+    @property
+    def names(self) -> list:
+        """The channels the layers read, each once, in layer order."""
+        seen = dict.fromkeys(n if not isinstance(n, tuple) else n[0] for g in self.groups for n in g
+                             if n is not None)
+        if self.tint_from:
+            seen.update(dict.fromkeys(self.tint_from))
+        return list(seen)
+
+    def band_rows(self, budget: int = STAGING_BYTES) -> int:
+        return band_rows(self.height, self.width, len(self.names), self.channel_bytes, budget)
+
+    @contextlib.contextmanager
+    def bands(self, rows: int | None = None):
+        """An iterator of :class:`Band` s top to bottom, ``rows`` file rows
+        each (default :meth:`band_rows`); a band's arrays are valid until the
+        next. TextureError (naming the file) if the file cannot be decoded."""
+        with channel_bands(self.path, self.names, self.height, self.width, rows or self.band_rows(),
+                           error=TextureError) as stream:
+            self.dtypes = dict(stream.dtypes)
+
+            def walk():
+                for top, n, chans in stream:
+                    tint = None
+                    if self.tint_from:
+                        tint = glossy_tint(np.stack([chans[c][::-1] for c in self.tint_from],
+                                                    axis=-1).astype(np.float32))
+                    yield Band(self, top, n, chans, tint)
+            yield walk()
+
+    def fill(self, out: np.ndarray, rows: int | None = None) -> None:
+        """Write every layer into ``out`` (L, H, W, 4) float32 (tests, tools:
+        the renderer uploads band by band instead)."""
+        if out.shape != (self.layers, self.height, self.width, 4):
+            raise ValueError(f"{self.path}: layers of shape {out.shape}, expected "
+                             f"{(self.layers, self.height, self.width, 4)}")
+        with self.bands(rows) as bands:
+            for band in bands:
+                for layer in range(self.layers):
+                    band.fill_layer(layer, out[layer, band.gpu_row:band.gpu_row + band.n])
+
+    def plan(self) -> tuple[int, int]:
+        """(bytes of the GPU texture, bytes staged beside it while it goes up),
+        from the header: half textures stay half unless tinted."""
+        half = self.channel_bytes == 2 and self.tint_from is None
+        return (self.layers * self.height * self.width * 4 * (2 if half else 4),
+                _staging(self.band_rows(), self.width, len(self.names), self.channel_bytes))
+
     @property
     def half_exact(self) -> bool:
-        """Every value is a half float by construction (half channels, none tinted);
-        False means: check the values (half_exact of each layer)."""
-        return self.tint is None and all(self.chans[n].dtype == np.float16
-                                         for g in self.groups for n in g if n is not None)
+        """Every value is a half float by construction (half channels, none
+        tinted; known once :meth:`bands` has started); False means: check
+        the values (half_exact of each band's layers)."""
+        return (self.tint_from is None and bool(self.dtypes)
+                and all(d == np.float16 for d in self.dtypes.values()))
 
 
 def _groups(names: list) -> list:
@@ -400,26 +497,36 @@ def _groups(names: list) -> list:
     return [padded[4 * l:4 * l + 4] for l in range(L)]
 
 
-def _missing(path: str, chans: dict, names: list) -> None:
+def _missing(path: str, chans, names: list) -> None:
     missing = [n for n in names if n not in chans]
     if missing:
         raise TextureError(f"{path}: missing channels {missing[:4]}{'...' if len(missing) > 4 else ''}")
 
 
-@contextlib.contextmanager
-def transfer_layers(path: str):
+def _texture_header(path: str) -> tuple:
+    """(channel names, attrs, H, W, bytes per stored value) of a PRTT
+    texture, from its checked header alone (nothing decoded)."""
+    header, H, W = checked_header(path, decoded=0)
+    attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
+    try:
+        names = {c.name for c in header.get("channels") or []}
+    except (UnicodeDecodeError, AttributeError) as exc:      # names are bytes from the file
+        raise TextureError(f"{path}: unreadable EXR (its channel names: {exc})") from None
+    return names, attrs, H, W, 2 if attrs.get("storage") == "half" else 4
+
+
+def transfer_layers(path: str) -> LayerSource:
     """LayerSource of a transfer texture (pack_layers(read_sh_exr(path)[0]))."""
-    with open_sh_channels(path) as (chans, attrs):
-        K = bands_of_header(path, attrs) ** 2
-        rgb = any(n.startswith("R.") for n in chans)
-        names = channel_names(K, rgb)
-        _missing(path, chans, names)
-        H, W = chans[names[0]].shape
-        yield LayerSource(path, chans, _groups(names), H, W, K, rgb)
+    path = os.fspath(path)
+    chans, attrs, H, W, nbytes = _texture_header(path)
+    K = bands_of_header(path, attrs) ** 2
+    rgb = any(n.startswith("R.") for n in chans)
+    names = channel_names(K, rgb)
+    _missing(path, chans, names)
+    return LayerSource(path, _groups(names), H, W, K, rgb, channel_bytes=nbytes)
 
 
-@contextlib.contextmanager
-def relight_operator_layers(path: str, *, expand: bool = True):
+def relight_operator_layers(path: str, *, expand: bool = True) -> LayerSource:
     """LayerSource of a relightable bounce texture's operator
     (pack_relight_operator of read_relight_exr(path)); ``coeffs`` = its light
     coefficients K; attributes ``glossy_bands`` and ``shared``. With
@@ -427,32 +534,150 @@ def relight_operator_layers(path: str, *, expand: bool = True):
     for all colours ((Kg - 1) ceil(Kg / 4) layers after the DC rows instead of
     three times as many), for the relight pass to tint (shader_source.
     relight_variant(shared=True)); they are then half floats as in the file."""
-    with open_sh_channels(path) as (chans, attrs):
-        if attrs["kind"] != "relight":
-            raise TextureError(f"{path}: a {shown(attrs['kind'])} texture, not a relightable bounce texture")
-        bands = bands_of_header(path, attrs)
-        K, kg = bands * bands, bands_of_header(path, attrs, "glossy_bands", 0, bands) ** 2
-        colour = attrs.get("glossy_colour", "per-colour")
-        if colour not in ("per-colour", "shared"):
-            raise TextureError(f"{path}: unknown prtt_glossy_colour {shown(colour)} (per-colour or shared)")
-        shared = colour == "shared"
-        _missing(path, chans, relight_channel_names(K, kg, shared))
-        groups = [g for c in "RGB" for g in _groups([f"{c}.dc.i{i:03d}" for i in range(K)])]
-        H, W = chans["R.dc.i000"].shape
-        tint = None
-        if kg and shared and not expand:
-            groups += [g for o in range(1, kg) for g in _groups([f"S.o{o:03d}.i{i:03d}" for i in range(kg)])]
-        elif kg and shared:
-            tint = glossy_tint(np.stack([chans[f"{c}.dc.i000"][::-1] for c in "RGB"], axis=-1).astype(np.float32))
-            groups += [g for c in range(3) for o in range(1, kg)
-                       for g in _groups([(f"S.o{o:03d}.i{i:03d}", c) for i in range(kg)])]
-        elif kg:
-            groups += [g for c in "RGB" for o in range(1, kg) for g in _groups([f"{c}.o{o:03d}.i{i:03d}"
-                                                                               for i in range(kg)])]
-        src = LayerSource(path, chans, groups, H, W, K, tint=tint)
-        src.glossy_bands = int(attrs.get("glossy_bands", 0)) if kg else 0
-        src.shared = bool(kg and shared and not expand)
-        yield src
+    path = os.fspath(path)
+    chans, attrs, H, W, nbytes = _texture_header(path)
+    if attrs["kind"] != "relight":
+        raise TextureError(f"{path}: a {shown(attrs['kind'])} texture, not a relightable bounce texture")
+    bands = bands_of_header(path, attrs)
+    K, kg = bands * bands, bands_of_header(path, attrs, "glossy_bands", 0, bands) ** 2
+    colour = attrs.get("glossy_colour", "per-colour")
+    if colour not in ("per-colour", "shared"):
+        raise TextureError(f"{path}: unknown prtt_glossy_colour {shown(colour)} (per-colour or shared)")
+    shared = colour == "shared"
+    _missing(path, chans, relight_channel_names(K, kg, shared))
+    groups = [g for c in "RGB" for g in _groups([f"{c}.dc.i{i:03d}" for i in range(K)])]
+    tint_from = None
+    if kg and shared and not expand:
+        groups += [g for o in range(1, kg) for g in _groups([f"S.o{o:03d}.i{i:03d}" for i in range(kg)])]
+    elif kg and shared:
+        tint_from = tuple(f"{c}.dc.i000" for c in "RGB")
+        groups += [g for c in range(3) for o in range(1, kg)
+                   for g in _groups([(f"S.o{o:03d}.i{i:03d}", c) for i in range(kg)])]
+    elif kg:
+        groups += [g for c in "RGB" for o in range(1, kg) for g in _groups([f"{c}.o{o:03d}.i{i:03d}"
+                                                                           for i in range(kg)])]
+    src = LayerSource(path, groups, H, W, K, tint_from=tint_from, channel_bytes=nbytes)
+    src.glossy_bands = int(attrs.get("glossy_bands", 0)) if kg else 0
+    src.shared = bool(kg and shared and not expand)
+    return src
+
+
+@dataclasses.dataclass(eq=False)
+class LevelSumSource:
+    """Baked bounce levels summed, as the GPU takes them (pack_bounce of
+    PreviewSet.load_bounce(coeffs)), made a band of rows at a time from
+    every level's file at once: the same interface as :class:`LayerSource`
+    (``layers``, ``bands``, ``fill``, ``half_exact``) for the renderer's
+    upload. The float32 sums are made in the order load_bounce makes them
+    (level by level; a band-limited level's missing coefficients add zero)."""
+
+    levels: list                    # per level: (path, K of the level)
+    height: int
+    width: int
+    coeffs: int                     # coefficients per colour after padding (every level's)
+    channel_bytes: int = 4
+    dtypes: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def path(self) -> str:
+        return ", ".join(p for p, _ in self.levels)
+
+    @property
+    def layers(self) -> int:
+        return 3 * layers(self.coeffs)
+
+    def band_rows(self, budget: int = STAGING_BYTES) -> int:
+        return band_rows(self.height, self.width, sum(3 * k for _, k in self.levels), self.channel_bytes, budget)
+
+    @contextlib.contextmanager
+    def bands(self, rows: int | None = None):
+        """An iterator of bands (``n``, ``gpu_row``, ``fill_layer``) as :meth:`LayerSource.bands`."""
+        rows = rows or self.band_rows()
+        with contextlib.ExitStack() as stack:
+            streams = [stack.enter_context(channel_bands(p, channel_names(k, True), self.height, self.width, rows,
+                                                         error=TextureError)) for p, k in self.levels]
+            self.dtypes = {(i, n): d for i, st in enumerate(streams) for n, d in st.dtypes.items()}
+
+            def walk():
+                for parts in zip(*streams):
+                    top, n = parts[0][0], parts[0][1]
+                    yield _LevelBand(self, top, n, [chans for _, _, chans in parts])
+            yield walk()
+
+    def fill(self, out: np.ndarray, rows: int | None = None) -> None:
+        """Every layer into ``out`` (L, H, W, 4) float32 (tests, tools)."""
+        with self.bands(rows) as bands:
+            for band in bands:
+                for layer in range(self.layers):
+                    band.fill_layer(layer, out[layer, band.gpu_row:band.gpu_row + band.n])
+
+    def plan(self) -> tuple[int, int]:
+        """(bytes of the GPU texture, bytes staged beside it while it goes up):
+        one half level stays half, a sum is planned as float32."""
+        half = len(self.levels) == 1 and self.channel_bytes == 2
+        return (self.layers * self.height * self.width * 4 * (2 if half else 4),
+                _staging(self.band_rows(), self.width, sum(3 * k for _, k in self.levels), self.channel_bytes))
+
+    @property
+    def half_exact(self) -> bool:
+        """One level of half channels: its values are half floats (a sum of
+        several, in general, is not: checked band by band)."""
+        return len(self.levels) == 1 and bool(self.dtypes) and all(d == np.float16 for d in self.dtypes.values())
+
+
+@dataclasses.dataclass(eq=False)
+class _LevelBand:
+    source: LevelSumSource
+    top: int
+    n: int
+    chans: list                     # per level: name -> (n, W) stored rows, top first
+
+    @property
+    def gpu_row(self) -> int:
+        return self.source.height - self.top - self.n
+
+    def fill_layer(self, layer: int, out: np.ndarray) -> None:
+        """Layer ``layer`` (colour c = layer // ceil(K/4), coefficients 4q ..
+        4q + 3) of this band into ``out`` (n, W, 4) float32, rows bottom first."""
+        K4 = layers(self.source.coeffs)
+        c, q = divmod(layer, K4)
+        for j in range(4):
+            k = 4 * q + j
+            o = out[:, :, j]
+            if k >= self.source.coeffs:
+                o[...] = 0.0
+                continue
+            for i, ((_, kl), chans) in enumerate(zip(self.source.levels, self.chans)):
+                name = f"{'RGB'[c]}.sh{k:03d}"
+                v = chans[name][::-1] if k < kl else np.float32(0.0)
+                if i == 0:
+                    o[...] = v
+                else:
+                    np.add(o, v, out=o, dtype=np.float32)
+
+
+def bounce_level_layers(paths, n_coeffs: int) -> LevelSumSource:
+    """LevelSumSource of a set's baked bounce levels (PreviewSet.load_bounce's
+    sum, padded to ``n_coeffs`` where a level is stored band-limited), from
+    the checked headers; TextureError naming the file when a level is not a
+    colour SH texture or the levels' sizes differ."""
+    levels, shape, nbytes = [], None, 2
+    for p in paths:
+        p = os.fspath(p)
+        chans, attrs, H, W, b = _texture_header(p)
+        kl = bands_of_header(p, attrs) ** 2
+        if not any(n.startswith("R.") for n in chans):
+            raise TextureError(f"{p}: not a bounce texture (no colour channels R.sh000 ...)")
+        _missing(p, chans, channel_names(kl, True))
+        padded = n_coeffs if attrs.get("band_limited") and kl < n_coeffs else kl
+        if shape is not None and (H, W, padded) != shape:
+            raise TextureError(f"{p}: bounce level of shape {(H, W, 3, padded)} does not match the others' "
+                               f"{(shape[0], shape[1], 3, shape[2])}")
+        shape, nbytes = (H, W, padded), max(nbytes, b)
+        levels.append((p, kl))
+    if not levels:
+        raise TextureError("no bounce levels")
+    return LevelSumSource(levels, shape[0], shape[1], shape[2], nbytes)
 
 
 def pack_bounce(bounce: np.ndarray) -> np.ndarray:

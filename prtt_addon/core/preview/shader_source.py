@@ -188,10 +188,11 @@ struct PRTTRelight {
 
 
 def copy_variant() -> Variant:
-    """The upload pass: a 2D texture's texels into one layer of a 2D array texture."""
+    """The upload pass: a 2D texture's texels into a band of rows (from row
+    ``row0``, the viewport's) of one layer of a 2D array texture."""
     return Variant(
         name="prtt_copy_layer", defines=(), typedefs="", vertex_in=((0, "VEC2", "pos"),), interface=(),
-        samplers=((0, "FLOAT_2D", "layerTex"),), uniform_bufs=(), push_constants=(),
+        samplers=((0, "FLOAT_2D", "layerTex"),), uniform_bufs=(), push_constants=(("INT", "row0"),),
         vertex_files=("prtt_relight_vert.glsl",), fragment_files=("prtt_copy_frag.glsl",))
 
 
