@@ -416,6 +416,20 @@ def memory_block(r: dict | None = None) -> str:
     for x in rows:
         lines.append(f"| {x['size']}² | " + " | ".join(f"{(x['stages_mb'] or {}).get(k, float('nan')):.0f}"
                                                        for k in stages) + " |")
+    if all("render_estimate_mb" in x for x in rows):
+        lines += ["", "`prtt render` of each bake (320 × 180): what the process held before its textures, their "
+                      "bytes on the GPU (llvmpipe: this process's memory), the rest of its peak (the upload's band, "
+                      "the frame, allocator slack) and the estimate it printed before loading them "
+                      "(`offscreen.check_memory`):", "",
+                  "| atlas | **render peak RSS** | held before the textures | textures on the GPU "
+                  "| peak − before − GPU | its estimate | render s |",
+                  "|---|---|---|---|---|---|---|"]
+        for x in rows:
+            rest = x["render_peak_mb"] - x["render_base_mb"] - x["render_gpu_mb"]
+            lines.append(
+                f"| {x['size']}² | **{x['render_peak_mb']:.0f} MiB** | {x['render_base_mb']:.0f} MiB | "
+                f"{x['render_gpu_mb']:.0f} MiB | {rest:.0f} MiB | {x['render_estimate_mb']:.0f} MiB "
+                f"({100 * (x['render_estimate_mb'] / x['render_peak_mb'] - 1):+.0f} %) | {x['render_s']:.1f} |")
     b = r.get("bunnies")
     if b:
         lines += ["", f"{b['scene']}: {b['triangles']:,} triangles in {b['sets']} texture sets, {b['texels']:,} "
