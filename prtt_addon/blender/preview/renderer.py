@@ -235,11 +235,12 @@ class Renderer:
         the memory available (:meth:`set_needs`)."""
         key, K = s.key, bands * bands
         need, stage = self.set_needs(s, want_bounce, want_vertex, bands, light)
-        try:
-            check_fits(need + stage, f"{s.transfer}: uploading its set's textures ({need / GiB:.2f} GiB on the GPU)",
-                       fraction=MEMORY_FRACTION, advice=MEMORY_ADVICE)
-        except MemoryLimitError as exc:
-            raise TextureUploadError(str(exc)) from None
+        if need:        # every frame asks; only a set with something to upload reads the memory available
+            try:
+                check_fits(need + stage, f"{s.transfer}: uploading its set's textures ({need / GiB:.2f} GiB on the "
+                           f"GPU)", fraction=MEMORY_FRACTION, advice=MEMORY_ADVICE)
+            except MemoryLimitError as exc:
+                raise TextureUploadError(str(exc)) from None
 
         def transfer():
             def upload():
