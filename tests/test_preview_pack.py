@@ -185,7 +185,7 @@ def test_level_sum_source_is_load_bounce_packed_exactly(tmp_path):
     assert not src.half_exact and src.dtypes
 
 
-def test_band_stream_refuses_what_it_cannot_decode(tmp_path):
+def test_band_stream_refuses_what_it_cannot_decode(tmp_path, monkeypatch):
     """The band reader's child: a missing channel, a cut file and a decoder
     that dies are each a TextureError naming the file, never a hang or a
     short band."""
@@ -210,3 +210,36 @@ def test_band_stream_refuses_what_it_cannot_decode(tmp_path):
     with pytest.raises(TextureError, match="data window"):
         with exr_bands.channel_bands(p, names, 32, 64, 10, error=TextureError):
             pass
+    # One band must fit beside what the process holds (a header can declare many wide channels).
+    from prtt_addon.core.base import memory
+    monkeypatch.setattr(memory, "available_bytes", lambda: 20_000)
+    with pytest.raises(TextureError, match=r"t\.exr \(10 rows of 9 channels\) needs about .* GiB is available"):
+        with exr_bands.channel_bands(p, names, 64, 64, 10, error=TextureError):
+            pass
+
+
+def test_band_stream_protocol_is_guarded(tmp_path, monkeypatch):
+    """Print noise in the decoder goes to stderr and leaves the stream intact;
+    bytes past the texture, or a decoder that goes silent (the watchdog kills
+    it: blocking reads, no select), are TextureErrors naming the file."""
+    from prtt_addon.core.io import exr_bands
+    from prtt_addon.core.io.exr_io import TextureError, read_sh_exr, write_sh_planes
+    p = tmp_path / "t.exr"
+    write_sh_planes(p, np.random.default_rng(2).normal(size=(4, 40, 24)).astype(np.float32), kind="transfer",
+                    attrs={"bands": 2}, names=None, bands=None)
+    names = [f"sh{k:03d}" for k in range(4)]
+    child = exr_bands._CHILD
+    assert "os.dup2(2, 1)\n" in child and child.rstrip().endswith("out.close()")
+
+    def read():
+        with exr_bands.channel_bands(p, names, 40, 24, 16, error=TextureError) as st:
+            return np.concatenate([c["sh002"].astype(np.float32) for _, _, c in st])
+    monkeypatch.setattr(exr_bands, "_CHILD", child.replace("os.dup2(2, 1)\n", "os.dup2(2, 1)\nprint('noise')\n"))
+    assert read().tobytes() == np.ascontiguousarray(read_sh_exr(p)[0][::-1, :, 2]).tobytes()
+    monkeypatch.setattr(exr_bands, "_CHILD", child.rstrip()[:-len("out.close()")] + "out.write(b'x')\nout.close()\n")
+    with pytest.raises(TextureError, match=r"t\.exr: unreadable EXR \(its decoder sent more than the texture holds"):
+        read()
+    monkeypatch.setattr(exr_bands, "_CHILD", child.replace("req = json.loads", "import time; time.sleep(60)\nreq = json.loads"))
+    monkeypatch.setattr(exr_bands, "BAND_TIMEOUT", 1)
+    with pytest.raises(TextureError, match=r"t\.exr: unreadable EXR \(its decoder sent nothing for 1 s\)"):
+        read()

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import os
 import zipfile
 
 import gpu
@@ -146,9 +147,14 @@ class Renderer:
             else:
                 fmt = "RGBA16F" if _bands_half_exact(src, bands, view) else "RGBA32F"
         if tex is None:
+            # Two reads of the files: a bake replacing them in between must not pass as half-exact.
+            before = _stamps(src.files)
             tex = _new_layered(src.path, W, H, L, fmt)
             with src.bands(rows) as bands:
                 self._upload_bands(tex, src, bands, stage, view)
+            if _stamps(src.files) != before:
+                raise TextureUploadError(f"{src.path}: changed while it was read (a bake writing it?); "
+                                         f"show it again when the bake has finished")
         return tex, L * H * W * 4 * (2 if fmt == "RGBA16F" else 4)
 
     @staticmethod
@@ -190,7 +196,7 @@ class Renderer:
                 return
             try:
                 nbytes, stage = planner()
-            except (TextureError, OSError, ValueError, KeyError):
+            except Exception:       # noqa: BLE001 - an estimate: a damaged file is named by its upload
                 return
             total += nbytes
             staging = max(staging, stage)
@@ -497,6 +503,15 @@ def _draw_layers(target, width: int, height: int, shader, layers, setup, y: int 
         gpu.state.viewport_set(*viewport)
         gpu.state.depth_test_set(old_test)
         gpu.state.blend_set(old_blend)
+
+
+def _stamps(paths) -> list:
+    """(inode, mtime, size) of each file: what tells a rewritten file."""
+    out = []
+    for p in paths:
+        st = os.stat(p)
+        out.append((st.st_ino, st.st_mtime_ns, st.st_size))
+    return out
 
 
 def _npz_bytes(path: str) -> int:

@@ -20,13 +20,15 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import select
 import subprocess
+import tempfile
+import threading
 import time
 
 import numpy as np
 
 from ..base.child import child_env, python_executable
+from ..base.memory import MemoryLimitError, check_fits
 
 #: Seconds the child may go without delivering a byte before it is given up.
 BAND_TIMEOUT = 120
@@ -36,10 +38,13 @@ MAX_PREAMBLE = 4 << 20
 _DTYPES = {"HALF": np.dtype(np.float16), "FLOAT": np.dtype(np.float32), "UINT": np.dtype(np.uint32)}
 
 _CHILD = r"""
-import json, sys
+import json, os, sys
+# The stream goes to a copy of stdout; whatever else writes to fd 1 (a library's
+# warning, a site hook) lands on stderr and cannot shift the stream's bytes.
+out = os.fdopen(os.dup(1), "wb", buffering=1 << 20)
+os.dup2(2, 1)
 import Imath, OpenEXR
 req = json.loads(sys.stdin.read())
-out = sys.stdout.buffer
 try:
     f = OpenEXR.InputFile(req["path"])
     h = f.header()
@@ -50,6 +55,7 @@ try:
     types = [str(chans[n].type) for n in req["names"]]
 except Exception as exc:
     out.write((json.dumps({"error": str(exc) or type(exc).__name__}) + "\n").encode())
+    out.close()
     sys.exit(0)
 out.write((json.dumps({"types": types, "window": [dw.min.x, dw.min.y, dw.max.x, dw.max.y]}) + "\n").encode())
 runs = []
@@ -64,7 +70,7 @@ for top in range(dw.min.y, dw.max.y + 1, rows):
     for t, names in runs:
         for data in f.channels(names, Imath.PixelType(getattr(Imath.PixelType, t)), top, bottom):
             out.write(data)
-out.flush()
+out.close()
 """
 
 
@@ -86,37 +92,56 @@ class ChannelBands:
         self.dtypes: dict = {}
         self._proc = None
         self._rest = bytearray()
+        self._err = None
+        self._reading_since = None
+        self._timed_out = False
 
     def start(self) -> "ChannelBands":
-        request = json.dumps({"path": os.path.abspath(self.path), "names": self.names, "rows": self.rows})
+        request = memoryview(json.dumps({"path": os.path.abspath(self.path), "names": self.names,
+                                         "rows": self.rows}).encode())
         try:
+            # stderr to a file: a decoder that writes much there must not block on a full pipe.
+            self._err = tempfile.TemporaryFile()
             self._proc = subprocess.Popen([python_executable(), "-c", _CHILD], stdin=subprocess.PIPE,
-                                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=child_env(),
+                                          stdout=subprocess.PIPE, stderr=self._err, env=child_env(),
                                           bufsize=0)
-            self._proc.stdin.write(request.encode())
-            self._proc.stdin.close()
         except OSError as exc:
             raise self._error(f"{self.path}: unreadable EXR (its decoder could not start: {exc})") from exc
-        line = self._line()
+        threading.Thread(target=self._watch, args=(self._proc,), daemon=True).start()
+        try:
+            while request:          # a raw pipe may take part of it
+                request = request[self._proc.stdin.write(request):]
+            self._proc.stdin.close()
+        except OSError:
+            self._fail("its decoder could not start", ended=True)
+        parsed = self._preamble(self._line())
+        if parsed is None:
+            self._fail("its decoder answered nonsense")
+        if isinstance(parsed, str):
+            raise self._error(f"{self.path}: unreadable EXR ({parsed})")
+        self.dtypes = parsed
+        try:        # a header may declare many channels of a wide image: one band is held here and in the child
+            check_fits(2 * self.band_bytes(), f"reading {self.path} ({self.rows} rows of {len(self.names)} channels)",
+                       advice="free memory, or bake the texture again at a lower resolution")
+        except MemoryLimitError as exc:
+            raise self._error(str(exc)) from None
+        return self
+
+    def _preamble(self, line: bytes):
+        """The child's first line as {name: dtype}, its error text (str), or None for nonsense."""
         try:
             first = json.loads(line)
-        except ValueError:
-            first = None
-        if not isinstance(first, dict):
-            self._fail("its decoder answered nonsense")
-        if "error" in first:
-            raise self._error(f"{self.path}: unreadable EXR ({first['error']})")
-        types, window = first.get("types"), first.get("window")
-        try:
+            if "error" in first:
+                return str(first["error"])
+            types, window = first["types"], first["window"]
             x0, y0, x1, y1 = (int(v) for v in window)
-        except (TypeError, ValueError):
-            x0 = y0 = x1 = y1 = None
-        if x0 is None or (x1 - x0 + 1, y1 - y0 + 1) != (self.width, self.height):
-            self._fail(f"its decoder saw a data window {window}, the header {self.width}x{self.height}")
-        if not isinstance(types, list) or len(types) != len(self.names) or any(t not in _DTYPES for t in types):
-            self._fail("its decoder answered unknown channel types")
-        self.dtypes = {n: _DTYPES[t] for n, t in zip(self.names, types)}
-        return self
+            if (x1 - x0 + 1, y1 - y0 + 1) != (self.width, self.height):
+                return f"its decoder saw a data window {window}, the header {self.width}x{self.height}"
+            if len(types) != len(self.names):
+                return None
+            return {n: _DTYPES[t] for n, t in zip(self.names, types)}
+        except Exception:       # noqa: BLE001 - whatever the bytes were, they are not our protocol
+            return None
 
     def band_bytes(self, n: int | None = None) -> int:
         """Bytes of one band of ``n`` rows (default: a full band) of every name."""
@@ -135,33 +160,52 @@ class ChannelBands:
                 chans[name] = np.frombuffer(buf, dt, n * self.width, o).reshape(n, self.width)
                 o += size
             yield top, n, chans
+        # The stream must end here, and the child exit cleanly: extra bytes mean it was not our protocol.
+        if self._rest or self._read_some(bytearray(1)):
+            self._fail("its decoder sent more than the texture holds")
+        if self._proc.wait() != 0:
+            self._fail("its decoder failed", ended=True)
 
     def close(self) -> None:
         p, self._proc = self._proc, None
-        if p is None:
-            return
-        if p.poll() is None:
-            p.kill()
-        p.wait()
-        for s in (p.stdout, p.stderr):
-            s.close()
+        if p is not None:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+            p.stdout.close()
+            if not p.stdin.closed:
+                p.stdin.close()
+        if self._err is not None:
+            self._err.close()
+            self._err = None
 
     # --- the pipe -------------------------------------------------------------------------
-    def _wait(self) -> None:
-        fd = self._proc.stdout.fileno()
-        deadline = time.monotonic() + BAND_TIMEOUT
-        while not select.select([fd], [], [], 1.0)[0]:
-            if time.monotonic() > deadline:
-                self._fail(f"its decoder sent nothing for {BAND_TIMEOUT} s")
+    # Blocking reads watched by a thread (select does not take pipes on Windows): a
+    # read that waits BAND_TIMEOUT seconds gets its child killed.
+    def _watch(self, proc) -> None:
+        while proc.poll() is None:
+            since = self._reading_since
+            if since is not None and time.monotonic() - since > BAND_TIMEOUT:
+                self._timed_out = True
+                proc.kill()
+                return
+            time.sleep(0.25)
+
+    def _read_some(self, view) -> int:
+        self._reading_since = time.monotonic()
+        try:
+            return self._proc.stdout.readinto(view) or 0
+        finally:
+            self._reading_since = None
 
     def _line(self) -> bytes:
         got = bytearray()
+        chunk = bytearray(1 << 16)
         while b"\n" not in got:
-            self._wait()
-            chunk = os.read(self._proc.stdout.fileno(), 1 << 16)
-            if not chunk:
+            k = self._read_some(chunk)
+            if not k:
                 self._fail("its decoder stopped", ended=True)
-            got += chunk
+            got += chunk[:k]
             if len(got) > MAX_PREAMBLE:
                 self._fail("its decoder answered nonsense")
         line, _, rest = bytes(got).partition(b"\n")
@@ -176,8 +220,7 @@ class ChannelBands:
             del self._rest[:k]
             o = k
         while o < len(view):
-            self._wait()
-            k = self._proc.stdout.readinto(view[o:])
+            k = self._read_some(view[o:])
             if not k:
                 self._fail("its decoder stopped early", ended=True)
             o += k
@@ -186,6 +229,8 @@ class ChannelBands:
         """Raise the caller's error for ``what``; ``ended``: the child closed its
         output, so how it exited (a crash's signal, its last words) is told."""
         p, tail = self._proc, ""
+        if self._timed_out:
+            what, ended = f"its decoder sent nothing for {BAND_TIMEOUT} s", False
         if p is not None and ended:
             try:
                 p.wait(timeout=5)
@@ -194,7 +239,8 @@ class ChannelBands:
             if p.returncode is not None and p.returncode < 0:
                 what = f"its decoder crashed (signal {-p.returncode})"
             if p.returncode is not None:
-                text = p.stderr.read(4096).decode("utf-8", "replace").strip().splitlines()
+                self._err.seek(max(0, self._err.seek(0, os.SEEK_END) - 4096))
+                text = self._err.read().decode("utf-8", "replace").strip().splitlines()
                 tail = f": {text[-1]}" if text else ""
         self.close()
         raise self._error(f"{self.path}: unreadable EXR ({what}{tail})")

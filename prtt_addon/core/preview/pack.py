@@ -342,7 +342,7 @@ def pack_layers(tex: np.ndarray) -> np.ndarray:
 #: Bytes a texture's upload may hold beside the GPU's copy: one band of the
 #: file's channels plus its float32 staging (twice: the buffer and the band's
 #: texture). Bands are whole 32-row blocks where they can be (PIZ decodes 32
-#: rows at a time, ZIP 16), and at least one row.
+#: rows at a time), else whole 16-row ones (ZIP's), and at least one row.
 STAGING_BYTES = 32 << 20
 #: Bytes per texel of the staging (float32 RGBA, held twice).
 STAGE_TEXEL_BYTES = 32
@@ -352,11 +352,11 @@ def band_rows(height: int, width: int, channels: int, channel_bytes: int = 4,
               budget: int = STAGING_BYTES) -> int:
     """Rows per upload band of a ``height`` x ``width`` texture read from
     ``channels`` channels of ``channel_bytes`` each: as many as ``budget``
-    holds (staging included), whole 32-row blocks where that is at least one."""
+    holds (staging included), in whole 32-row (else 16-row) blocks where it can."""
     per_row = width * (STAGE_TEXEL_BYTES + channels * channel_bytes)
     rows = max(1, budget // max(1, per_row))
-    if rows >= 32:
-        rows -= rows % 32
+    if rows >= 16:          # whole ZIP blocks at least, whole PIZ blocks where they fit
+        rows -= rows % (32 if rows >= 32 else 16)
     return int(min(rows, height))
 
 
@@ -432,6 +432,10 @@ class LayerSource:
     @property
     def layers(self) -> int:
         return len(self.groups)
+
+    @property
+    def files(self) -> list:
+        return [self.path]
 
     @property
     def names(self) -> list:
@@ -585,6 +589,10 @@ class LevelSumSource:
     @property
     def layers(self) -> int:
         return 3 * layers(self.coeffs)
+
+    @property
+    def files(self) -> list:
+        return [p for p, _ in self.levels]
 
     def band_rows(self, budget: int = STAGING_BYTES) -> int:
         return band_rows(self.height, self.width, sum(3 * k for _, k in self.levels), self.channel_bytes, budget)
