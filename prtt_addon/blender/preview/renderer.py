@@ -109,17 +109,9 @@ class Renderer:
         checked against the GL limits first, since drivers answer an oversized
         texture with an anonymous allocation failure."""
         L, H, W, _ = packed.shape
-        size, layers = gpu.capabilities.max_texture_size_get(), gpu.capabilities.max_texture_layers_get()
-        if W > size or H > size or L > layers:
-            raise TextureUploadError(f"{path}: {W}x{H} texels in {L} layers exceeds this GPU's limits "
-                                     f"({size} texels per side, {layers} layers); bake at a lower resolution")
+        _check_limits(path, W, H, L)
         fmt = "RGBA16F" if pp.half_exact(packed) else "RGBA32F"
-        try:
-            tex = gpu.types.GPUTexture((W, H), layers=L, format=fmt, data=_buffer(packed))
-        except RuntimeError as exc:     # out of (GPU) memory
-            raise TextureUploadError(f"{path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
-                                     f"texture ({exc}); bake at a lower resolution") from exc
-        return tex, packed.size * (2 if fmt == "RGBA16F" else 4)
+        return _new_layered(path, W, H, L, fmt, _buffer(packed)), packed.size * (2 if fmt == "RGBA16F" else 4)
 
     def _layer_texture(self, src):
         """A LayerSource (or LevelSumSource) as an RGBA 2D array texture, uploaded a band of rows
@@ -131,14 +123,12 @@ class Renderer:
         changes no value (known from the file's types, else checked band by
         band first). Returns (GPUTexture, bytes) as :meth:`_array_texture`."""
         L, H, W = src.layers, src.height, src.width
-        size, layers = gpu.capabilities.max_texture_size_get(), gpu.capabilities.max_texture_layers_get()
-        if W > size or H > size or L > layers:
-            raise TextureUploadError(f"{src.path}: {W}x{H} texels in {L} layers exceeds this GPU's limits "
-                                     f"({size} texels per side, {layers} layers); bake at a lower resolution")
+        _check_limits(src.path, W, H, L)
         rows = src.band_rows()
         stage = gpu.types.Buffer("FLOAT", rows * W * 4)
         view = np.asarray(stage).reshape(rows, W, 4)
         tex = fmt = None
+        before = _stamps(src.files)
         with src.bands(rows) as bands:
             if src.half_exact:
                 fmt = "RGBA16F"
@@ -147,8 +137,7 @@ class Renderer:
             else:
                 fmt = "RGBA16F" if _bands_half_exact(src, bands, view) else "RGBA32F"
         if tex is None:
-            # Two reads of the files: a bake replacing them in between must not pass as half-exact.
-            before = _stamps(src.files)
+            # Two reads of the files: a bake replacing them from the first on must not pass as half-exact.
             tex = _new_layered(src.path, W, H, L, fmt)
             with src.bands(rows) as bands:
                 self._upload_bands(tex, src, bands, stage, view)
@@ -520,11 +509,22 @@ def _npz_bytes(path: str) -> int:
         return sum(i.file_size for i in z.infolist())
 
 
-def _new_layered(path: str, W: int, H: int, L: int, fmt: str):
-    """An empty W x H x L 2D array texture; TextureUploadError naming ``path``
-    when the GPU cannot allocate it."""
+def _check_limits(path: str, W: int, H: int, L: int) -> None:
+    """TextureUploadError naming ``path`` for a W x H x L array texture beyond
+    the GL limits: drivers answer one with an anonymous allocation failure."""
+    size, layers = gpu.capabilities.max_texture_size_get(), gpu.capabilities.max_texture_layers_get()
+    if W > size or H > size or L > layers:
+        raise TextureUploadError(f"{path}: {W}x{H} texels in {L} layers exceeds this GPU's limits "
+                                 f"({size} texels per side, {layers} layers); bake at a lower resolution")
+
+
+def _new_layered(path: str, W: int, H: int, L: int, fmt: str, data=None):
+    """A W x H x L 2D array texture (empty, or from ``data``: a gpu Buffer);
+    TextureUploadError naming ``path`` when the GPU cannot allocate it."""
     try:
-        return gpu.types.GPUTexture((W, H), layers=L, format=fmt)
+        if data is None:
+            return gpu.types.GPUTexture((W, H), layers=L, format=fmt)
+        return gpu.types.GPUTexture((W, H), layers=L, format=fmt, data=data)
     except RuntimeError as exc:     # out of (GPU) memory
         raise TextureUploadError(f"{path}: the GPU could not allocate its {W}x{H}x{L} {fmt} "
                                  f"texture ({exc}); bake at a lower resolution") from exc

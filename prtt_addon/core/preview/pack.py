@@ -353,18 +353,17 @@ def band_rows(height: int, width: int, channels: int, channel_bytes: int = 4,
     """Rows per upload band of a ``height`` x ``width`` texture read from
     ``channels`` channels of ``channel_bytes`` each: as many as ``budget``
     holds (staging included), in whole 32-row (else 16-row) blocks where it can."""
-    per_row = width * (STAGE_TEXEL_BYTES + channels * channel_bytes)
-    rows = max(1, budget // max(1, per_row))
+    rows = max(1, budget // max(1, _row_bytes(width, channels, channel_bytes)))
     if rows >= 16:          # whole ZIP blocks at least, whole PIZ blocks where they fit
         rows -= rows % (32 if rows >= 32 else 16)
     return int(min(rows, height))
 
 
-def _staging(rows: int, width: int, channels: int, channel_bytes: int) -> int:
-    """Bytes an upload holds for one band: the channels as received and the
-    float32 staging (twice), in this process; the decoding child holds about
-    the channels' share again in its own."""
-    return rows * width * (STAGE_TEXEL_BYTES + channels * channel_bytes)
+def _row_bytes(width: int, channels: int, channel_bytes: int) -> int:
+    """Bytes an upload holds per row of its band: the channels as received
+    and the float32 staging (twice), in this process; the decoding child
+    holds about the channels' share again in its own."""
+    return width * (STAGE_TEXEL_BYTES + channels * channel_bytes)
 
 
 def relit_bytes(op: "LayerSource") -> int:
@@ -373,8 +372,44 @@ def relit_bytes(op: "LayerSource") -> int:
     return op.height * op.width * 3 * layers(op.coeffs) * 16
 
 
+class _BandRows:
+    """Where a band (file rows ``top`` .. ``top + n - 1``, top first) of a
+    source's texture lands on the GPU: rows ``gpu_row`` .. ``gpu_row + n - 1``."""
+
+    @property
+    def gpu_row(self) -> int:
+        return self.source.height - self.top - self.n
+
+
+class _BandedTexture:
+    """What the band sources (:class:`LayerSource`, :class:`LevelSumSource`)
+    share; each has ``height``, ``width``, ``layers``, ``channel_bytes``,
+    ``bands`` and says how many channels a band reads (``_channels``) and
+    whether its GPU texture is planned as half (``_half_planned``)."""
+
+    def band_rows(self, budget: int = STAGING_BYTES) -> int:
+        return band_rows(self.height, self.width, self._channels(), self.channel_bytes, budget)
+
+    def fill(self, out: np.ndarray, rows: int | None = None) -> None:
+        """Write every layer into ``out`` (L, H, W, 4) float32 (tests, tools:
+        the renderer uploads band by band instead)."""
+        if out.shape != (self.layers, self.height, self.width, 4):
+            raise ValueError(f"{self.path}: layers of shape {out.shape}, expected "
+                             f"{(self.layers, self.height, self.width, 4)}")
+        with self.bands(rows) as bands:
+            for band in bands:
+                for layer in range(self.layers):
+                    band.fill_layer(layer, out[layer, band.gpu_row:band.gpu_row + band.n])
+
+    def plan(self) -> tuple[int, int]:
+        """(bytes of the GPU texture, bytes staged beside it while it goes up),
+        from the headers."""
+        return (self.layers * self.height * self.width * 4 * (2 if self._half_planned() else 4),
+                self.band_rows() * _row_bytes(self.width, self._channels(), self.channel_bytes))
+
+
 @dataclasses.dataclass(eq=False)
-class Band:
+class Band(_BandRows):
     """Rows ``top`` .. ``top + n - 1`` (file order, top first) of a
     :class:`LayerSource`'s channels; :meth:`fill_layer` writes one layer's
     rows of it bottom first, GPU rows ``gpu_row`` .. ``gpu_row + n - 1``."""
@@ -384,10 +419,6 @@ class Band:
     n: int
     chans: dict
     tint: np.ndarray | None = None      # (n, W, 3) float32, rows bottom first
-
-    @property
-    def gpu_row(self) -> int:
-        return self.source.height - self.top - self.n
 
     def fill_layer(self, layer: int, out: np.ndarray) -> None:
         """Write this band of layer ``layer`` into ``out`` (n, W, 4) float32."""
@@ -402,7 +433,7 @@ class Band:
 
 
 @dataclasses.dataclass(eq=False)
-class LayerSource:
+class LayerSource(_BandedTexture):
     """A texture's GPU layers (L, H, W, 4) float32, row 0 at the bottom, made
     from its file's channels a band of rows at a time (exr_bands: decoded in
     a child process, never the whole file in this one): :meth:`bands` yields
@@ -446,8 +477,11 @@ class LayerSource:
             seen.update(dict.fromkeys(self.tint_from))
         return list(seen)
 
-    def band_rows(self, budget: int = STAGING_BYTES) -> int:
-        return band_rows(self.height, self.width, len(self.names), self.channel_bytes, budget)
+    def _channels(self) -> int:
+        return len(self.names)
+
+    def _half_planned(self) -> bool:
+        return self.channel_bytes == 2 and self.tint_from is None      # half stays half unless tinted
 
     @contextlib.contextmanager
     def bands(self, rows: int | None = None):
@@ -466,24 +500,6 @@ class LayerSource:
                                                     axis=-1).astype(np.float32))
                     yield Band(self, top, n, chans, tint)
             yield walk()
-
-    def fill(self, out: np.ndarray, rows: int | None = None) -> None:
-        """Write every layer into ``out`` (L, H, W, 4) float32 (tests, tools:
-        the renderer uploads band by band instead)."""
-        if out.shape != (self.layers, self.height, self.width, 4):
-            raise ValueError(f"{self.path}: layers of shape {out.shape}, expected "
-                             f"{(self.layers, self.height, self.width, 4)}")
-        with self.bands(rows) as bands:
-            for band in bands:
-                for layer in range(self.layers):
-                    band.fill_layer(layer, out[layer, band.gpu_row:band.gpu_row + band.n])
-
-    def plan(self) -> tuple[int, int]:
-        """(bytes of the GPU texture, bytes staged beside it while it goes up),
-        from the header: half textures stay half unless tinted."""
-        half = self.channel_bytes == 2 and self.tint_from is None
-        return (self.layers * self.height * self.width * 4 * (2 if half else 4),
-                _staging(self.band_rows(), self.width, len(self.names), self.channel_bytes))
 
     @property
     def half_exact(self) -> bool:
@@ -567,11 +583,11 @@ def relight_operator_layers(path: str, *, expand: bool = True) -> LayerSource:
 
 
 @dataclasses.dataclass(eq=False)
-class LevelSumSource:
+class LevelSumSource(_BandedTexture):
     """Baked bounce levels summed, as the GPU takes them (pack_bounce of
     PreviewSet.load_bounce(coeffs)), made a band of rows at a time from
     every level's file at once: the same interface as :class:`LayerSource`
-    (``layers``, ``bands``, ``fill``, ``half_exact``) for the renderer's
+    (``layers``, ``bands``, ``fill``, ``plan``, ``half_exact``) for the renderer's
     upload. The float32 sums are made in the order load_bounce makes them
     (level by level; a band-limited level's missing coefficients add zero)."""
 
@@ -594,8 +610,11 @@ class LevelSumSource:
     def files(self) -> list:
         return [p for p, _ in self.levels]
 
-    def band_rows(self, budget: int = STAGING_BYTES) -> int:
-        return band_rows(self.height, self.width, sum(3 * k for _, k in self.levels), self.channel_bytes, budget)
+    def _channels(self) -> int:
+        return sum(3 * k for _, k in self.levels)
+
+    def _half_planned(self) -> bool:
+        return len(self.levels) == 1 and self.channel_bytes == 2     # one half level stays half; a sum is float32
 
     @contextlib.contextmanager
     def bands(self, rows: int | None = None):
@@ -612,20 +631,6 @@ class LevelSumSource:
                     yield _LevelBand(self, top, n, [chans for _, _, chans in parts])
             yield walk()
 
-    def fill(self, out: np.ndarray, rows: int | None = None) -> None:
-        """Every layer into ``out`` (L, H, W, 4) float32 (tests, tools)."""
-        with self.bands(rows) as bands:
-            for band in bands:
-                for layer in range(self.layers):
-                    band.fill_layer(layer, out[layer, band.gpu_row:band.gpu_row + band.n])
-
-    def plan(self) -> tuple[int, int]:
-        """(bytes of the GPU texture, bytes staged beside it while it goes up):
-        one half level stays half, a sum is planned as float32."""
-        half = len(self.levels) == 1 and self.channel_bytes == 2
-        return (self.layers * self.height * self.width * 4 * (2 if half else 4),
-                _staging(self.band_rows(), self.width, sum(3 * k for _, k in self.levels), self.channel_bytes))
-
     @property
     def half_exact(self) -> bool:
         """One level of half channels: its values are half floats (a sum of
@@ -634,15 +639,11 @@ class LevelSumSource:
 
 
 @dataclasses.dataclass(eq=False)
-class _LevelBand:
+class _LevelBand(_BandRows):
     source: LevelSumSource
     top: int
     n: int
     chans: list                     # per level: name -> (n, W) stored rows, top first
-
-    @property
-    def gpu_row(self) -> int:
-        return self.source.height - self.top - self.n
 
     def fill_layer(self, layer: int, out: np.ndarray) -> None:
         """Layer ``layer`` (colour c = layer // ceil(K/4), coefficients 4q ..
