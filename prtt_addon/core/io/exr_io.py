@@ -180,7 +180,41 @@ def compression_of(kind: str):
     return OpenEXR.PIZ_COMPRESSION if kind == "relight" else OpenEXR.ZIP_COMPRESSION
 
 
-def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
+#: Bytes of the file's channels one band of rows holds as write_sh_planes converts and
+#: writes it (the float32 band it is made from is twice that for half files).
+WRITE_BAND_BYTES = 32 << 20
+#: Band heights are whole multiples of this: the line blocks of ZIP (16) and PIZ (32).
+WRITE_BAND_BLOCK = 32
+#: Header attribute value types the scanline writer takes (anything else is refused
+#: before the file is opened: the deprecated writer crashes on a list).
+ATTRIBUTE_TYPES = (str, int, float)
+
+
+def write_band_rows(channels: int, width: int, half: bool) -> int:
+    """Rows of one band write_sh_planes writes at a time: WRITE_BAND_BYTES of
+    the file's channels, in whole WRITE_BAND_BLOCK-row blocks (at least one)."""
+    per_row = max(1, int(channels) * int(width) * (2 if half else 4))
+    return max(1, WRITE_BAND_BYTES // per_row // WRITE_BAND_BLOCK) * WRITE_BAND_BLOCK
+
+
+def _legacy_header(width: int, height: int, names: list[str], half: bool, kind: str, attrs: dict):
+    """The scanline writer's header: the same attributes, in the same file
+    bytes, as ``OpenEXR.File`` writes for the header dict write_sh_planes made
+    (checked by tests/test_exr_io.py against a whole-file write)."""
+    import Imath
+    import OpenEXR
+    h = OpenEXR.Header(int(width), int(height))
+    pt = Imath.PixelType(Imath.PixelType.HALF if half else Imath.PixelType.FLOAT)
+    h["channels"] = {n: Imath.Channel(pt) for n in names}
+    h["compression"] = Imath.Compression(int(compression_of(kind)))
+    h["type"] = b"scanlineimage"
+    for k, v in attrs.items():
+        # str is written as bytes by the scanline API; bool and numpy scalars are converted by the caller.
+        h[k] = v.encode("utf-8") if isinstance(v, str) else v
+    return h
+
+
+def write_sh_planes(path, planes, *, kind: str, half: bool = True,
                     rgb: bool = False, attrs: dict | None = None, atomic: bool = True,
                     executor=None, rng: tuple[float, float] | None = None,
                     names: list[str] | None = None, bands: int | None = None,
@@ -190,7 +224,7 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
 
     C = K for kind "transfer", 3K when ``rgb`` (bounce; R.sh000.., G.., B..).
     half : store float16 (the caller checks :func:`half_overflow` first).
-    attrs : extra header attributes (str/int/float/list of str); keys get a
+    attrs : extra header attributes (str/int/float); keys get a
             ``prtt_`` prefix if they lack one.
     rng : the planes' :func:`value_range`, if the caller has it.
     names, bands : the channel names and the header's band count, for layouts
@@ -201,26 +235,32 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     full_bits : with ``names``, one bool per channel: which keep all 10 bits
             under ``mantissa_bits`` (the layout's DC-to-DC channels; relight_full_bits).
     consume : ``planes`` (a C-contiguous array the caller is done with) gives
-            each plane's pages back to the OS once it is converted to the
-            file's precision (base/memory.discard_pages), so the float32
-            texture and its float16 copy are never resident together; the
-            planes read as zeros afterwards. The bytes written are the same.
-    visit : called as visit(c, plane) with each float32 plane (H, W), row 0 at
-            the bottom, before it is converted (and, with ``consume``, given
-            back): what else the caller takes of the planes on the way.
-    ``planes`` may instead be made one plane at a time: an object with
-    ``shape`` (C, H, W) and ``channel(c)`` -> (H, W) float32 (PlaneSource;
-    texels.dilate.DilatedRows), given with its ``rng``; only one plane per
-    thread is then resident beside the file's channels.
+            each band's pages back to the OS once it is written
+            (base/memory.discard_pages), so the float32 texture shrinks as the
+            file grows; the planes read as zeros afterwards. The bytes written
+            are the same.
+    visit : called as visit(y0, band) with each band of float32 planes
+            (C, rows, W), rows y0.. (row 0 at the bottom), before it is
+            converted (and, with ``consume``, given back): what else the
+            caller takes of the planes on the way.
+    ``planes`` may instead be made a band of rows at a time: an object with
+    ``shape`` (C, H, W) and ``band(y0, y1)`` -> (C, y1 - y0, W) float32
+    (texels.dilate.DilatedRows, the relightable bounce's spilled columns),
+    given with its ``rng``.
+
+    The file is written a band of rows at a time (write_band_rows: 32 MiB of
+    its channels) through OpenEXR's scanline writer: only one band of the
+    file's channels is ever in memory, where the whole-file API held all of
+    them (#35); the bytes are the same as that API's.
     Returns the path written.
     """
     import OpenEXR
 
     # ZIP compression runs on OpenEXR's thread pool (~1.6x faster on 2 cores).
     OpenEXR.set_global_thread_count(os.cpu_count() or 1)
-    made = hasattr(planes, "channel")      # planes made one at a time (PlaneSource)
+    made = hasattr(planes, "band")         # planes made a band at a time
     if made and rng is None:
-        raise ValueError("planes made one at a time need their value range (rng)")
+        raise ValueError("planes made a band at a time need their value range (rng)")
     a = planes if made else np.asarray(planes)
     if len(a.shape) != 3:
         raise ValueError(f"SH planes must be (C, H, W), got {a.shape}")
@@ -239,7 +279,7 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
     if half and (made and not (-HALF_MAX <= rng[0] and rng[1] <= HALF_MAX) or not made and half_overflow(a, rng)):
         raise ValueError("values exceed the half-float range; write float32")
     dtype = np.float16 if half else np.float32
-    H, W = a.shape[1:]
+    C, H, W = (int(v) for v in a.shape)
     lossy = half and mantissa_bits < HALF_MANTISSA_BITS
     K = bands * bands
     if custom_names:
@@ -248,24 +288,7 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
         exact = [bool(f) for f in full_bits] if lossy else None
     else:
         exact = [c % K == 0 for c in range(len(names))]
-
-    # Each plane is contiguous in memory; [::-1] flips rows to file order (top first).
-    consume = consume and not made and a.flags.c_contiguous      # (each plane is copied: [::-1] below)
-
-    def convert(c):
-        src = a.channel(c) if made else a[c]
-        if visit is not None:
-            visit(c, src)
-        plane = np.ascontiguousarray(src[::-1], dtype=dtype)
-        plane = quantize_half(plane, mantissa_bits) if lossy and not exact[c] else plane
-        if consume:
-            discard_pages(a[c])
-        return plane
-    mapper = executor.map if executor is not None else map
-    channels = dict(zip(names, mapper(convert, range(len(names)))))
     header = {
-        "compression": compression_of(kind),
-        "type": OpenEXR.scanlineimage,
         "prtt_format_version": TEXTURE_FORMAT_VERSION,
         "prtt_kind": kind,
         "prtt_bands": bands,
@@ -283,15 +306,51 @@ def write_sh_planes(path, planes: np.ndarray, *, kind: str, half: bool = True,
             v = int(v)
         elif isinstance(v, np.floating):
             v = float(v)
+        if not isinstance(v, ATTRIBUTE_TYPES):
+            raise TypeError(f"header attribute {key}: {type(v).__name__} is not one of str, int, float")
         header[key] = v
+    legacy = _legacy_header(W, H, names, half, kind, header)
+    consume = consume and not made and a.flags.c_contiguous
+    mapper = executor.map if executor is not None else map
+    step = write_band_rows(C, W, half)
+
+    def convert(src, c):
+        # Rows flipped to file order (top first); each channel contiguous (the writer reads raw bytes).
+        plane = np.ascontiguousarray(src[c, ::-1], dtype=dtype)
+        return quantize_half(plane, mantissa_bits) if lossy and not exact[c] else plane
+
+    def write(out):
+        f = OpenEXR.OutputFile(out, legacy)
+        ok = False
+        try:
+            for f0 in range(0, H, step):
+                f1 = min(H, f0 + step)
+                y0, y1 = H - f1, H - f0             # the band's rows, bottom-up
+                src = a.band(y0, y1) if made else a[:, y0:y1]
+                if visit is not None:
+                    visit(y0, src)
+                conv = list(mapper(convert, [src] * C, range(C)))
+                f.writePixels({n: memoryview(p) for n, p in zip(names, conv)}, f1 - f0)
+                conv = src = None
+                if consume:
+                    for c in range(C):
+                        discard_pages(a[c, y0:y1])
+            ok = True
+        finally:
+            if ok:
+                f.close()
+            else:
+                # A cancelled or failed write: the caller's (atomic) file is discarded; the
+                # writer's own complaint about missing lines must not hide the cause.
+                with contextlib.suppress(Exception):
+                    f.close()
+
     path = os.fspath(path)
     if atomic:
         with atomic_write(path) as tmp:
-            with OpenEXR.File(header, channels) as f:
-                f.write(tmp)
+            write(tmp)
     else:
-        with OpenEXR.File(header, channels) as f:
-            f.write(path)
+        write(path)
     return path
 
 

@@ -111,36 +111,90 @@ def mip_chain(tex: np.ndarray, weight: np.ndarray, levels: int | None = None):
     return out
 
 
+def grown_mask(mask: np.ndarray, iterations: int) -> np.ndarray:
+    """(H, W) bool: ``mask`` grown by ``iterations`` 8-neighbour rings (the
+    texels a dilation fills and the covered ones), without the rings' plan."""
+    grown = np.asarray(mask, bool).copy()
+    H, W = grown.shape
+    for _ in range(max(0, int(iterations))):
+        pad = np.pad(grown, 1)
+        near = grown.copy()
+        for dy, dx in _OFFSETS:
+            near |= pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+        if np.array_equal(near, grown):
+            break
+        grown = near
+    return grown
+
+
 class DilatedRows:
     """Channel planes (C, H, W) float32 of values known at covered texels only,
-    made one plane at a time (exr_io.write_sh_planes' plane source): each
-    level's row of the channel scattered into a zero plane and dilated along
-    one plan, as :func:`dilate` dilates a whole stack (its arithmetic is per
-    channel, so the values are the same), the levels' dilated planes added
-    in order as stacks would be. Only one plane per thread is resident,
-    instead of the stack.
+    made a band of rows at a time (exr_io.write_sh_planes' plane source) or
+    one plane at a time (:meth:`at`): each level's values scattered into zero
+    planes and dilated as :func:`dilate` dilates a whole stack, the levels'
+    dilated planes added in order as stacks would be. The values are the
+    same: dilation is per channel, and a texel ``iterations`` rings out reads
+    only texels within as many rows (:meth:`band` dilates a window that
+    reaches that far beyond the band and keeps the band's rows).
 
-    levels : list of (C, N) float32, column i the value at texel ``texel[i]``
-             (or one half_columns.HalfColumns: ``levels[0][c]`` is channel c's row).
+    levels : list of (C, N) float32, column i the value at texel ``texel[i]``;
+             or one io.column_spill.ColumnSpill (``scatter_rows``: the
+             columns are in its file; :meth:`band` only).
     texel : (N,) int64 flat texel indices (row 0 = bottom) of ``mask`` (H, W).
     """
 
     def __init__(self, levels: list, texel: np.ndarray, mask: np.ndarray, iterations: int):
         self.levels = levels
         self.texel = texel
-        H, W = mask.shape
+        self.mask = np.asarray(mask, bool)
+        self.iterations = int(iterations)
+        H, W = self.mask.shape
         self.shape = (int(levels[0].shape[0]), H, W)
-        self.rings, self.grown = dilation_rings(mask, iterations)
+        self.grown = grown_mask(self.mask, self.iterations)
+        self._rings = None
+        self._sorted = None
+
+    def _scatter(self, rows, y0: int, y1: int, out: np.ndarray) -> None:
+        """Level ``rows``' values at texture rows y0 .. y1 - 1 into ``out`` (C, y1 - y0, W)."""
+        if hasattr(rows, "scatter_rows"):
+            rows.scatter_rows(y0, y1, out)
+            return
+        W = self.shape[2]
+        if self._sorted is None:
+            order = np.argsort(self.texel, kind="stable")
+            self._sorted = (order, self.texel[order])
+        order, st = self._sorted
+        lo, hi = np.searchsorted(st, [y0 * W, y1 * W])
+        cols = order[lo:hi]
+        out.reshape(out.shape[0], -1)[:, st[lo:hi] - y0 * W] = rows[:, cols]
+
+    def band(self, y0: int, y1: int) -> np.ndarray:
+        """(C, y1 - y0, W) float32: rows y0 .. y1 - 1 of every channel, dilated, summed over the levels."""
+        C, H, W = self.shape
+        w0, w1 = max(0, y0 - self.iterations), min(H, y1 + self.iterations)
+        rings, _ = dilation_rings(self.mask[w0:w1], self.iterations)
+        out = None
+        for rows in self.levels:
+            p = np.zeros((C, w1 - w0, W), np.float32)
+            self._scatter(rows, w0, w1, p)
+            apply_dilation(p, rings)
+            if out is None:
+                out = p
+            else:
+                out += p
+        return out[:, y0 - w0:y1 - w0]
 
     def channel(self, c: int, levels=None) -> np.ndarray:
         """(H, W) float32: channel ``c``, dilated, summed over ``levels`` (default all)."""
         _, H, W = self.shape
+        if self._rings is None:
+            self._rings = dilation_rings(self.mask, self.iterations)[0]
         out = None
         for rows in self.levels if levels is None else levels:
             p = np.zeros((1, H * W), np.float32)
             p[0, self.texel] = rows[c]
             p = p.reshape(1, H, W)
-            apply_dilation(p, self.rings)
+            apply_dilation(p, self._rings)
             if out is None:
                 out = p
             else:
@@ -151,7 +205,7 @@ class DilatedRows:
         """(min, max) of the planes: the levels' sum at the covered texels, and 0
         where texels stay empty (dilated texels average covered ones, within
         that range to rounding)."""
-        if len(self.levels) == 1 and hasattr(self.levels[0], "value_range"):    # half_columns.HalfColumns
+        if len(self.levels) == 1 and hasattr(self.levels[0], "value_range"):    # ColumnSpill
             lo, hi = self.levels[0].value_range()
         else:
             total = self.levels[0]

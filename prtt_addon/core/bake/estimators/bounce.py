@@ -133,16 +133,28 @@ class IncidentSet:
         return cls(rows, valid, width, height)
 
     @classmethod
-    def empty(cls, grown: np.ndarray, channels: int) -> "IncidentSet":
+    def empty(cls, grown: np.ndarray, channels: int, valid: np.ndarray | None = None) -> "IncidentSet":
         """Zeros at the texels of mask ``grown`` (H, W) (texels.dilate.dilate's
-        return), for :meth:`take` to fill plane by plane."""
+        return), for :meth:`take` or :meth:`take_band` to fill; ``valid``: its
+        flat indices when the caller has them already (shared, not copied)."""
         H, W = grown.shape
-        valid = np.flatnonzero(grown.reshape(-1))
+        if valid is None:
+            valid = np.flatnonzero(grown.reshape(-1))
         return cls(np.zeros((valid.size + 1, channels), np.float32), valid, W, H)
 
     def take(self, c: int, plane: np.ndarray) -> None:
         """Channel ``c`` from its plane (H, W), zero outside ``valid`` (threads may take different channels)."""
         self.rows[:-1, c] = plane.reshape(-1)[self.valid]
+
+    def take_band(self, y0: int, band: np.ndarray) -> None:
+        """Every channel of texture rows y0 .. y0 + rows - 1 from ``band`` (C, rows, W)
+        (exr_io.write_sh_planes' visit): the same values :meth:`take` takes."""
+        C, n, W = band.shape
+        lo, hi = np.searchsorted(self.valid, [y0 * W, (y0 + n) * W])
+        at = self.valid[lo:hi] - y0 * W
+        flat = band.reshape(C, n * W)
+        for c in range(C):
+            self.rows[lo:hi, c] = flat[c, at]
 
     @classmethod
     def from_planes(cls, planes: np.ndarray, grown: np.ndarray) -> "IncidentSet":

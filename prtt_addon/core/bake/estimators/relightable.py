@@ -43,11 +43,11 @@ import math
 
 import numpy as np
 
+from ...io.column_spill import ColumnSpill
 from ...sh.basis import basis_unchecked
 from ...sh.gaunt import sparse_gaunt
 from ...shading.shade import lobe_factors
 from ...texels.gbuffer import GBuffer
-from ...texels.half_columns import HalfColumns
 from . import hit_kernel
 from .bounce import ChunkHits, SurfaceTexels, TexelRows, hits_by_set, reflect_rows, trace_bounce_level, uv_frames
 from .raytrace import RayScene
@@ -359,42 +359,43 @@ class RelightProjection:
 
 def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, shader: RelightShader,
                      st: TransferSettings, level: int, *, glossy_out: bool, shared_colour: bool = False,
-                     half_dilate: int | None = None, progress=None, cancel=None, remote=None):
+                     spill_folder: str | None = None, progress=None, cancel=None, remote=None):
     """One set's relightable level. Returns (rows (3K + G, N) float32, column
     i for covered texel ``gb.texel[i]``: the DC rows' 3K channels, then the G
     = C (Kg - 1) Kg glossy rows' (G = 0 when not ``glossy_out``); coverage mask
     (H, W); stats). Only the covered texels are held (texels.dilate.DilatedRows
-    makes the dilated planes one at a time as they are written). Channel
+    makes the dilated planes a band at a time as they are written). Channel
     order colour, then out coefficient, then light coefficient; C = 1 with
     ``shared_colour`` (RelightProjection), else 3.
 
-    ``half_dilate``: the rows are this level's whole texture, to be dilated by
-    that many rings and written as float16: they are held as a
-    texels.half_columns.HalfColumns (half the bytes, the same file; its DC
-    responses c K exact), or, when a value overflows float16, traced again
-    into float32 rows."""
+    ``spill_folder``: the rows are this level's whole texture, read only to be
+    written: they are kept in a temporary file there
+    (io.column_spill.ColumnSpill, returned in place of the array; the DC
+    responses c K stay in memory), not in memory (#35: 1.0 GB at a 4096²
+    atlas). The caller closes it."""
     K, kg = shader.K, shader.glossy_bands ** 2
     nc = 1 if shared_colour else 3
     C = 3 * K + (nc * (kg - 1) * kg if glossy_out else 0)
     column = np.zeros(gb.height * gb.width, np.int64)       # texel -> its column
     column[gb.texel] = np.arange(gb.n, dtype=np.int64)
     projection = RelightProjection(shader, K, kg, glossy_out, shared_colour)
-    if half_dilate is not None:
-        mask = gb.mask()
-        table = HalfColumns(C, gb.texel, mask, half_dilate, exact_channels=range(0, 3 * K, K))
+    if spill_folder is not None:
+        table = ColumnSpill(C, gb.texel, gb.width, gb.height, spill_folder, exact_channels=range(0, 3 * K, K))
 
-        def store_half(cols, result):
+        def store_spill(cols, result):
             at = column[cols]
             table.store(at, result[0])
             if glossy_out:
                 table.store(at, result[1], first=3 * K)
 
-        stats = trace_bounce_level(rs, gb, pts, skip, st, level, projection, store_half,
-                                   progress=progress, cancel=cancel, remote=remote)
-        if not table.overflow:
-            stats["hit_shading"] = shader.path()
-            return table, mask, stats
-        table = None        # a value float16 cannot hold: the file will be float32
+        try:
+            stats = trace_bounce_level(rs, gb, pts, skip, st, level, projection, store_spill,
+                                       progress=progress, cancel=cancel, remote=remote)
+        except BaseException:
+            table.close()
+            raise
+        stats["hit_shading"] = shader.path()
+        return table, gb.mask(), stats
     planes = np.zeros((C, gb.n), np.float32)
     dc = planes[:3 * K]
     gl = planes[3 * K:] if glossy_out else None

@@ -38,9 +38,27 @@ def relight_glossy_bands(st) -> int:
     return min(GLOSSY_BANDS, st.bands)
 
 
+def close_spills(levels) -> None:
+    """Delete the temporary files of the levels kept in one (io.column_spill)."""
+    for t in levels:
+        if hasattr(t, "close"):
+            t.close()
+
+
 def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list[BounceSource]) -> BounceResult:
     """Bake the relightable bounce light of every set in ``sources`` and stage
     one ``<set>.relight.exr`` per set that any level reached."""
+    sums: dict[int, list] = {}
+    try:
+        return _relight_levels(ctx, geo, plan, sources, sums)
+    finally:
+        # A cancelled or failed bake leaves no spill file behind (a written set's are closed already).
+        for entry in sums.values():
+            close_spills(entry[1])
+
+
+def _relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: list[BounceSource],
+                    sums: dict[int, list]) -> BounceResult:
     st, sc = ctx.settings, ctx.scene
     K = st.bands ** 2
     gbands = relight_glossy_bands(st)
@@ -49,11 +67,10 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
     bst = bounce_settings(st, st.bounce_rays)
     inputs, T = bounce_inputs(ctx, sources, geo, lit=False)
     glossy_sets = {s.index: bool(inputs.glossy_tri[sc.triangles_of_set(s.index)].any()) for s in inputs.sources}
-    sums: dict[int, list] = {}
     reports, stopped, rows = [], None, {}
-    # One level, written as float16: each set's rows are held at the file's
-    # precision (texels.half_columns), half the bytes of the bounce's largest table.
-    one_half_level = st.bounces == 1 and st.half
+    # One level: each set's rows are only written, so they wait in a temporary
+    # file (io.column_spill) instead of memory, the bounce's largest table (#35).
+    one_level = st.bounces == 1
     for level in range(1, st.bounces + 1):
         ctx.check_cancel()
         t = time.perf_counter()
@@ -83,14 +100,14 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
             lbst, extra, on_progress = set_level_plan(ctx, inputs, src, level, bst)
             cols, mask, stats = bake_relight_set(geo.rays, gb, src.points, skip, shader, lbst, level,
                                                  glossy_out=glossy_sets[src.index], shared_colour=shared,
-                                                 half_dilate=st.dilate if one_half_level else None,
+                                                 spill_folder=ctx.out_dir if one_level else None,
                                                  progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
             ctx.seconds["bounce_trace"] += time.perf_counter() - t
             t = time.perf_counter()
             # The early stop reads only the DC responses to the light's DC (channels c K).
             energy += uniform_energy(np.stack([cols[c] for c in range(0, 3 * K, K)]).T[:, :, None])
             # Each level is kept at its covered texels; dilated, and the levels
-            # summed, one plane at a time as the texture is written (DilatedRows).
+            # summed, a band of rows at a time as the texture is written (DilatedRows).
             if src.index in sums:
                 sums[src.index][1].append(cols)
             else:
@@ -126,7 +143,7 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
     inputs = exits = shader = rows = nxt = None
     files = []
     for i in list(sums):
-        src, levels, rays, mask = sums.pop(i)
+        src, levels, rays, mask = sums[i]
         planes = DilatedRows(levels, src.gbuffer.texel, mask, st.dilate)
         t = time.perf_counter()
         g = glossy_sets[i]
@@ -138,6 +155,8 @@ def relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: lis
             attrs["glossy_colour"] = "shared"
         write_planes(ctx, fname, planes, "relight", attrs, rgb=False,
                      names=relight_channel_names(K, kg if g else 0, g and shared), bands=st.bands)
+        close_spills(levels)
+        del sums[i]
         planes = levels = None
         files.append(fname)
         ctx.seconds["bounce_write"] += time.perf_counter() - t

@@ -290,17 +290,17 @@ def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer) -> SetPlanes:
 def write_planes(ctx: BakeContext, fname: str, planes: np.ndarray, kind: str, attrs: dict, *, rgb: bool,
                  half: bool | None = None, names: list[str] | None = None, bands: int | None = None,
                  consume: bool = False, visit=None) -> bool:
-    """Write ``planes`` (C, H, W), or a source that makes them one at a time
-    (texels.dilate.DilatedRows), as staged output ``fname`` (progress stage
+    """Write ``planes`` (C, H, W), or a source that makes them a band of rows
+    at a time (texels.dilate.DilatedRows), as staged output ``fname`` (progress stage
     "write"); half precision (settings.half unless given) unless values
     overflow it (a warning, then float32). ``consume``: the caller is done
-    with ``planes``, which give their memory back plane by plane as they are
-    converted (exr_io.write_sh_planes) and read as zeros afterwards;
-    ``visit(c, plane)`` sees each plane first. Returns whether it was written as half."""
+    with ``planes``, which give their memory back band by band as they are
+    written (exr_io.write_sh_planes) and read as zeros afterwards;
+    ``visit(y0, band)`` sees each band of rows first. Returns whether it was written as half."""
     ctx.check_cancel()
     ctx.emit(type="progress", stage="write", file=fname, fraction=0.0)
     half = ctx.settings.half if half is None else half
-    if hasattr(planes, "channel"):         # made one plane at a time (texels.dilate.DilatedRows)
+    if hasattr(planes, "band"):            # made a band of rows at a time (texels.dilate.DilatedRows)
         rng = planes.value_range()
         over = half and not (-exr_io.HALF_MAX <= rng[0] and rng[1] <= exr_io.HALF_MAX)
         if over:
@@ -335,8 +335,8 @@ def write_set(ctx: BakeContext, plan: BakePlan, gb: GBuffer, sp: SetPlanes, info
               visit=None) -> SetFiles:
     """Stage the set's transfer texture and its mips (the mips in the texture's
     precision). Consumes ``sp``: its planes give their memory back as they are
-    written and read as zeros afterwards (write_planes); ``visit(c, plane)``
-    sees each plane of the texture first."""
+    written and read as zeros afterwards (write_planes); ``visit(y0, band)``
+    sees each band of the texture's rows first."""
     st = ctx.settings
     name = ctx.scene.set_names[gb.set_index]
     t = time.perf_counter()
@@ -424,8 +424,14 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
         rows = None
     info = traced.info
     # What the bounce reads of the texture, taken plane by plane as the write consumes them.
-    incident = IncidentSet.empty(sp.grown, ctx.n_coeffs) if keep_for_bounce else None
-    written = write_set(ctx, plan, gb, sp, info, visit=incident.take if incident is not None else None)
+    incident = None
+    if keep_for_bounce:
+        # The fine albedo's texels are the texture's valid ones (both the covered texels
+        # grown by the dilation): one array of them, not two (100 MB at 4096², #35).
+        same = (fine is not None and int(np.count_nonzero(sp.grown)) == fine.valid.size
+                and bool(sp.grown.reshape(-1)[fine.valid].all()))
+        incident = IncidentSet.empty(sp.grown, ctx.n_coeffs, valid=fine.valid if same else None)
+    written = write_set(ctx, plan, gb, sp, info, visit=incident.take_band if incident is not None else None)
     sp = None
     rep.update(file=written.files[0], storage="half" if written.half else "float",
                analytic_texels=info["analytic_points"], traced_texels=info["traced_points"],
