@@ -410,3 +410,26 @@ def test_band_specialised_relight_loops_equal_the_numpy_path(tmp_path, monkeypat
         scale = np.abs(y).max()
         assert scale > 0
         np.testing.assert_allclose(x, y, rtol=0, atol=2e-6 * scale)
+
+
+@pytest.mark.parametrize("rows", [5, 1000, 1001, 1063, 1064, 4100])
+def test_the_glossy_table_made_in_blocks_is_the_one_product_and_consumes_its_input(monkeypatch, rows):
+    """transfer_product_rows in blocks of rows (a short last block joined to the
+    one before: numpy multiplies a single row by another BLAS routine) gives
+    the one whole product's bits; ``consume`` gives the input's pages back as
+    it goes (#35: the block means and the table are not both whole)."""
+    monkeypatch.setattr(relightable, "EXIT_BLOCK", 1000)
+    rng = np.random.default_rng(rows)
+    T = (rng.standard_normal((rows, 25)) * np.geomspace(1.0, 1e-3, 25)).astype(np.float32)
+    whole = relightable.transfer_product_rows(T, 9)
+    assert relightable.row_blocks(rows, 1000)[-1][1] == rows
+    assert all(b - a >= min(rows, relightable.MIN_TAIL_ROWS) for a, b in relightable.row_blocks(rows, 1000))
+    out = np.empty((rows, 9, 9), np.float32)
+    relightable.transfer_product_rows(T, 9, out=out)
+    assert out.tobytes() == whole.tobytes()
+    big = np.ascontiguousarray(np.tile(T, (400, 1)))          # pages of rows to give back
+    want = relightable.transfer_product_rows(big, 9)
+    out = np.empty((big.shape[0], 9, 9), np.float32)
+    relightable.transfer_product_rows(big, 9, out=out, consume=True)
+    assert out.tobytes() == want.tobytes()
+    assert np.count_nonzero(big) < 0.05 * big.size

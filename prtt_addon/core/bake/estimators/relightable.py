@@ -43,6 +43,7 @@ import math
 
 import numpy as np
 
+from ...base.memory import discard_pages
 from ...io.column_spill import ColumnSpill
 from ...sh.basis import basis_unchecked
 from ...sh.gaunt import sparse_gaunt
@@ -105,11 +106,31 @@ def _with_zero_row(a: np.ndarray) -> np.ndarray:
     return out
 
 
-def transfer_product_rows(T: np.ndarray, kg: int, out: np.ndarray | None = None) -> np.ndarray:
+#: A last block of rows shorter than this joins the one before it (transfer_product_rows):
+#: numpy multiplies a single row by another BLAS routine, whose sums round differently.
+MIN_TAIL_ROWS = 64
+
+
+def row_blocks(n: int, block: int | None = None) -> list[tuple[int, int]]:
+    """[(a, b)] blocks of ``block`` (default EXIT_BLOCK) rows covering 0 .. n - 1,
+    a short last block (under MIN_TAIL_ROWS) joined to the one before it."""
+    edges = list(range(0, n, block or EXIT_BLOCK))
+    if len(edges) > 1 and n - edges[-1] < MIN_TAIL_ROWS:
+        edges.pop()
+    return list(zip(edges, edges[1:] + [n]))
+
+
+def transfer_product_rows(T: np.ndarray, kg: int, out: np.ndarray | None = None,
+                          consume: bool = False) -> np.ndarray:
     """(M, Kg, Kg) float32: M(T)_o,i = sum_j tau_o,i,j T_j for o, i < Kg, per row
     of ``T`` (M, K) (every j: the transfer keeps all its bands); one (K, Kg²)
     product with the Gaunt tensor's slab, written into ``out`` (M, Kg, Kg)
-    C-contiguous float32 when given."""
+    C-contiguous float32 when given, a block of rows at a time (the same
+    values as one product: BLAS sums each element over j alike, checked in
+    tests/test_relight.py). ``consume`` (with ``out``; ``T`` C-contiguous
+    float32 the caller is done with): each block of ``T`` gives its pages back
+    once multiplied (base/memory.discard_pages) and reads as zeros
+    afterwards, so ``T`` and the table are not both whole (#35)."""
     K = T.shape[1]
     g = sparse_gaunt(int(round(math.sqrt(K))))
     sel = (g.i < kg) & (g.j < kg)
@@ -118,7 +139,13 @@ def transfer_product_rows(T: np.ndarray, kg: int, out: np.ndarray | None = None)
     T = np.asarray(T, np.float32)
     if out is None:
         return (T @ C.astype(np.float32)).reshape(-1, kg, kg)
-    np.matmul(T, C.astype(np.float32), out=out.reshape(T.shape[0], kg * kg))
+    C32 = C.astype(np.float32)
+    flat = out.reshape(T.shape[0], kg * kg)
+    consume = consume and T.flags.c_contiguous
+    for a, b in row_blocks(T.shape[0]):
+        np.matmul(T[a:b], C32, out=flat[a:b])
+        if consume:
+            discard_pages(T[a:b])
     return out
 
 
@@ -128,7 +155,10 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
     ``surf``'s M valid texels, then a row of zeros (bounce.IncidentSet.at(..., padded=True):
     the diffuse table is that array itself, not a copy); ``fine`` =
     (SurfaceTexels, T rows alike) of a finer grid the diffuse term leaves
-    from (as bounce.exit_textures' ``diffuse_at``)."""
+    from (as bounce.exit_textures' ``diffuse_at``). With ``fine`` both are
+    consumed: the fine SurfaceTexels' albedo and valid become None and
+    ``T_rows`` reads as zeros afterwards (#35: neither is held beside the
+    glossy table)."""
     dsurf, dT = (surf, T_rows) if fine is None else fine
     if dT.dtype != np.float32 or dT.shape[0] != dsurf.valid.size + 1 or dT[-1].any():
         raise ValueError("level1_exit: transfer rows must be (M + 1, K) float32 with a last row of zeros")
@@ -140,6 +170,10 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
     for a in range(0, dsurf.valid.size, EXIT_BLOCK):
         b = min(a + EXIT_BLOCK, dsurf.valid.size)
         d_scale[a:b] = dsurf.albedo[a:b] / math.pi
+    if fine is not None:
+        # Consumed: the fine grid's albedo and texel list (32 B a texel) are done with
+        # before the glossy table is made; its row lookup stays in dgrid.
+        dsurf.albedo = dsurf.valid = None
     ex = RelightExit(dgrid, np.ascontiguousarray(dT)[:, None, :], d_scale)
     if surf.glossy:
         kg = glossy_bands * glossy_bands
@@ -148,7 +182,9 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
         A = lobe_factors(u, glossy_bands).astype(np.float32)                          # (U, Kg)
         # Built in the table with its zero row, in place: no (M, Kg, Kg) temporaries.
         g_rows = np.zeros((surf.valid.size + 1, 1, kg, kg), np.float32)
-        E = transfer_product_rows(T_rows[:-1], kg, out=g_rows[:-1, 0])                     # (M, Kg, Kg)
+        # With a finer diffuse grid T_rows is this grid's own (the block means): consumed as
+        # the table is made. Otherwise it is the diffuse table itself, kept.
+        E = transfer_product_rows(T_rows[:-1], kg, out=g_rows[:-1, 0], consume=fine is not None)
         inv = inv.reshape(-1)
         for a in range(0, inv.size, EXIT_BLOCK):
             E[a:a + EXIT_BLOCK] *= A[inv[a:a + EXIT_BLOCK]][:, :, None]

@@ -197,6 +197,8 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
                                             keep_for_bounce=plan.bouncing))
             elif gb.n:
                 results.append(load_transfer_set(ctx, geo, gb, old_reports.get(ctx.scene.set_names[s], {})))
+        # The results hold what the bounce needs of each G-buffer: not the last one whole (#35).
+        gb = first_gb = None
     vertex = vertex_stage(ctx, geo, plan) if st.vertex_mode and not plan.transfer_reused else None
     bounce = None
     if plan.bouncing:
