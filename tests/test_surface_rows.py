@@ -73,3 +73,24 @@ def test_surface_texels_match_the_planes_construction(diffuse_only):
             for f, v in want.items():
                 assert np.ascontiguousarray(getattr(got, f)).tobytes() == np.ascontiguousarray(v).tobytes(), f
             assert got.glossy == (not diffuse_only and bool((want.get("spec", np.zeros(1)) > 0).any()))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_consumed_incident_set_copies_the_same_rows_and_gives_its_pages_back(monkeypatch, seed):
+    """IncidentSet.at(..., consume=True) (the coarse grid's set, taken at the
+    surface's texels, #35): the rows at(...) copies, zeros where the set has
+    none, a block at a time, the set's pages given back behind it."""
+    from prtt_addon.core.bake.estimators.bounce import IncidentSet
+    monkeypatch.setattr(IncidentSet, "AT_BLOCK", 5000)
+    rng = np.random.default_rng(seed)
+    H, W, C = 300, 400, 25
+    valid = np.flatnonzero(rng.random(H * W) < 0.7)
+    rows = np.zeros((valid.size + 1, C), np.float32)
+    rows[:-1] = rng.standard_normal((valid.size, C))
+    # The surface's texels: most of the set's, some it lacks, some it has that they lack.
+    texels = np.flatnonzero((rng.random(H * W) < 0.7) | np.isin(np.arange(H * W), valid[::3]))
+    want = IncidentSet(rows.copy(), valid, W, H).at(texels, padded=True)
+    s = IncidentSet(rows, valid, W, H)
+    got = s.at(texels, padded=True, consume=True)
+    assert got.tobytes() == want.tobytes()
+    assert np.count_nonzero(s.rows) < 0.05 * s.rows.size

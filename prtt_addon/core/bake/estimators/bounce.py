@@ -66,6 +66,7 @@ import numpy as np
 
 from ...base.blas import single_threaded_blas
 from ...base.errors import Cancelled
+from ...base.memory import discard_pages
 from ...base.threads import run_chunks
 from ...model.material import Material
 from ...sh.basis import basis_unchecked
@@ -169,11 +170,19 @@ class IncidentSet:
     def channels(self) -> int:
         return int(self.rows.shape[1])
 
-    def at(self, texels: np.ndarray, k: int | None = None, *, padded: bool = False) -> np.ndarray:
+    #: Rows :meth:`at` copies at a time when it consumes the set.
+    AT_BLOCK = 1 << 18
+
+    def at(self, texels: np.ndarray, k: int | None = None, *, padded: bool = False,
+           consume: bool = False) -> np.ndarray:
         """The first ``k`` (default all) channels at flat texel indices ``texels``
         (n,), zeros where the texture is empty: (n, k) float32, or with
         ``padded`` (n + 1, k) with a last row of zeros. When ``texels`` is
-        ``valid`` itself and k = C, the rows themselves (no copy)."""
+        ``valid`` itself and k = C, the rows themselves (no copy).
+        ``consume`` (``texels`` ascending; the caller is done with this set):
+        a copy is made a block of rows at a time, each giving back the pages
+        of the rows behind it (base/memory.discard_pages), so the set and its
+        copy are not both whole (#35); the set reads as zeros afterwards."""
         k = self.channels if k is None else int(k)
         texels = np.asarray(texels)
         n = texels.shape[0]
@@ -182,10 +191,23 @@ class IncidentSet:
         out = np.zeros((n + 1 if padded else n, k), np.float32)
         if self.valid.size == 0:
             return out
-        where = np.minimum(np.searchsorted(self.valid, texels), self.valid.size)
+        first = np.searchsorted(self.valid, texels)       # ascending with texels: the rows still to read
+        where = np.minimum(first, self.valid.size)
         where[self.valid[np.minimum(where, self.valid.size - 1)] != texels] = self.valid.size  # the zero row
         src = self.rows if k == self.channels else self.rows[:, :k]
-        np.take(src, where, axis=0, out=out[:n])
+        if not (consume and self.rows.flags.c_contiguous and n and np.all(np.diff(texels) > 0)):
+            np.take(src, where, axis=0, out=out[:n])
+            return out
+        done = 0                                   # rows of the set below this are copied
+        for a in range(0, n, self.AT_BLOCK):
+            b = min(n, a + self.AT_BLOCK)
+            np.take(src, where[a:b], axis=0, out=out[a:b])
+            # Ascending texels read ascending rows: those below the next block's first are done
+            # (``first``, not ``where``: a texel the set lacks reads the zero row at the end).
+            nxt = min(int(first[b]) if b < n else self.valid.size, self.valid.size)
+            if nxt > done:
+                discard_pages(self.rows[done:nxt])
+                done = nxt
         return out
 
     def band(self, row0: int, row1: int) -> np.ndarray:
@@ -362,18 +384,22 @@ def block_mean_incident(incident: IncidentSet, valid: np.ndarray, f: int, dilate
     w, h = W // f, H // f
     mask = np.zeros(H * W, np.float32)
     mask[valid] = 1.0
-    blocks = np.zeros((h, w, C), np.float32)
-    # In bands of block rows (each block's sum is the same whichever band holds it).
+    count = mask.reshape(h, f, w, f).sum(axis=(1, 3))
+    have = count > 0
+    # The block means straight into channel planes, a band of block rows at a time
+    # (each block's sum is the same whichever band holds it): no (h, w, C) copy
+    # of them beside the planes (#35).
+    planes = np.zeros((C, h, w), np.float32)
     step = max(1, IncidentSet.BAND_BYTES // max(1, f * W * C * 4))
     for a0 in range(0, h, step):
         a1 = min(h, a0 + step)
         pm = incident.band(a0 * f, a1 * f)
-        blocks[a0:a1] = np.einsum("aibjc,aibj->abc", pm.reshape(a1 - a0, f, w, f, C),
-                                  mask[a0 * f * W:a1 * f * W].reshape(a1 - a0, f, w, f))
-    count = mask.reshape(h, f, w, f).sum(axis=(1, 3))
-    have = count > 0
-    blocks[have] /= count[have][:, None]
-    planes = np.ascontiguousarray(np.moveaxis(blocks, 2, 0))
+        blocks = np.einsum("aibjc,aibj->abc", pm.reshape(a1 - a0, f, w, f, C),
+                           mask[a0 * f * W:a1 * f * W].reshape(a1 - a0, f, w, f))
+        hv = have[a0:a1]
+        blocks[hv] /= count[a0:a1][hv][:, None]
+        planes[:, a0:a1] = np.moveaxis(blocks, 2, 0)
+    mask = pm = blocks = None
     return IncidentSet.from_planes(planes, dilate(planes, have, dilate_iterations))
 
 

@@ -150,7 +150,8 @@ def transfer_product_rows(T: np.ndarray, kg: int, out: np.ndarray | None = None,
 
 
 def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
-                fine: tuple[SurfaceTexels, np.ndarray] | None = None) -> RelightExit:
+                fine: tuple[SurfaceTexels, np.ndarray] | None = None, *,
+                consume_surface: bool = False) -> RelightExit:
     """Level 1's exit forms from the transfer ``T_rows`` (M + 1, K) float32 at
     ``surf``'s M valid texels, then a row of zeros (bounce.IncidentSet.at(..., padded=True):
     the diffuse table is that array itself, not a copy); ``fine`` =
@@ -158,7 +159,9 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
     from (as bounce.exit_textures' ``diffuse_at``). With ``fine`` both are
     consumed: the fine SurfaceTexels' albedo and valid become None and
     ``T_rows`` reads as zeros afterwards (#35: neither is held beside the
-    glossy table)."""
+    glossy table). ``consume_surface`` (the last level: nothing reads ``surf``
+    after it): its float64 shading arrays become None once the exit's own
+    float32 copies are made, before the glossy table is."""
     dsurf, dT = (surf, T_rows) if fine is None else fine
     if dT.dtype != np.float32 or dT.shape[0] != dsurf.valid.size + 1 or dT[-1].any():
         raise ValueError("level1_exit: transfer rows must be (M + 1, K) float32 with a last row of zeros")
@@ -180,8 +183,14 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
         # lobe_factors per distinct exponent, gathered a block at a time.
         u, inv = np.unique(np.asarray(surf.exponent, np.float64), return_inverse=True)
         A = lobe_factors(u, glossy_bands).astype(np.float32)                          # (U, Kg)
+        ex.g_scale = _with_zero_row(surf.spec)
+        ex.normal = _with_zero_row(surf.normal)
+        M = surf.valid.size
+        if consume_surface:
+            # 80 B a texel of float64 not held beside the table (#35).
+            surf.albedo = surf.spec = surf.exponent = surf.normal = None
         # Built in the table with its zero row, in place: no (M, Kg, Kg) temporaries.
-        g_rows = np.zeros((surf.valid.size + 1, 1, kg, kg), np.float32)
+        g_rows = np.zeros((M + 1, 1, kg, kg), np.float32)
         # With a finer diffuse grid T_rows is this grid's own (the block means): consumed as
         # the table is made. Otherwise it is the diffuse table itself, kept.
         E = transfer_product_rows(T_rows[:-1], kg, out=g_rows[:-1, 0], consume=fine is not None)
@@ -191,8 +200,8 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
         inv = None
         ex.glossy_grid = grid
         ex.g_rows = g_rows
-        ex.g_scale = _with_zero_row(surf.spec)
-        ex.normal = _with_zero_row(surf.normal)
+    elif consume_surface:
+        surf.albedo = surf.spec = surf.exponent = surf.normal = None
     return ex
 
 

@@ -279,7 +279,9 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         if lit:
             Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
         else:
-            Lp[r.index] = incident.at(surf[r.index].valid, K, padded=True)
+            # The coarse grid's own incident set (the fine one is level 1's diffuse table: kept).
+            Lp[r.index] = incident.at(surf[r.index].valid, K, padded=True, consume=grid.downscale > 1)
+        incident = None
         baked.append(r)
     # On the grids the bounce textures are baked on, like each level's energy.
     if lit:

@@ -78,8 +78,10 @@ def _relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: li
             # Each set's transfer rows and fine albedo are dropped as its exit is built:
             # the exits hold what later levels read.
             exits = {}
+            last = level == st.bounces
             for i in list(T):
-                exits[i] = level1_exit(inputs.surface[i], T.pop(i), gbands, fine=inputs.level1_diffuse.pop(i, None))
+                exits[i] = level1_exit(inputs.surface[i], T.pop(i), gbands, fine=inputs.level1_diffuse.pop(i, None),
+                                       consume_surface=last)
             T = None
         else:
             exits = {i: later_exit(inputs.surface[i], r, gbands) for i, r in rows.items()}
