@@ -73,24 +73,26 @@ def test_estimate_within_20_percent_of_the_measured_peak(room_job, tmp_path, siz
 
 def test_estimate_counts_texels_and_the_relightable_operator():
     """Structure: the estimate grows with the atlas (4x texels, >3x bytes beyond
-    the process's base and its ray chunks) and a relightable bounce costs more than a baked one."""
+    the process's base and its ray chunks), and what each bounce mode holds."""
     sizes = lambda r: [(r, r, memory_plan.covered_texels(0.5, r, r))]  # noqa: E731
     st = BakeSettings(bounces=1)
     a = bake_stage_bytes(sizes(1024), st, n_triangles=10_000, bouncing=True)
     b = bake_stage_bytes(sizes(2048), st, n_triangles=10_000, bouncing=True)
-    base = a["setup"]
+    base = a["setup"] + 2 * (1 << 19) * memory_plan.RAY_BYTES      # the process and two threads' ray chunks
     assert (max(b.values()) - base) > 3 * (max(a.values()) - base)
     baked = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, bounce_mode="baked", tuning="fixed"),
                              n_triangles=10_000, bouncing=True)
     fixed = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, tuning="fixed", half=False), n_triangles=10_000,
                              bouncing=True)
-    assert fixed["bounce"] > baked["bounce"]
-    # One relightable level written as half holds its columns at about half the bytes (half_columns).
+    # One relightable level waits in a file (io.column_spill) at either precision, and holds less
+    # than a baked level's planes; two hold every level's columns, more than the baked ones.
     halfed = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, tuning="fixed"), n_triangles=10_000,
                               bouncing=True)
     two = bake_stage_bytes(sizes(1024), BakeSettings(bounces=2, tuning="fixed"), n_triangles=10_000,
                            bouncing=True)
-    assert halfed["bounce"] < fixed["bounce"] < two["bounce"]
+    baked2 = bake_stage_bytes(sizes(1024), BakeSettings(bounces=2, bounce_mode="baked", tuning="fixed"),
+                              n_triangles=10_000, bouncing=True)
+    assert halfed["bounce"] == fixed["bounce"] < baked["bounce"] <= baked2["bounce"] < two["bounce"]
     none = bake_stage_bytes(sizes(1024), st, n_triangles=10_000, bouncing=False)
     assert "bounce" not in none and none["write transfer"] < a["write transfer"]
 

@@ -15,17 +15,24 @@ K = bands², C the relightable channels (3K + the glossy rows). Bytes:
   a CLI's or a test runner's imports), and on a bake that compiles the
   bounce's kernels (nothing cached yet) what the compiler keeps;
 * G-buffer: the G-buffer and its rasteriser's temporaries, GBUFFER_BUILD a texel;
-* trace and projection: the G-buffer and kernel points (SURFACE a texel), the
-  traced rows 4 K N, the float32 planes 4 K A;
-* write: the planes (given back plane by plane as they become the file's
-  channels), and when the bake bounces the texture at its valid texels 4 K V;
-* bounce (relightable): on the bounce grid (1/f per side: A/f², N/f², V/f²
-  texels) the G-buffer and points, the surface (SURFACE_SHADING a valid
-  texel), the glossy exit table 4 Kg² V, and each set's traced columns
-  4 C N (held until written; HALF_TABLE C N for one level written as
-  half); on the transfer's grid the diffuse exit table
-  4 K V and the albedo (FINE_DIFFUSE a valid texel). Baked bounces hold the
-  level's (3K, A) planes and exit rows instead;
+* trace: the G-buffer and kernel points (SURFACE a texel) and the traced rows
+  4 K N; projection: the float32 planes 4 K A (the rows are consumed into
+  them) beside the G-buffer's layout (LAYOUT a texel) and what the bounce
+  keeps of the surface;
+* write: the planes, given back a band at a time as the file is written
+  (exr_io.write_sh_planes), while the texture at its valid texels (4 K V)
+  fills when the bake bounces: the two are not both whole;
+* bounce (relightable), the largest of two moments. Its inputs: on the
+  transfer's grid the texture (4 K V) and the albedo (FINE_DIFFUSE a valid
+  texel), while the bounce grid (1/f per side: A/f², N/f², V/f² texels) gets
+  its G-buffer (GBUFFER_BUILD) and block means (4 K V/f²). Its trace: the
+  diffuse exit table 4 K V and its scales (FINE_SCALE V + 4 A), on the bounce
+  grid the G-buffer and points, the glossy exit table 4 Kg² V and its
+  scales and normals (EXIT_SCALES), and each set's traced columns: one level
+  waits in a temporary file (io.column_spill), only its DC responses in
+  memory (12 B a covered texel); more levels hold 4 C N each and the
+  surface (SURFACE_SHADING a valid texel). Baked bounces hold the level's
+  (3K, A) planes and exit rows instead;
 * sets baked earlier keep, when bouncing, their surface and texture (SURFACE
   N + 4 K V; with a coarser bounce grid the albedo instead of the surface,
   FINE_DIFFUSE V + 4 K V) until the bounce.
@@ -64,12 +71,14 @@ GBUFFER_BUILD = 240
 SURFACE = 134
 #: A valid texel's shading on the bounce grid: albedo, spec, exponent, normal (float64), exit scales.
 SURFACE_SHADING = 120
-#: A valid texel of the transfer's grid that level 1's diffuse light leaves from: albedo, scale, row.
+#: A valid texel of the transfer's grid that level 1's diffuse light leaves from: albedo, texel id, row.
 FINE_DIFFUSE = 40
-#: Bytes a channel of a covered texel takes in one relightable level written as half
-#: (texels.half_columns: float16, and float32 at the island borders, 4 % of the
-#: demo's texels at 2048²; more on small islands).
-HALF_TABLE = 2.4
+#: What the diffuse exit table keeps of it through the trace: the scales (float32 RGB).
+FINE_SCALE = 12
+#: A valid texel of the glossy exit table's grid: its colour scales and normal (float32).
+EXIT_SCALES = 24
+#: A covered texel's G-buffer layout kept once its surface is dropped (texel id, coverage).
+LAYOUT = 12
 #: Dilation rings: V = N (1 + RING * dilate / sqrt(A)) (the islands' perimeters in texels).
 RING = 18.0
 #: Covered texels: N = UV area x A + EDGE x the islands' boundary length x sqrt(A) (conservative
@@ -161,8 +170,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     compiling: numba compiles the bounce's kernels in this process (JIT_COMPILE
     from the start: they are compiled on a helper thread while the first set is).
     extra: bytes the process holds beyond BASE's assumption (:func:`process_extra`).
-    half: the textures are written as float16 (one relightable level is then
-    held at that precision: HALF_TABLE).
+    half: the textures are written as float16.
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -185,14 +193,19 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         v = valid_texels(n, w, h, dilate)
         planes = 4 * K * A * (4 / 3 if mips else 1)
         out["gbuffer"] = max(out["gbuffer"], base + held + GBUFFER_BUILD * n)
-        out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + int(planes) + chunks(n, rays))
         # A coarser bounce grid keeps the albedo, not the surface (stages.transfer_set).
-        keep = ((FINE_DIFFUSE * v if f > 1 else SURFACE * n) + 4 * K * v) if bounces else 0
-        out["write transfer"] = max(out["write transfer"], base + held + int(planes) + keep)
-        held += keep
+        surface = (FINE_DIFFUSE * v if f > 1 else SURFACE * n) if bounces else 0
+        # The rows are consumed into the planes as they are projected: the trace's and
+        # the projection's holdings are not both whole.
+        projection = base + held + int(planes) + LAYOUT * n + surface
+        out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays), projection)
+        # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A).
+        out["write transfer"] = max(out["write transfer"], projection)
+        held += (surface + 4 * K * v) if bounces else 0
     if bounces:
         total = base + chunks(max((n for _, _, n in sets), default=0), bounce_rays)
-        table = HALF_TABLE if bounces == 1 and half else 4 * min(bounces, 2)
+        inputs, build = base, 0
+        table = 4 * min(bounces, 2)
         for (w, h, n), f in zip(sets, per_set):
             f = max(1, int(f))
             f2 = f * f
@@ -202,17 +215,24 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
             nc = max(1, n // f2)
             vc = valid_texels(nc, wc, hc, dilate)
             if bounce_mode == "relightable":
-                total += (SURFACE * nc + SURFACE_SHADING * vc + 4 * glossy_coeffs * vc
-                          + int(table * relight_channels * nc) + 12 * wc * hc)
+                # One level: its columns wait in a file, its 3 DC responses in memory;
+                # more: every level's columns, and the surface the next level's exit reads.
+                columns = 12 * nc if bounces == 1 else int(table * relight_channels * nc) + SURFACE_SHADING * vc
+                total += SURFACE * nc + EXIT_SCALES * vc + 4 * glossy_coeffs * vc + columns + 12 * wc * hc
                 exits = 4 * glossy_coeffs * vc + 24 * vc
+                # The inputs: the coarse grid's G-buffer built and its block means taken
+                # beside the transfer's texture and albedo.
+                inputs += 4 * K * v + (FINE_DIFFUSE * v + SURFACE * nc + SURFACE_SHADING * vc + 4 * K * vc
+                                       if f2 > 1 else SURFACE * n + SURFACE_SHADING * v)
+                build = max(build, GBUFFER_BUILD * nc if f2 > 1 else 0)
             else:
                 total += SURFACE * nc + SURFACE_SHADING * vc + 4 * 3 * K * (wc * hc + 2 * vc)
                 exits = 4 * 3 * K * vc
-            total += 4 * K * v + FINE_DIFFUSE * v + 8 * A if f2 > 1 else 4 * K * v
+            total += 4 * K * v + FINE_SCALE * v + 4 * A if f2 > 1 else 4 * K * v
             if dask:
                 # Dask serialises what it scatters into a copy as it sends it.
                 total += exits + 4 * K * v + 12 * v
-        out["bounce"] = total
+        out["bounce"] = max(total, inputs + build) if bounce_mode == "relightable" else total
     return out
 
 
