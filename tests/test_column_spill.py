@@ -59,9 +59,14 @@ def test_spilled_bands_are_the_in_memory_planes(tmp_path, seed, dilate, rows):
             sp[1]
         lo, hi = got.value_range()
         assert (lo, hi) == ref.value_range()
-        assert os.path.exists(sp.path) and os.path.basename(sp.path).startswith(atomic.TMP_PREFIX)
-        path = sp.path
-    assert not os.path.exists(path)
+        # Its name is gone while it is open (POSIX: unlinked; Windows: deleted on close).
+        if os.name != "nt":
+            assert os.listdir(tmp_path) == []
+        assert os.path.basename(sp.path).startswith(atomic.TMP_PREFIX)
+        assert sp.file_bytes() == sp.bytes_written > table.nbytes
+    assert sp.closed and sp.file_bytes() == 0 and os.listdir(tmp_path) == []
+    with pytest.raises(ValueError, match="closed"):
+        got.band(0, 4)
 
 
 def test_the_spill_holds_texel_ids_and_values_and_nothing_whole_in_memory(tmp_path):
@@ -71,7 +76,7 @@ def test_the_spill_holds_texel_ids_and_values_and_nothing_whole_in_memory(tmp_pa
     with _spill(tmp_path, rng, texel, table, mask) as sp:
         # One int64 texel id per column and record (two records per chunk), the float32 values once.
         assert sp.bytes_written == table.nbytes + 2 * 8 * texel.size
-        assert os.path.getsize(sp.path) == sp.bytes_written
+        assert sp.file_bytes() == sp.bytes_written
         assert sp.exact.nbytes == 2 * 4 * texel.size       # the two exact channels, nothing more
 
 
@@ -116,7 +121,7 @@ def test_nan_and_values_beyond_half_reach_the_writer_as_before(tmp_path):
     assert [f for f in os.listdir(tmp_path) if f.endswith(".spill")] == []
 
 
-def test_a_cancelled_relightable_bake_leaves_no_spill_file(tmp_path):
+def test_a_cancelled_relightable_bake_leaves_no_spill_file(tmp_path, monkeypatch):
     """Cancelled during the bounce's trace: the bake stops, and neither its
     spill file nor any other temporary is left in the output folder."""
     from prtt_addon.bench.scene_library import room_scene
@@ -125,15 +130,21 @@ def test_a_cancelled_relightable_bake_leaves_no_spill_file(tmp_path):
     from prtt_addon.core.base.errors import Cancelled
 
     cancel = threading.Event()
-    seen = []
+    made = []
+    orig = ColumnSpill.store
+
+    def store(self, *a, **k):
+        made.append(self)
+        orig(self, *a, **k)
 
     def progress(e):
-        if e.get("stage") == "bounce" and e.get("type") == "progress" and not cancel.is_set():
-            seen.append(sorted(f for f in os.listdir(tmp_path) if f.endswith(".spill")))
+        if e.get("stage") == "bounce" and e.get("type") == "progress" and made:
             cancel.set()
 
+    monkeypatch.setattr(ColumnSpill, "store", store)
     st = BakeSettings(rays=32, bounce_rays=16, seed=3, threads=2, bounces=1, bounce_mode="relightable")
     with pytest.raises(Cancelled):
         bake_scene(room_scene(64, atlas=True, materials=True), str(tmp_path), st, progress=progress, cancel=cancel)
-    assert seen and seen[0], "the spill file exists while the level is traced"
+    assert made and made[0].bytes_written > 0, "the level was spilled before the cancel"
+    assert all(s.closed for s in made)
     assert [f for f in os.listdir(tmp_path) if f.startswith(atomic.TMP_PREFIX)] == []

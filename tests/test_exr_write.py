@@ -4,6 +4,7 @@ every channel at once (as the writer did before), for every compression,
 precision and channel layout PRTT writes, whatever the band height; what it
 refuses leaves no file."""
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -74,14 +75,15 @@ def test_bands_write_the_whole_file_apis_bytes(tmp_path, monkeypatch, kind, C, H
 
 
 def test_consume_gives_the_planes_back_band_by_band(tmp_path, monkeypatch):
-    monkeypatch.setattr(exr_io, "WRITE_BAND_BYTES", 1 << 18)         # two bands of 128 rows
+    monkeypatch.setattr(exr_io, "WRITE_BAND_BYTES", 1 << 18)         # four bands of 64 rows
     planes = np.ones((5, 256, 512), np.float32)
     exr_io.write_sh_planes(tmp_path / "t.exr", planes[:4].copy(), kind="transfer")
     p = planes[:4].copy()
     exr_io.write_sh_planes(tmp_path / "c.exr", p, kind="transfer", consume=True)
     assert (tmp_path / "c.exr").read_bytes() == (tmp_path / "t.exr").read_bytes()
     # Every whole page inside a band was given back (reads as zero); pages across two bands' rows stay.
-    assert np.count_nonzero(p) < 0.05 * p.size
+    if sys.platform.startswith("linux"):          # madvise zeroes given-back pages there
+        assert np.count_nonzero(p) < 0.05 * p.size
 
 
 @pytest.mark.parametrize("bad", [[b"a", b"b"], ["a"], {"k": 1}, None])

@@ -4,6 +4,7 @@ seeds), sums every level into one texture, is linear in the light, and does
 not go stale (nor rebake) when only the light changes."""
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -434,4 +435,5 @@ def test_the_glossy_table_made_in_blocks_is_the_one_product_and_consumes_its_inp
     out = np.empty((big.shape[0], 9, 9), np.float32)
     relightable.transfer_product_rows(big, 9, out=out, consume=True)
     assert out.tobytes() == want.tobytes()
-    assert np.count_nonzero(big) < 0.05 * big.size
+    if sys.platform.startswith("linux"):          # madvise zeroes given-back pages there
+        assert np.count_nonzero(big) < 0.05 * big.size

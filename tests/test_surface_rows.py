@@ -2,6 +2,8 @@
 fills rows with the same values, bit for bit, as the planes' dilation
 (texels.dilate.dilate, the reference), and bounce.surface_texels, which now
 uses it, returns what the planes-then-gather construction returned."""
+import sys
+
 import numpy as np
 import pytest
 
@@ -93,4 +95,5 @@ def test_a_consumed_incident_set_copies_the_same_rows_and_gives_its_pages_back(m
     s = IncidentSet(rows, valid, W, H)
     got = s.at(texels, padded=True, consume=True)
     assert got.tobytes() == want.tobytes()
-    assert np.count_nonzero(s.rows) < 0.05 * s.rows.size
+    if sys.platform.startswith("linux"):          # madvise zeroes given-back pages there
+        assert np.count_nonzero(s.rows) < 0.05 * s.rows.size

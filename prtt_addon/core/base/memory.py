@@ -191,9 +191,9 @@ def discard_pages(a) -> int:
     """Give the whole pages inside C-contiguous array ``a``'s buffer back to
     the OS (madvise MADV_DONTNEED): resident memory drops now, not when the
     array is freed, and the array then reads as zeros there. For an array
-    that is done with but cannot be freed yet, a plane at a time (e.g. the
-    float32 planes of a texture as each is converted to the file's half
-    floats: exr_io.write_sh_planes' ``consume``). Returns the bytes given
+    that is done with but cannot be freed yet, a part at a time (e.g. the
+    float32 planes of a texture as each band of rows is written:
+    exr_io.write_sh_planes' ``consume``). Returns the bytes given
     back (0 where madvise is missing or the array spans no whole page)."""
     import mmap
     if not a.flags.c_contiguous or a.nbytes == 0:

@@ -15,10 +15,12 @@ range. :meth:`ColumnSpill.scatter_rows` reads back the records of the
 buckets a window of rows touches. The values are the float32 ones, bit for
 bit: the texture written from them is the one the in-memory table gave.
 
-The file sits in the output folder under the bake's temporary prefix
-(io.atomic: deleted on a hard exit too) and is deleted by :meth:`close`.
-Writes and reads take a lock (several trace threads store at once; no
-``pwrite``, which Windows lacks).
+The file is made in the output folder under the bake's temporary prefix and
+its name is removed at once (POSIX: only the open descriptor holds it;
+Windows: opened delete-on-close), so nothing is left behind whatever ends
+the process, a SIGKILL or the OOM killer included; :meth:`close` gives its
+space back. Writes and reads take a lock (several trace threads store at
+once; no ``pwrite``, which Windows lacks).
 """
 from __future__ import annotations
 
@@ -27,11 +29,23 @@ import threading
 
 import numpy as np
 
-from .atomic import register, temp_prefix, unregister
+from .atomic import temp_prefix
 
-#: Rows of a bucket: the writer's bands are whole multiples of 32 rows (exr_io.WRITE_BAND_BLOCK),
-#: so a band with its dilation rings reads three buckets.
-BUCKET_ROWS = 32
+#: Rows of a bucket. The writer's bands are whole multiples of 32 rows (exr_io.WRITE_BAND_BLOCK)
+#: and read their dilation rings beyond: buckets of 8 rows read a few rows more than the
+#: window (32 would read three buckets of 32 for a band of 32 and 3 rings a side).
+BUCKET_ROWS = 8
+
+
+def _open_unnamed(folder: str, stem: str):
+    """A new binary file in ``folder`` opened for reading and writing, unbuffered,
+    whose name is gone already (POSIX) or goes when it is closed (Windows)."""
+    path = os.path.join(folder, f"{temp_prefix(stem)}{os.getpid()}-{threading.get_ident()}-{id(folder):x}.spill")
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0) | getattr(os, "O_TEMPORARY", 0)
+    fd = os.open(path, flags, 0o600)
+    if not getattr(os, "O_TEMPORARY", 0):
+        os.unlink(path)
+    return path, open(fd, "w+b", buffering=0)
 
 
 class ColumnSpill:
@@ -57,10 +71,8 @@ class ColumnSpill:
         n_buckets = -(-self.height // self.bucket_rows)
         self._index: list[list[tuple[int, int, int, int]]] = [[] for _ in range(n_buckets)]
         self._end = 0
-        fd_path = os.path.join(folder, f"{temp_prefix('columns')}{id(self):x}.spill")
-        register(fd_path)
-        self.path = fd_path
-        self._file = open(fd_path, "w+b", buffering=0)      # records are large: no buffer to flush
+        # Records are large: no buffer to flush (and every write and read is looped to its end).
+        self.path, self._file = _open_unnamed(folder, "columns")
         self.bytes_written = 0
 
     def store(self, cols: np.ndarray, src: np.ndarray, first: int = 0) -> None:
@@ -116,6 +128,8 @@ class ColumnSpill:
         flat = out.reshape(out.shape[0], -1)
         b0, b1 = y0 // self.bucket_rows, -(-y1 // self.bucket_rows)
         with self._lock:
+            if self._file is None:
+                raise ValueError(f"{self.path}: the spilled columns were closed (deleted) already")
             for bk in range(b0, min(b1, len(self._index))):
                 for off, first, c, m in self._index[bk]:
                     self._file.seek(off)
@@ -128,20 +142,27 @@ class ColumnSpill:
                         got += n
                     texel = np.frombuffer(raw, np.int64, m)
                     vals = np.frombuffer(raw, np.float32, c * m, 8 * m).reshape(c, m)
+                    if texel.min() >= y0 * W and texel.max() < y1 * W:      # a record inside the window
+                        flat[first:first + c, texel - y0 * W] = vals
+                        continue
                     keep = (texel >= y0 * W) & (texel < y1 * W)
                     flat[first:first + c, texel[keep] - y0 * W] = vals[:, keep]
 
+    @property
+    def closed(self) -> bool:
+        return self._file is None
+
+    def file_bytes(self) -> int:
+        """Bytes the file holds now (0 once closed)."""
+        with self._lock:
+            return 0 if self._file is None else os.fstat(self._file.fileno()).st_size
+
     def close(self) -> None:
-        """Delete the file (the table reads as nothing afterwards)."""
+        """Close the file, giving its space back (reading it afterwards is an error)."""
         with self._lock:
             if self._file is not None:
                 self._file.close()
                 self._file = None
-                try:
-                    os.remove(self.path)
-                except OSError:
-                    pass
-                unregister(self.path)
                 self._index = [[] for _ in self._index]
 
     def __enter__(self):

@@ -200,7 +200,7 @@ def write_band_rows(channels: int, width: int, half: bool) -> int:
 def _legacy_header(width: int, height: int, names: list[str], half: bool, kind: str, attrs: dict):
     """The scanline writer's header: the same attributes, in the same file
     bytes, as ``OpenEXR.File`` writes for the header dict write_sh_planes made
-    (checked by tests/test_exr_io.py against a whole-file write)."""
+    (checked by tests/test_exr_write.py against a whole-file write)."""
     import Imath
     import OpenEXR
     h = OpenEXR.Header(int(width), int(height))

@@ -182,7 +182,8 @@ class IncidentSet:
         ``consume`` (``texels`` ascending; the caller is done with this set):
         a copy is made a block of rows at a time, each giving back the pages
         of the rows behind it (base/memory.discard_pages), so the set and its
-        copy are not both whole (#35); the set reads as zeros afterwards."""
+        copy are not both whole (#35); when a copy was made, the set's whole
+        pages read as zeros afterwards."""
         k = self.channels if k is None else int(k)
         texels = np.asarray(texels)
         n = texels.shape[0]

@@ -157,9 +157,9 @@ def level1_exit(surf: SurfaceTexels, T_rows: np.ndarray, glossy_bands: int,
     the diffuse table is that array itself, not a copy); ``fine`` =
     (SurfaceTexels, T rows alike) of a finer grid the diffuse term leaves
     from (as bounce.exit_textures' ``diffuse_at``). With ``fine`` both are
-    consumed: the fine SurfaceTexels' albedo and valid become None and
-    ``T_rows`` reads as zeros afterwards (#35: neither is held beside the
-    glossy table). ``consume_surface`` (the last level: nothing reads ``surf``
+    consumed: the fine SurfaceTexels' albedo and valid become None and,
+    when ``surf`` is glossy, ``T_rows``' whole pages are given back as the
+    glossy table is made from them (#35: neither is held beside it). ``consume_surface`` (the last level: nothing reads ``surf``
     after it): its float64 shading arrays become None once the exit's own
     float32 copies are made, before the glossy table is."""
     dsurf, dT = (surf, T_rows) if fine is None else fine

@@ -10,7 +10,8 @@ hold a value once dilated (N and the dilation rings around every island).
 K = bands², C the relightable channels (3K + the glossy rows). Bytes:
 
 * every stage: the process (Python, numpy, numba's kernels, Embree: BASE),
-  the scene's arrays and its BVH (:func:`scene_bytes`), what the process
+  the scene's arrays and its BVH (:func:`scene_bytes`; from the G-buffer
+  stage on also the geometry's per-triangle tables, GEOMETRY), what the process
   already holds beyond a bare bake worker and its job (:func:`process_extra`:
   a CLI's or a test runner's imports), and on a bake that compiles the
   bounce's kernels (nothing cached yet) what the compiler keeps;
@@ -63,8 +64,14 @@ NUMBA_IMPORT = 60 * MiB
 #: What a Dask client adds to the bake process (dask and distributed imported, the client's I/O loop):
 #: measured 31 MiB (the demo's "dask" stage against a local bake's "setup", 1024² and 2048²).
 DASK_CLIENT = 32 * MiB
+#: Copies of the exit tables a Dask client holds while it scatters them to the workers.
+DASK_COPIES = 1.5
 #: Bytes a scene triangle holds: the job's arrays (positions, normals, UVs, ids) and Embree's BVH.
 TRIANGLE = 400
+#: Bytes a triangle adds from the analytic test on (its face data and clear tables, the hit
+#: shading's UV frames): measured 316 on the 1.27M-triangle room and bunnies (its
+#: "analytic-test" stage against its "bvh" stage), counted from the G-buffer stage on.
+GEOMETRY = 300
 #: The G-buffer while it is built: the merged arrays and the row bands' rasteriser temporaries.
 GBUFFER_BUILD = 240
 #: A covered texel's G-buffer (position, normals, barycentrics, ids: 117 B) and kernel points (17 B).
@@ -158,7 +165,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
-                half: bool = True, dask: bool = False) -> dict[str, int]:
+                dask: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -170,7 +177,6 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     compiling: numba compiles the bounce's kernels in this process (JIT_COMPILE
     from the start: they are compiled on a helper thread while the first set is).
     extra: bytes the process holds beyond BASE's assumption (:func:`process_extra`).
-    half: the textures are written as float16.
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -186,6 +192,8 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         # A thread's chunk holds chunk_rays, or all of a small set's rays shared out.
         return threads * min(chunk_rays, -(-texels * per_texel // threads)) * RAY_BYTES
     out = {"setup": base, "gbuffer": 0, "trace": 0, "write transfer": 0}
+    # From the analytic test on, every stage holds the geometry's per-triangle tables too.
+    base += GEOMETRY * int(n_triangles)
     held = 0                                   # what earlier sets keep for the bounce
     per_set = downscale if isinstance(downscale, (list, tuple)) else [downscale] * len(sets)
     for (w, h, n), f in zip(sets, per_set):
@@ -230,8 +238,10 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 exits = 4 * 3 * K * vc
             total += 4 * K * v + FINE_SCALE * v + 4 * A if f2 > 1 else 4 * K * v
             if dask:
-                # Dask serialises what it scatters into a copy as it sends it.
-                total += exits + 4 * K * v + 12 * v
+                # Dask serialises what it scatters as it sends it: measured as 1.0 copy of the
+                # exit tables at 1024² and 1.6 at 2048² (the client's peak against a local
+                # bake's, bench memory), not traced further: DASK_COPIES of them.
+                total += int(DASK_COPIES * (exits + 4 * K * v + 12 * v))
         out["bounce"] = max(total, inputs + build) if bounce_mode == "relightable" else total
     return out
 

@@ -106,14 +106,15 @@ def _relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: li
                                                  progress=on_progress, cancel=ctx.cancel, remote=ctx.remote)
             ctx.seconds["bounce_trace"] += time.perf_counter() - t
             t = time.perf_counter()
-            # The early stop reads only the DC responses to the light's DC (channels c K).
-            energy += uniform_energy(np.stack([cols[c] for c in range(0, 3 * K, K)]).T[:, :, None])
             # Each level is kept at its covered texels; dilated, and the levels
             # summed, a band of rows at a time as the texture is written (DilatedRows).
+            # Recorded first: a spill is closed by relight_levels whatever happens next.
             if src.index in sums:
                 sums[src.index][1].append(cols)
             else:
                 sums[src.index] = [src, [cols], lbst.rays, mask]
+            # The early stop reads only the DC responses to the light's DC (channels c K).
+            energy += uniform_energy(np.stack([cols[c] for c in range(0, 3 * K, K)]).T[:, :, None])
             if level < st.bounces:
                 valid = inputs.surface[src.index].valid
                 M = valid.size

@@ -423,7 +423,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
                                               visit=opened if keep_for_bounce else None), gb)
         rows = None
     info = traced.info
-    # What the bounce reads of the texture, taken plane by plane as the write consumes them.
+    # What the bounce reads of the texture, taken band by band as the write consumes them.
     incident = None
     if keep_for_bounce:
         # The fine albedo's texels are the texture's valid ones (both the covered texels
