@@ -80,24 +80,21 @@ def test_exr_write_is_atomic(tmp_path, monkeypatch):
     exr_io.write_sh_exr(tmp_path / "t.exr", good, kind="transfer")
     before = (tmp_path / "t.exr").read_bytes()
     import OpenEXR
-    real_file = OpenEXR.File
 
     class Exploding:
-        def __init__(self, *a):
-            self.f = real_file(*a)
+        """The scanline writer failing after its first bytes (a full disk mid-file)."""
 
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *e):
-            return False
-
-        def write(self, path):
+        def __init__(self, path, header):
             with open(path, "wb") as fh:
                 fh.write(b"half a texture")
+
+        def writePixels(self, *a):
             raise OSError("disk full")
 
-    monkeypatch.setattr(OpenEXR, "File", Exploding)
+        def close(self):
+            pass
+
+    monkeypatch.setattr(OpenEXR, "OutputFile", Exploding)
     with pytest.raises(OSError, match="disk full"):
         exr_io.write_sh_exr(tmp_path / "t.exr", good + 1, kind="transfer")
     assert (tmp_path / "t.exr").read_bytes() == before
