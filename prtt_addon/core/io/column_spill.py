@@ -25,6 +25,7 @@ once; no ``pwrite``, which Windows lacks).
 from __future__ import annotations
 
 import os
+import secrets
 import threading
 
 import numpy as np
@@ -40,7 +41,8 @@ BUCKET_ROWS = 8
 def _open_unnamed(folder: str, stem: str):
     """A new binary file in ``folder`` opened for reading and writing, unbuffered,
     whose name is gone already (POSIX) or goes when it is closed (Windows)."""
-    path = os.path.join(folder, f"{temp_prefix(stem)}{os.getpid()}-{threading.get_ident()}-{id(folder):x}.spill")
+    # A fresh random name: on Windows an earlier set's spill keeps its name until it is closed.
+    path = os.path.join(folder, f"{temp_prefix(stem)}{secrets.token_hex(8)}.spill")
     flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0) | getattr(os, "O_TEMPORARY", 0)
     fd = os.open(path, flags, 0o600)
     if not getattr(os, "O_TEMPORARY", 0):
