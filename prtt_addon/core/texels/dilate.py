@@ -16,6 +16,16 @@ import numpy as np
 _OFFSETS = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 
 
+def _near(mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool: texels with a True 8-neighbour inside the grid."""
+    H, W = mask.shape
+    pad = np.pad(mask, 1)
+    near = np.zeros_like(mask)
+    for dy, dx in _OFFSETS:
+        near |= pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+    return near
+
+
 def dilation_rings(mask: np.ndarray, iterations: int):
     """The rings a dilation fills: per iteration the empty texels (ys, xs) and,
     for each of the 8 neighbours, which of them were filled before (indices
@@ -27,11 +37,7 @@ def dilation_rings(mask: np.ndarray, iterations: int):
     H, W = mask.shape
     rings = []
     for _ in range(iterations):
-        pad = np.pad(mask, 1)
-        near = np.zeros_like(mask)
-        for dy, dx in _OFFSETS:
-            near |= pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
-        ys, xs = np.nonzero(near & ~mask)
+        ys, xs = np.nonzero(_near(mask) & ~mask)
         if ys.size == 0:
             break
         taps, cnt = [], np.zeros(ys.size)
@@ -115,12 +121,8 @@ def grown_mask(mask: np.ndarray, iterations: int) -> np.ndarray:
     """(H, W) bool: ``mask`` grown by ``iterations`` 8-neighbour rings (the
     texels a dilation fills and the covered ones), without the rings' plan."""
     grown = np.asarray(mask, bool).copy()
-    H, W = grown.shape
     for _ in range(max(0, int(iterations))):
-        pad = np.pad(grown, 1)
-        near = grown.copy()
-        for dy, dx in _OFFSETS:
-            near |= pad[1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+        near = grown | _near(grown)
         if np.array_equal(near, grown):
             break
         grown = near
