@@ -4,6 +4,7 @@
 #   ./prtt.sh test [args]   the whole test suite (pytest; extra args are passed on)
 #   ./prtt.sh slow [args]   the slow, large benchmark-style tests only
 #   ./prtt.sh fuzz [args]   fuzz every reader of outside data (docs/fuzzing.md; --help)
+#   ./prtt.sh compat [VERSION ...]  the installed extension zip in each Blender it claims (docs/addon.md)
 #   ./prtt.sh py ARGS...    run the project's Python (e.g. ./prtt.sh py -m prtt_addon.bench bake)
 # demo and py run in the folder you call them from, so relative paths you give
 # (--out textures, job.npz, scene.blend) are yours; test and slow run in the
@@ -19,6 +20,7 @@ case "$cmd" in
     test) cd "$root" && exec "$py" -m pytest -m "not slow" "$@" ;;
     slow) cd "$root" && exec "$py" -m pytest -m slow "$@" ;;
     fuzz) cd "$root" && exec "$py" -m prtt_addon.fuzz "$@" ;;
+    compat) cd "$root" && exec "$py" tools/compat.py "$@" ;;
     py)   exec "$py" "$@" ;;
-    *) echo "usage: ./prtt.sh demo|test|slow|fuzz|py ..." >&2; exit 2 ;;
+    *) echo "usage: ./prtt.sh demo|test|slow|fuzz|compat|py ..." >&2; exit 2 ;;
 esac

@@ -5,9 +5,6 @@ import bpy
 
 #: Name of the UV map PRTT bakes into; unwrapping writes only this map.
 UV_MAP = "PRTT"
-#: Blender 4.5+ warns when a path property without this option is given a
-#: "//"-relative path (PRTT stores its Output Folder relative to the .blend).
-RELATIVE_PATH_OPTIONS = {"options": {"PATH_SUPPORTS_BLEND_RELATIVE"}} if bpy.app.version >= (4, 5, 0) else {}
 #: Property value of each preview mode -> shader mode name.
 PREVIEW_MODES = {"TPFL": "tpfl", "TP": "tp", "VERTEX_TPFL": "vertex-tpfl", "VERTEX_TP": "vertex-tp",
                  "DIFFUSE": "diffuse"}

@@ -22,6 +22,7 @@ import numpy as np
 
 from ...core.model.material import DEFAULT
 from ..rna_arrays import read_pixels
+from ..versions import uses_nodes
 
 
 @dataclasses.dataclass
@@ -67,16 +68,9 @@ def image_usable(image) -> bool:
     return image.source in {"FILE", "GENERATED"}
 
 
-def _uses_nodes(mat) -> bool:
-    import bpy
-    if bpy.app.version >= (5, 0, 0):       # Material.use_nodes is deprecated: always nodes
-        return mat.node_tree is not None
-    return bool(mat.use_nodes) and mat.node_tree is not None
-
-
 def parse_material(mat, warn) -> MaterialExport:
     name = mat.name if mat else "default"
-    if mat is None or not _uses_nodes(mat):
+    if mat is None or not uses_nodes(mat):
         c = list(mat.diffuse_color[:3]) if mat is not None else list(DEFAULT.base_color)
         return MaterialExport({"name": name, "base_color": c, "roughness": float(mat.roughness) if mat else 0.5})
     nodes = mat.node_tree.nodes

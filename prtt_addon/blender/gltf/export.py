@@ -70,6 +70,7 @@ from ..export.world import world_setup
 from ..preview.drawlist import bake_folder, collect, generated_uvs, last_bake, materials_signature
 from ..rna_arrays import RnaArrayError, read, write
 from ..shared import UV_MAP
+from .. import versions
 
 #: The largest World image carried in the .glb; a larger one is left out with a note.
 ENVIRONMENT_MAX_BYTES = 64 << 20
@@ -234,7 +235,7 @@ class _Export:
         self.notes: list = []
 
     def gather_gltf_extensions_hook(self, gltf, export_settings):
-        from io_scene_gltf2.io.exp.binary_data import BinaryData  # Blender's bundled exporter
+        BinaryData = versions.gltf_binary_data()
         root = json.loads(json.dumps(self.root))
         for path, blob in self.blobs:
             target = root
@@ -301,7 +302,6 @@ class _Export:
         got = self.generated_meshes.get(part.uv_group)
         if got is not None:
             return got
-        from io_scene_gltf2.blender.exp import mesh as gltf_mesh  # Blender's bundled exporter
         uv = self.generated.get(part.uv_group)
         if uv is None:
             raise GltfExportError(f"its generated UVs are not in the bake's {GENERATED_UVS}: bake again")
@@ -321,7 +321,7 @@ class _Export:
         materials = tuple(slot.material for slot in owner.material_slots)
         for m in materials:
             tmp.materials.append(m)
-        got = gltf_mesh.gather_mesh(tmp, None, None, None, materials, None, export_settings)
+        got = versions.gltf_gather_mesh()(tmp, None, None, None, materials, None, export_settings)
         if got is None:
             raise GltfExportError("Blender's glTF exporter made no mesh of it")
         self.generated_meshes[part.uv_group] = got
@@ -331,7 +331,8 @@ class _Export:
                          export_settings):
         # The exporter passes no object for a mesh it shares between nodes: the
         # texcoord is the mesh's (its PRTT map); the set is each node's.
-        names = [u.name for u in blender_mesh.uv_layers]
+        # From 5.1 the exporter gathers point clouds through this hook too.
+        names = [u.name for u in getattr(blender_mesh, "uv_layers", ())]
         if UV_MAP not in names:
             return
         texcoord = names.index(UV_MAP)            # the exporter writes UV maps in order, TEXCOORD_0 first
@@ -352,13 +353,16 @@ class _Export:
         gltf_material.extensions[NAME] = _extension(dict(self.materials[name]))
         self.materials_tagged.add(name)
 
-    def gather_image_hook(self, gltf_image, export_image, blender_shader_sockets, export_settings):
+    def gather_image_hook(self, gltf_image, *args):
         """Base colour and normal map images of a PRTT material: the exporter's
         own bytes where they are the preview's pixels to 8 bits (an sRGB byte
         image's file, a byte normal map's file), else an 8-bit PNG made from
-        the pixels the preview reads (sRGB-encoded for the base colour)."""
-        from io_scene_gltf2.blender.exp.material.encode_image import Channel, FillImage  # Blender's exporter
-        from io_scene_gltf2.io.exp.binary_data import BinaryData
+        the pixels the preview reads (sRGB-encoded for the base colour).
+        ``args``: (export_image, sockets, export_settings), or (sockets,
+        export_settings) in Blender 4.2 (versions.image_hook_args)."""
+        export_image, blender_shader_sockets, export_settings = versions.image_hook_args(args)
+        Channel, FillImage = versions.gltf_image_fills()
+        BinaryData = versions.gltf_binary_data()
         sockets = {s.socket.name for s in blender_shader_sockets}
         kind = "base" if "Base Color" in sockets else "normal" if sockets == {"Normal"} else None
         fills = [export_image.fills.get(c) for c in (Channel.R, Channel.G, Channel.B)]

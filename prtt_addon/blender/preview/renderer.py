@@ -37,6 +37,7 @@ from ...core.base.memory import GiB, MemoryLimitError, check_fits
 from ...core.io.exr_io import TextureError
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import FRAGMENT_MODES, GAUNT_WIDTH, MODES, VERTEX_MODES
+from ..versions import layer_slot
 from . import shaders as gpu_shaders
 
 
@@ -481,7 +482,7 @@ def _draw_layers(target, width: int, height: int, shader, layers, setup, y: int 
     gpu.state.blend_set("NONE")
     try:
         for layer in layers:
-            fb = gpu.types.GPUFrameBuffer(color_slots=({"texture": target, "layer": layer},))
+            fb = gpu.types.GPUFrameBuffer(color_slots=(layer_slot(target, layer),))
             with fb.bind():
                 gpu.state.viewport_set(0, y, width, height)
                 shader.bind()

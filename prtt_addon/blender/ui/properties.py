@@ -4,7 +4,8 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 
 from ...core import settings_schema
 from ...core.light.envmap import builtin_environments
-from ..shared import RELATIVE_PATH_OPTIONS, redraw_viewports
+from ..shared import redraw_viewports
+from ..versions import RELATIVE_PATH_OPTIONS
 
 _ENV_ITEMS: list = []
 

@@ -145,7 +145,9 @@ def loop_uvs(mesh: LoopMesh, tri_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray
         P = mesh.positions[tris[ts]]
         area3 = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
         U = tri_uv[ts]
-        area2 = 0.5 * np.abs(np.cross(U[:, 1] - U[:, 0], U[:, 2] - U[:, 0])).sum()
+        a, b = U[:, 1] - U[:, 0], U[:, 2] - U[:, 0]
+        # written out: numpy 2 (Blender 5.1+) refuses np.cross of 2-vectors
+        area2 = 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()
         scale = np.sqrt(area2 / area3) if area3 > 0 and area2 > 0 else 1.0
         d = Q - Q.mean(axis=0)
         per_loop[loops] = scale * np.stack([d @ e1, d @ e2], axis=1)

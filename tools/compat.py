@@ -1,0 +1,280 @@
+"""Try the installed extension in every Blender it claims: ``./prtt.sh compat``.
+
+    ./prtt.sh compat [VERSION ...] [--json FILE] [--work DIR] [--no-page]
+
+For each Blender version (default: the oldest claimed, 4.2 LTS; the LTS
+lines 4.5 and 5.2; the newest on PyPI, 5.3; ``all`` adds 5.0 and 5.1):
+
+1. a virtual environment with that Blender as a Python module, ``bpy`` from
+   PyPI, on the Python that Blender embeds (3.11 for 4.2-5.0, 3.13 for 5.1+)
+   and the numpy it ships, made once and kept in ``$PRTT_COMPAT_CACHE``
+   (default ``~/.cache/prtt-compat``): nothing else, in particular no numba
+   and none of the source tree;
+2. this platform's extension zip, built once by tools/build_extension.py;
+3. tools/compat_chain.py in that Python: install and enable the zip with
+   ``package_install_files`` into an empty user folder, then Unwrap, Bake
+   Transfer (the add-on's defaults), the viewport draw handler's draw,
+   Render Preview Image in every mode, Export glTF;
+4. the exported .glb opened by the web viewer (viewer/) in headless Chromium.
+
+Prints one line per version and a last line saying whether the baked
+textures are byte-identical across the versions; exits 1 when a version
+fails. ``--json`` writes every result (steps, seconds, hashes).
+"""
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import functools
+import hashlib
+import http.server
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CHAIN = os.path.join(ROOT, "tools", "compat_chain.py")
+#: Blender line -> the release tried (the newest on PyPI when this was written).
+RELEASES = {"4.2": "4.2.23", "4.5": "4.5.15", "5.0": "5.0.1", "5.1": "5.1.2", "5.2": "5.2.3", "5.3": "5.3.0"}
+#: What CI tries: the manifest's minimum, the LTS lines, the newest.
+DEFAULT = ("4.2", "4.5", "5.2", "5.3")
+#: numpy as Blender bundles it: 1.26.4 up to 5.0 (bpy 4.2's own requirement is
+#: unpinned and would take numpy 2); 5.1+ let bpy's requirement (>=2.2) choose.
+NUMPY = {"4.2": "1.26.4", "4.5": "1.26.4", "5.0": "1.26.4"}
+BROWSER = "/usr/bin/chromium-headless-shell"
+BROWSER_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                "--disable-background-networking", "--disable-component-update", "--no-first-run"]
+
+
+def release(version: str) -> str:
+    """'4.5' -> '4.5.15'; a full version is kept as given."""
+    return RELEASES.get(version, version)
+
+
+def line(version: str) -> str:
+    return ".".join(version.split(".")[:2])
+
+
+def python_for(version: str) -> str:
+    """The interpreter Blender ``version`` embeds: 3.11 before 5.1, 3.13 from 5.1."""
+    major, minor = (int(v) for v in version.split(".")[:2])
+    want = "3.13" if (major, minor) >= (5, 1) else "3.11"
+    env = os.environ.get("PRTT_PYTHON" + want.replace(".", ""))
+    cands = [env] if env else []
+    cands.append(shutil.which(f"python{want}"))
+    pyenv = os.environ.get("PYENV_ROOT", os.path.expanduser("~/.pyenv"))
+    cands += sorted((os.path.join(pyenv, "versions", d, "bin", f"python{want}")
+                     for d in (os.listdir(os.path.join(pyenv, "versions"))
+                               if os.path.isdir(os.path.join(pyenv, "versions")) else [])
+                     if d.startswith(want + ".")), reverse=True)
+    for c in cands:
+        if c and os.path.exists(c):
+            return c
+    raise SystemExit(f"Blender {version} needs Python {want}: none found "
+                     f"(set PRTT_PYTHON{want.replace('.', '')}=/path/to/python{want})")
+
+
+def cache_dir() -> str:
+    return os.environ.get("PRTT_COMPAT_CACHE") or os.path.expanduser("~/.cache/prtt-compat")
+
+
+def venv(version: str, log) -> str:
+    """The Python of the kept virtual environment for Blender ``version``
+    (made when missing or when what it should hold changed)."""
+    folder = os.path.join(cache_dir(), f"bpy-{version}")
+    py = os.path.join(folder, "bin", "python")
+    pins = [f"bpy=={version}"] + ([f"numpy=={NUMPY[line(version)]}"] if line(version) in NUMPY else [])
+    stamp = os.path.join(folder, ".prtt-compat")
+    if os.path.exists(py) and os.path.exists(stamp):
+        with open(stamp, encoding="utf-8") as f:
+            if f.read() == " ".join(pins):
+                return py
+    log(f"[compat] making {folder}: {' '.join(pins)} (bpy is ~370 MB to download, once)")
+    shutil.rmtree(folder, ignore_errors=True)
+    subprocess.run([python_for(version), "-m", "venv", folder], check=True)
+    r = subprocess.run([py, "-m", "pip", "install", "-q", "--disable-pip-version-check", *pins],
+                       capture_output=True, text=True)
+    if r.returncode:
+        raise RuntimeError(f"pip install {' '.join(pins)} failed: {r.stderr.strip().splitlines()[-1:]}")
+    with open(stamp, "w", encoding="utf-8") as f:
+        f.write(" ".join(pins))
+    return py
+
+
+def build_zip(work: str) -> str:
+    """This platform's extension zip, built offline from the wheels cache."""
+    sys.path.insert(0, os.path.join(ROOT, "tools"))
+    import build_extension
+    plat = build_extension.host_platform()
+    r = subprocess.run([sys.executable, os.path.join(ROOT, "tools", "build_extension.py"), "--offline",
+                        "--platform", plat, "--out", os.path.join(work, "dist"),
+                        "--stage", os.path.join(work, "stage")], capture_output=True, text=True)
+    if r.returncode:
+        raise SystemExit(f"building the extension zip failed:\n{r.stdout}{r.stderr}")
+    (name,) = [n for n in os.listdir(os.path.join(work, "dist")) if n.endswith(".zip")]
+    return os.path.join(work, "dist", name)
+
+
+def run_chain(py: str, zip_path: str, work: str, timeout: float) -> dict:
+    """tools/compat_chain.py in Blender's Python: its COMPAT record, or a record of why there is none."""
+    shutil.rmtree(work, ignore_errors=True)          # a fresh scene, textures and user folder
+    os.makedirs(work)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env["BLENDER_USER_RESOURCES"] = os.path.join(work, "blender-user")
+    try:
+        r = subprocess.run([py, CHAIN, zip_path, work], capture_output=True, text=True, env=env,
+                           cwd=work, timeout=timeout)
+        out, err, rc = r.stdout, r.stderr, r.returncode
+    except subprocess.TimeoutExpired as exc:
+        out, err, rc = exc.stdout or "", exc.stderr or "", f"timeout {timeout:.0f} s"
+        out, err = (s.decode() if isinstance(s, bytes) else s for s in (out, err))
+    with open(os.path.join(work, "chain.log"), "w", encoding="utf-8") as f:
+        f.write(out + "\n--- stderr ---\n" + err)
+    rec = next((json.loads(ln[7:]) for ln in reversed(out.splitlines()) if ln.startswith("COMPAT ")), None)
+    if rec is None:
+        tail = [ln for ln in (err or out).splitlines() if ln.strip()][-1:] or [f"exit {rc}"]
+        rec = {"steps": {"chain": f"no result (exit {rc}): {tail[0][:200]}"}, "seconds": {}, "files": {}}
+    rec["log"] = os.path.join(work, "chain.log")
+    return rec
+
+
+class Site:
+    """An HTTP server over a folder holding viewer/, shaders/ and tools/js/
+    (three.js) of this checkout, and the .glb files put into it."""
+
+    def __init__(self, folder: str):
+        self.folder = folder
+        os.makedirs(folder, exist_ok=True)
+        for part in ("viewer", "shaders", os.path.join("tools", "js")):
+            dst = os.path.join(folder, part)
+            if not os.path.exists(dst):
+                os.makedirs(os.path.dirname(dst), exist_ok=True)
+                os.symlink(os.path.join(ROOT, part), dst)
+
+        class Quiet(http.server.SimpleHTTPRequestHandler):
+            def log_message(self, *args):
+                pass
+
+        self.httpd = http.server.ThreadingHTTPServer(
+            ("127.0.0.1", 0), functools.partial(Quiet, directory=folder))
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+
+    def close(self):
+        self.httpd.shutdown()
+
+
+def open_page(site: Site, glb: str, name: str) -> str:
+    """'ok (title)' when the web viewer draws ``glb``: its title says ready
+    and the canvas is not empty; else what went wrong."""
+    from playwright.sync_api import sync_playwright
+    shutil.copy(glb, os.path.join(site.folder, name))
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
+        try:
+            page = b.new_page(viewport={"width": 160, "height": 90})
+            errors = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(f"{site.url}/viewer/index.html?src=/{name}&w=160&h=90&ui=0")
+            page.wait_for_function("document.title.startsWith('ready') || document.title.startsWith('error')",
+                                   timeout=120_000)
+            title = page.title()
+            if not title.startswith("ready"):
+                return title
+            lit = page.evaluate("""() => { const c = document.querySelector('canvas');
+                const g = document.createElement('canvas'); g.width = c.width; g.height = c.height;
+                const x = g.getContext('2d'); x.drawImage(c, 0, 0);
+                const d = x.getImageData(0, 0, c.width, c.height).data; let n = 0;
+                for (let i = 0; i < d.length; i += 4) n += (d[i] + d[i + 1] + d[i + 2]) > 0;
+                return n / (c.width * c.height); }""")
+            if errors:
+                return f"page error: {errors[0][:200]}"
+            if lit < 0.05:
+                return f"{title}, but only {100 * lit:.0f} % of the canvas drawn"
+            return f"ok ({title}, {100 * lit:.0f} % drawn)"
+        finally:
+            b.close()
+
+
+def summary(version: str, rec: dict) -> str:
+    steps, secs = rec["steps"], rec["seconds"]
+    bad = {k: v for k, v in steps.items() if not (v == "ok" or v.startswith("ok "))}
+    head = f"Blender {rec.get('blender', version):<14} py {rec.get('python', '?'):<7} numpy {rec.get('numpy', '?'):<7}"
+    if bad:
+        step, why = next(iter(bad.items()))
+        return f"{head} FAIL at {step}: {why}"
+    return (f"{head} PASS  install {secs.get('install', 0):.1f} s, bake {secs.get('bake', 0):.1f} s, "
+            f"bake again {secs.get('bake_again', 0):.1f} s, draw handler ok, "
+            f"render {len(rec.get('preview', {})) - 1} modes, "
+            f"export {rec.get('glb_bytes', 0) / 1e6:.2f} MB, page {steps.get('page', 'not opened')}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="./prtt.sh compat", description=__doc__.split("\n\n")[0])
+    ap.add_argument("versions", nargs="*", metavar="VERSION",
+                    help=f"Blender versions or lines (default: {' '.join(DEFAULT)}; 'all': {' '.join(RELEASES)})")
+    ap.add_argument("--json", metavar="FILE", help="write every result to FILE")
+    ap.add_argument("--work", metavar="DIR", help="keep each version's scene, textures and log in DIR "
+                                                  "(default: a temporary folder, removed)")
+    ap.add_argument("--no-page", action="store_true", help="do not open the exports in the web viewer")
+    ap.add_argument("--timeout", type=float, default=900.0, help="seconds one version's chain may take")
+    args = ap.parse_args(argv)
+    names = args.versions or list(DEFAULT)
+    if names == ["all"]:
+        names = list(RELEASES)
+    versions = [release(v) for v in names]
+    work = args.work or tempfile.mkdtemp(prefix="prtt-compat-")
+    os.makedirs(work, exist_ok=True)
+
+    def log(msg):
+        print(msg, file=sys.stderr, flush=True)
+
+    with concurrent.futures.ThreadPoolExecutor(4) as pool:   # downloads: network-bound
+        pythons = dict(zip(versions, pool.map(lambda v: venv(v, log), versions)))
+    zip_path = build_zip(work)
+    log(f"[compat] {os.path.basename(zip_path)}; each version's log under {work}")
+    site = None if args.no_page else Site(os.path.join(work, "site"))
+    results = {}
+    try:
+        for v in versions:
+            rec = run_chain(pythons[v], zip_path, os.path.join(work, v), args.timeout)
+            if site is not None and rec.get("glb"):
+                try:
+                    rec["steps"]["page"] = open_page(site, rec["glb"], f"{v}.glb")
+                except Exception as exc:          # noqa: BLE001: the page's failure is this version's result
+                    rec["steps"]["page"] = f"{type(exc).__name__}: {exc}"[:300]
+                if not rec["steps"]["page"].startswith("ok"):
+                    rec["steps"]["page"] = "FAIL " + rec["steps"]["page"]
+            results[v] = rec
+            print(summary(v, rec), flush=True)
+    finally:
+        if site is not None:
+            site.close()
+    failed = [v for v, r in results.items()
+              if any(not (s == "ok" or s.startswith("ok ")) for s in r["steps"].values())]
+    hashed = {v: {k: h for k, h in r.get("files", {}).items() if h} for v, r in results.items()
+              if r.get("files")}
+    if len(hashed) > 1:
+        names_all = sorted(set().union(*hashed.values()))
+        differ = [n for n in names_all if len({h.get(n) for h in hashed.values()}) > 1]
+        print(f"textures: {len(names_all)} files, "
+              + ("byte-identical across " + ", ".join(hashed) if not differ
+                 else f"differ across versions: {', '.join(differ)}"), flush=True)
+        for v, r in results.items():
+            r["textures_identical"] = not differ
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as f:
+            json.dump({"zip": os.path.basename(zip_path),
+                       "zip_sha256": hashlib.sha256(open(zip_path, "rb").read()).hexdigest(),
+                       "results": results}, f, indent=1)
+    if not args.work:
+        shutil.rmtree(work, ignore_errors=True)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
