@@ -36,6 +36,8 @@ import sys
 import tempfile
 import threading
 
+import numpy as np
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHAIN = os.path.join(ROOT, "tools", "compat_chain.py")
 #: Blender line -> the release tried (the newest on PyPI when this was written).
@@ -200,6 +202,51 @@ def open_page(site: Site, glb: str, name: str) -> str:
             b.close()
 
 
+def _decoded(path: str) -> dict:
+    import OpenEXR
+    with OpenEXR.File(path) as f:
+        return {k: c.pixels.copy() for k, c in f.channels().items()}
+
+
+def compare_textures(results: dict, work: str) -> dict | None:
+    """The second bake's textures (xatlas UVs: the same in every Blender)
+    compared across the versions that made them: by their bytes, and where
+    those differ, by their decoded values (``equal`` when every value is the
+    same number: the only difference is the sign of some zeros)."""
+    hashed = {v: {k: h for k, h in r.get("files", {}).items() if h} for v, r in results.items() if r.get("files")}
+    if len(hashed) < 2:
+        return None
+    first = next(iter(hashed))
+    names = sorted(set().union(*hashed.values()))
+    out = {"reference": first, "files": {}}
+    for name in names:
+        for v in hashed:
+            if v == first or hashed[v].get(name) == hashed[first].get(name):
+                continue
+            a = _decoded(os.path.join(work, first, "textures", name))
+            b = _decoded(os.path.join(work, v, "textures", name))
+            if a.keys() != b.keys():
+                out["files"].setdefault(name, {})[v] = "different channels"
+                continue
+            bits = sum(int((a[k].view(f"u{a[k].itemsize}") != b[k].view(f"u{b[k].itemsize}")).sum()) for k in a)
+            worst = max(float(np.nanmax(np.abs(a[k].astype(np.float64) - b[k].astype(np.float64)), initial=0.0))
+                        for k in a)
+            out["files"].setdefault(name, {})[v] = {"values_differing_in_bits": bits, "max_abs_difference": worst}
+    if not out["files"]:
+        out["summary"] = f"{len(names)} files, byte-identical across {', '.join(hashed)}"
+    else:
+        parts = []
+        for name, per in out["files"].items():
+            for v, d in per.items():
+                parts.append(f"{name} {first} vs {v}: " + (d if isinstance(d, str) else
+                             (f"{d['values_differing_in_bits']} values differ only in the sign of zero"
+                              if d["max_abs_difference"] == 0 else
+                              f"{d['values_differing_in_bits']} values differ, at most {d['max_abs_difference']:.3g}")))
+        same = [n for n in names if n not in out["files"]]
+        out["summary"] = (f"{len(names)} files; byte-identical: {', '.join(same) or 'none'}; " + "; ".join(parts))
+    return out
+
+
 def summary(version: str, rec: dict) -> str:
     steps, secs = rec["steps"], rec["seconds"]
     bad = {k: v for k, v in steps.items() if not (v == "ok" or v.startswith("ok "))}
@@ -245,7 +292,7 @@ def main(argv=None) -> int:
             if site is not None and rec.get("glb"):
                 try:
                     rec["steps"]["page"] = open_page(site, rec["glb"], f"{v}.glb")
-                except Exception as exc:          # noqa: BLE001: the page's failure is this version's result
+                except Exception as exc:          # noqa: BLE001 - the page's failure is this version's result
                     rec["steps"]["page"] = f"{type(exc).__name__}: {exc}"[:300]
                 if not rec["steps"]["page"].startswith("ok"):
                     rec["steps"]["page"] = "FAIL " + rec["steps"]["page"]
@@ -256,19 +303,12 @@ def main(argv=None) -> int:
             site.close()
     failed = [v for v, r in results.items()
               if any(not (s == "ok" or s.startswith("ok ")) for s in r["steps"].values())]
-    hashed = {v: {k: h for k, h in r.get("files", {}).items() if h} for v, r in results.items()
-              if r.get("files")}
-    if len(hashed) > 1:
-        names_all = sorted(set().union(*hashed.values()))
-        differ = [n for n in names_all if len({h.get(n) for h in hashed.values()}) > 1]
-        print(f"textures: {len(names_all)} files, "
-              + ("byte-identical across " + ", ".join(hashed) if not differ
-                 else f"differ across versions: {', '.join(differ)}"), flush=True)
-        for v, r in results.items():
-            r["textures_identical"] = not differ
+    textures = compare_textures(results, work)
+    if textures is not None:
+        print("textures: " + textures["summary"], flush=True)
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
-            json.dump({"zip": os.path.basename(zip_path),
+            json.dump({"zip": os.path.basename(zip_path), "textures": textures,
                        "zip_sha256": hashlib.sha256(open(zip_path, "rb").read()).hexdigest(),
                        "results": results}, f, indent=1)
     if not args.work:

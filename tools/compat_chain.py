@@ -135,7 +135,7 @@ def main(zip_path, work):
             got = fn()
             result["steps"][name] = "ok"
             return got
-        except BaseException as exc:          # noqa: BLE001: every failure is this step's result
+        except BaseException as exc:          # noqa: BLE001 - every failure is this step's result
             traceback.print_exc()
             lines = [ln for ln in f"{type(exc).__name__}: {exc}".splitlines() if ln.strip()]
             result["steps"][name] = lines[-1][:300] if lines else type(exc).__name__
@@ -209,6 +209,13 @@ def main(zip_path, work):
         if stats is None or not stats.drawn:
             raise RuntimeError(f"the draw handler drew nothing: {preview_draw.last_status}")
         result["preview"]["draw_handler"] = round(float(px[..., :3].mean()), 6)
+        # what the preview read from Blender: the light, the materials, the images
+        from bl_ext.user_default.prtt_addon.blender.preview import drawlist
+        ps, _ = drawlist.collect(bpy.context)
+        result["preview_scene"] = {
+            "light_dc": [round(float(v), 6) for v in ps.light[0]],
+            "materials": [repr(m) for m in ps.materials],
+            "image_means": [round(float(np.asarray(i, np.float64).mean()), 6) for i in ps.images]}
 
     step("draw_handler", draw_handler)
 

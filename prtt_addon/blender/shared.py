@@ -1,7 +1,6 @@
 """What every Blender-side folder shares (ui, export, preview, bake import
 it; it imports nothing of theirs): the names PRTT gives things in a .blend,
 and the viewport redraw."""
-import bpy
 
 #: Name of the UV map PRTT bakes into; unwrapping writes only this map.
 UV_MAP = "PRTT"

@@ -63,6 +63,7 @@ from ...core.io.gltf_prtt import (
 from ...core.io.image_write import png_bytes, srgb8
 from ...core.preview import pack as pp
 from ...core.shading.shade import light_hash
+from .. import versions
 from ..blendfile import open_scene
 from ..export.job import GENERATED_UVS
 from ..export.scene_objects import GEOMETRY_TYPES, render_enabled
@@ -70,7 +71,6 @@ from ..export.world import world_setup
 from ..preview.drawlist import bake_folder, collect, generated_uvs, last_bake, materials_signature
 from ..rna_arrays import RnaArrayError, read, write
 from ..shared import UV_MAP
-from .. import versions
 
 #: The largest World image carried in the .glb; a larger one is left out with a note.
 ENVIRONMENT_MAX_BYTES = 64 << 20

@@ -1,0 +1,91 @@
+"""The installed extension zip in every Blender the manifest claims (issue 46):
+``./prtt.sh compat`` for the oldest claimed (4.2 LTS), the LTS lines (4.5,
+5.2) and the newest on PyPI (5.3), each in its own bpy from PyPI on the
+Python that Blender embeds, through the chain a user runs (install, Unwrap,
+Bake Transfer with the defaults, the viewport draw handler, Render Preview
+Image in every mode, bake again, Export glTF, the page opening the export).
+
+Before the fix, 4.2 and 4.5 failed at the draw handler ("'GPUTexture' object
+cannot be interpreted as an integer"), 4.2 at the export, and 5.2 / 5.3 at
+the xatlas unwrap (numpy 2 refuses np.cross of 2-vectors).
+
+The venvs are kept in $PRTT_COMPAT_CACHE (~/.cache/prtt-compat): the first
+run downloads bpy for each version (~370 MB each)."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests.test_headless_chain import ROOT
+
+pytestmark = pytest.mark.blender
+
+
+@pytest.fixture(scope="module")
+def compat(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("compat")
+    r = subprocess.run([sys.executable, os.path.join(ROOT, "tools", "compat.py"), "--json", str(tmp / "compat.json"),
+                        "--work", str(tmp / "work")], capture_output=True, text=True, timeout=2400)
+    print(r.stdout)
+    with open(tmp / "compat.json", encoding="utf-8") as f:
+        return r, json.load(f)
+
+
+def test_every_claimed_blender_runs_the_users_chain(compat):
+    r, rec = compat
+    assert r.returncode == 0, r.stdout + r.stderr[-3000:]
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("Blender ")]
+    assert [ln.split()[1] for ln in lines] == ["4.2.23", "4.5.15", "5.2.3", "5.3.0"], r.stdout
+    assert all(" PASS " in ln for ln in lines), r.stdout
+    for v, res in rec["results"].items():
+        assert set(res["steps"]) == {"install", "unwrap", "bake", "draw_handler", "render", "bake_again",
+                                     "render_vertex", "export", "page"}, (v, res["steps"])
+        assert res["numba"] is None, v                 # what Blender's Python has: no numba
+        assert res["installed_at"].startswith(os.path.join(rec_work(r), v)), res["installed_at"]
+        # the defaults were baked (what a user gets from Bake Transfer)
+        assert res["bake_settings"] == {"resolution": 1024, "rays": 256, "bounces": 1, "bounce_mode": "RELIGHTABLE"}
+
+
+def rec_work(r):
+    """The --work folder compat printed on stderr."""
+    line = next(ln for ln in r.stderr.splitlines() if "each version's log under" in ln)
+    return line.rsplit(" ", 1)[1]
+
+
+def test_the_preview_agrees_across_versions(compat):
+    """The preview of the same bake and light draws the same picture in every
+    Blender: the draw handler, every render mode. 4.2 ships a different
+    forest.exr (its mean 0.561 against 0.802 from 4.5, the same light 0.7x
+    as bright): its light and so its pictures are scaled by that ratio;
+    everything else must agree to llvmpipe's rounding."""
+    _, rec = compat
+    res = rec["results"]
+    ref = res["4.5.15"]
+    for v in ("5.2.3", "5.3.0"):
+        assert res[v]["preview_scene"]["light_dc"] == ref["preview_scene"]["light_dc"], v
+    light = {v: np.array(r["preview_scene"]["light_dc"]) for v, r in res.items()}
+    hdri = 0.5614909522685139 / 0.8023249884737046        # the two files' means (OpenEXR)
+    assert np.allclose(light["4.2.23"] / light["4.5.15"], hdri, rtol=2e-3)
+    for v, r in res.items():
+        assert r["preview_scene"]["materials"] == ref["preview_scene"]["materials"], v
+        for mode, want in ref["preview"].items():
+            got = r["preview"][mode]
+            want = want * hdri if v == "4.2.23" else want
+            assert got == pytest.approx(want, rel=1e-3 if v == "4.2.23" else 2e-4), (v, mode, got, want)
+
+
+def test_textures_are_the_same_numbers_in_every_version(compat):
+    """The second bake (xatlas UVs, the same in every Blender): bytes equal
+    within a numpy line; across numpy 1.26 (4.2-5.0) and numpy 2 (5.1+) the
+    values are equal as numbers (some zeros differ in sign), nothing else."""
+    _, rec = compat
+    res = rec["results"]
+    assert len({r["uv"] for r in res.values()}) == 1
+    assert res["4.2.23"]["files"] == res["4.5.15"]["files"]
+    assert res["5.2.3"]["files"] == res["5.3.0"]["files"]
+    for name, per in rec["textures"]["files"].items():
+        for v, d in per.items():
+            assert isinstance(d, dict) and d["max_abs_difference"] == 0.0, (name, v, d)
