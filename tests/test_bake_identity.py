@@ -1,14 +1,24 @@
 """The bake writes the same bytes as before its memory was reorganised (#35):
 every output file of five small bakes, one per bake mode, against the SHA-256
-recorded from the earlier code (tests/bake_identity.py, tests/data/bake_identity.json)."""
+recorded from the earlier code (tests/bake_identity.py, tests/data/bake_identity.json).
+
+The bytes depend on the CPU (Embree's and numpy's SIMD paths round
+differently): the record holds the earlier code's output on each machine it
+was run on (``cases``, and ``other_machines``: the code at
+``recorded_at_commit`` run there), and today's output must be one of them."""
 import json
 
 import bake_identity
 import pytest
 
-RECORDED = json.load(open(bake_identity.RECORD, encoding="utf-8"))["cases"]
+_DATA = json.load(open(bake_identity.RECORD, encoding="utf-8"))
+RECORDED = [_DATA["cases"]] + [m["cases"] for m in _DATA.get("other_machines", [])]
 
 
 @pytest.mark.parametrize("case", sorted(bake_identity.CASES))
 def test_outputs_byte_identical(case, tmp_path):
-    assert bake_identity.bake_case(case, str(tmp_path)) == RECORDED[case]
+    got = bake_identity.bake_case(case, str(tmp_path))
+    assert any(got == machine[case] for machine in RECORDED), (
+        f"{case}: not the bytes the code at {_DATA['recorded_at_commit'][:7]} wrote on any machine recorded; on a "
+        f"new kind of CPU, run tests/bake_identity.py --record with that commit's code there and add it to "
+        f"other_machines")

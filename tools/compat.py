@@ -74,7 +74,10 @@ def python_for(version: str) -> str:
                                if os.path.isdir(os.path.join(pyenv, "versions")) else [])
                      if d.startswith(want + ".")), reverse=True)
     for c in cands:
-        if c and os.path.exists(c):
+        # a pyenv shim exists but fails when its version is not the active one: ask each
+        if c and os.path.exists(c) and subprocess.run(
+                [c, "-c", f"import sys; sys.exit(sys.version_info[:2] != {tuple(map(int, want.split('.')))})"],
+                capture_output=True).returncode == 0:
             return c
     raise SystemExit(f"Blender {version} needs Python {want}: none found "
                      f"(set PRTT_PYTHON{want.replace('.', '')}=/path/to/python{want})")
