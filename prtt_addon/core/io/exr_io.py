@@ -407,7 +407,13 @@ def checked_header(path: str, decoded: int | None = None) -> tuple[dict, int, in
     chans = header.get("channels") or []
     if len(chans) > MAX_FILE_CHANNELS:
         raise TextureError(f"{path}: {len(chans)} channels; a PRTT texture has at most {MAX_FILE_CHANNELS}")
-    sub = [getattr(c, "name", "?") for c in chans if (getattr(c, "xSampling", 1), getattr(c, "ySampling", 1)) != (1, 1)]
+    try:
+        # OpenEXR's binding decodes a name when it is read: a damaged one is not UTF-8
+        names = [str(getattr(c, "name", "?")) for c in chans]
+    except UnicodeDecodeError as exc:
+        raise TextureError(f"{path}: a channel name is not UTF-8 text (byte {exc.object[exc.start]:#04x}); "
+                           f"not a texture PRTT wrote") from None
+    sub = [n for n, c in zip(names, chans) if (getattr(c, "xSampling", 1), getattr(c, "ySampling", 1)) != (1, 1)]
     if sub:
         raise TextureError(f"{path}: channels {sub[:4]} are subsampled; PRTT textures have every channel at "
                            f"full resolution")
