@@ -31,7 +31,7 @@ from ..core import settings_schema as schema
 from ..core.texels.unwrap import UnwrapError
 from .bake.run import bake_blocking
 from .blendfile import blend_relative, open_scene, save_blend
-from .export.job import output_folder
+from .export.job import output_folder, unwrap_resolution
 from .export.uv_maps import bake_downscale, needs_user_unwrap, unwrap_objects
 from .gltf.export import export_file
 from .preview.offscreen import render_file
@@ -173,7 +173,8 @@ def _bake_file(args) -> int:
                         unwrap_objects(ctx, objects, method=method, resolution=st.resolution,
                                        padding=st.padding, atlas=st.texture_sets == "ATLAS",
                                        source_map=st.existing_uv_map, dilate=st.dilate,
-                                       bounce_downscale=bake_downscale(st))
+                                       bounce_downscale=bake_downscale(st),
+                                       resolution_of=lambda ob: unwrap_resolution(ob, st))
             except (UnwrapError, RnaArrayError, RuntimeError) as exc:
                 print(f"prtt: error: unwrap failed: {exc}", file=sys.stderr)
                 return 1

@@ -43,7 +43,7 @@ import numpy as np
 
 from ...core.io.assembly import MeshPart, assemble_parts, default_tangents
 from ...core.model.scene import MAX_RESOLUTION, NormalMap, Scene, SceneError
-from ...core.texels.raster import rasterize
+from ...core.texels.raster import overlap_count
 from ...core.texels.unwrap import UnwrapError, unwrap
 from ..rna_arrays import read
 from ..shared import UV_MAP
@@ -155,6 +155,23 @@ def resolution_for(obj, mesh_area: float, st) -> int:
         p2 = 1 << max(3, int(np.ceil(np.log2(max(side, 8.0)))))
         return int(min(p2, st.resolution))
     return int(st.resolution)
+
+
+def unwrap_resolution(ob, st) -> int:
+    """Texels per side of the texture set the bake will give ``ob`` (what
+    Unwrap leaves margins and counts overlaps for): the scene's resolution in
+    an atlas, else :func:`resolution_for` of the mesh's world-space area
+    (Tuning Auto and a Texel Density make Resolution a cap: a 6 m floor asked
+    at 16384 gets 1024). Modifiers are not applied: the base mesh's area."""
+    if st.texture_sets == "ATLAS":
+        return int(st.resolution)
+    me = ob.data
+    me.calc_loop_triangles()
+    co = read(me.vertices, "co", 3, np.float64)
+    tris = read(me.loop_triangles, "vertices", 3, np.int64)
+    M = np.array(ob.matrix_world, dtype=np.float64)
+    P = (co @ M[:3, :3].T + M[:3, 3])[tris]
+    return resolution_for(ob, _surface_area(P), st)
 
 
 def _surface_area(P: np.ndarray) -> float:
@@ -392,7 +409,7 @@ def _generate_uvs(part: Part, resolution: int, padding: int) -> np.ndarray:
 
 def _overlaps(uv: np.ndarray, resolution: int) -> bool:
     """Do the (T, 3, 2) UVs overlap at this resolution (a texel centre in two triangles)?"""
-    return rasterize(np.clip(uv, 0.0, 1.0), resolution, resolution).overlap_texels > 0
+    return overlap_count(np.clip(uv, 0.0, 1.0), resolution, resolution) > 0
 
 
 def _layout(parts, st, warnings):

@@ -15,7 +15,7 @@ import math
 import bpy
 import numpy as np
 
-from ...core.texels.raster import rasterize
+from ...core.texels.raster import overlap_count
 from ...core.texels.unwrap import LoopMesh, UnwrapError, unwrap_loops
 from ..rna_arrays import read, write
 from ..shared import UV_MAP
@@ -203,7 +203,7 @@ def _overlap_of(objects, resolution: int, atlas: bool) -> int:
     """Overlapping texels: per object, or of all objects together for an atlas."""
     if not atlas or len(objects) == 1:
         return sum(overlap_texels(ob, resolution) for ob in objects)
-    return rasterize(np.concatenate([_tri_uvs(ob) for ob in objects]), resolution, resolution).overlap_texels
+    return overlap_count(np.concatenate([_tri_uvs(ob) for ob in objects]), resolution, resolution)
 
 
 def _separate_and_pack(context, group, margin: float) -> None:
@@ -241,9 +241,13 @@ def _editable(ob) -> bool:
 
 
 def unwrap_objects(context, objects, *, method: str, resolution: int, padding: int = 4,
-                   atlas: bool = False, source_map: str = "", dilate: int = 0, bounce_downscale: int = 1) -> dict:
+                   atlas: bool = False, source_map: str = "", dilate: int = 0, bounce_downscale: int = 1,
+                   resolution_of=None) -> dict:
     """Write the PRTT UV map of ``objects``, ``padding`` texels apart or more
-    (margin_texels). Returns {object name: overlapping texels}. Meshes
+    (margin_texels) at the resolution each will be baked at:
+    ``resolution_of(ob)`` for an object's own set (job.unwrap_resolution),
+    ``resolution`` for an atlas or without it. Returns {object name:
+    overlapping texels at that resolution}. Meshes
     without faces (points, edges, or faces made only by
     geometry nodes, which get generated UVs at bake time) are left out of
     the result; only if every object is such a mesh is it an error."""
@@ -256,8 +260,10 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
         raise UnwrapError(f"{', '.join(faceless[:8])}: no faces to unwrap (faces made by geometry "
                           f"nodes get UVs generated when baking)")
     padding = margin_texels(padding, dilate, bounce_downscale)
-    margin = padding / max(resolution, 1)
     groups = [objects] if atlas else [[o] for o in objects]
+    # per group: the texels a side of the set it is baked into
+    res = [int(resolution) if atlas or resolution_of is None else int(resolution_of(g[0])) for g in groups]
+    res_of = {ob.name: r for g, r in zip(groups, res) for ob in g}
     with _preserved(context, objects):
         if method == "EXISTING":
             for ob in objects:
@@ -274,26 +280,31 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
         elif method == "SMART":
             # Objects edited together are packed together: one call per object
             # for per-object texture sets, one call for an atlas.
-            for group in groups:
+            for group, r in zip(groups, res):
+                margin = padding / max(r, 1)
                 for angle in SMART_ANGLES:
-                    _run_edit_mode_op(context, group, lambda a=angle: bpy.ops.uv.smart_project(
-                        angle_limit=math.radians(a), island_margin=margin, scale_to_bounds=False))
-                    if _overlap_of(group, resolution, atlas) == 0:
+                    _run_edit_mode_op(context, group, lambda a=angle, m=margin: bpy.ops.uv.smart_project(
+                        angle_limit=math.radians(a), island_margin=m, scale_to_bounds=False))
+                    if _overlap_of(group, r, atlas) == 0:
                         break
         elif method == "LIGHTMAP":
             _run_edit_mode_op(context, objects, lambda: bpy.ops.uv.lightmap_pack(
                 PREF_CONTEXT="ALL_FACES", PREF_PACK_IN_ONE=atlas,
                 PREF_MARGIN_DIV=max(0.001, min(1.0, padding * 0.1 / 4.0))))
         elif method == "XATLAS":
-            _xatlas(objects, resolution, padding, atlas)
+            if atlas or resolution_of is None:
+                _xatlas(objects, resolution, padding, atlas)
+            else:
+                for ob, r in res_of.items():
+                    _xatlas([bpy.data.objects[ob]], r, padding, False)
         else:
             raise UnwrapError(f"unknown unwrap method {method!r}")
         if method != "EXISTING":           # a copied map is the user's layout, kept as it is
-            for group in groups:
-                if _overlap_of(group, resolution, atlas) and all(_editable(o) for o in group):
-                    _separate_and_pack(context, group, margin)
+            for group, r in zip(groups, res):
+                if _overlap_of(group, r, atlas) and all(_editable(o) for o in group):
+                    _separate_and_pack(context, group, padding / max(r, 1))
         # Counted before the mode is put back: in Edit Mode the map reads as empty.
-        return {ob.name: overlap_texels(ob, resolution) for ob in objects}
+        return {ob.name: overlap_texels(ob, res_of[ob.name]) for ob in objects}
 
 
 def _tri_uvs(ob) -> np.ndarray:
@@ -308,4 +319,4 @@ def _tri_uvs(ob) -> np.ndarray:
 
 def overlap_texels(ob, resolution: int) -> int:
     """Texels of the object's PRTT map covered by more than one UV island."""
-    return rasterize(_tri_uvs(ob), resolution, resolution).overlap_texels
+    return overlap_count(_tri_uvs(ob), resolution, resolution)

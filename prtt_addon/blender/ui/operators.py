@@ -4,7 +4,7 @@ from bpy_extras.io_utils import ExportHelper
 
 from ...core.texels.unwrap import UnwrapError
 from ..bake import run as bake_run
-from ..export.job import ExportError
+from ..export.job import ExportError, unwrap_resolution
 from ..export.uv_maps import bake_downscale, unwrap_objects
 from ..gltf.export import GltfExportError, export_glb
 from ..preview.offscreen import RenderError, exposure_of, render_scene
@@ -45,7 +45,8 @@ class PRTT_OT_unwrap(bpy.types.Operator):
             overlaps = unwrap_objects(context, objects, method=st.unwrap_method, resolution=st.resolution,
                                       padding=st.padding, atlas=st.texture_sets == "ATLAS",
                                       source_map=st.existing_uv_map, dilate=st.dilate,
-                                      bounce_downscale=bake_downscale(st))
+                                      bounce_downscale=bake_downscale(st),
+                                      resolution_of=lambda ob: unwrap_resolution(ob, st))
         except (UnwrapError, RnaArrayError, RuntimeError) as exc:
             self.report({"ERROR"}, f"PRTT: {exc}")
             return {"CANCELLED"}

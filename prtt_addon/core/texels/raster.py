@@ -113,28 +113,26 @@ def _row_spans(P, tri, j):
     return lo, hi
 
 
-def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | None = None,
-              cancel=None) -> Raster:
-    """Rasterise UV triangles (T, 3, 2) in [0, 1] onto a width x height texture.
-
-    ``rows`` = (y0, y1) restricts the work to texel rows y0 <= j < y1 (bands
-    can run on different threads; texel indices stay global). ``cancel`` (an
-    object with is_set(), e.g. a threading.Event) is checked between chunks:
-    parallel.Cancelled.
-    """
-    y0, y1 = (0, height) if rows is None else (int(rows[0]), int(rows[1]))
+def _prepared(uvs, width: int, height: int):
+    """(P, area2, zero, cw): corners in texel units (T, 3, 2) float64, made
+    counter-clockwise; twice their areas; the degenerate ones; the ones
+    swapped (to map barycentrics back)."""
     uvs = np.asarray(uvs, dtype=np.float64)
     P = uvs * np.array([width, height], dtype=np.float64)
     area2 = ((P[:, 1, 0] - P[:, 0, 0]) * (P[:, 2, 1] - P[:, 0, 1])
              - (P[:, 1, 1] - P[:, 0, 1]) * (P[:, 2, 0] - P[:, 0, 0]))
     zero = np.abs(area2) <= ZERO_AREA
-    # Make every triangle counter-clockwise; remember the swap to map barycentrics back.
     cw = area2 < 0
     order = np.where(cw[:, None], [0, 2, 1], [0, 1, 2])
     P = np.take_along_axis(P, order[:, :, None], axis=1)
-    area2 = np.abs(area2)
-    live = np.flatnonzero(~zero)
-    edges = _canonical_edges(P)
+    return P, np.abs(area2), zero, cw
+
+
+def _claims(P, edges, live, width: int, height: int, y0: int, y1: int, cancel=None, border: bool = True):
+    """(centre_parts, border_parts): lists of (flat texel, triangle) arrays of
+    the texel centres inside triangles ``live`` (CCW corners ``P`` in texel
+    units, ``edges`` from _canonical_edges) in rows y0 <= j < y1, and (with
+    ``border``) the texels their squares touch otherwise (separating axes)."""
 
     # Row items: (triangle, row j) for every texel row the triangle's bbox spans,
     # trimmed to the triangle's own x-extent within that row.
@@ -181,7 +179,7 @@ def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | 
         flat = r_j[k] * width + i
         centre_parts.append((flat[inside], t[inside]))
         out = ~inside
-        if out.any():
+        if border and out.any():
             # Separating-axis test of the texel square against each edge.
             tt = t[out]
             ok = np.ones(tt.shape, bool)
@@ -189,6 +187,23 @@ def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | 
                 e = edges[q][1]
                 ok &= E[q][out] + 0.5 * (np.abs(e[tt, 0]) + np.abs(e[tt, 1])) > 0
             border_parts.append((flat[out][ok], tt[ok]))
+
+    return centre_parts, border_parts
+
+
+def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | None = None,
+              cancel=None) -> Raster:
+    """Rasterise UV triangles (T, 3, 2) in [0, 1] onto a width x height texture.
+
+    ``rows`` = (y0, y1) restricts the work to texel rows y0 <= j < y1 (bands
+    can run on different threads; texel indices stay global). ``cancel`` (an
+    object with is_set(), e.g. a threading.Event) is checked between chunks:
+    parallel.Cancelled.
+    """
+    y0, y1 = (0, height) if rows is None else (int(rows[0]), int(rows[1]))
+    P, area2, zero, cw = _prepared(uvs, width, height)
+    edges = _canonical_edges(P)
+    centre_parts, border_parts = _claims(P, edges, np.flatnonzero(~zero), width, height, y0, y1, cancel)
 
     # Dense arrays cover the band only; flat indices are offset by its first texel.
     base = y0 * width
@@ -257,6 +272,54 @@ def rasterize(uvs: np.ndarray, width: int, height: int, rows: tuple[int, int] | 
     bary[swapped] = bary[swapped][:, [0, 2, 1]]
     return Raster(width, height, texel, tri, bary, cov, int(np.count_nonzero(is_centre)), int(b_flat.size),
                   overlap_texels, overlap_tris, np.flatnonzero(zero))
+
+
+#: Texels of one band of :func:`overlap_count`, and the texel claims
+#: (bounding-box texels) of one group of its triangles: its memory, whatever
+#: the resolution (a whole 16384² raster holds ~40 GiB) and however many
+#: triangles cover a texel (UV maps stacked on one square claim each texel once
+#: per triangle).
+OVERLAP_BAND_TEXELS = 1 << 20
+OVERLAP_GROUP_CLAIMS = 1 << 21
+#: Bytes per band texel and per group claim the check holds at most: its
+#: dense count, and the claim loop's arrays (row items, indices, edge values).
+OVERLAP_BYTES = (8, 120)
+
+
+def overlap_count(uvs: np.ndarray, width: int, height: int, cancel=None) -> int:
+    """``rasterize(uvs, width, height).overlap_texels``, the texel centres
+    claimed by more than one triangle, with bounded memory: a band of rows at
+    a time and, within a band, a group of triangles at a time (claims counted
+    into the band's dense counts), checked before the first band."""
+    from ..base.memory import check_fits
+    width, height = int(width), int(height)
+    rows = max(1, OVERLAP_BAND_TEXELS // max(width, 1))
+    check_fits(OVERLAP_BYTES[0] * rows * width + OVERLAP_BYTES[1] * OVERLAP_GROUP_CLAIMS,
+               f"the UV overlap check at {width}x{height}")
+    P, _, zero, _ = _prepared(uvs, width, height)
+    live = np.flatnonzero(~zero)
+    edges = _canonical_edges(P)
+    lo, hi = P[live].min(axis=1), P[live].max(axis=1)          # (n, 2) bounding boxes, texel units
+    ylo = np.clip(np.floor(lo[:, 1]).astype(np.int64), 0, height - 1)
+    yhi = np.maximum(np.clip(np.ceil(hi[:, 1]).astype(np.int64) - 1, 0, height - 1), ylo)
+    span = np.clip(np.ceil(hi[:, 0]) - np.floor(lo[:, 0]) + 1, 1, width).astype(np.int64)
+    total = 0
+    for y0 in range(0, height, rows):
+        y1 = min(y0 + rows, height)
+        inb = (yhi >= y0) & (ylo < y1)
+        tri = live[inb]
+        claims = span[inb] * (np.minimum(yhi[inb], y1 - 1) - np.maximum(ylo[inb], y0) + 1)
+        group = np.cumsum(claims) // OVERLAP_GROUP_CLAIMS
+        cuts = [0, *(np.flatnonzero(np.diff(group)) + 1).tolist(), tri.size]
+        count = np.zeros((y1 - y0) * width, np.int64)
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if a == b:
+                continue
+            centre, _ = _claims(P, edges, tri[a:b], width, height, y0, y1, cancel, border=False)
+            for flat, _t in centre:
+                count += np.bincount(flat - y0 * width, minlength=count.size)
+        total += int(np.count_nonzero(count > 1))
+    return total
 
 
 def _closest_point(V, px, py):

@@ -1,0 +1,86 @@
+"""A setting at its largest allowed value on a tiny scene, under a memory
+limit (issue 50, defect 1): every allocation that grows with a setting is
+bounded or checked before it is made.
+
+`bake --resolution 16384 --unwrap smart` once rasterised each unwrap check at
+16384² (40 GiB) before any memory check: the out-of-memory killer ended it at
+23 GB, or under `ulimit -v` a raw numpy traceback, while the bake itself gave
+the objects 1024² and 512² (Tuning Auto makes Resolution a cap)."""
+import json
+import resource
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests import real_scenes as rs
+from tests.blender_util import addon_bpy
+from tests.test_headless_chain import ROOT
+
+#: Address space a limited child gets: bpy maps ~2 GiB of its own.
+LIMIT = 6 << 30
+
+
+def _limited():
+    resource.setrlimit(resource.RLIMIT_AS, (LIMIT, LIMIT))
+
+
+def run_limited(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "prtt_addon", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=900, preexec_fn=_limited, env={"PYTHONPATH": ROOT, "PATH": "/usr/bin:/bin"})
+
+
+def test_overlap_count_is_rasterize_s_count_in_bands():
+    from prtt_addon.core.texels import raster
+    rng = np.random.default_rng(7)
+    for n, w, h in ((300, 257, 300), (50, 1024, 1024), (2000, 64, 64)):
+        uv = rng.random((n, 3, 2))
+        assert raster.overlap_count(uv, w, h) == raster.rasterize(uv, w, h).overlap_texels
+    # bands and triangle groups far smaller than the layout: many cuts, the same count
+    uv = rng.random((200, 3, 2))
+    want = raster.rasterize(uv, 300, 200).overlap_texels
+    old = raster.OVERLAP_BAND_TEXELS, raster.OVERLAP_GROUP_CLAIMS
+    try:
+        raster.OVERLAP_BAND_TEXELS, raster.OVERLAP_GROUP_CLAIMS = 1000, 500
+        assert raster.overlap_count(uv, 300, 200) == want
+    finally:
+        raster.OVERLAP_BAND_TEXELS, raster.OVERLAP_GROUP_CLAIMS = old
+
+
+def test_overlap_count_of_stacked_uvs_fits_a_small_limit():
+    """Two quads stacked on the whole UV square at 8192²: 134 M texel claims
+    (rasterize holds ~7 GB for them); the banded count under a 2 GiB address
+    space limit."""
+    code = ("import resource, numpy as np; resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30));"
+            "from prtt_addon.core.texels.raster import overlap_count;"
+            "uv = np.tile(np.array([[[0, 0], [1, 0], [0, 1]], [[1, 1], [0, 1], [1, 0]]], float), (2, 1, 1));"
+            "print(overlap_count(uv, 8192, 8192))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900,
+                       env={"PYTHONPATH": ROOT, "PATH": "/usr/bin:/bin", "OPENBLAS_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert int(r.stdout.split()[-1]) == 8192 * 8192
+
+
+@pytest.mark.blender
+def test_bake_at_the_largest_resolution_with_unwrap_on_a_tiny_scene(tmp_path):
+    """The issue's command, under a 6 GiB address-space limit: it bakes, the
+    sets get the resolutions Tuning Auto gives them, and the unwrap leaves
+    margins for those (no overlapping texels at 1024² / 512²)."""
+    bpy = addon_bpy()
+    rs.floor(bpy, 6.0)
+    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    bpy.context.scene.prtt.light_source = "BUILTIN"
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    r = run_limited("bake", "scene.blend", "--resolution", "16384", "--unwrap", "smart", "--rays", "16",
+                    "--bounces", "0", "--out", "tex", cwd=tmp_path)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
+    with open(tmp_path / "tex" / "manifest.json", encoding="utf-8") as f:
+        sets = {s["name"]: s for s in json.load(f)["sets"]}
+    assert sets["Floor"]["resolution"] == [1024, 1024] and sets["Box"]["resolution"] == [512, 512]
+    assert all(s["overlap_texels"] == 0 for s in sets.values())
+    # the unwrap's islands are sized for those resolutions: the PRTT maps at
+    # 512² for the box have no overlapping texels (margins of 1/16384 would)
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "scene.blend"))
+    from prtt_addon.blender.export.uv_maps import overlap_texels
+    assert overlap_texels(bpy.data.objects["Box"], 512) == 0
