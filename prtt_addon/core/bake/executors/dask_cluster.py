@@ -200,8 +200,8 @@ class WorkerState:
     run several tasks at once, of one bake or of two):
 
     * scenes and their BVHs by scene token (the scene's hashes), the
-      :data:`KEEP_SCENES` most recent: a second bake of a scene on the same
-      cluster reuses its BVH;
+      :data:`KEEP_SCENES` most recent: tasks of two bakes of one scene running
+      side by side share its BVH; a bake that ends drops its scene;
     * per slot (a pass's kernel, a level's shader and tables) the
       :data:`KEEP_PER_SLOT` most recent objects by token (tokens start with
       the bake's run id: :meth:`forget` drops a finished bake's).
@@ -265,15 +265,18 @@ class WorkerState:
             store = self.slots.setdefault(name, collections.OrderedDict())
         return self._get(store, token, build, KEEP_PER_SLOT)[0]
 
-    def forget(self, prefix: str) -> int:
+    def forget(self, prefix: str, scene_token: str = "") -> int:
         """Drop the slot objects whose token starts with ``prefix`` (a finished
-        bake's run id); returns how many."""
+        bake's run id) and the scene ``scene_token`` with its BVH; returns how
+        many objects (scenes included)."""
         with self.lock:
             n = 0
             for store in self.slots.values():
                 for k in [k for k in store if k.startswith(prefix)]:
                     del store[k]
                     n += 1
+            if scene_token and self.scenes.pop(scene_token, None) is not None:
+                n += 1
             return n
 
 
@@ -314,14 +317,18 @@ def worker_memory(dask_worker=None) -> dict:
     core.base.memory.available_bytes, which reads the machine, its cgroup and
     ``ulimit -v``, and the Dask worker's own ``--memory-limit`` less what it
     holds; None where nothing is known), ``rss`` and ``peak`` (VmRSS, VmHWM),
-    ``numba``: whether numba is imported. ``dask_worker``: the Worker, which
-    Dask's ``Client.run`` passes to a function taking that argument."""
+    ``numba``: whether numba is imported; ``held``: the objects and scenes
+    its WorkerState keeps (none between bakes). ``dask_worker``: the Worker,
+    which Dask's ``Client.run`` passes to a function taking that argument."""
     rss = resident_bytes()
     avail = available_bytes()
     limit = getattr(getattr(dask_worker, "memory_manager", None), "memory_limit", None)
     if limit and rss is not None:
         avail = limit - rss if avail is None else min(avail, limit - rss)
-    return {"available": avail, "rss": rss, "peak": peak_resident_bytes(), "numba": "numba" in sys.modules}
+    with STATE.lock:
+        held = {"objects": sum(len(s) for s in STATE.slots.values()), "scenes": len(STATE.scenes)}
+    return {"available": avail, "rss": rss, "peak": peak_resident_bytes(), "numba": "numba" in sys.modules,
+            "held": held}
 
 
 def host_of(address: str) -> str:
@@ -371,9 +378,15 @@ def check_worker_memory(what: str, need: WorkerNeed, workers: dict, *, fraction:
     return out
 
 
-def forget_bake(prefix: str) -> int:
-    """Run on every worker when a bake ends (DaskBake.close): drop its objects."""
-    return STATE.forget(prefix)
+def forget_bake(prefix: str, scene_token: str = "") -> int:
+    """Run on every worker of a shared cluster when a bake ends
+    (DaskBake.close): drop its kernels, shaders and tables and its scene's
+    BVH, and give what that freed back to the system (malloc_trim), so that a
+    farm's workers are back where they were before it. Returns how many
+    objects were dropped."""
+    n = STATE.forget(prefix, scene_token)
+    release_free_memory()
+    return n
 
 
 def quiet_shutdown() -> None:
@@ -663,7 +676,9 @@ class DaskBake:
             # A local one is shut down: its workers' logs go quiet first.
             try:
                 if cluster is None:
-                    client.run(forget_bake, self.run_id, wait=False)
+                    # Waited for: Dask runs a plain function only so (wait=False is for
+                    # coroutines: every worker logged "Combination not supported").
+                    client.run(forget_bake, self.run_id, self.scene_token, on_error="return")
                 else:
                     client.run(quiet_shutdown)
             except Exception:
