@@ -731,3 +731,30 @@ def test_the_8_bit_encoding_keeps_its_stated_error(relit, tmp_path):
             n += 1
     assert n >= 3
     assert (relit / "u8.glb").stat().st_size < (relit / "half.glb").stat().st_size
+
+
+def test_a_missing_world_image_exports_with_a_named_stand_in(tmp_path):
+    """A transfer-only bake under a World whose HDRI file is then lost (issue
+    50, defect 6): export refused it ("has no pixels ... bake again", and
+    baking again did not help). It exports, lit by the studio HDRI that
+    FALLBACK_LIGHT names, and says so in a note and in the light's description."""
+    from prtt_addon.bench.scene_build import environment_world
+    from prtt_addon.blender.gltf.export import FALLBACK_LIGHT
+    from prtt_addon.core.light.envmap import builtin_environment_path
+    bpy = addon_bpy()
+    rs.floor(bpy, 6.0)
+    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    hdri = tmp_path / "sky.exr"
+    shutil.copy(builtin_environment_path("city"), hdri)
+    bpy.context.scene.world = environment_world("Sky", str(hdri))
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr + r.stdout
+    hdri.unlink()
+    doc, binary, out = export(tmp_path)
+    assert f"the glTF is lit by the studio HDRI {FALLBACK_LIGHT!r} instead" in out and "sky.exr" in out, out
+    light = doc["extensions"][NAME]["light"]
+    assert FALLBACK_LIGHT in light["description"] and "cannot be read" in light["description"], light
+    want = project_equirect(builtin_environment_path(FALLBACK_LIGHT), 5)
+    got = np.array(light["rgb"], dtype=np.float64).reshape(-1, 3)
+    assert np.allclose(got[0], want[0], rtol=1e-3), (got[0], want[0])          # DC: any rotation

@@ -74,6 +74,10 @@ from ..shared import UV_MAP
 
 #: The largest World image carried in the .glb; a larger one is left out with a note.
 ENVIRONMENT_MAX_BYTES = 64 << 20
+#: The studio HDRI that lights an export whose World cannot be read (its image
+#: missing, say): transfer and relightable bounces do not hold the light, so
+#: the bake is still good; the note names the stand-in.
+FALLBACK_LIGHT = "forest"
 _ENVIRONMENT_MIME = {".exr": "image/x-exr", ".hdr": "image/vnd.radiance"}
 #: glTF material texture of each material flag, as the viewer reads it.
 _MATERIAL_TEXTURES = (("baseColorTexture", "pbrMetallicRoughness", "baseColorTexture", "base colour"),
@@ -399,7 +403,7 @@ def _check_exportable(context, info: dict):
     (PreviewScene, PreviewStatus) of the bake (its light, its description)."""
     if info is None:
         raise GltfExportError("nothing baked in this scene: bake it first (python -m prtt_addon bake FILE.blend)")
-    ps, status = collect(context, use_bounces=False, with_meshes=True)
+    ps, status = collect(context, use_bounces=False, with_meshes=True, light_fallback=FALLBACK_LIGHT)
     problems = [t for level, t in status.messages if level in ("ERROR", "WARNING")]
     if ps is None or problems:
         raise GltfExportError("the bake cannot be exported as it is: " + "; ".join(problems or ["not drawable"])
@@ -444,11 +448,19 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
     return sets, blobs, set_index
 
 
-def _environment(scene, notes: list) -> tuple[dict, bytes | None]:
-    """The root's ``environment`` (the World the light was projected from)
-    and its image file's bytes (None: not carried, a note says why)."""
+def _environment(scene, notes: list, fallback: str = "") -> tuple[dict, bytes | None]:
+    """The root's ``environment`` (the World the light was projected from, or
+    the studio HDRI FALLBACK_LIGHT when ``fallback`` says why the World's
+    cannot be read) and its image file's bytes (None: not carried, a note says why)."""
     st = scene.prtt
-    setup = world_setup(scene, source=st.light_source, builtin=st.builtin_environment or "forest")
+    if fallback:
+        setup = world_setup(scene, source="BUILTIN", builtin=FALLBACK_LIGHT)
+        notes.append(f"the World's light cannot be read ({fallback}): the glTF is lit by the studio HDRI "
+                     f"{FALLBACK_LIGHT!r} instead; the transfer and relightable bounce textures do not hold the "
+                     f"light, so a viewer's own environment relights them (baked bounce textures keep the "
+                     f"light they were baked with); fix the World and export again to carry it")
+    else:
+        setup = world_setup(scene, source=st.light_source, builtin=st.builtin_environment or "forest")
     rotation, vector_type = setup.mapping or ((0.0, 0.0, 0.0), "POINT")
     common = dict(description=setup.description, strength=setup.strength, rotation=rotation,
                   vector_type=vector_type, lookup_rotation=setup.rotation)
@@ -521,7 +533,7 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
     bands = int(info["settings"]["bands"])
     notes = []
     sets, blobs, set_index = _set_payloads(ps, folder, info, notes, encoding)
-    environment, env_blob = _environment(scene, notes)
+    environment, env_blob = _environment(scene, notes, status.light_fallback)
     if env_blob is not None:
         blobs.append((("environment", "image"), env_blob))
     vs = scene.view_settings

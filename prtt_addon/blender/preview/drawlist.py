@@ -77,6 +77,8 @@ class PreviewStatus:
     messages: list = dataclasses.field(default_factory=list)    # (level, text): level INFO/WARNING/ERROR
     bounce_stale: list = dataclasses.field(default_factory=list)
     light_description: str = ""
+    #: Why the World's light could not be read when a fallback light was used instead ("" otherwise).
+    light_fallback: str = ""
 
     def add(self, level: str, text: str) -> None:
         self.messages.append((level, text))
@@ -107,10 +109,11 @@ def bake_folder(scene, info: dict) -> str:
 
 # --- light ----------------------------------------------------------------------------
 
-def current_light(scene, bands: int) -> tuple[np.ndarray, str]:
-    """The World light at ``bands`` bands, with its projection cached."""
+def current_light(scene, bands: int, setup=None) -> tuple[np.ndarray, str]:
+    """The World light at ``bands`` bands (or ``setup``'s), with its projection cached."""
     st = scene.prtt
-    setup = world_setup(scene, source=st.light_source, builtin=st.builtin_environment or "forest")
+    if setup is None:
+        setup = world_setup(scene, source=st.light_source, builtin=st.builtin_environment or "forest")
     key = (setup.key, bands)
     proj = _PROJECTIONS.get(key)
     if proj is None:
@@ -364,12 +367,14 @@ def _parts_by_key(info: dict) -> dict:
 
 # --- the frame --------------------------------------------------------------------------
 
-def collect(context, *, visible=None, use_bounces: bool = True,
-            with_meshes: bool = True) -> tuple[pp.PreviewScene | None, PreviewStatus]:
+def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: bool = True,
+            light_fallback: str | None = None) -> tuple[pp.PreviewScene | None, PreviewStatus]:
     """The PreviewScene of ``context.scene``'s last bake, and what to tell the user.
 
     visible(ob) -> bool decides visibility (default: ``ob.visible_get()``);
-    with_meshes=False only checks (the panel): no mesh is read."""
+    with_meshes=False only checks (the panel): no mesh is read;
+    light_fallback: a studio HDRI's name to light the scene with when the
+    World's light cannot be read (the export's; status.light_fallback says why)."""
     scene = context.scene
     status = PreviewStatus()
     info = last_bake(scene)
@@ -407,8 +412,14 @@ def collect(context, *, visible=None, use_bounces: bool = True,
     try:
         light, status.light_description = current_light(scene, bands)
     except (WorldLightError, OSError, ValueError) as exc:
-        status.add("ERROR", f"light: {exc}")
-        return None, status
+        if not light_fallback:
+            status.add("ERROR", f"light: {exc}")
+            return None, status
+        # The textures do not hold the light (transfer, relightable bounces): a named stand-in lights the export.
+        light, desc = current_light(scene, bands, world_setup(scene, source="BUILTIN", builtin=light_fallback))
+        status.light_fallback = str(exc)
+        status.light_description = f"{desc} (the World's light cannot be read: {exc})"
+        status.add("INFO", f"light: {status.light_description}")
     normal_maps = bool(info["settings"].get("normal_maps", True))
     table = _MaterialTable(normal_maps)
     depsgraph = context.evaluated_depsgraph_get()
