@@ -758,3 +758,69 @@ def test_a_missing_world_image_exports_with_a_named_stand_in(tmp_path):
     want = project_equirect(builtin_environment_path(FALLBACK_LIGHT), 5)
     got = np.array(light["rgb"], dtype=np.float64).reshape(-1, 3)
     assert np.allclose(got[0], want[0], rtol=1e-3), (got[0], want[0])          # DC: any rotation
+
+
+def _lamp_and_udim_scene(tmp, *, lamp: bool, udim: bool):
+    bpy = addon_bpy()
+    rs.floor(bpy, 6.0)
+    box = rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    bpy.context.scene.prtt.light_source = "BUILTIN"
+    if lamp:
+        data = bpy.data.lights.new("Bulb", "POINT")
+        if hasattr(data, "normalize"):
+            data.normalize = False            # what trips bpy 5.0.1's exporter (its Light.area() call)
+        ob = bpy.data.objects.new("Bulb", data)
+        ob.location = (1, 1, 3)
+        bpy.context.scene.collection.objects.link(ob)
+    if udim:
+        from prtt_addon.bench.scene_build import principled
+        img = bpy.data.images.new("tiles", 8, 8, tiled=True)
+        img.source = "TILED"
+        img.filepath = str(tmp / "test.<UDIM>.png")        # no such files
+        mat = principled("Tiled")
+        nt = mat.node_tree
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image = img
+        nt.links.new(tex.outputs["Color"], next(n for n in nt.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+                     .inputs["Base Color"])
+        box.data.materials.append(mat)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp)
+    assert r.returncode == 0, r.stderr + r.stdout
+
+
+def test_a_lamp_the_exporter_fails_on_is_left_out_with_a_note(tmp_path):
+    """bpy 5.0.1's exporter raises on a point lamp with Normalize off (the
+    glTF-Blender-IO test scenes' lamps: "PointLight.area(): ... (world_matrix)",
+    issue 50 defect 7): the lamp is left out, not the export."""
+    _lamp_and_udim_scene(tmp_path, lamp=True, udim=False)
+    doc, _, out = export(tmp_path)
+    assert NAME in doc["extensions"] and "Traceback" not in out
+    import bpy
+    if bpy.app.version[:2] == (5, 0):                   # the exporter's bug: the note says so
+        assert "lamps left out of the glTF" in out, out
+
+
+def test_an_exporter_failure_is_one_line_saying_what_to_do(tmp_path):
+    """A UDIM image Blender's exporter cannot take: it raised a traceback into
+    the user's console; now one line says what it said was wrong."""
+    _lamp_and_udim_scene(tmp_path, lamp=False, udim=True)
+    r = run("export", "scene.blend", "--out", "room.glb", cwd=tmp_path)
+    assert r.returncode == 1 and not (tmp_path / "room.glb").exists(), r.stdout + r.stderr
+    err = [ln for ln in r.stderr.splitlines() if ln.startswith("prtt: error:")]
+    assert len(err) == 1 and "Blender's glTF exporter failed: UDIM" in err[0], r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+
+
+def test_exporter_failures_are_read_for_their_cause():
+    """What Blender's exporter printed names the cause: a file it could not
+    read (a missing UDIM tile), its own ERROR line, a lamp it failed on."""
+    from prtt_addon.blender.gltf.export import _ExporterFailed
+    tb = "Error: Python: Traceback (most recent call last):\n  File \"x.py\", line 1\nAssertionError\nLocation: ops.py:109"
+    e = _ExporterFailed(tb, "INFO: Starting\nCannot read '/p/test.1001.png': No such file or directory\n")
+    assert "/p/test.1001.png" in e.message and "missing" in e.message and not e.in_lights
+    e = _ExporterFailed(tb, "19:01 | ERROR: UDIM packed images are not supported for export.\n")
+    assert e.message.startswith("Blender's glTF exporter failed: UDIM packed images") and e.last == "AssertionError"
+    e = _ExporterFailed("  File \".../blender/exp/lights.py\", line 130\nTypeError: PointLight.area(): was called "
+                        "with invalid keyword argument(s) (world_matrix)")
+    assert e.in_lights and "world_matrix" in e.last

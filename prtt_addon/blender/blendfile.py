@@ -4,6 +4,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import tempfile
 import threading
 
 import bpy
@@ -128,3 +129,36 @@ def save_blend(path: str | None, *, quiet: bool = False) -> str:
     except RuntimeError as exc:
         raise OSError(f"cannot save {target}: {str(exc).strip()}") from exc
     return target
+
+
+@contextlib.contextmanager
+def native_output_captured():
+    """Run the block with file descriptors 1 and 2 (Python's and native
+    code's output: Blender's reports, an operator's printed traceback) going
+    to a temporary file; yields a list that holds the captured text once the
+    block ends. What a caller shows only when asked (Blender's glTF
+    exporter's INFO lines) or replaces by one line (its failure)."""
+    out: list = []
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    try:
+        saved = [os.dup(1), os.dup(2)]
+    except OSError:
+        yield out
+        return
+    with tempfile.TemporaryFile() as f:
+        os.dup2(f.fileno(), 1)
+        os.dup2(f.fileno(), 2)
+        try:
+            yield out
+        finally:
+            for stream in (sys.stdout, sys.stderr):
+                with contextlib.suppress(OSError, ValueError):
+                    stream.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            f.seek(0)
+            out.append(f.read().decode("utf-8", "replace"))

@@ -64,7 +64,7 @@ from ...core.io.image_write import png_bytes, srgb8
 from ...core.preview import pack as pp
 from ...core.shading.shade import light_hash
 from .. import versions
-from ..blendfile import open_scene
+from ..blendfile import native_output_captured, open_scene
 from ..export.job import GENERATED_UVS
 from ..export.scene_objects import GEOMETRY_TYPES, render_enabled
 from ..export.world import world_setup
@@ -237,6 +237,7 @@ class _Export:
         self.materials_tagged: set = set()
         self.images_encoded: dict = {}          # Blender image name -> kind
         self.notes: list = []
+        self.log = ""                           # what Blender's exporter printed (export --verbose shows it)
 
     def gather_gltf_extensions_hook(self, gltf, export_settings):
         BinaryData = versions.gltf_binary_data()
@@ -525,7 +526,6 @@ def _check_materials(doc: dict, job: _Export, notes: list) -> None:
 def export_glb(context, out: str, *, encoding: str = "half") -> dict:
     """Export ``context.scene`` to the .glb ``out`` (atomically). Returns a
     summary: sets, objects, bytes, notes. GltfExportError when it cannot."""
-    global _ACTIVE
     scene = context.scene
     info = last_bake(scene)
     ps, status = _check_exportable(context, info)
@@ -552,35 +552,19 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
     if package not in prefs.addons:
         added = prefs.addons.new()               # the exporter finds hooks on enabled add-ons only
         added.module = package
-    _ACTIVE = job = _Export(root, blobs, parts, generated, materials, images)
-    job.rendered = render_enabled(scene, context.view_layer)
     try:
-        with atomic_write(out) as tmp:
-            target = tmp if tmp.endswith(".glb") else tmp + ".glb"
-            r = bpy.ops.export_scene.gltf(filepath=target, export_format="GLB", use_selection=False,
-                                          export_texcoords=True, export_normals=True, export_cameras=True,
-                                          export_lights=True, export_apply=True,
-                                          export_tangents=any(m["normalTexture"] for m in materials.values()),
-                                          export_gn_mesh=any(p.geometry_nodes_instance for p in parts))
-            if r != {"FINISHED"}:
-                raise GltfExportError(f"Blender's glTF exporter did not finish ({r})")
-            if target != tmp:
-                os.replace(target, tmp)
-            if job.errors:
-                raise GltfExportError("could not export " + "; ".join(job.errors[:4]))
-            try:
-                doc = read_glb_json(tmp)
-            except ValueError as exc:
-                raise GltfExportError(f"the exporter did not write a .glb ({exc})") from exc
-            missing = sorted({p.name for p in parts} - job.nodes_tagged)
-            if NAME not in (doc.get("extensions") or {}) or missing or not job.primitives_tagged:
-                raise GltfExportError(f"PRTT's data did not reach the file (objects without it: "
-                                      f"{', '.join(missing[:8]) or 'none'}; primitives tagged: "
-                                      f"{job.primitives_tagged}); see Blender's log above")
+        try:
+            job, doc = _write(out, scene, context, (root, blobs, parts, generated, materials, images), lights=True)
+        except _ExporterFailed as exc:
+            if not exc.in_lights:
+                raise GltfExportError(exc.message) from None
+            # Blender's exporter fails on some lamps (bpy 5.0.1: every point lamp): PRTT does not use
+            # them, so they are left out rather than the whole export.
+            job, doc = _write(out, scene, context, (root, blobs, parts, generated, materials, images),
+                              lights=False)
+            notes.append(f"lamps left out of the glTF: Blender's glTF exporter failed on them ({exc.last}); "
+                         f"PRTT's light is the World")
     finally:
-        _ACTIVE = None
-        for m in job.temporary_meshes:
-            bpy.data.meshes.remove(m)
         if added is not None:
             prefs.addons.remove(added)
     _check_materials(doc, job, notes)
@@ -602,7 +586,81 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
             notes.append("the bounce textures are stale (" + ", ".join(stale) + "): exported as baked; bake "
                          "again to update them")
     return {"sets": len(sets), "objects": len(set_index), "bytes": os.path.getsize(out), "notes": notes,
-            "images_encoded": dict(job.images_encoded)}
+            "images_encoded": dict(job.images_encoded), "exporter_log": job.log}
+
+
+class _ExporterFailed(Exception):
+    """Blender's glTF exporter raised: ``message`` says what failed and what to
+    do, ``last`` is its error's last line, ``in_lights`` whether it failed
+    gathering a lamp."""
+
+    def __init__(self, text: str, log: str = ""):
+        self.log = log
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("Location:")]
+        self.last = lines[-1] if lines else "no message"
+        self.in_lights = any("exp/light" in ln or "light_spots" in ln or "Light." in ln for ln in lines)
+        # the cause is in what it printed before failing, not in its exception: an image
+        # it could not read, or its own ERROR line ("UDIM packed images are not supported ...")
+        printed = (log + "\n" + text).splitlines()
+        cannot = next((ln for ln in printed if "Cannot read" in ln), None)
+        said = next((ln.split("ERROR:", 1)[1].strip() for ln in printed if "| ERROR:" in ln), None)
+        if said and not cannot:
+            what = f"{said} (it then stopped: {self.last})"
+        elif cannot:
+            image = cannot.split("Cannot read", 1)[1].strip(" :'\"").split("'")[0]
+            what = (f"it cannot read an image ({image}): "
+                    f"an image file or UDIM tile is missing; find it (File > External Data > Report Missing "
+                    f"Files) or remove it from the material, then export again")
+        else:
+            what = f"{self.last}; see docs/gltf.md (Limitations) or report it with the .blend"
+        self.message = f"Blender's glTF exporter failed: {what}"
+        super().__init__(self.message)
+
+
+def _write(out: str, scene, context, job_args, *, lights: bool):
+    """Run Blender's glTF exporter with PRTT's hooks into ``out`` (atomically):
+    (the hooks' _Export, the written glTF's JSON). _ExporterFailed when the
+    exporter raises, GltfExportError when PRTT's data did not reach the file."""
+    global _ACTIVE
+    root, blobs, parts, generated, materials, images = job_args
+    _ACTIVE = job = _Export(root, blobs, parts, generated, materials, images)
+    job.rendered = render_enabled(scene, context.view_layer)
+    try:
+        with atomic_write(out) as tmp:
+            target = tmp if tmp.endswith(".glb") else tmp + ".glb"
+            try:
+                # its ~30 INFO lines, and a failure's traceback, kept for --verbose (job.log)
+                with native_output_captured() as log:
+                    r = bpy.ops.export_scene.gltf(
+                        filepath=target, export_format="GLB", use_selection=False, export_texcoords=True,
+                        export_normals=True, export_cameras=True, export_lights=lights, export_apply=True,
+                        export_tangents=any(m["normalTexture"] for m in materials.values()),
+                        export_gn_mesh=any(p.geometry_nodes_instance for p in parts))
+            except RuntimeError as exc:            # the exporter's own exception, as an operator error
+                job.log = "".join(log)
+                raise _ExporterFailed(str(exc), "".join(log)) from None
+            job.log = "".join(log)
+            if r != {"FINISHED"}:
+                raise GltfExportError(f"Blender's glTF exporter did not finish ({r})")
+            if target != tmp:
+                os.replace(target, tmp)
+            if job.errors:
+                raise GltfExportError("could not export " + "; ".join(job.errors[:4]))
+            try:
+                doc = read_glb_json(tmp)
+            except ValueError as exc:
+                raise GltfExportError(f"the exporter did not write a .glb ({exc})") from exc
+            missing = sorted({p.name for p in parts} - job.nodes_tagged)
+            if NAME not in (doc.get("extensions") or {}) or missing or not job.primitives_tagged:
+                raise GltfExportError(f"PRTT's data did not reach the file (objects without it: "
+                                      f"{', '.join(missing[:8]) or 'none'}; primitives tagged: "
+                                      f"{job.primitives_tagged}); `export --verbose` shows what Blender's "
+                                      f"exporter printed")
+    finally:
+        _ACTIVE = None
+        for m in job.temporary_meshes:
+            bpy.data.meshes.remove(m)
+    return job, doc
 
 
 def export_parser(prog: str) -> argparse.ArgumentParser:
@@ -613,6 +671,8 @@ def export_parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("blend", help="a baked .blend file")
     p.add_argument("--out", required=True, help="the .glb to write (relative to where you run the command)")
     p.add_argument("--scene", help="scene name (default: the file's active scene)")
+    p.add_argument("--verbose", action="store_true",
+                   help="also print what Blender's glTF exporter printed (its INFO lines; quiet by default)")
     p.add_argument("--encoding", choices=ENCODINGS, default="half",
                    help="the textures' encoding: half (RGBA16F, the EXRs' values; default) or u8 (RGBA8 with a "
                         "scale and offset per plane: about half the bytes, error written per payload as maxError)")
@@ -634,6 +694,8 @@ def export_file(argv, prog="prtt export") -> int:
     except (GltfExportError, ValueError, OSError) as exc:
         print(f"prtt: error: {exc}", file=sys.stderr)
         return 1
+    if args.verbose and summary["exporter_log"]:
+        print(summary["exporter_log"].rstrip())
     for note in summary["notes"]:
         print(f"prtt: note: {note}")
     print(f"prtt: exported {summary['objects']} object(s) in {summary['sets']} texture set(s), "
