@@ -824,3 +824,52 @@ def test_exporter_failures_are_read_for_their_cause():
     e = _ExporterFailed("  File \".../blender/exp/lights.py\", line 130\nTypeError: PointLight.area(): was called "
                         "with invalid keyword argument(s) (world_matrix)")
     assert e.in_lights and "world_matrix" in e.last
+
+
+def test_armatures_export_in_the_pose_they_were_baked_in(tmp_path):
+    """A posed, moved armature with a skinned box (Armature modifier) and a
+    bone-parented ball (issue 50, defect 5: refused, "PRTT's data did not
+    reach the file (objects without it: Ball)", Blender's exporter having put
+    the armature in its rest position): exported as the bake saw them, every
+    vertex of the glTF in world space where Blender's evaluated mesh has it."""
+    bpy = addon_bpy()
+    rs.floor(bpy, 6.0)
+    box = rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    ball = rs.add_object(bpy, "Ball", rs.cube_mesh(bpy, "ball"), location=(2, 0, 0.5))
+    rig = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))
+    bpy.context.scene.collection.objects.link(rig)
+    bpy.context.view_layer.objects.active = rig
+    bpy.ops.object.mode_set(mode="EDIT")
+    bone = rig.data.edit_bones.new("Bone")
+    bone.head, bone.tail = (0, 0, 0), (0, 0, 1)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    mod = box.modifiers.new("Armature", "ARMATURE")
+    mod.object = rig
+    box.vertex_groups.new(name="Bone").add(list(range(len(box.data.vertices))), 1.0, "REPLACE")
+    ball.parent, ball.parent_type, ball.parent_bone = rig, "BONE", "Bone"
+    rig.location, rig.rotation_euler = (1.0, 2.0, 0.3), (0, 0, 0.5)
+    rig.pose.bones["Bone"].rotation_mode = "XYZ"
+    rig.pose.bones["Bone"].rotation_euler = (0.2, 0, 0)
+    bpy.context.scene.prtt.light_source = "BUILTIN"
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr + r.stdout
+    doc, binary, _ = export(tmp_path)
+    tagged = {n["name"] for n in doc["nodes"] if NAME in (n.get("extensions") or {})}
+    assert tagged == {"Floor", "Box", "Ball"}, tagged
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "scene.blend"))
+    dg = bpy.context.evaluated_depsgraph_get()
+    worlds = world_matrices(doc)
+    to_blender = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], np.float64)      # glTF Y-up -> Blender Z-up
+    for i, n in enumerate(doc["nodes"]):
+        if n.get("name") not in ("Box", "Ball"):
+            continue
+        ob = bpy.data.objects[n["name"]].evaluated_get(dg)
+        me = ob.to_mesh()
+        want = np.array([ob.matrix_world @ v.co for v in me.vertices], np.float64)
+        ob.to_mesh_clear()
+        pos = np.concatenate([accessor(doc, binary, p["attributes"]["POSITION"])
+                              for p in doc["meshes"][n["mesh"]]["primitives"]]).astype(np.float64)
+        got = (pos @ worlds[i][:3, :3].T + worlds[i][:3, 3]) @ to_blender.T
+        d = np.linalg.norm(got[:, None] - want[None], axis=2)
+        assert d.min(axis=1).max() < 1e-4 and d.min(axis=0).max() < 1e-4, (n["name"], d.min(axis=1).max())

@@ -634,6 +634,8 @@ def _write(out: str, scene, context, job_args, *, lights: bool):
                     r = bpy.ops.export_scene.gltf(
                         filepath=target, export_format="GLB", use_selection=False, export_texcoords=True,
                         export_normals=True, export_cameras=True, export_lights=lights, export_apply=True,
+                        # the pose the bake saw: armatures as posed, skinned meshes as deformed
+                        export_rest_position_armature=False, export_skins=False,
                         export_tangents=any(m["normalTexture"] for m in materials.values()),
                         export_gn_mesh=any(p.geometry_nodes_instance for p in parts))
             except RuntimeError as exc:            # the exporter's own exception, as an operator error
