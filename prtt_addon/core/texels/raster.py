@@ -28,6 +28,7 @@ import dataclasses
 import numpy as np
 
 from ..base.errors import Cancelled
+from ..base.memory import check_fits
 
 #: Twice the signed area (in texel units) below which a UV triangle is degenerate.
 ZERO_AREA = 1e-10
@@ -291,7 +292,6 @@ def overlap_count(uvs: np.ndarray, width: int, height: int, cancel=None) -> int:
     claimed by more than one triangle, with bounded memory: a band of rows at
     a time and, within a band, a group of triangles at a time (claims counted
     into the band's dense counts), checked before the first band."""
-    from ..base.memory import check_fits
     width, height = int(width), int(height)
     rows = max(1, OVERLAP_BAND_TEXELS // max(width, 1))
     check_fits(OVERLAP_BYTES[0] * rows * width + OVERLAP_BYTES[1] * OVERLAP_GROUP_CLAIMS,
