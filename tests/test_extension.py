@@ -127,3 +127,10 @@ def test_install_enable_and_bake(extension_zip, tmp_path):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "FILES ['Plane.transfer.exr', 'Suzanne.transfer.exr', 'manifest.json']" in r.stdout
     assert "PREVIEW (32, 24) 1.0" in r.stdout
+    # a new session after the documented install has PRTT enabled (the snippet saves the
+    # preferences); Blender loads them at start, the bpy module when asked (read_userpref)
+    again = ("import bpy; bpy.ops.wm.read_userpref(); "
+             "print('ENABLED', 'bl_ext.user_default.prtt_addon' in bpy.context.preferences.addons, "
+             "hasattr(bpy.types.Scene, 'prtt'))")
+    r = subprocess.run([sys.executable, "-c", again], capture_output=True, text=True, env=env, timeout=300)
+    assert "ENABLED True True" in r.stdout, r.stdout[-2000:] + r.stderr[-2000:]

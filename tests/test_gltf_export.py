@@ -873,3 +873,12 @@ def test_armatures_export_in_the_pose_they_were_baked_in(tmp_path):
         got = (pos @ worlds[i][:3, :3].T + worlds[i][:3, 3]) @ to_blender.T
         d = np.linalg.norm(got[:, None] - want[None], axis=2)
         assert d.min(axis=1).max() < 1e-4 and d.min(axis=0).max() < 1e-4, (n["name"], d.min(axis=1).max())
+
+
+def test_an_out_in_a_missing_folder_is_refused_before_any_work(baked, tmp_path):
+    """`export --out missing/room.glb` worked 4 s, then named its temporary
+    file; the folder is checked first, as `render` checks it."""
+    r = run("export", str(baked / "scene.blend"), "--out", "missing/room.glb", cwd=tmp_path)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "prtt: error: --out missing/room.glb: the folder missing does not exist" in r.stderr, r.stderr
+    assert "Read blend" not in r.stdout + r.stderr                   # refused before the .blend is opened

@@ -69,6 +69,7 @@ from ..export.job import GENERATED_UVS
 from ..export.scene_objects import GEOMETRY_TYPES, render_enabled
 from ..export.world import world_setup
 from ..preview.drawlist import bake_folder, collect, generated_uvs, last_bake, materials_signature
+from ..preview.offscreen import RenderError, check_out
 from ..rna_arrays import RnaArrayError, read, write
 from ..shared import UV_MAP
 
@@ -686,6 +687,11 @@ def export_file(argv, prog="prtt export") -> int:
     if not args.out.lower().endswith(".glb"):
         print(f"prtt: error: --out {args.out}: the export writes .glb files", file=sys.stderr)
         return 2
+    try:
+        check_out(args.out, (".glb",))          # before the .blend is opened: seconds, not a temporary's name
+    except RenderError as exc:
+        print(f"prtt: error: {exc}", file=sys.stderr)
+        return 1
     scene = open_scene(args.blend, args.scene)
     if scene is None:
         return 1

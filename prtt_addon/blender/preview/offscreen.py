@@ -270,18 +270,20 @@ def render_parser(prog: str) -> argparse.ArgumentParser:
     return p
 
 
-def check_out(out: str) -> None:
+def check_out(out: str, extensions=None) -> None:
     """Refuse an --out that cannot be written, before the .blend is even
-    opened; messages name ``out`` as the user gave it.
+    opened; messages name ``out`` as the user gave it. ``extensions``: the
+    file types allowed (default: the render's images; `export` asks .glb).
 
     The folder is probed by creating (and removing) a temporary file there,
     the very thing the atomic write will do: permission bits alone mislead
     (root, ACLs, read-only mounts)."""
     ext = os.path.splitext(out)[1].lower()
-    if ext not in IMAGE_EXTENSIONS:
-        raise RenderError(f"--out must end in .png or .exr, got {out!r}")
+    allowed = IMAGE_EXTENSIONS if extensions is None else tuple(extensions)
+    if ext not in allowed:
+        raise RenderError(f"--out must end in {' or '.join(allowed)}, got {out!r}")
     if os.path.isdir(out):
-        raise RenderError(f"--out {out}: is a folder; give an image file name")
+        raise RenderError(f"--out {out}: is a folder; give a file name")
     folder = os.path.dirname(os.path.abspath(out))
     shown = os.path.dirname(out) or "."
     if not os.path.isdir(folder):

@@ -66,7 +66,7 @@ MEMORY_ADVICE = ("bake at a lower resolution or with a larger Bounce Downscale, 
 
 #: Why an object is left out of a vertex-mode frame, with what to do about it.
 NO_VERTEX_TRANSFER = ("the bake has no per-vertex transfer: bake again with Vertex Transfer on "
-                      "(PRTT > Bake Settings > Vertex Transfer)")
+                      "(PRTT › Bake › Output › Vertex Transfer)")
 STALE_VERTEX_TRANSFER = ("its per-vertex transfer does not match its mesh (edited since the bake?): "
                          "bake again")
 
