@@ -153,7 +153,16 @@ class ConsoleProgress:
                 self.say(f"prtt: {e['message']}")
         elif t == "start":
             if not self.quiet:
-                self.say(f"prtt: baking {len(e['sets'])} set(s), {e['triangles']} triangles")
+                line = f"prtt: baking {len(e['sets'])} set(s), {e['triangles']} triangles"
+                res = e.get("resolutions") or []
+                if res:
+                    shown = [f"{n} {w}x{h}" for n, (w, h) in zip(e["sets"], res)]
+                    line += ": " + ", ".join(shown[:8]) + (f" and {len(shown) - 8} more" if len(shown) > 8 else "")
+                self.say(line)
+                if res and len(res) > 1 and str((e.get("settings") or {}).get("tuning", "")).lower() == "auto":
+                    self.say("prtt: note: Tuning Auto sizes each object's own set from its surface area (128 "
+                             "texels a metre, a power of two) up to the Resolution asked; Tuning Fixed, a Texel "
+                             "Density or an object's Resolution Override choose otherwise")
         elif not self.final:
             if t in ("done", "cancelled", "error"):
                 self.end()

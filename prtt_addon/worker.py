@@ -170,6 +170,7 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
         if cancel.is_set():
             raise Cancelled()
         emit({"type": "start", "pid": os.getpid(), "sets": sc.set_names,
+              "resolutions": [[int(w), int(h)] for w, h in sc.set_resolution],
               "triangles": sc.n_triangles, "settings": st.as_dict(),
               "light": None if light is None else (extra.get("light") or {}).get("description", "given")})
         source = extra.get("blend") if isinstance(extra.get("blend"), str) and extra.get("blend") else None

@@ -75,6 +75,9 @@ def test_bake_at_the_largest_resolution_with_unwrap_on_a_tiny_scene(tmp_path):
     r = run_limited("bake", "scene.blend", "--resolution", "16384", "--unwrap", "smart", "--rays", "16",
                     "--bounces", "0", "--out", "tex", cwd=tmp_path)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
+    # the cap is said, not silent
+    assert "baking 2 set(s), 14 triangles: Floor 1024x1024, Box 512x512" in r.stdout, r.stdout
+    assert "Tuning Auto sizes each object's own set from its surface area" in r.stdout
     with open(tmp_path / "tex" / "manifest.json", encoding="utf-8") as f:
         sets = {s["name"]: s for s in json.load(f)["sets"]}
     assert sets["Floor"]["resolution"] == [1024, 1024] and sets["Box"]["resolution"] == [512, 512]

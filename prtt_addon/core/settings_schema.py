@@ -291,7 +291,9 @@ SETTINGS: tuple[Setting, ...] = (
                                 "without a rebake")}),
             option="--bounce-mode", ui=Ui("bounce_mode", "Bounce Mode")),
     # --- job (both command lines; not a BakeSettings field) -----------------------------
-    Setting("resolution", "job", "int", 1024, "texels per side of each texture set", unit="texels",
+    Setting("resolution", "job", "int", 1024, "texels per side of each texture set: an atlas's, or under "
+            "tuning fixed every set's; under tuning auto the largest an object's own set gets (sized from its "
+            "surface area, 128 texels a metre; the bake prints each set's)", unit="texels",
             lo=1, hi=MAX_RESOLUTION, option="--resolution", metavar="N",
             note="a 16384² × 25 float32 texture is 27 GB",
             cli_default="bake-job: each set's own; Blender: the scene's (objects' overrides and texel density "
