@@ -470,6 +470,8 @@ def test_a_truncated_glb_is_a_message(room, room_server):
     (room / "site" / "cut.glb").write_bytes(data[:len(data) // 2])
     title, shown, errors, console = page_run(room_server, "/cut.glb")
     assert title.startswith("error: ") and shown and shown in title, (title, shown)
+    # says what happened, with the bytes (it said "Invalid typed array length: 6170449")
+    assert f"truncated .glb: {len(data) // 2:,} of {len(data):,} bytes arrived" in title, title
     assert not errors and not console, (errors, console)
 
 
@@ -663,3 +665,19 @@ def test_opening_files_one_after_another(room, room_server, tmp_path):
     rel, _, _ = surface_rmse(read_png(tmp_path / "again.png"), read_png(room / "room_tpfl.png"))
     print(f"second file at the slider's 30 degrees against the unturned render: {rel:.4%}")
     assert rel > 0.01, rel
+
+
+def test_the_page_opened_as_a_file_says_to_serve_it(tmp_path):
+    """From file:// the browser refuses the page's module imports: it stayed
+    black with no message (issue 50). It says how to serve it."""
+    from playwright.sync_api import sync_playwright
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
+        try:
+            page = b.new_page(viewport={"width": W, "height": H})
+            page.goto("file://" + os.path.join(ROOT, "viewer", "index.html"))
+            page.wait_for_function("document.title.startsWith('error')", timeout=30_000)
+            shown, title = page.inner_text("#msg"), page.title()
+        finally:
+            b.close()
+    assert "python3 -m http.server" in shown and title.startswith("error: opened from file://"), (shown, title)

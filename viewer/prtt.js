@@ -659,14 +659,70 @@ export class PRTTLoaderPlugin {
 }
 
 /**
+ * The bytes of a .glb at `url`, with onProgress(received, total) as they come
+ * (total 0 when the server does not say), checked whole: a file cut short is
+ * a PRTTError saying so and how much arrived, not the parser's "Invalid typed
+ * array length".
+ */
+export async function fetchGlb(url, onProgress = null) {
+  let res;
+  try {
+    res = await fetch(url);
+  } catch (e) {
+    const local = typeof location !== 'undefined' && location.protocol === 'file:';
+    throw new PRTTError(local ? `${url}: a page opened from file:// cannot read files; serve the folder ` +
+      '(python3 -m http.server) and open it over http://' : `${url}: ${e.message}`);
+  }
+  if (!res.ok) throw new PRTTError(`${url}: HTTP ${res.status} ${res.statusText}`);
+  const total = Number(res.headers.get('Content-Length') || 0);
+  const parts = [];
+  let got = 0;
+  if (res.body && res.body.getReader) {
+    const reader = res.body.getReader();
+    for (;;) {
+      const { done, value } = await reader.read();
+      if (done) break;
+      parts.push(value);
+      got += value.byteLength;
+      if (onProgress) onProgress(got, total);
+    }
+  } else {
+    const b = new Uint8Array(await res.arrayBuffer());
+    parts.push(b);
+    got = b.byteLength;
+  }
+  const bytes = new Uint8Array(got);
+  let at = 0;
+  for (const p of parts) { bytes.set(p, at); at += p.byteLength; }
+  return checkGlb(bytes.buffer, url);
+}
+
+/** `buffer` if it holds a whole .glb (magic, version 2, its declared length), else a PRTTError naming `name`. */
+export function checkGlb(buffer, name = 'the file') {
+  const n = buffer.byteLength;
+  if (n < 12) throw new PRTTError(`${name}: ${n} bytes, not a .glb (truncated?)`);
+  const dv = new DataView(buffer);
+  if (dv.getUint32(0, true) !== 0x46546C67) throw new PRTTError(`${name}: not a .glb (no glTF header)`);
+  const declared = dv.getUint32(8, true);
+  if (n < declared) {
+    throw new PRTTError(`${name}: truncated .glb: ${n.toLocaleString('en')} of ${declared.toLocaleString('en')} ` +
+      'bytes arrived; copy or download it again');
+  }
+  return buffer;
+}
+
+/**
  * Load a PRTT .glb with a renderer: returns {gltf, scene, camera, prtt, ext}.
  * The title-bar contract of the page (index.html) builds on this.
+ * `url`: an address (fetched, onProgress(received, total) as it comes) or an ArrayBuffer.
  */
-export async function loadPRTT(url, renderer, { turn = 0, mode = 'tpfl', bounces = true } = {}) {
+export async function loadPRTT(url, renderer, { turn = 0, mode = 'tpfl', bounces = true, onProgress = null } = {}) {
   const { GLTFLoader } = await import('three/addons/loaders/GLTFLoader.js');
   const loader = new GLTFLoader();
   loader.register((parser) => new PRTTLoaderPlugin(parser, { renderer, mode, bounces }));
-  const gltf = await (url instanceof ArrayBuffer ? loader.parseAsync(url, '') : loader.loadAsync(url));
+  const bytes = url instanceof ArrayBuffer ? checkGlb(url) : await fetchGlb(url, onProgress);
+  const base = url instanceof ArrayBuffer ? '' : new URL('.', new URL(url, location.href)).href;
+  const gltf = await loader.parseAsync(bytes, base);
   const prtt = gltf.userData.prtt;
   if (prtt && turn) prtt.setTurn(turn);
   return { gltf, scene: gltf.scene, camera: gltf.cameras[0] || null, prtt, ext: prtt ? prtt.ext : null };
