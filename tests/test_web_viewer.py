@@ -165,14 +165,25 @@ def test_the_slider_turns_the_light_live(exported, server, tmp_path):
             page = b.new_page(viewport={"width": 960, "height": 600})   # the controls below the canvas
             page.goto(f"{server}/viewer/index.html?glb=/room.glb&mode=diffuse&w={W}&h={H}")
             page.wait_for_function("document.title.startsWith('ready')", timeout=60_000)
+            n = page.evaluate("prttFrameCount()")
             page.locator("#turn").fill(str(int(TURN)))          # fires 'input', as a drag does
             assert page.locator("#deg").text_content() == str(int(TURN))
+            page.wait_for_function(f"prttFrameCount() > {n}", timeout=30_000)
             canvas_png(page, tmp_path / "slid.png")
+            # 20 input events in one go (a fast drag): drawn once, at the last value, not 20 times
+            n = page.evaluate("prttFrameCount()")
+            page.evaluate("""() => { const s = document.querySelector('#turn');
+                for (let i = 1; i <= 20; i++) { s.value = String(i); s.dispatchEvent(new Event('input')); }
+                s.value = '%d'; s.dispatchEvent(new Event('input')); }""" % int(TURN))
+            page.wait_for_function(f"prttFrameCount() > {n}", timeout=30_000)
+            page.wait_for_timeout(300)
+            assert page.evaluate("prttFrameCount()") - n <= 2
             # a drag orbits the camera: the picture changes
             page.mouse.move(W // 2, H // 4)
             page.mouse.down()
             page.mouse.move(W // 2 + 40, H // 4, steps=4)
             page.mouse.up()
+            page.wait_for_timeout(300)
             canvas_png(page, tmp_path / "orbit.png")
         finally:
             b.close()
