@@ -442,8 +442,9 @@ BAD_FILES = {
 }
 
 
-def page_run(server, src, *, args=(), files=None):
-    """(title, message on the page, uncaught errors, console errors) of the page on ``src``."""
+def page_run(server, src, *, args=(), files=None, png=None):
+    """(title, message on the page, uncaught errors, console errors) of the page on ``src``
+    (``png``: where to write the canvas once it is drawn)."""
     from playwright.sync_api import sync_playwright
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=BROWSER, args=[*BROWSER_ARGS, *args])
@@ -458,6 +459,8 @@ def page_run(server, src, *, args=(), files=None):
                 page.locator("#file").set_input_files(files)
                 page.wait_for_function("document.getElementById('msg').textContent.includes('.hdr')",
                                        timeout=60_000)
+            if png is not None:
+                canvas_png(page, png)
             return page.title(), page.evaluate("document.getElementById('msg').textContent"), errors, console
         finally:
             b.close()
@@ -486,17 +489,23 @@ def test_a_truncated_glb_is_a_message(room, room_server):
     assert not errors and not console, (errors, console)
 
 
-def test_a_glb_without_prtt_is_drawn_plain_and_says_so(room, room_server):
+def test_a_glb_without_prtt_is_drawn_plain_and_says_so(room, room_server, tmp_path):
+    """A plain glTF (a cube without a material: glTF's default is metallic 1)
+    was drawn black under the page's hemisphere light; it is lit by a neutral
+    environment (three's RoomEnvironment, as model-viewer lights glTF)."""
     import bpy
     addon_bpy()
     bpy.ops.wm.read_factory_settings(use_empty=True)
     bpy.ops.mesh.primitive_cube_add()
     bpy.ops.object.camera_add(location=(4, -4, 3), rotation=(1.1, 0, 0.8))
     bpy.ops.export_scene.gltf(filepath=str(room / "site" / "plain.glb"), export_format="GLB", export_cameras=True)
-    title, shown, errors, console = page_run(room_server, "/plain.glb")
+    title, shown, errors, console = page_run(room_server, "/plain.glb", png=tmp_path / "plain.png")
     assert title.startswith("plain"), title
     assert "no PRTT_radiance_transfer data: drawn with its plain materials" in shown, shown
     assert not errors and not console, (errors, console)
+    px = read_png(tmp_path / "plain.png")
+    lit = px.max(axis=2) > 0
+    assert lit.mean() > 0.05 and np.median(px[lit]) > 40, (lit.mean(), np.median(px[lit]) if lit.any() else 0)
 
 
 def test_more_bands_than_the_browser_holds_fall_back_to_fewer(room, room_server):
