@@ -26,6 +26,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import sys
 import time
 
@@ -58,6 +59,21 @@ def floor_textures(n: int = 512, planks: int = 8, seed: int = 3):
     tone = rng.uniform(0.7, 1.1, planks)[plank] * (0.85 + 0.15 * grain)
     base = np.stack([0.42 * tone, 0.26 * tone, 0.14 * tone], axis=-1) * np.where(gap, 0.4, 1.0)[..., None]
     return base.astype(np.float32), np.repeat(rough[..., None], 3, axis=2).astype(np.float32)
+
+
+def _world_image_beside(bpy, out_dir: str) -> None:
+    """Copy the World's HDRI (Blender's studio light, inside its install or
+    the .venv) into ``out_dir`` and point the World at it ``//``-relative, so
+    that a copied or moved demo folder still renders and exports."""
+    for node in bpy.context.scene.world.node_tree.nodes:
+        img = getattr(node, "image", None)
+        if img is None or img.packed_file:
+            continue
+        src = bpy.path.abspath(img.filepath)
+        dst = os.path.join(out_dir, os.path.basename(src))
+        if os.path.abspath(src) != os.path.abspath(dst):
+            shutil.copyfile(src, dst)
+        img.filepath = "//" + os.path.basename(src)     # relative to the .blend saved beside it
 
 
 def build_scene(bpy) -> dict:
@@ -242,6 +258,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         f"vertex {sec.get('vertex', 0):.1f} s, bounce {sec.get('bounce_trace', 0) + sec.get('bounce_write', 0):.1f} s]")
     blend = os.path.join(out_dir, "prtt_demo.blend")
     st.output_dir = blend_relative(bpy.path.abspath(st.output_dir), blend)   # //textures/: the folder can move
+    _world_image_beside(bpy, out_dir)
     bpy.ops.wm.save_as_mainfile(filepath=blend)
 
     w, h = size

@@ -30,6 +30,13 @@ def test_demo_runs_end_to_end(tmp_path):
     # Step 3 baked relightable bounces (the default); step 5 relit them and rebaked a
     # baked bounce in a copy: the saved .blend's textures are still step 3's.
     assert not (out / "textures_relightable_90").exists()
+    # the folder is portable: the World's HDRI beside the .blend, //-relative (it pointed into .venv)
+    code = ("import bpy, sys; bpy.ops.wm.open_mainfile(filepath=sys.argv[1]); "
+            "print('WORLD', [n.image.filepath for n in bpy.context.scene.world.node_tree.nodes "
+            "if getattr(n, 'image', None)])")
+    w = subprocess.run([sys.executable, "-c", code, str(out / "prtt_demo.blend")], capture_output=True, text=True,
+                       timeout=120, env=dict(os.environ, PYTHONPATH=ROOT))
+    assert "WORLD ['//forest.exr']" in w.stdout and (out / "forest.exr").is_file(), w.stdout[-2000:]
     import json
     home, turned = (json.loads((out / d / "manifest.json").read_text())["bounce"]
                     for d in ("textures", "textures_baked_90"))
