@@ -73,6 +73,8 @@ NOT_HERE = [
     (r"^\./prtt\.sh fuzz", "fuzzing (a minute or more per reader): tests/test_fuzz.py runs every harness "
                             "with a fixed budget and its options"),
     (r"tools/build_extension\.py", "builds the extension zips: run by tests/test_extension.py"),
+    (r"--job-only", "writes a farm's job from a .blend: tests/test_newcomer.py bakes such a job with bake-job and "
+                    "compares it with the .blend's own bake"),
     (r"^\./prtt\.sh compat", "each Blender's venv and the user's chain (minutes): tests/test_compat.py runs it "
                               "for the default versions"),
     (r"^python -m http\.server", "a static server for viewer/: tests/test_web_viewer.py serves the same folders "

@@ -142,3 +142,24 @@ def test_every_way_of_saving_elsewhere_keeps_the_bake(blend, tmp_path):
     for name in ("blender_save_as", "absolute", "empty_copy"):
         r = run("render", f"{name}.blend", "--out", f"{name}.png", "--size", "48x32", cwd=other)
         assert r.returncode == 0, (name, r.stderr + r.stdout)
+
+
+def test_a_job_file_from_a_blend_bakes_on_a_farm_as_the_blend_does(blend, tmp_path):
+    """`bake --job-only` writes the job a farm bakes (issue 50: no command
+    wrote one from a .blend); `bake-job` on it writes the textures `bake` of
+    the .blend writes, byte for byte."""
+    work = tmp_path / "p"
+    shutil.copytree(blend.parent, work)
+    r = run("bake", "scene.blend", "--unwrap", "SMART", "--job-only", "level.npz", *BAKE, cwd=work)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "wrote" in r.stdout and "bake-job level.npz --out DIR" in r.stdout and (work / "level.npz").is_file()
+    r = run("bake-job", "level.npz", "--out", "farm", cwd=work)
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = run("bake", "scene.blend", "--out", "local", *BAKE, cwd=work)       # its saved UVs: the job's
+    assert r.returncode == 0, r.stdout + r.stderr
+    exrs = sorted(n for n in os.listdir(work / "local") if n.endswith(".exr"))
+    assert exrs and exrs == sorted(n for n in os.listdir(work / "farm") if n.endswith(".exr"))
+    for n in exrs:
+        assert digest(work / "local" / n) == digest(work / "farm" / n), n
+    r = run("bake", "scene.blend", "--job-only", "missing/level.npz", cwd=work)
+    assert r.returncode == 1 and "the folder missing does not exist" in r.stderr, r.stderr

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -28,10 +29,11 @@ from ..cli_options import (
     given_settings,
 )
 from ..core import settings_schema as schema
+from ..core.io.atomic import atomic_write
 from ..core.texels.unwrap import UnwrapError
-from .bake.run import bake_blocking
+from .bake.run import bake_blocking, prepare
 from .blendfile import blend_relative, open_scene, save_blend
-from .export.job import output_folder, unwrap_resolution
+from .export.job import ExportError, output_folder, unwrap_resolution
 from .export.uv_maps import bake_downscale, needs_user_unwrap, unwrap_objects
 from .gltf.export import export_file
 from .preview.offscreen import render_file
@@ -71,6 +73,10 @@ def bake_parser(prog: str) -> argparse.ArgumentParser:
     choice_option(p, "--unwrap", values=UNWRAP_METHODS,
                   help="unwrap baked objects without a PRTT UV map first (case-insensitive)")
     p.add_argument("--force", action="store_true", help="bake even if nothing changed")
+    p.add_argument("--job-only", metavar="JOB.npz",
+                   help="write the job file the bake would run (the scene as the worker reads it, its settings "
+                        "and light) to JOB.npz and stop: `bake-job JOB.npz --out DIR [--dask ...]` bakes it on "
+                        "any machine (docs/distributed.md); the .blend is saved only if --unwrap changed it")
     save = p.add_mutually_exclusive_group()
     save.add_argument("--no-save", dest="save", action="store_false", default=True,
                       help="do not save the .blend after the bake (its PRTT UV maps and bake "
@@ -128,6 +134,35 @@ def _saved_state(st) -> str:
     return json.dumps([settings, record], sort_keys=True, default=str)
 
 
+def _write_job(ctx, args, overrides: dict, unwrapped: bool) -> int:
+    """``bake --job-only JOB.npz``: the job file the bake would run, written
+    atomically to JOB.npz (not the output folder's own job file)."""
+    target = os.path.abspath(args.job_only)
+    if not target.endswith(".npz"):
+        print(f"prtt: error: --job-only {args.job_only}: a job file ends in .npz", file=sys.stderr)
+        return 2
+    if not os.path.isdir(os.path.dirname(target)):
+        print(f"prtt: error: --job-only {args.job_only}: the folder {os.path.dirname(args.job_only) or '.'} "
+              f"does not exist", file=sys.stderr)
+        return 1
+    try:
+        prepared = prepare(ctx, overrides)
+    except (ExportError, ValueError) as exc:
+        print(f"prtt: error: {exc}", file=sys.stderr)
+        return 1
+    with atomic_write(target) as tmp:
+        shutil.copyfile(prepared.job, tmp)
+    for w in prepared.export.warnings:
+        print(f"prtt: warning: {w}", flush=True)
+    sets = prepared.export.scene.set_names
+    print(f"prtt: wrote {target}: {len(sets)} texture set(s), {prepared.export.scene.n_triangles} triangles; "
+          f"bake it with: python -m prtt_addon bake-job {args.job_only} --out DIR [--dask ...]", flush=True)
+    if unwrapped and args.save:
+        where = save_blend(args.save_as, quiet=args.quiet)
+        print(f"prtt: saved {where} (its new PRTT UV maps: the job's)", flush=True)
+    return 0
+
+
 def bake_file(argv, prog="prtt bake") -> int:
     """Open a .blend, bake it and save it (unless --no-save). Returns an exit
     status (0 ok, 1 failed, 2 usage, 3 cancelled: SIGINT/SIGTERM at any stage,
@@ -181,6 +216,8 @@ def _bake_file(args) -> int:
             if hidden and not args.quiet:
                 print(f"prtt: note: {len(hidden)} object(s) hidden in the viewport unwrapped with xatlas: "
                       f"{', '.join(o.name for o in hidden[:8])}", flush=True)
+        if args.job_only:
+            return _write_job(ctx, args, overrides, unwrapped)
         progress = ConsoleProgress(quiet=args.quiet, final=False)
         try:
             outcome = bake_blocking(ctx, overrides=overrides, force=args.force, on_event=progress, dask=args.dask)
