@@ -111,19 +111,51 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, expo
         import matplotlib.pyplot as plt
     except ImportError:                       # inside Blender's own Python: no labels
         return write_image(path, np.concatenate([left, right], axis=1), exposure=exposure)
-    h, w = left.shape[:2]
-    fig, axes = plt.subplots(1, 2, figsize=(2 * w / 100, h / 100 + (0.75 if title else 0.45)), dpi=100)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    for ax, img, label in zip(axes, (left, right), labels):
-        rgb = srgb_encode(exposure * img[::-1, :, :3]) * img[::-1, :, 3:] + (1.0 - img[::-1, :, 3:])
-        ax.imshow(np.clip(rgb, 0, 1))
-        ax.set_title(label, fontsize=11)
-        ax.set_axis_off()
-    fig.tight_layout(pad=0.3)
+    fig = labelled_figure(plt, left, right, labels, exposure=exposure, title=title)
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+#: Points per inch, and the width of an average character in ems (DejaVu Sans):
+#: what wraps a caption to the picture it stands over.
+_PT, _EM = 72.0, 0.6
+
+
+def _wrapped(text: str, width_px: float, size_pt: float) -> str:
+    """``text`` wrapped to lines of at most ``width_px`` pixels at 100 dpi."""
+    import textwrap
+    chars = max(8, int(width_px / (size_pt * 100.0 / _PT * _EM)))
+    return "\n".join(textwrap.wrap(text, chars)) if text else ""
+
+
+def labelled_figure(plt, left: np.ndarray, right: np.ndarray, labels, *, exposure: float = 1.0, title: str = ""):
+    """The matplotlib figure of :func:`side_by_side`: each picture at its
+    pixel size, every caption wrapped to the width it has (at a small --size
+    they ran into each other) and stacked above them at its measured height."""
+    h, w = left.shape[:2]
+    label_size, title_size = (11, 10) if w >= 480 else (8, 7)
+    pad = 4.0                                               # pixels between the rows
+    fig = plt.figure(figsize=(2 * w / 100, 1.0), dpi=100)
+    caps = [fig.text(0.25 + 0.5 * k, 0.0, _wrapped(t, w - 2 * pad, label_size), fontsize=label_size,
+                     ha="center", va="bottom") for k, t in enumerate(labels)]
+    top = fig.text(0.5, 1.0, _wrapped(title, 2 * w - 2 * pad, title_size), fontsize=title_size,
+                   ha="center", va="top") if title else None
+    fig.canvas.draw()                                       # text sizes in pixels (points at a fixed dpi)
+    r = fig.canvas.get_renderer()
+    cap_h = max(c.get_window_extent(r).height for c in caps)
+    title_h = top.get_window_extent(r).height + pad if top is not None else 0.0
+    total = h + pad + cap_h + pad + title_h
+    fig.set_size_inches(2 * w / 100, total / 100)
+    for k, (img, cap) in enumerate(zip((left, right), caps)):
+        ax = fig.add_axes((0.5 * k, 0.0, 0.5, h / total))
+        rgb = srgb_encode(exposure * img[::-1, :, :3]) * img[::-1, :, 3:] + (1.0 - img[::-1, :, 3:])
+        ax.imshow(np.clip(rgb, 0, 1), aspect="auto", interpolation="nearest")
+        ax.set_axis_off()
+        cap.set_y((h + pad) / total)
+    if top is not None:
+        top.set_y(1.0 - pad / total)
+    return fig
 
 
 def _bake_copy(bpy, bake_blocking, out_dir: str, home: str, mode: str, mapping, turn0: float) -> float:

@@ -52,3 +52,36 @@ def test_demo_runs_end_to_end(tmp_path):
     floor_rows = slice(75, 88)
     assert frag[floor_rows, 40:120, :3].mean() > 1.5 * vert[floor_rows, 40:120, :3].mean()
     assert np.isfinite(frag).all()
+
+
+@pytest.mark.parametrize("size", [(160, 90), (320, 180), (960, 540)])
+def test_captions_do_not_overlap_at_any_size(size):
+    """The demo's captions at --size 160x90 ran into each other (issue 50):
+    wrapped to their half, no two text boxes overlap, all inside the figure."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from prtt_addon.demo import labelled_figure
+    w, h = size
+    img = np.zeros((h, w, 4), np.float32)
+    img[..., 3] = 1.0
+    fig = labelled_figure(plt, img, img, ("vertex TPFL: per-vertex transfer at the 21024 triangles' vertices "
+                                          "(the traditional baseline)",
+                                          "PRTT: fragment TPFL, 1024² transfer texture + 1 bounce"),
+                          title="room-class scene, 21024 triangles; 5 SH bands, 256 rays/texel, 64 bounce rays; "
+                                "light: World image 'forest.exr' x1; exposure 0")
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    texts = list(fig.texts)
+    boxes = [t.get_window_extent(r) for t in texts]
+    frame = fig.bbox
+    for i, a in enumerate(boxes):
+        assert a.x0 >= frame.x0 - 1 and a.x1 <= frame.x1 + 1 and a.y0 >= frame.y0 - 1 and a.y1 <= frame.y1 + 1, \
+            (size, texts[i].get_text())
+        for j in range(i + 1, len(boxes)):
+            assert not a.overlaps(boxes[j]), (size, texts[i].get_text(), texts[j].get_text())
+        for ax in fig.axes:                                    # and not over the pictures
+            assert a.y0 >= ax.get_window_extent(r).y1 - 0.5, (size, texts[i].get_text())
+    assert [round(ax.get_window_extent(r).height) for ax in fig.axes] == [h, h]     # the pictures at their size
+    plt.close(fig)
