@@ -22,7 +22,7 @@ TYPES = {"int": "int", "float": "float", "bool": "bool", "choice": "str"}
 #: bake runs, not what it makes; the outputs are the same bits).
 BAKE_JOB_OTHER = {"-h", "--help", "--out", "--force", "--env", "--env-strength", "--env-rotation", "-q", "--quiet",
                   "--dask"}
-BLENDER_OTHER = {"-h", "--help", "--out", "--absolute-out", "--scene", "--atlas", "--unwrap", "--force", "--no-save", "--save-as",
+BLENDER_OTHER = {"-h", "--help", "--out", "--absolute-out", "--scene", "--atlas", "--unwrap", "--force", "--job-only", "--no-save", "--save-as",
                  "-q", "--quiet", "--dask"}
 #: scene.prtt properties that are not bake settings (layout, light, preview, state, where the bake runs).
 SCENE_OTHER = {"unwrap_method", "existing_uv_map", "texture_sets", "output_dir", "selection_only", "light_source",
