@@ -87,3 +87,7 @@ def test_bake_at_the_largest_resolution_with_unwrap_on_a_tiny_scene(tmp_path):
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "scene.blend"))
     from prtt_addon.blender.export.uv_maps import overlap_texels
     assert overlap_texels(bpy.data.objects["Box"], 512) == 0
+    # render at a size no machine holds, under the same limit: refused in one line, nothing written
+    r = run_limited("render", "scene.blend", "--out", "big.png", "--size", "100000x100000", cwd=tmp_path)
+    assert r.returncode == 1 and "render smaller (--size WxH)" in r.stderr, r.stdout[-2000:] + r.stderr[-2000:]
+    assert "Traceback" not in r.stderr and not (tmp_path / "big.png").exists()
