@@ -70,6 +70,7 @@ def test_bake_at_the_largest_resolution_with_unwrap_on_a_tiny_scene(tmp_path):
     bpy = addon_bpy()
     rs.floor(bpy, 6.0)
     rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    rs.scene_camera(bpy, (0, -7, 4), (1.05, 0, 0))
     bpy.context.scene.prtt.light_source = "BUILTIN"
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
     r = run_limited("bake", "scene.blend", "--resolution", "16384", "--unwrap", "smart", "--rays", "16",
