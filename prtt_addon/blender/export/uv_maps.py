@@ -263,7 +263,7 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
     groups = [objects] if atlas else [[o] for o in objects]
     # per group: the texels a side of the set it is baked into
     res = [int(resolution) if atlas or resolution_of is None else int(resolution_of(g[0])) for g in groups]
-    res_of = {ob.name: r for g, r in zip(groups, res) for ob in g}
+    res_of = {ob.as_pointer(): r for g, r in zip(groups, res) for ob in g}     # (names can repeat across libraries)
     with _preserved(context, objects):
         if method == "EXISTING":
             for ob in objects:
@@ -295,8 +295,8 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
             if atlas or resolution_of is None:
                 _xatlas(objects, resolution, padding, atlas)
             else:
-                for ob, r in res_of.items():
-                    _xatlas([bpy.data.objects[ob]], r, padding, False)
+                for group, r in zip(groups, res):
+                    _xatlas(group, r, padding, False)
         else:
             raise UnwrapError(f"unknown unwrap method {method!r}")
         if method != "EXISTING":           # a copied map is the user's layout, kept as it is
@@ -304,7 +304,7 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
                 if _overlap_of(group, r, atlas) and all(_editable(o) for o in group):
                     _separate_and_pack(context, group, padding / max(r, 1))
         # Counted before the mode is put back: in Edit Mode the map reads as empty.
-        return {ob.name: overlap_texels(ob, res_of[ob.name]) for ob in objects}
+        return {ob.name: overlap_texels(ob, res_of[ob.as_pointer()]) for ob in objects}
 
 
 def _tri_uvs(ob) -> np.ndarray:
