@@ -378,6 +378,10 @@ def check_worker_memory(what: str, need: WorkerNeed, workers: dict, *, fraction:
     return out
 
 
+#: Seconds the client waits for the workers to drop a finished bake.
+FORGET_TIMEOUT = 30.0
+
+
 def forget_bake(prefix: str, scene_token: str = "") -> int:
     """Run on every worker of a shared cluster when a bake ends
     (DaskBake.close): drop its kernels, shaders and tables and its scene's
@@ -677,8 +681,10 @@ class DaskBake:
             try:
                 if cluster is None:
                     # Waited for: Dask runs a plain function only so (wait=False is for
-                    # coroutines: every worker logged "Combination not supported").
-                    client.run(forget_bake, self.run_id, self.scene_token, on_error="return")
+                    # coroutines: every worker logged "Combination not supported"); a
+                    # worker that does not answer does not hold the bake's end for long.
+                    client.run(forget_bake, self.run_id, self.scene_token, on_error="return",
+                               callback_timeout=FORGET_TIMEOUT)
                 else:
                     client.run(quiet_shutdown)
             except Exception:
