@@ -810,6 +810,10 @@ def test_an_exporter_failure_is_one_line_saying_what_to_do(tmp_path):
     err = [ln for ln in r.stderr.splitlines() if ln.startswith("prtt: error:")]
     assert len(err) == 1 and "Blender's glTF exporter failed: UDIM" in err[0], r.stderr
     assert "Traceback" not in r.stderr, r.stderr
+    # --verbose shows what the exporter printed, then the same one line
+    r = run("export", "scene.blend", "--out", "room.glb", "--verbose", cwd=tmp_path)
+    assert r.returncode == 1 and "Starting glTF 2.0 export" in r.stderr, r.stderr[-2000:]
+    assert r.stderr.rstrip().splitlines()[-1].startswith("prtt: error: Blender's glTF exporter failed: UDIM")
 
 
 def test_exporter_failures_are_read_for_their_cause():

@@ -558,9 +558,9 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
             job, doc = _write(out, scene, context, (root, blobs, parts, generated, materials, images), lights=True)
         except _ExporterFailed as exc:
             if not exc.in_lights:
-                raise GltfExportError(exc.message) from None
-            # Blender's exporter fails on some lamps (bpy 5.0.1: every point lamp): PRTT does not use
-            # them, so they are left out rather than the whole export.
+                raise _with_log(GltfExportError(exc.message), exc.log) from None
+            # Blender's exporter fails on some lamps (bpy 5.0.1: a point lamp with Normalize off):
+            # PRTT does not use them, so they are left out rather than the whole export.
             job, doc = _write(out, scene, context, (root, blobs, parts, generated, materials, images),
                               lights=False)
             notes.append(f"lamps left out of the glTF: Blender's glTF exporter failed on them ({exc.last}); "
@@ -618,6 +618,12 @@ class _ExporterFailed(Exception):
         super().__init__(self.message)
 
 
+def _with_log(exc: Exception, log: str) -> Exception:
+    """``exc`` carrying what Blender's exporter printed (``export --verbose`` shows it)."""
+    exc.exporter_log = log
+    return exc
+
+
 def _write(out: str, scene, context, job_args, *, lights: bool):
     """Run Blender's glTF exporter with PRTT's hooks into ``out`` (atomically):
     (the hooks' _Export, the written glTF's JSON). _ExporterFailed when the
@@ -655,10 +661,10 @@ def _write(out: str, scene, context, job_args, *, lights: bool):
                 raise GltfExportError(f"the exporter did not write a .glb ({exc})") from exc
             missing = sorted({p.name for p in parts} - job.nodes_tagged)
             if NAME not in (doc.get("extensions") or {}) or missing or not job.primitives_tagged:
-                raise GltfExportError(f"PRTT's data did not reach the file (objects without it: "
-                                      f"{', '.join(missing[:8]) or 'none'}; primitives tagged: "
-                                      f"{job.primitives_tagged}); `export --verbose` shows what Blender's "
-                                      f"exporter printed")
+                raise _with_log(GltfExportError(
+                    f"PRTT's data did not reach the file (objects without it: {', '.join(missing[:8]) or 'none'}; "
+                    f"primitives tagged: {job.primitives_tagged}); `export --verbose` shows what Blender's "
+                    f"exporter printed"), job.log)
     finally:
         _ACTIVE = None
         for m in job.temporary_meshes:
@@ -700,6 +706,8 @@ def export_file(argv, prog="prtt export") -> int:
         with bpy.context.temp_override(scene=scene):
             summary = export_glb(bpy.context, out, encoding=args.encoding)
     except (GltfExportError, ValueError, OSError) as exc:
+        if args.verbose and getattr(exc, "exporter_log", ""):
+            print(exc.exporter_log.rstrip(), file=sys.stderr)
         print(f"prtt: error: {exc}", file=sys.stderr)
         return 1
     if args.verbose and summary["exporter_log"]:
