@@ -697,7 +697,7 @@ export async function fetchGlb(url, onProgress = null) {
   return checkGlb(bytes.buffer, url);
 }
 
-/** `buffer` if it holds a whole .glb (magic, version 2, its declared length), else a PRTTError naming `name`. */
+/** `buffer` if it holds a whole .glb (its magic, and as many bytes as its header declares), else a PRTTError naming `name`. */
 export function checkGlb(buffer, name = 'the file') {
   const n = buffer.byteLength;
   if (n < 12) throw new PRTTError(`${name}: ${n} bytes, not a .glb (truncated?)`);
@@ -721,7 +721,8 @@ export async function loadPRTT(url, renderer, { turn = 0, mode = 'tpfl', bounces
   const loader = new GLTFLoader();
   loader.register((parser) => new PRTTLoaderPlugin(parser, { renderer, mode, bounces }));
   const bytes = url instanceof ArrayBuffer ? checkGlb(url) : await fetchGlb(url, onProgress);
-  const base = url instanceof ArrayBuffer ? '' : new URL('.', new URL(url, location.href)).href;
+  const here = typeof location !== 'undefined' ? location.href : undefined;
+  const base = url instanceof ArrayBuffer ? '' : new URL('.', new URL(url, here)).href;
   const gltf = await loader.parseAsync(bytes, base);
   const prtt = gltf.userData.prtt;
   if (prtt && turn) prtt.setTurn(turn);
