@@ -29,6 +29,18 @@ def floor(bpy, size=20.0, name="Floor"):
     return add_object(bpy, name, me)
 
 
+def floor_and_box(bpy, *, camera=True):
+    """(floor, box): a 6 m floor and a 1 m box resting on it at the origin,
+    lit by the built-in studio HDRI (light source BUILTIN), and a camera on
+    them unless ``camera`` is False."""
+    ground = floor(bpy, 6.0)
+    box = add_object(bpy, "Box", cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    if camera:
+        scene_camera(bpy, (0, -7, 4), (1.05, 0, 0))
+    bpy.context.scene.prtt.light_source = "BUILTIN"
+    return ground, box
+
+
 def scene_camera(bpy, location, rotation, name="Cam"):
     """A perspective camera at ``location`` turned by Euler ``rotation``, made the scene camera."""
     cam = bpy.data.objects.new(name, bpy.data.cameras.new(name))

@@ -31,7 +31,9 @@ def compat(tmp_path_factory):
                         "--work", str(tmp / "work")], capture_output=True, text=True, timeout=2400)
     print(r.stdout)
     with open(tmp / "compat.json", encoding="utf-8") as f:
-        return r, json.load(f)
+        rec = json.load(f)
+    rec["work"] = str(tmp / "work")
+    return r, rec
 
 
 def test_every_claimed_blender_runs_the_users_chain(compat):
@@ -44,15 +46,9 @@ def test_every_claimed_blender_runs_the_users_chain(compat):
         assert set(res["steps"]) == {"install", "unwrap", "bake", "draw_handler", "render", "bake_again",
                                      "render_vertex", "export", "page"}, (v, res["steps"])
         assert res["numba"] is None, v                 # what Blender's Python has: no numba
-        assert res["installed_at"].startswith(os.path.join(rec_work(r), v)), res["installed_at"]
+        assert res["installed_at"].startswith(os.path.join(rec["work"], v)), res["installed_at"]
         # the defaults were baked (what a user gets from Bake Transfer)
         assert res["bake_settings"] == {"resolution": 1024, "rays": 256, "bounces": 1, "bounce_mode": "RELIGHTABLE"}
-
-
-def rec_work(r):
-    """The --work folder compat printed on stderr."""
-    line = next(ln for ln in r.stderr.splitlines() if "each version's log under" in ln)
-    return line.rsplit(" ", 1)[1]
 
 
 def test_the_preview_agrees_across_versions(compat):

@@ -156,10 +156,7 @@ def baked(tmp_path_factory):
     bake, a camera, the built-in light) and its textures."""
     tmp = tmp_path_factory.mktemp("gltf")
     bpy = addon_bpy()
-    rs.floor(bpy, 6.0)
-    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
-    rs.scene_camera(bpy, (0, -7, 4), (1.05, 0, 0))
-    bpy.context.scene.prtt.light_source = "BUILTIN"
+    rs.floor_and_box(bpy)
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
     r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp)
     assert r.returncode == 0, r.stderr + r.stdout
@@ -762,9 +759,7 @@ def test_a_missing_world_image_exports_with_a_named_stand_in(tmp_path):
 
 def _lamp_and_udim_scene(tmp, *, lamp: bool, udim: bool):
     bpy = addon_bpy()
-    rs.floor(bpy, 6.0)
-    box = rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
-    bpy.context.scene.prtt.light_source = "BUILTIN"
+    _, box = rs.floor_and_box(bpy, camera=False)
     if lamp:
         data = bpy.data.lights.new("Bulb", "POINT")
         if hasattr(data, "normalize"):
@@ -837,8 +832,7 @@ def test_armatures_export_in_the_pose_they_were_baked_in(tmp_path):
     the armature in its rest position): exported as the bake saw them, every
     vertex of the glTF in world space where Blender's evaluated mesh has it."""
     bpy = addon_bpy()
-    rs.floor(bpy, 6.0)
-    box = rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
+    _, box = rs.floor_and_box(bpy, camera=False)
     ball = rs.add_object(bpy, "Ball", rs.cube_mesh(bpy, "ball"), location=(2, 0, 0.5))
     rig = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))
     bpy.context.scene.collection.objects.link(rig)
@@ -854,7 +848,6 @@ def test_armatures_export_in_the_pose_they_were_baked_in(tmp_path):
     rig.location, rig.rotation_euler = (1.0, 2.0, 0.3), (0, 0, 0.5)
     rig.pose.bones["Bone"].rotation_mode = "XYZ"
     rig.pose.bones["Bone"].rotation_euler = (0.2, 0, 0)
-    bpy.context.scene.prtt.light_source = "BUILTIN"
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
     r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp_path)
     assert r.returncode == 0, r.stderr + r.stdout

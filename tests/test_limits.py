@@ -68,10 +68,7 @@ def test_bake_at_the_largest_resolution_with_unwrap_on_a_tiny_scene(tmp_path):
     sets get the resolutions Tuning Auto gives them, and the unwrap leaves
     margins for those (no overlapping texels at 1024² / 512²)."""
     bpy = addon_bpy()
-    rs.floor(bpy, 6.0)
-    rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
-    rs.scene_camera(bpy, (0, -7, 4), (1.05, 0, 0))
-    bpy.context.scene.prtt.light_source = "BUILTIN"
+    rs.floor_and_box(bpy)
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
     r = run_limited("bake", "scene.blend", "--resolution", "16384", "--unwrap", "smart", "--rays", "16",
                     "--bounces", "0", "--out", "tex", cwd=tmp_path)

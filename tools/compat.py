@@ -25,20 +25,22 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import functools
 import hashlib
-import http.server
 import json
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 
 import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)              # prtt_addon.bench's page server, when run as a file
+# The page benchmark's browser and server over viewer/, shaders/ and tools/js.
+from prtt_addon.bench.web_bench import BROWSER, BROWSER_ARGS, Site, page_url  # noqa: E402
+
 CHAIN = os.path.join(ROOT, "tools", "compat_chain.py")
 #: Blender line -> the release tried (the newest on PyPI when this was written).
 RELEASES = {"4.2": "4.2.23", "4.5": "4.5.15", "5.0": "5.0.1", "5.1": "5.1.2", "5.2": "5.2.3", "5.3": "5.3.0"}
@@ -47,9 +49,6 @@ DEFAULT = ("4.2", "4.5", "5.2", "5.3")
 #: numpy as Blender bundles it: 1.26.4 up to 5.0 (bpy 4.2's own requirement is
 #: unpinned and would take numpy 2); 5.1+ let bpy's requirement (>=2.2) choose.
 NUMPY = {"4.2": "1.26.4", "4.5": "1.26.4", "5.0": "1.26.4"}
-BROWSER = "/usr/bin/chromium-headless-shell"
-BROWSER_ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                "--disable-background-networking", "--disable-component-update", "--no-first-run"]
 
 
 def release(version: str) -> str:
@@ -147,44 +146,20 @@ def run_chain(py: str, zip_path: str, work: str, timeout: float) -> dict:
     return rec
 
 
-class Site:
-    """An HTTP server over a folder holding viewer/, shaders/ and tools/js/
-    (three.js) of this checkout, and the .glb files put into it."""
-
-    def __init__(self, folder: str):
-        self.folder = folder
-        os.makedirs(folder, exist_ok=True)
-        for part in ("viewer", "shaders", os.path.join("tools", "js")):
-            dst = os.path.join(folder, part)
-            if not os.path.exists(dst):
-                os.makedirs(os.path.dirname(dst), exist_ok=True)
-                os.symlink(os.path.join(ROOT, part), dst)
-
-        class Quiet(http.server.SimpleHTTPRequestHandler):
-            def log_message(self, *args):
-                pass
-
-        self.httpd = http.server.ThreadingHTTPServer(
-            ("127.0.0.1", 0), functools.partial(Quiet, directory=folder))
-        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
-
-    def close(self):
-        self.httpd.shutdown()
-
-
-def open_page(site: Site, glb: str, name: str) -> str:
+def open_page(site, glb: str, name: str) -> str:
     """'ok (title)' when the web viewer draws ``glb``: its title says ready
-    and the canvas is not empty; else what went wrong."""
+    and the canvas is not empty; else what went wrong. ``site``: bench's
+    web_bench.Site, the server the page benchmark uses."""
     from playwright.sync_api import sync_playwright
-    shutil.copy(glb, os.path.join(site.folder, name))
+    size = (160, 90)
+    src = site.add(glb, name)
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
         try:
-            page = b.new_page(viewport={"width": 160, "height": 90})
+            page = b.new_page(viewport={"width": size[0], "height": size[1]})
             errors = []
             page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(f"{site.url}/viewer/index.html?src=/{name}&w=160&h=90&ui=0")
+            page.goto(page_url(site, src, size))
             page.wait_for_function("document.title.startsWith('ready') || document.title.startsWith('error')",
                                    timeout=120_000)
             title = page.title()

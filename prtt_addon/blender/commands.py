@@ -36,7 +36,7 @@ from .blendfile import blend_relative, open_scene, save_blend
 from .export.job import ExportError, output_folder, unwrap_resolution
 from .export.uv_maps import bake_downscale, needs_user_unwrap, unwrap_objects
 from .gltf.export import export_file
-from .preview.offscreen import render_file
+from .preview.offscreen import RenderError, check_out, render_file
 from .rna_arrays import RnaArrayError
 
 _CLI_HANDLE = None
@@ -141,9 +141,10 @@ def _write_job(ctx, args, overrides: dict, unwrapped: bool) -> int:
     if not target.endswith(".npz"):
         print(f"prtt: error: --job-only {args.job_only}: a job file ends in .npz", file=sys.stderr)
         return 2
-    if not os.path.isdir(os.path.dirname(target)):
-        print(f"prtt: error: --job-only {args.job_only}: the folder {os.path.dirname(args.job_only) or '.'} "
-              f"does not exist", file=sys.stderr)
+    try:
+        check_out(args.job_only, (".npz",))       # the folder exists and takes a file, as render's --out
+    except RenderError as exc:
+        print(f"prtt: error: {str(exc).replace('--out', '--job-only', 1)}", file=sys.stderr)
         return 1
     try:
         prepared = prepare(ctx, overrides)
