@@ -23,4 +23,8 @@ void main()
   }
   vec3 color = shade_point(T4, prtt_uv, n, v, albedo, spec, exponent);
   FragColor = vec4(color * view.params.x, 1.0);
+#ifdef PRTT_DISPLAY
+  /* The scene's view transform; the colour buffer encodes sRGB (prtt_display.glsl). */
+  FragColor.rgb = prtt_srgb_decode(prtt_display(FragColor.rgb, view.params.w));
+#endif
 }

@@ -18,6 +18,9 @@
 export const MODES = ['tpfl', 'tp', 'diffuse'];
 export const MAX_PREVIEW_BANDS = 8;
 export const GAUNT_WIDTH = 1024;
+// The display table's shaper range in stops (core/shading/display.py).
+export const SHAPER_LO = -12.0;
+export const SHAPER_HI = 12.0;
 
 const TYPEDEFS = (tpfl, k) => `
 struct PRTTView {
@@ -49,9 +52,11 @@ export function shSizes(bands) {
 /**
  * The surface shader of a fragment mode: the same description as
  * shader_source.variant(mode, bands, bounce=...) for the fragment modes.
- * gauntNnz: the Gaunt tensor's non-zero count (TP only).
+ * gauntNnz: the Gaunt tensor's non-zero count (TP only). display: ending
+ * in the file's view transform (prtt_display.glsl; SHAPER_LO/HI as
+ * core/shading/display.py), decoded back for the sRGB encode of main().
  */
-export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0 } = {}) {
+export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0, display = false } = {}) {
   if (!MODES.includes(mode)) throw new Error(`unknown mode ${mode}; use one of ${MODES.join(', ')}`);
   if (!(Number.isInteger(bands) && bands >= 1 && bands <= MAX_PREVIEW_BANDS)) {
     throw new Error(`the preview supports 1 to ${MAX_PREVIEW_BANDS} SH bands, got ${bands}`);
@@ -64,14 +69,16 @@ export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0 } = {
   }
   if (mode === 'diffuse') defines.push(['PRTT_DIFFUSE', '1']);
   if (bounce) defines.push(['PRTT_BOUNCE', '1']);
+  if (display) defines.push(['PRTT_DISPLAY', '1'], ['PRTT_SHAPER_LO', SHAPER_LO.toFixed(1)], ['PRTT_SHAPER_HI', SHAPER_HI.toFixed(1)]);
   const samplers = [[1, 'FLOAT_2D', 'baseTex'], [2, 'FLOAT_2D', 'roughTex']];
   if (bounce) samplers.push([4, 'FLOAT_2D_ARRAY', 'bounceTex']);
   if (triple) samplers.push([5, 'FLOAT_2D', 'gauntTex']);
   samplers.push([0, 'FLOAT_2D_ARRAY', 'transferTex'], [3, 'FLOAT_2D', 'normalTex']);
+  if (display) samplers.push([7, 'FLOAT_3D', 'displayLut']);
   samplers.sort((a, b) => a[0] - b[0]);
   const lib = ['prtt_common.glsl', 'prtt_view.glsl', 'prtt_light.glsl', 'prtt_shade.glsl'];
   return {
-    name: `prtt_${mode}_b${bands}${bounce ? '_bounce' : ''}`,
+    name: `prtt_${mode}_b${bands}${bounce ? '_bounce' : ''}${display ? '_display' : ''}`,
     defines,
     typedefs: TYPEDEFS(3 * k * k4, k),
     vertexIn: [[0, 'VEC3', 'pos'], [1, 'VEC3', 'nor'], [2, 'VEC2', 'uv'], [3, 'VEC2', 'muv'], [4, 'VEC2', 'nuv'],
@@ -82,7 +89,7 @@ export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0 } = {
     uniformBufs: [[0, 'PRTTView', 'view'], [1, 'PRTTMaterial', 'material'], [2, 'PRTTLight', 'light']],
     pushConstants: [['MAT4', 'ModelMatrix'], ['MAT4', 'NormalMatrix']],
     vertexFiles: ['prtt_view.glsl', 'prtt_surface_vert.glsl'],
-    fragmentFiles: [...lib, 'prtt_surface_frag.glsl'],
+    fragmentFiles: [...lib, ...(display ? ['prtt_display.glsl'] : []), 'prtt_surface_frag.glsl'],
   };
 }
 
@@ -123,14 +130,14 @@ export function relightVariant(bands, glossyBands, shared = false) {
 }
 
 const GLSL_TYPE = { FLOAT: 'float', VEC2: 'vec2', VEC3: 'vec3', VEC4: 'vec4', MAT4: 'mat4', INT: 'int' };
-const SAMPLER_TYPE = { FLOAT_2D: 'sampler2D', FLOAT_2D_ARRAY: 'sampler2DArray' };
+const SAMPLER_TYPE = { FLOAT_2D: 'sampler2D', FLOAT_2D_ARRAY: 'sampler2DArray', FLOAT_3D: 'sampler3D' };
 
 /** The uniform block name three.js binds a UniformsGroup to (group.name). */
 export const blockName = (struct) => `${struct}Block`;
 
 function header(v) {
   const lines = ['precision highp float;', 'precision highp int;', 'precision highp sampler2D;',
-    'precision highp sampler2DArray;'];
+    'precision highp sampler2DArray;', 'precision highp sampler3D;'];
   for (const [name, value] of v.defines) lines.push(`#define ${name} ${value}`);
   lines.push(v.typedefs);
   for (const [, struct, name] of v.uniformBufs) {

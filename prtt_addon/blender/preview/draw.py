@@ -16,7 +16,8 @@ import atexit
 import bpy
 from bpy.app.handlers import persistent
 
-from ..shared import PREVIEW_MODES
+from ..shared import PREVIEW_MODES, redraw_viewports
+from . import display as colour
 from . import drawlist
 from . import renderer as gpu_preview
 from .offscreen import exposure_of, region_view
@@ -33,10 +34,15 @@ _RENDERER = None
 last_status = {"status": None, "stats": None, "error": ""}
 
 
-def draw_view(context, region_data, visible=None):
+def draw_view(context, region_data, visible=None, *, sample_display: bool = True):
     """Draw the preview of ``context.scene`` for a view (its region data: the
-    perspective and view matrices) into the bound framebuffer. Returns the
-    FrameStats, or None when there is nothing to draw."""
+    perspective and view matrices) into the bound framebuffer, which encodes
+    sRGB (the viewport's colour buffer), in the scene's view transform.
+    Returns the FrameStats, or None when there is nothing to draw.
+
+    ``sample_display`` False (inside Blender's drawing, where no data-block
+    may be made): a view transform not yet sampled is sampled from a timer
+    and drawn from the next frame; this one draws Standard."""
     global _RENDERER
     scene = context.scene
     st = scene.prtt
@@ -47,8 +53,14 @@ def draw_view(context, region_data, visible=None):
     if _RENDERER is None:
         _RENDERER = gpu_preview.Renderer()
     vp, cam = region_view(region_data)
+    display = colour.display_of(scene, sample=sample_display)
+    if display is None and colour.missing(scene):
+        colour.schedule(scene, lambda: redraw_viewports(bpy.context))
+    skipped = colour.unsupported(scene)
+    if skipped:
+        status.add("INFO", f"the preview does not draw the colour management's {skipped}")
     stats = _RENDERER.draw(ps, PREVIEW_MODES[st.preview_mode], vp, cam, exposure=exposure_of(scene),
-                           depth_bias=VIEWPORT_DEPTH_BIAS)
+                           depth_bias=VIEWPORT_DEPTH_BIAS, display=display)
     _RENDERER.end_frame(keep=KEEP_FRAMES)
     last_status.update(stats=stats, error="")
     return stats
@@ -61,7 +73,8 @@ def _draw() -> None:
         return
     try:
         space = context.space_data
-        draw_view(context, context.region_data, visible=lambda ob: ob.visible_get(viewport=space))
+        draw_view(context, context.region_data, visible=lambda ob: ob.visible_get(viewport=space),
+                  sample_display=False)
     except Exception as exc:       # never break Blender's draw loop; say it in the panel
         last_status["error"] = f"{type(exc).__name__}: {exc}"
 

@@ -33,6 +33,7 @@ from ...core.io.atomic import TMP_PREFIX
 from ...core.io.image_write import WRITE_BYTES_PER_PIXEL, ImageWriteError, write_image
 from ...core.preview.shader_source import MODES
 from ..blendfile import native_stderr_filtered, open_scene
+from . import display as colour
 from . import drawlist
 from . import renderer as gpu_preview
 from .shaders import ShaderError
@@ -257,7 +258,8 @@ def render_parser(prog: str) -> argparse.ArgumentParser:
                "a texture, the mode, the size, --out), and an existing file at --out is left as it was; "
                "2 bad options.")
     p.add_argument("blend", help="a .blend file that has been baked")
-    p.add_argument("--out", required=True, help="image file: .png (sRGB, 8 bit) or .exr (linear float), "
+    p.add_argument("--out", required=True, help="image file: .png (8 bit, in the scene's view transform: AgX, Filmic, "
+                   "Standard, ...) or .exr (linear float), "
                                                 "relative to where you run the command")
     choice_option(p, "--mode", values=MODES, default="tpfl",
                   help="case-insensitive; vertex-tpfl and vertex-tp need a bake with Vertex Transfer "
@@ -322,7 +324,13 @@ def render_file(argv, prog="prtt render") -> int:
                                                           size=args.size, bounces=args.bounces, out_ext=ext)
         for level, text in status.messages:
             print(f"prtt: {level.lower()}: {text}", file=sys.stderr if level != "INFO" else sys.stdout)
-        write_image(args.out, pixels, exposure=exposure_of(scene))
+        display = colour.display_of(scene) if ext == ".png" else None
+        if display is not None:
+            print(f"prtt: colour: {display.name}, exposure {scene.view_settings.exposure:g} "
+                  f"(Blender's colour management, sampled)")
+        if colour.unsupported(scene):
+            print(f"prtt: info: the image does not show the colour management's {colour.unsupported(scene)}")
+        write_image(args.out, pixels, exposure=exposure_of(scene), display=display)
     except (RenderError, ImageWriteError, ShaderError) as exc:
         return _fail(exc)
     except MemoryError:

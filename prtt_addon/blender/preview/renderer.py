@@ -395,14 +395,19 @@ class Renderer:
         return skipped
 
     def draw(self, ps: pp.PreviewScene, mode: str, view_projection, camera, *, exposure: float = 1.0,
-             depth_bias: float = 0.0, prepass: bool = True) -> FrameStats:
+             depth_bias: float = 0.0, prepass: bool = True, display=None) -> FrameStats:
         """Draw every mesh of ``ps`` into the bound framebuffer.
 
         view_projection (4, 4) world -> clip; camera (4,): eye position and 1, or
-        unit direction towards the eye and 0 (orthographic)."""
+        unit direction towards the eye and 0 (orthographic). ``display`` (a
+        core.shading.display.DisplayTransform): draw the scene's view transform
+        for a colour buffer that encodes sRGB (the viewport's); None: linear
+        radiance times the exposure (Standard in the viewport; offscreen, the
+        caller encodes)."""
         stats = FrameStats()
         todo = self._plan(ps, mode, stats.skipped)
-        view_data = _buffer(pp.view_block(view_projection, camera, exposure, ps.bands, depth_bias))
+        gamma_inv = 1.0 / display.gamma if display is not None else 0.0
+        view_data = _buffer(pp.view_block(view_projection, camera, exposure, ps.bands, depth_bias, gamma_inv))
         if self._view_ubo is None:
             self._view_ubo = gpu.types.GPUUniformBuf(view_data)
         else:
@@ -426,8 +431,9 @@ class Renderer:
                 gpu.state.depth_mask_set(False)
             else:
                 gpu.state.depth_mask_set(True)
+            lut = self._display_lut(display) if display is not None else None
             for m, (transfer, bounce, vertex) in todo:
-                self._draw_mesh(ps, m, mode, light, transfer, bounce, vertex)
+                self._draw_mesh(ps, m, mode, light, transfer, bounce, vertex, lut)
                 stats.drawn.append(m.name)
                 stats.triangles += m.triangles
         finally:
@@ -437,9 +443,18 @@ class Renderer:
         stats.texture_bytes = self.resource_bytes()
         return stats
 
-    def _draw_mesh(self, ps, m, mode, light, transfer, bounce, vertex):
-        sh = gpu_shaders.surface_shader(mode, ps.bands, bounce is not None)
+    def _display_lut(self, display):
+        """The display table as a 3D texture (RGBA16F: 2**-11 relative steps,
+        below an 8-bit display's; the GPU filters it trilinearly)."""
+        n = display.size
+        return self._get(("display", _digest(display.lut)), lambda: gpu.types.GPUTexture(
+            (n, n, n), format="RGBA16F", data=_buffer(display.block())))
+
+    def _draw_mesh(self, ps, m, mode, light, transfer, bounce, vertex, lut=None):
+        sh = gpu_shaders.surface_shader(mode, ps.bands, bounce is not None, lut is not None)
         sh.bind()
+        if lut is not None:
+            sh.uniform_sampler("displayLut", lut)
         sh.uniform_block("view", self._view_ubo)
         sh.uniform_block("light", light)
         sh.uniform_float("ModelMatrix", _matrix(m.matrix))
@@ -595,7 +610,7 @@ def read_pixels(fb, width: int, height: int) -> np.ndarray:
 
 def render_offscreen(renderer: Renderer, ps: pp.PreviewScene, mode: str, view_projection, camera,
                      width: int, height: int, *, exposure: float = 1.0, prepass: bool = True,
-                     background=(0.0, 0.0, 0.0, 0.0)) -> tuple[np.ndarray, FrameStats]:
+                     background=(0.0, 0.0, 0.0, 0.0), display=None) -> tuple[np.ndarray, FrameStats]:
     """Render to a float32 offscreen buffer: (H, W, 4) linear RGBA, row 0 at the bottom.
 
     Raises OffscreenError when the GPU cannot make a buffer that large."""
@@ -605,7 +620,8 @@ def render_offscreen(renderer: Renderer, ps: pp.PreviewScene, mode: str, view_pr
             fb = gpu.state.active_framebuffer_get()
             fb.clear(color=tuple(background), depth=1.0)
             gpu.state.viewport_set(0, 0, width, height)
-            stats = renderer.draw(ps, mode, view_projection, camera, exposure=exposure, prepass=prepass)
+            stats = renderer.draw(ps, mode, view_projection, camera, exposure=exposure, prepass=prepass,
+                                  display=display)
             pixels = read_pixels(fb, width, height)
         renderer.end_frame()
     finally:

@@ -1,9 +1,10 @@
-"""Write rendered previews: PNG (8-bit sRGB, alpha) or OpenEXR (float32 RGBA, linear).
+"""Write rendered previews: PNG (8-bit display-encoded, alpha) or OpenEXR (float32 RGBA, linear).
 
 Pixels come in as (H, W, 4) float32 linear RGBA with row 0 at the *bottom*
 (as the GPU reads them back); files are written top row first. The PNG path
 applies the sRGB transfer function (Blender's "Standard" view transform),
-clipping to [0, 1]; EXR keeps linear values untouched. Writes are atomic:
+clipping to [0, 1], or the scene's view transform as a sampled table
+(core/shading/display.py); EXR keeps linear values untouched. Writes are atomic:
 a failed write leaves no file and an older file at the path untouched, and
 raises :class:`ImageWriteError` naming the path the caller gave (not the
 temporary beside it). The memory needed beyond the pixels themselves stays
@@ -51,22 +52,24 @@ def png_bytes(rgba8_top_first: np.ndarray) -> bytes:
     return _png_file(w, h, zlib.compress(raw.tobytes(), 6))
 
 
-def srgb8(rgba_top_first: np.ndarray, exposure: float = 1.0) -> np.ndarray:
-    """(h, W, 4) linear float -> (h, W, 4) uint8: sRGB colour, linear alpha."""
+def srgb8(rgba_top_first: np.ndarray, exposure: float = 1.0, display=None) -> np.ndarray:
+    """(h, W, 4) linear float -> (h, W, 4) uint8: display-encoded colour
+    (sRGB, or ``display``: a core.shading.display.DisplayTransform), linear alpha."""
+    encode = srgb_encode if display is None else display.encode
     out = np.empty(rgba_top_first.shape, np.uint8)
-    out[..., :3] = np.round(srgb_encode(rgba_top_first[..., :3] * np.float32(exposure)) * 255.0)
+    out[..., :3] = np.round(encode(rgba_top_first[..., :3] * np.float32(exposure)) * 255.0)
     out[..., 3] = np.round(np.clip(np.nan_to_num(rgba_top_first[..., 3]), 0.0, 1.0) * 255.0)
     return out
 
 
-def _png_stream(rgba_bottom_first: np.ndarray, exposure: float) -> bytes:
+def _png_stream(rgba_bottom_first: np.ndarray, exposure: float, display=None) -> bytes:
     """The PNG file of linear pixels, encoded and compressed BAND_ROWS rows at a time."""
     h, w, _ = rgba_bottom_first.shape
     z = zlib.compressobj(6)
     parts = []
     for top in range(0, h, BAND_ROWS):
         # File rows top..top+n are input rows h-1-top down to h-top-n.
-        band = srgb8(rgba_bottom_first[h - 1 - top::-1][:BAND_ROWS], exposure)
+        band = srgb8(rgba_bottom_first[h - 1 - top::-1][:BAND_ROWS], exposure, display)
         raw = np.zeros((band.shape[0], 1 + 4 * w), np.uint8)   # filter byte 0 ("None") per row
         raw[:, 1:] = band.reshape(band.shape[0], 4 * w)
         parts.append(z.compress(raw.tobytes()))
@@ -83,13 +86,14 @@ def _png_file(w: int, h: int, idat: bytes) -> bytes:
             + chunk(b"IDAT", idat) + chunk(b"IEND", b""))
 
 
-def _write_png(path: str, a: np.ndarray, exposure: float) -> None:
-    data = _png_stream(a, exposure)
+def _write_png(path: str, a: np.ndarray, exposure: float, display) -> None:
+    data = _png_stream(a, exposure, display)
     with atomic_write(path) as tmp, open(tmp, "wb") as f:
         f.write(data)
 
 
-def _write_exr(path: str, a: np.ndarray, exposure: float) -> None:
+def _write_exr(path: str, a: np.ndarray, exposure: float, display) -> None:
+    del display       # EXR keeps scene-linear radiance, as Blender writes it
     import OpenEXR
     # One contiguous top-first plane per channel, made directly from the
     # input: no full flipped RGBA copy on the way.
@@ -104,10 +108,12 @@ def _write_exr(path: str, a: np.ndarray, exposure: float) -> None:
         f.write(tmp)
 
 
-def write_image(path: str, rgba_bottom_first: np.ndarray, *, exposure: float = 1.0) -> str:
+def write_image(path: str, rgba_bottom_first: np.ndarray, *, exposure: float = 1.0, display=None) -> str:
     """Write linear RGBA pixels to ``path`` (.png or .exr); returns the path.
 
-    exposure multiplies the colour first (2**stops). Raises ValueError for a
+    exposure multiplies the colour first (2**stops). A PNG is encoded with
+    ``display`` (a core.shading.display.DisplayTransform: the scene's view
+    transform) or, when None, with sRGB (Standard); an EXR stays linear. Raises ValueError for a
     bad shape or extension, ImageWriteError (an OSError) when the file cannot
     be written: then no partial file is left behind and an existing file at
     ``path`` is untouched."""
@@ -119,7 +125,7 @@ def write_image(path: str, rgba_bottom_first: np.ndarray, *, exposure: float = 1
     if writer is None:
         raise ValueError(f"cannot write {path!r}: use a .png or .exr file name")
     try:
-        writer(path, a, exposure)
+        writer(path, a, exposure, display)
     except OSError as exc:
         # The error names the temporary file; say it about the caller's path.
         raise ImageWriteError(f"cannot write {path}: {exc.strerror or exc}") from exc

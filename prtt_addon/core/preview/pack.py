@@ -776,12 +776,13 @@ def image_rgba(img: np.ndarray) -> np.ndarray:
 
 
 def view_block(view_projection: np.ndarray, camera: np.ndarray, exposure: float, bands: int,
-               depth_bias: float = 0.0) -> np.ndarray:
+               depth_bias: float = 0.0, gamma_inv: float = 0.0) -> np.ndarray:
     """The PRTTView uniform block: mat4 (column-major, as GLSL reads it), camera,
-    params (exposure, depth bias, K = bands^2 as the TPFL loop's run-time bound)."""
+    params (exposure, depth bias, K = bands^2 as the TPFL loop's run-time bound,
+    1 / the display gamma: read by the display variants only)."""
     vp = np.asarray(view_projection, np.float64)
     return np.concatenate([vp.T.ravel(), np.asarray(camera, np.float64),
-                           [exposure, depth_bias, float(bands * bands), 0.0]]).astype(np.float32)
+                           [exposure, depth_bias, float(bands * bands), gamma_inv]]).astype(np.float32)
 
 
 # --- a PreviewScene straight from a core Scene and its bake (benchmarks, tests) ------------

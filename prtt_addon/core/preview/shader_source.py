@@ -24,7 +24,8 @@ Uniform blocks (std140, only vec4/mat4 members so there is no padding):
 * ``PRTTView view``: ``view_projection`` (mat4), ``camera`` (xyz eye position
   and w = 1, or xyz unit direction towards the eye and w = 0 for orthographic),
   ``params`` (x exposure multiplier, y depth bias in NDC units, z K: the
-  TPFL loop's run-time bound, see prtt_light.glsl).
+  TPFL loop's run-time bound, see prtt_light.glsl; w 1 / the display gamma,
+  read by the display variants).
 * ``PRTTMaterial material``: ``base`` (linear rgb, metallic), ``params``
   (roughness, dielectric F0, normal-map strength, flags: 1 base-colour
   texture, 2 roughness texture, 4 normal map).
@@ -41,6 +42,7 @@ import dataclasses
 import os
 
 from ..sh.gaunt import sparse_gaunt
+from ..shading.display import SHAPER_HI, SHAPER_LO
 
 MODES = ("tpfl", "tp", "diffuse", "vertex-tpfl", "vertex-tp")
 FRAGMENT_MODES = ("tpfl", "tp", "diffuse")
@@ -118,9 +120,11 @@ def gaunt_nnz(bands: int) -> int:
     return sparse_gaunt(bands).nnz
 
 
-def variant(mode: str, bands: int, *, bounce: bool = False) -> Variant:
+def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = False) -> Variant:
     """The shader for a preview ``mode`` at ``bands`` SH bands, with or without
-    bounce textures."""
+    bounce textures; ``display``: ending in the scene's view transform
+    (prtt_display.glsl, the sampler displayLut) for a colour buffer that
+    encodes sRGB, instead of linear radiance."""
     if mode not in MODES:
         raise ValueError(f"unknown preview mode {mode!r}; use one of {', '.join(MODES)}")
     if not (isinstance(bands, int) and 1 <= bands <= MAX_PREVIEW_BANDS):
@@ -135,6 +139,9 @@ def variant(mode: str, bands: int, *, bounce: bool = False) -> Variant:
         defines.append(("PRTT_DIFFUSE", "1"))
     if bounce:
         defines.append(("PRTT_BOUNCE", "1"))
+    if display:
+        defines += [("PRTT_DISPLAY", "1"), ("PRTT_SHAPER_LO", f"{SHAPER_LO:.1f}"),
+                    ("PRTT_SHAPER_HI", f"{SHAPER_HI:.1f}")]
     samplers = [(1, "FLOAT_2D", "baseTex"), (2, "FLOAT_2D", "roughTex")]
     if bounce:
         samplers.append((4, "FLOAT_2D_ARRAY", "bounceTex"))
@@ -156,8 +163,11 @@ def variant(mode: str, bands: int, *, bounce: bool = False) -> Variant:
         interface = (("smooth", "VEC3", "vcolor"),)
         vfiles = lib + ("prtt_vertex_vert.glsl",)
         ffiles = ("prtt_vertex_frag.glsl",)
+    if display:
+        samplers.append((7, "FLOAT_3D", "displayLut"))
+        ffiles = ffiles[:-1] + ("prtt_display.glsl",) + ffiles[-1:]
     return Variant(
-        name=f"prtt_{mode.replace('-', '_')}_b{bands}{'_bounce' if bounce else ''}",
+        name=f"prtt_{mode.replace('-', '_')}_b{bands}{'_bounce' if bounce else ''}{'_display' if display else ''}",
         defines=tuple(defines), typedefs=TYPEDEFS % {"tpfl": 3 * k * k4, "k": k},
         vertex_in=vertex_in, interface=interface, samplers=tuple(sorted(samplers)),
         uniform_bufs=((0, "PRTTView", "view"), (1, "PRTTMaterial", "material"), (2, "PRTTLight", "light")),
