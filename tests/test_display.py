@@ -77,7 +77,7 @@ CASES = [
 def test_the_table_draws_blenders_view_transform(case, mean_bound, p99_bound):
     """The sampled table, with exposure before it and gamma after, against
     Blender's colour management of colours that are not lattice points."""
-    from prtt_addon.blender.preview import display
+    from prtt_addon.blender.preview import colour_management as display
     bpy = addon_bpy()
     sc = bpy.context.scene
     sc.display_settings.display_device = case.get("display", "sRGB")
@@ -100,7 +100,7 @@ def test_the_table_draws_blenders_view_transform(case, mean_bound, p99_bound):
 
 def test_plain_standard_needs_no_table():
     """Standard, no look, gamma 1 on sRGB: the exact encode, as before tables."""
-    from prtt_addon.blender.preview import display
+    from prtt_addon.blender.preview import colour_management as display
     bpy = addon_bpy()
     sc = bpy.context.scene
     sc.view_settings.view_transform = "Standard"
@@ -116,7 +116,8 @@ def test_plain_standard_needs_no_table():
 def test_the_glsl_twin_draws_the_table(tmp_path):
     """The viewport's display variant (prtt_display.glsl, a 3D texture) on
     the GPU gives the table's numpy encode of the same frame drawn linear."""
-    from prtt_addon.blender.preview import display, drawlist, offscreen
+    from prtt_addon.blender.preview import colour_management as display
+    from prtt_addon.blender.preview import drawlist, offscreen
     from prtt_addon.blender.preview import renderer as gpu_preview
     bpy = open_blend(baked_blend(str(tmp_path)))
     sc = bpy.context.scene
@@ -189,6 +190,11 @@ def test_lut_bytes_round_trip_and_bad_tables_are_refused():
     t = core_display.DisplayTransform(lut, gamma=2.0, name="x")
     back = core_display.from_lut_bytes(t.lut_bytes(), 9, gamma=2.0)
     assert np.abs(back.lut - lut).max() <= 0.5 / 65535 + 1e-7
+    assert np.array_equal(core_display.from_payload(t.payload(), 9).lut, back.lut)
+    with pytest.raises(core_display.DisplayError, match="unpacks to 4374 bytes"):
+        core_display.from_payload(t.payload(), 8)                  # beyond an 8^3 table: not unpacked
+    with pytest.raises(core_display.DisplayError, match="Zstandard"):
+        core_display.from_payload(b"not zstd", 9)
     with pytest.raises(core_display.DisplayError, match="bytes"):
         core_display.from_lut_bytes(t.lut_bytes()[:-2], 9)
     with pytest.raises(core_display.DisplayError, match="size"):

@@ -21,6 +21,7 @@ from prtt_addon.core.io.image_write import srgb_encode
 from prtt_addon.core.io.ktx2 import parse_ktx2
 from prtt_addon.core.light.envmap import compose_light, project_equirect
 from prtt_addon.core.preview import pack as pp
+from prtt_addon.core.shading.display import from_payload
 from tests import real_scenes as rs
 from tests.blender_util import addon_bpy
 from tests.test_headless_chain import digest, run
@@ -175,8 +176,15 @@ def test_export_writes_blenders_gltf_with_prtts_textures(baked, tmp_path):
     assert NAME in doc["extensionsUsed"] and NAME not in doc.get("extensionsRequired", [])
     validate_file(doc)
     ext = doc["extensions"][NAME]
-    assert ext["display"] == {"exposure": 1.0, "stops": 0.0, "viewTransform": "AgX"}     # the factory file's
-    assert "view transform is 'AgX'" in r.stdout, r.stdout
+    table = ext["display"].pop("table")                                 # the factory file's AgX, sampled
+    assert ext["display"] == {"exposure": 1.0, "stops": 0.0, "viewTransform": "AgX", "look": "None",
+                              "displayDevice": "sRGB", "gamma": 1.0}
+    assert table["size"] == 65 and table["encoding"] == "uint16-zstd" and table["shaper"] == [-12.0, 12.0]
+    payload = view(doc, binary, table["bufferView"])
+    agx = from_payload(payload, 65)                                     # what Blender's AgX makes of grey
+    assert 0.3 < agx.encode(np.full((1, 3), 0.18))[0, 0] < 0.6
+    assert len(payload) < 65 ** 3 * 6 / 2
+    assert "view transform" not in r.stdout, r.stdout
     assert "bounce" not in r.stdout
     assert ext["sh"]["bands"] == 5 and ext["sh"]["gltfToBakeFrame"] == [list(r) for r in GLTF_TO_BAKE_FRAME]
     assert np.asarray(ext["light"]["rgb"]).shape == (25, 3)

@@ -175,7 +175,9 @@ def test_viewport_draw_path_and_resources(blend):
     import gpu
 
     from prtt_addon.blender.preview import draw as preview_draw
+    from prtt_addon.blender.preview.colour_management import display_of
     from prtt_addon.blender.preview.renderer import Renderer, read_pixels, render_offscreen
+    from prtt_addon.core.io.image_write import srgb_encode
     bpy = open_blend(blend)
     assert preview_draw._HANDLE is None                       # background mode: no draw handler
     assert preview_draw._on_depsgraph in bpy.app.handlers.depsgraph_update_post   # survived the load
@@ -189,15 +191,28 @@ def test_viewport_draw_path_and_resources(blend):
 
     scene = bpy.context.scene
     scene.prtt.preview, scene.prtt.preview_mode = True, "TPFL"
-    off = gpu.types.GPUOffScreen(W, H, format="RGBA32F")
-    with off.bind():
-        fb = gpu.state.active_framebuffer_get()
-        fb.clear(color=(0, 0, 0, 0), depth=1.0)
-        stats = preview_draw.draw_view(bpy.context, RegionData())
-        got = read_pixels(fb, W, H)
-    off.free()
+
+    def draw():
+        off = gpu.types.GPUOffScreen(W, H, format="RGBA32F")
+        with off.bind():
+            fb = gpu.state.active_framebuffer_get()
+            fb.clear(color=(0, 0, 0, 0), depth=1.0)
+            stats = preview_draw.draw_view(bpy.context, RegionData())
+            got = read_pixels(fb, W, H)
+        off.free()
+        return stats, got
+
+    scene.view_settings.view_transform = "Standard"       # linear out: the colour buffer encodes sRGB
+    stats, got = draw()
     assert sorted(stats.drawn) == ["Ball", "Block", "Floor"]
     assert np.abs(got - want).max() <= 1e-5 * want.max()
+    # AgX (the scene's own view transform): what the buffer stores is the table's encode of the same frame
+    scene.view_settings.view_transform = "AgX"
+    _, shown = draw()
+    table = display_of(scene)
+    covered = want[..., 3] > 0.5
+    stored = srgb_encode(shown[covered][:, :3])
+    assert np.abs(stored - table.encode(want[covered][:, :3])).max() * 255 < 1.0
     r = Renderer()
     render_offscreen(r, ps, "tpfl", vp, cam, W, H)
     keys = r.resource_keys()

@@ -133,6 +133,35 @@ def test_the_browser_draws_what_blender_draws(exported, server, tmp_path):
         assert rel_no_bounce > 4 * max(rel, 0.002), (rel_no_bounce, rel)      # measured 1.34 % vs 0.12 %
 
 
+def test_the_page_draws_the_scenes_view_transform(exported, tmp_path):
+    """Filmic with a look, an exposure and a gamma (the fixture's scene is
+    Blender's default, AgX): exported again without a bake, the page draws
+    what `render` writes, and clearly not Standard."""
+    bpy = addon_bpy()
+    bpy.ops.wm.open_mainfile(filepath=str(exported / "scene.blend"))
+    vs = bpy.context.scene.view_settings
+    vs.view_transform, vs.look, vs.exposure, vs.gamma = "Filmic", "Medium High Contrast", 0.8, 1.3
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "filmic.blend"))
+    r = run("export", "filmic.blend", "--out", "room.glb", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr + r.stdout
+    r = run("render", "filmic.blend", "--mode", "diffuse", "--size", f"{W}x{H}", "--out", "blender.png",
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr + r.stdout
+    assert "Filmic, look Medium High Contrast" in r.stdout
+    site = serve(tmp_path, "room.glb")
+    url = next(site)
+    try:
+        title = browser_shot(f"{url}/viewer/index.html?glb=/room.glb&mode=diffuse&w={W}&h={H}", tmp_path / "web.png")
+    finally:
+        next(site, None)
+    assert title == "ready 2", title
+    web, ref = read_png(tmp_path / "web.png"), read_png(tmp_path / "blender.png")
+    median, p99, rel = compare(web, ref)
+    assert median == 0 and p99 <= 2 and rel < 0.01, (median, p99, rel)
+    agx = read_png(exported / "blender.png")           # the same light in AgX, exposure 0
+    assert compare(web, agx)[2] > 10 * max(rel, 0.002)
+
+
 def compare(web, ref):
     covered = web.max(axis=2) > 0
     assert covered.mean() > 0.5, covered.mean()
@@ -433,7 +462,18 @@ def _too_wide(doc, binary):
     payload(doc, binary, doc["extensions"][EXT]["sets"][0]["transfer"], np.zeros((7, 2, 8200, 4)))
 
 
+def _table(size):
+    """A display table whose bytes are the first transfer's KTX2 (not a Zstandard frame of a table)."""
+    def edit(doc, binary):
+        ext = doc["extensions"][EXT]
+        ext["display"]["table"] = {"size": size, "encoding": "uint16-zstd", "shaper": [-12.0, 12.0],
+                                   "bufferView": ext["sets"][0]["transfer"]["bufferView"]}
+    return edit
+
+
 BAD_FILES = {
+    "display table not zstd": (_table(65), "display table: not a Zstandard frame of a 65^3 table"),
+    "display table too large": (_table(1000), "display table: size 1000 is not 2..129"),
     "corrupt KTX2 header": (_corrupt_header, "transfer: not a readable KTX2 file"),
     "damaged Zstandard": (_damaged_zstd, "transfer: damaged Zstandard data"),
     "wrong coefficient count": (_coefficients, "24 coefficients for 5 bands"),

@@ -18,7 +18,7 @@ import { read as readKTX2 } from 'ktx-parse';
 import {
   blockName, depthVariant, fetchSources, relightSources, relightVariant, shSizes, surfaceSources, surfaceVariant,
   GAUNT_WIDTH,
-  MAX_PREVIEW_BANDS, MODES,
+  MAX_PREVIEW_BANDS, MODES, SHAPER_HI, SHAPER_LO,
 } from './prtt_shaders.js';
 import { gauntTable, lightBlock, relightBlock, turnLightZ } from './prtt_sh.js';
 
@@ -139,6 +139,52 @@ function halfArrayTexture(half, width, height, layers) {
   return tex;
 }
 
+/**
+ * The scene's view transform (AgX, Filmic, ...) as the export sampled it
+ * from Blender: a Zstandard frame of a uint16 RGB table of size^3 (core/shading/display.py says the
+ * conventions) -> a half-float 3D texture the GPU filters trilinearly, as
+ * Blender's viewport does. The file is untrusted: every field is checked.
+ */
+export function displayTable(display, packed, zstd) {
+  const t = display.table;
+  const n = t.size;
+  if (!Number.isInteger(n) || n < 2 || n > 129) throw new PRTTError(`display table: size ${n} is not 2..129`);
+  if (t.encoding !== 'uint16-zstd') throw new PRTTError(`display table: encoding ${t.encoding} is not uint16-zstd`);
+  if (!Array.isArray(t.shaper) || t.shaper[0] !== SHAPER_LO || t.shaper[1] !== SHAPER_HI) {
+    throw new PRTTError(`display table: shaper ${JSON.stringify(t.shaper)} is not [${SHAPER_LO}, ${SHAPER_HI}] `
+      + '(made by another PRTT version)');
+  }
+  const gamma = display.gamma ?? 1.0;
+  if (!(Number.isFinite(gamma) && gamma > 0 && gamma <= 10)) throw new PRTTError(`display gamma ${gamma} is not in (0, 10]`);
+  let bytes;
+  try {
+    bytes = zstd.decode(packed, n * n * n * 6);
+  } catch (e) {
+    throw new PRTTError(`display table: not a Zstandard frame of a ${n}^3 table (${e.message || e})`);
+  }
+  if (bytes.byteLength !== n * n * n * 6) {
+    throw new PRTTError(`display table: not a Zstandard frame of a ${n}^3 table (${bytes.byteLength} bytes unpacked, `
+      + `${n * n * n * 6} expected)`);
+  }
+  const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const half = new Uint16Array(n * n * n * 4);
+  const one = THREE.DataUtils.toHalfFloat(1.0);
+  for (let i = 0; i < n * n * n; i++) {
+    for (let c = 0; c < 3; c++) half[4 * i + c] = THREE.DataUtils.toHalfFloat(view.getUint16(6 * i + 2 * c, true) / 65535);
+    half[4 * i + 3] = one;
+  }
+  const tex = new THREE.Data3DTexture(half, n, n, n);
+  tex.type = THREE.HalfFloatType;
+  tex.format = THREE.RGBAFormat;
+  tex.minFilter = tex.magFilter = THREE.LinearFilter;
+  tex.wrapS = tex.wrapT = tex.wrapR = THREE.ClampToEdgeWrapping;
+  tex.generateMipmaps = false;
+  tex.unpackAlignment = 1;
+  tex.colorSpace = THREE.NoColorSpace;
+  tex.needsUpdate = true;
+  return { texture: tex, gammaInv: 1.0 / gamma, name: String(t.name || display.viewTransform) };
+}
+
 function dummy2D() {
   const t = new THREE.DataTexture(new Float32Array([0, 0, 0, 1]), 1, 1, THREE.RGBAFormat, THREE.FloatType);
   t.needsUpdate = true;
@@ -169,6 +215,7 @@ class PRTTScene {
     this.limits = limits;
     this.read = sources;
     this.exposure = (ext.display && ext.display.exposure) || 1.0;
+    this.display = null;            // {texture, gammaInv, name}: the view transform's table, or sRGB (Standard)
     this.baseLight = ext.light.rgb.map((c) => [c[0], c[1], c[2]]);
     this.light = this.baseLight;
     this.turn = 0;
@@ -271,7 +318,7 @@ class PRTTScene {
     const key = `${this.mode}|${m.set}|${!!bounce}|${m.matKey}`;
     const cached = this.materials.get(key);
     if (cached) return cached;
-    const v = surfaceVariant(this.mode, this.bands, { bounce: !!bounce,
+    const v = surfaceVariant(this.mode, this.bands, { bounce: !!bounce, display: !!this.display,
       gauntNnz: triple ? this.gauntTexture().nnz : 0 });
     const units = v.samplers.length;
     if (units > this.limits.maxTextureUnits) {
@@ -287,6 +334,7 @@ class PRTTScene {
     };
     if (bounce) uniforms.bounceTex = { value: bounce };
     if (triple) uniforms.gauntTex = { value: this.gauntTexture().tex };
+    if (this.display) uniforms.displayLut = { value: this.display.texture };
     const mat = new THREE.RawShaderMaterial({
       glslVersion: THREE.GLSL3, vertexShader, fragmentShader, uniforms,
       defines: { PRTT_ROUGHNESS_CHANNEL: 'g' },      // glTF packs roughness in G
@@ -335,7 +383,7 @@ class PRTTScene {
     this.viewData.set(vp.elements, 0);                    // column-major, as GLSL reads it
     const eye = new THREE.Vector3().setFromMatrixPosition(camera.matrixWorld).applyMatrix4(toBake);
     this.viewData.set([eye.x, eye.y, eye.z, 1.0], 16);
-    this.viewData.set([this.exposure, 0.0, this.K, 0.0], 20);
+    this.viewData.set([this.exposure, 0.0, this.K, this.display ? this.display.gammaInv : 0.0], 20);
     if (!this.prepass) {
       renderer.render(scene, camera);
       return;
@@ -521,7 +569,7 @@ export class PRTTLoaderPlugin {
     const ext0 = ext;
     ext = { ...ext0, sh: { ...ext0.sh, bands, coefficients: K }, light: { ...ext0.light, rgb: ext0.light.rgb.slice(0, K) } };
     const files = [...new Set([...surfaceVariant('tpfl', bands).vertexFiles,
-      ...surfaceVariant('tpfl', bands).fragmentFiles, ...relightVariant(bands, 1).vertexFiles,
+      ...surfaceVariant('tpfl', bands, { display: true }).fragmentFiles, ...relightVariant(bands, 1).vertexFiles,
       ...relightVariant(bands, 1).fragmentFiles, ...depthVariant().vertexFiles, ...depthVariant().fragmentFiles])];
     const read = await fetchSources(files, this.shaderBase);
     const prtt = new PRTTScene(ext, limits, read);
@@ -578,8 +626,11 @@ export class PRTTLoaderPlugin {
       }
       prtt.sets.push(entry);
     }
-    if (ext.display && ext.display.viewTransform && ext.display.viewTransform !== 'Standard') {
-      prtt.notes.push(`the .blend's view transform is ${ext.display.viewTransform}; the viewer shows Standard`);
+    if (ext.display && ext.display.table) {
+      const t = ext.display.table;
+      if (!Number.isInteger(t.bufferView)) throw new PRTTError('display table: the extension does not say where it is');
+      prtt.display = displayTable(ext.display, new Uint8Array(await parser.getDependency('bufferView', t.bufferView)),
+        zstd);
     }
     const nodes = json.nodes || [];
     const meshes = json.meshes || [];

@@ -68,6 +68,7 @@ from ..blendfile import native_output_captured, open_scene
 from ..export.job import GENERATED_UVS
 from ..export.scene_objects import GEOMETRY_TYPES, render_enabled
 from ..export.world import world_setup
+from ..preview import colour_management as colour
 from ..preview.drawlist import bake_folder, collect, generated_uvs, last_bake, materials_signature
 from ..preview.offscreen import RenderError, check_out
 from ..rna_arrays import RnaArrayError, read, write
@@ -538,11 +539,15 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
     if env_blob is not None:
         blobs.append((("environment", "image"), env_blob))
     vs = scene.view_settings
-    if vs.view_transform != "Standard":
-        notes.append(f"the scene's view transform is {vs.view_transform!r}; the preview and the viewer show "
-                     f"'Standard' (linear to sRGB after the exposure)")
+    table = colour.display_of(scene)
+    if table is not None:
+        blobs.append((("display", "table"), table.payload()))
+    if colour.unsupported(scene):
+        notes.append(f"the viewer does not draw the colour management's {colour.unsupported(scene)}")
+    display = display_extension(vs.exposure, vs.view_transform, look=vs.look, gamma=vs.gamma,
+                                device=scene.display_settings.display_device, table=table)
     root = root_extension(bands=bands, light=ps.light, light_description=status.light_description, sets=sets,
-                          display=display_extension(vs.exposure, vs.view_transform), environment=environment,
+                          display=display, environment=environment,
                           default_material=_material_block(pp.PreviewMaterial(), normal=-1))
     materials, images = _material_params(ps)
     parts = _parts(info, {s["name"]: i for i, s in enumerate(sets)})

@@ -17,7 +17,7 @@ import bpy
 from bpy.app.handlers import persistent
 
 from ..shared import PREVIEW_MODES, redraw_viewports
-from . import display as colour
+from . import colour_management as colour
 from . import drawlist
 from . import renderer as gpu_preview
 from .offscreen import exposure_of, region_view

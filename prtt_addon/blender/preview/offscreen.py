@@ -33,7 +33,7 @@ from ...core.io.atomic import TMP_PREFIX
 from ...core.io.image_write import WRITE_BYTES_PER_PIXEL, ImageWriteError, write_image
 from ...core.preview.shader_source import MODES
 from ..blendfile import native_stderr_filtered, open_scene
-from . import display as colour
+from . import colour_management as colour
 from . import drawlist
 from . import renderer as gpu_preview
 from .shaders import ShaderError

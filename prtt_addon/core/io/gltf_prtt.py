@@ -23,6 +23,7 @@ import struct
 
 import numpy as np
 
+from ..shading.display import LUT_ENCODING
 from .ktx2 import ktx2_bytes, sh_layers
 
 NAME = "PRTT_radiance_transfer"
@@ -207,11 +208,21 @@ def material_extension(*, base_color, metallic: float, roughness: float, f0: flo
             "normalTexture": bool(normal_texture)}
 
 
-def display_extension(stops: float, view_transform: str) -> dict:
+def display_extension(stops: float, view_transform: str, *, look: str = "None", device: str = "sRGB",
+                      gamma: float = 1.0, table=None) -> dict:
     """How the preview turns radiance into pixels: ``exposure`` = 2 ** stops
-    multiplies linear radiance before the sRGB encode (Blender's Standard
-    view transform; core.io.image_write.write_image)."""
-    return {"exposure": float(2.0 ** float(stops)), "stops": float(stops), "viewTransform": str(view_transform)}
+    multiplies linear radiance first; then the sRGB encode (Blender's plain
+    Standard) or, with ``table`` (a core.shading.display.DisplayTransform),
+    the scene's view transform as that table (``table``: size N, encoding
+    uint16, shaper [lo, hi] stops; its bufferView, N**3 RGB, is filled by the
+    writer) and the display ``gamma`` after it
+    (core.io.image_write.write_image)."""
+    out = {"exposure": float(2.0 ** float(stops)), "stops": float(stops), "viewTransform": str(view_transform)}
+    if table is not None:
+        out.update(look=str(look), displayDevice=str(device), gamma=float(gamma),
+                   table={"name": table.name, "size": table.size, "encoding": LUT_ENCODING,
+                          "shaper": [float(table.lo), float(table.hi)]})
+    return out
 
 
 def environment_extension(*, description: str, strength: float, rotation=(0.0, 0.0, 0.0),

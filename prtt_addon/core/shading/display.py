@@ -40,8 +40,9 @@ MIN_LUT_SIZE, MAX_LUT_SIZE = 2, 129
 SHAPER_LO, SHAPER_HI = -12.0, 12.0
 #: Colours encoded at once (each holds ~200 bytes of float64 temporaries).
 ENCODE_CHUNK = 1 << 16
-#: Values a glTF file stores per lattice point (uint16, little-endian).
-LUT_ENCODING = "uint16"
+#: How a glTF file stores the table: one Zstandard frame of uint16
+#: little-endian RGB (65^3: 1.65 MB raw, 0.49 MB compressed).
+LUT_ENCODING = "uint16-zstd"
 
 
 class DisplayError(ValueError):
@@ -125,8 +126,13 @@ class DisplayTransform:
         return out
 
     def lut_bytes(self) -> bytes:
-        """The table as a file carries it: uint16 little-endian, (N, N, N, 3)."""
+        """The table as uint16 little-endian, (N, N, N, 3)."""
         return np.round(np.clip(self.lut, 0.0, 1.0) * 65535.0).astype("<u2").tobytes()
+
+    def payload(self) -> bytes:
+        """The table as a file carries it (LUT_ENCODING)."""
+        import zstandard  # optional at import: only files with a table need it
+        return zstandard.ZstdCompressor(level=19).compress(self.lut_bytes())
 
     def block(self) -> np.ndarray:
         """(N, N, N, 4) float32 RGBA for a 3D texture (alpha 1)."""
@@ -146,6 +152,24 @@ def check_lut(lut) -> None:
                            f"not {lut.shape}")
     if not np.isfinite(lut).all() or lut.min() < 0.0 or lut.max() > 1.0:
         raise DisplayError("a display table's values must be finite and within [0, 1]")
+
+
+def from_payload(data: bytes, size: int, **kw) -> DisplayTransform:
+    """A table from a file's payload (LUT_ENCODING), read as untrusted input:
+    it may not unpack beyond a ``size``^3 table."""
+    import zstandard  # optional at import: only files with a table need it
+    if not (isinstance(size, int) and MIN_LUT_SIZE <= size <= MAX_LUT_SIZE):
+        raise DisplayError(f"a display table's size must be {MIN_LUT_SIZE}..{MAX_LUT_SIZE}, not {size!r}")
+    want = size ** 3 * 6
+    try:
+        # a frame may declare its size: python-zstandard trusts it over max_output_size
+        declared = zstandard.frame_content_size(bytes(data))
+        if declared not in (-1, want):
+            raise DisplayError(f"the display table unpacks to {declared} bytes; a {size}^3 table has {want}")
+        raw = zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=want)
+    except zstandard.ZstdError as exc:
+        raise DisplayError(f"the display table is not a Zstandard frame of {size}^3 values: {exc}") from None
+    return from_lut_bytes(raw, size, **kw)
 
 
 def from_lut_bytes(data: bytes, size: int, *, gamma: float = 1.0, name: str = "",
