@@ -95,7 +95,9 @@ def build_scene(bpy) -> dict:
     scene = bpy.context.scene
     scene.world = sb.environment_world("Forest", builtin_environment_path("forest"), strength=1.0)
     scene.camera = sb.camera_object("Camera", (0.0, -5.6, 2.3), (0.0, 0.6, 0.7), fov_y_deg=62.0)
-    scene.view_settings.view_transform = "Standard"     # what the preview shows (linear -> sRGB)
+    # Standard: the demo's figures set PRTT beside Cycles, and Standard shows their
+    # radiance unbent (the preview draws any view transform: docs/preview.md)
+    scene.view_settings.view_transform = "Standard"
     scene.view_settings.exposure = -0.7                  # the forest HDRI lights white walls to ~2
     bpy.context.view_layer.update()         # new objects get their view-layer bases (selection)
     return objects
