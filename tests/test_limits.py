@@ -89,3 +89,24 @@ def test_bake_at_the_largest_resolution_with_unwrap_on_a_tiny_scene(tmp_path):
     r = run_limited("render", "scene.blend", "--out", "big.png", "--size", "100000x100000", cwd=tmp_path)
     assert r.returncode == 1 and "render smaller (--size WxH)" in r.stderr, r.stdout[-2000:] + r.stderr[-2000:]
     assert "Traceback" not in r.stderr and not (tmp_path / "big.png").exists()
+
+
+def test_every_bake_setting_at_its_largest_is_refused_before_it_is_baked(tmp_path):
+    """Tuning fixed, 16384², 16 bands, the most rays, bounces, patterns and
+    the largest chunks on a tiny scene, under a 6 GiB address-space limit:
+    refused by the memory plan in one line before anything is traced. And two
+    relightable bounces at 16 bands (512²), which the plan once undercounted
+    (the next level's rows, 12 K bytes a texel and more) and which then ran out
+    of memory half-way through the second level: refused up front too."""
+    bpy = addon_bpy()
+    rs.floor_and_box(bpy)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    most = ("--tuning", "fixed", "--bands", "16", "--rays", "65536", "--bounce-rays", "16384", "--vertex", "--mips",
+            "--dilate", "64", "--patterns", "1024", "--chunk-rays", "4194304")
+    for resolution, bounces in (("16384", "8"), ("512", "2")):
+        r = run_limited("bake", "scene.blend", "--unwrap", "smart", "--resolution", resolution, "--bounces", bounces,
+                        *most, "--out", "tex", cwd=tmp_path)
+        out = r.stdout + r.stderr
+        assert r.returncode == 1 and "needs about" in out and "but only" in out, out[-3000:]
+        assert "Traceback" not in out and "during the bake" not in out and "trace [" not in out, out[-3000:]
+        assert not (tmp_path / "tex" / "manifest.json").exists()

@@ -226,6 +226,10 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 # One level: its columns wait in a file, its 3 DC responses in memory;
                 # more: every level's columns, and the surface the next level's exit reads.
                 columns = 12 * nc if bounces == 1 else int(table * relight_channels * nc) + SURFACE_SHADING * vc
+                if bounces > 1:
+                    # The next level's rows (RelightRows: dc (3, K), glossy per colour) made from
+                    # the dilated columns (C channels) beside them, kept while that level traces.
+                    columns += 4 * relight_channels * vc + 12 * (K + glossy_coeffs) * vc
                 total += SURFACE * nc + EXIT_SCALES * vc + 4 * glossy_coeffs * vc + columns + 12 * wc * hc
                 exits = 4 * glossy_coeffs * vc + 24 * vc
                 # The inputs: the coarse grid's G-buffer built and its block means taken
