@@ -73,6 +73,23 @@ def test_the_preview_agrees_across_versions(compat):
             assert got == pytest.approx(want, rel=1e-3 if v == "4.2.23" else 2e-4), (v, mode, got, want)
 
 
+def test_every_version_draws_its_own_agx(compat):
+    """The draw handler in the scene's view transform (the factory AgX),
+    sampled from each Blender's own colour management: AgX in every version,
+    the same table where the OpenColorIO configuration is the same (4.5, 5.2,
+    5.3 within a 16-bit step), and the AgX picture differs from the Standard one."""
+    _, rec = compat
+    res = rec["results"]
+    for v, r in res.items():
+        d = r["display"]
+        assert d["name"].startswith("AgX"), (v, d)
+        assert np.all(np.diff(d["grey"]) > 0) and 0.3 < d["grey"][1] < 0.6, (v, d)
+        assert abs(d["draw_handler"] - r["preview"]["draw_handler"]) > 0.02, (v, d)
+    print({v: r["display"] for v, r in res.items()})
+    for v in ("5.2.3", "5.3.0"):
+        assert np.allclose(res[v]["display"]["grey"], res["4.5.15"]["display"]["grey"], atol=2e-4), v
+
+
 def test_textures_are_the_same_numbers_in_every_version(compat):
     """The second bake (xatlas UVs, the same in every Blender): bytes equal
     within a numpy line; across numpy 1.26 (4.2-5.0) and numpy 2 (5.1+) the

@@ -195,20 +195,34 @@ def main(zip_path, work):
             is_perspective = True
 
         sc.prtt.preview = True
-        off = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
-        try:
-            with off.bind():
-                fb = gpu.state.active_framebuffer_get()
-                fb.clear(color=(0, 0, 0, 0), depth=1.0)
-                stats = preview_draw.draw_view(bpy.context, RegionData())
-                buf = fb.read_color(0, 0, w, h, 4, 0, "FLOAT")
-            buf.dimensions = w * h * 4
-            px = np.array(buf, dtype=np.float32).reshape(h, w, 4)
-        finally:
-            off.free()
-        if stats is None or not stats.drawn:
-            raise RuntimeError(f"the draw handler drew nothing: {preview_draw.last_status}")
-        result["preview"]["draw_handler"] = round(float(px[..., :3].mean()), 6)
+
+        def draw():
+            off = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
+            try:
+                with off.bind():
+                    fb = gpu.state.active_framebuffer_get()
+                    fb.clear(color=(0, 0, 0, 0), depth=1.0)
+                    stats = preview_draw.draw_view(bpy.context, RegionData())
+                    buf = fb.read_color(0, 0, w, h, 4, 0, "FLOAT")
+                buf.dimensions = w * h * 4
+                px = np.array(buf, dtype=np.float32).reshape(h, w, 4)
+            finally:
+                off.free()
+            if stats is None or not stats.drawn:
+                raise RuntimeError(f"the draw handler drew nothing: {preview_draw.last_status}")
+            return px
+
+        # Standard first: linear radiance, comparable across versions (4.2's HDRI differs)
+        view = sc.view_settings.view_transform
+        sc.view_settings.view_transform = "Standard"
+        result["preview"]["draw_handler"] = round(float(draw()[..., :3].mean()), 6)
+        # then the scene's own view transform (Blender's default, AgX), sampled from this Blender
+        from bl_ext.user_default.prtt_addon.blender.preview.colour_management import display_of
+        sc.view_settings.view_transform = view
+        table = display_of(sc)
+        grey = table.encode(np.array([[0.01] * 3, [0.18] * 3, [1.0] * 3, [8.0] * 3]))[:, 0] if table else []
+        result["display"] = {"name": table.name if table else "Standard", "grey": [round(float(g), 5) for g in grey],
+                             "draw_handler": round(float(draw()[..., :3].mean()), 6)}
         # what the preview read from Blender: the light, the materials, the images
         from bl_ext.user_default.prtt_addon.blender.preview import drawlist
         ps, _ = drawlist.collect(bpy.context)
