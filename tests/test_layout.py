@@ -119,6 +119,13 @@ def _package_imports(mod, path, is_pkg, mods):
     for node in ast.walk(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             inner |= {id(n) for n in ast.walk(node)}
+    # A module a child process runs (["python", "-m", "prtt_addon.worker", ...]) is not imported.
+    launched = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.List, ast.Tuple)):
+            for a, b in zip(node.elts, node.elts[1:]):
+                if isinstance(a, ast.Constant) and a.value == "-m":
+                    launched.add(id(b))
     out = []
     for node in ast.walk(tree):
         if id(node) in type_only:
@@ -134,6 +141,11 @@ def _package_imports(mod, path, is_pkg, mods):
             targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else base for a in node.names]
         elif isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
+        elif (isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in launched
+              and re.fullmatch(rf"{PKG}(\.\w+)+", node.value)):
+            # A module named by string (importlib, jit.load): the same arrow, seen here too.
+            assert node.value in mods, f"{path}:{node.lineno}: names {node.value}, which is not a module"
+            targets = [node.value]
         for t in targets:
             if t == PKG or t.startswith(PKG + "."):
                 while t not in mods and "." in t:
@@ -320,3 +332,69 @@ def test_docstrings_carry_no_timings_of_a_machine():
             if pat.search(line):
                 hits.append(f"{dotted}:{i}: {line.strip()}")
     assert not hits, hits
+
+
+#: First path segments of the project's own folders (a path with another
+#: start, such as three/addons/... or image/vnd.radiance, is not ours).
+_OUR_ROOTS = ("prtt_addon", "core", "blender", "bench", "fuzz", "tools", "tests", "shaders", "viewer", "docs",
+              "sh", "texels", "io", "light", "model", "shading", "preview", "bake", "export", "gltf", "ui", "base",
+              "estimators", "executors", "pipeline")
+_SEARCHED = ("", PKG, f"{PKG}/core", f"{PKG}/blender", f"{PKG}/core/bake", f"{PKG}/bench")
+_EXTENSIONS = ("py", "md", "glsl", "js", "json", "toml", "sh", "txt", "csv", "png", "jpg", "exr", "hdr", "npz",
+               "blend", "glb", "gltf", "ktx2", "zip", "whl", "html", "cube")
+
+
+def _top_names(path):
+    tree = ast.parse(open(path, encoding="utf-8").read(), path)
+    names = set()
+    for n in tree.body:
+        if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(n.name)
+        elif isinstance(n, (ast.Assign, ast.AnnAssign)):
+            for t in (n.targets if isinstance(n, ast.Assign) else [n.target]):
+                names |= {x.id for x in ast.walk(t) if isinstance(x, ast.Name)}
+    return names          # defined here: a name imported from elsewhere is named by its own module
+
+
+def test_paths_and_names_in_code_and_docs_exist():
+    """Every project path a docstring, comment or page names exists
+    (``core/io/exr_io.py``, ``blender/preview/offscreen.ensure_gpu``: the
+    module and the name in it), searched from the repository, the package and
+    its core/, blender/, bench/ and the file's own folder; every
+    ``prtt_addon.a.b.name`` is a module or a name in one."""
+    files = [os.path.join(d, f) for top in (PKG, "tools", "docs", "shaders", "viewer")
+             for d, _, fs in os.walk(os.path.join(ROOT, top)) for f in fs
+             if f.endswith((".py", ".md", ".glsl", ".js")) and "node_modules" not in d]
+    files.append(os.path.join(ROOT, "README.md"))
+    mods = _modules()
+    path_re = re.compile(r"(?<![\w/.:-])((?:[A-Za-z_][\w-]*/)+[A-Za-z_][\w-]*)\.([A-Za-z_]\w*)(\.\w+)?")
+    dotted_re = re.compile(rf"(?<![\w.]){PKG}((?:\.\w+)+)")
+    stale = []
+    for f in files:
+        text = open(f, encoding="utf-8").read()
+
+        def where(m, f=f, text=text):
+            return f"{os.path.relpath(f, ROOT)}:{text.count(chr(10), 0, m.start()) + 1}"
+        for m in path_re.finditer(text):
+            path, name, more = m.groups()
+            if path.split("/")[0] not in _OUR_ROOTS or more:
+                continue
+            dirs = [os.path.join(ROOT, b, path) for b in _SEARCHED + (os.path.relpath(os.path.dirname(f), ROOT),)]
+            if name in _EXTENSIONS:
+                if not any(os.path.exists(f"{d}.{name}") for d in dirs):
+                    stale.append(f"{where(m)}: {path}.{name} does not exist")
+                continue
+            module = next((f"{d}.py" for d in dirs if os.path.isfile(f"{d}.py")), None)
+            if module is None and not any(os.path.isdir(d) for d in dirs):
+                stale.append(f"{where(m)}: {path}.{name}: no module {path}.py")
+            elif module is not None and name not in _top_names(module):
+                stale.append(f"{where(m)}: {path}.{name}: {os.path.relpath(module, ROOT)} has no {name}")
+        for m in dotted_re.finditer(text):
+            parts = (PKG + m.group(1)).split(".")
+            k = max(i for i in range(1, len(parts) + 1) if ".".join(parts[:i]) in mods or i == 1)
+            mod = ".".join(parts[:k])
+            if mod not in mods:
+                stale.append(f"{where(m)}: {'.'.join(parts)}: no such module")
+            elif k < len(parts) and parts[k] not in _top_names(mods[mod][0]) and parts[k] not in ("py",):
+                stale.append(f"{where(m)}: {'.'.join(parts)}: {mod} has no {parts[k]}")
+    assert not stale, "\n".join(stale)

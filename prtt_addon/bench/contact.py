@@ -12,7 +12,7 @@ the preview's shaders (offscreen, blender/preview/renderer.py) three ways:
 
 Against a ground truth that needs neither textures nor vertices: at every
 pixel's surface point the transfer is ray traced with ``--ref-rays`` rays and
-shaded with the same model (core/preview_reference.traced_reference). Errors
+shaded with the same model (core/preview/reference.traced_reference). Errors
 are relative RMSE (RMSE / mean of the reference) over the floor's pixels and
 over all pixels. Images go to docs/images/contact_*.png.
 """

@@ -10,7 +10,7 @@ checks that each of them still agrees with it):
 * the options of ``blender -c prtt bake`` and ``python -m prtt_addon bake``
   (``blender/commands.bake_parser``, through the same ``cli_options.add_setting_options``);
 * the bake properties of ``scene.prtt`` (``blender/ui/properties.py`` builds its
-  annotations from :func:`ui_properties`), and ``blender/bake_run.bake_settings``
+  annotations from :func:`ui_properties`), and ``blender/bake/run.bake_settings``
   (:func:`core_from_ui`);
 * the settings table of docs/format.md §5 (:func:`settings_table`; rewrite it
   with ``python -m prtt_addon.core.settings_schema --write``).

@@ -192,7 +192,7 @@ def generated_margin(st) -> int:
 
 def bake_downscale(st) -> int:
     """The bounce grid's downscale the bake will ask for with scene settings
-    ``st`` (core/bake/pipeline/bounce_stage.asked_downscale): what the unwrap leaves
+    ``st`` (core/bake/pipeline/context.asked_downscale): what the unwrap leaves
     room for."""
     from ...core.bake.pipeline.bounce_stage import asked_downscale  # numpy-only core: cheap, but not needed at import
     tuning = str(st.tuning).lower()

@@ -58,10 +58,10 @@ def broken(name: str, exc: BaseException) -> None:
     failures[name] = f"{type(exc).__name__}: {exc}"
 
 
-def version() -> str | None:
-    """numba's version when the compiled loops load (the Dask code identity:
-    numba's sums round differently from numpy's), else None."""
-    if load("prtt_addon.core.bake.estimators.hit_jit") is None:
+def version(name: str) -> str | None:
+    """numba's version when the compiled module ``name`` loads (the Dask code
+    identity: numba's sums round differently from numpy's), else None."""
+    if load(name) is None:
         return None
     import importlib.metadata
     try:

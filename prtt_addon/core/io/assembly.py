@@ -1,4 +1,4 @@
-"""Objects' triangles -> one bake :class:`~prtt_addon.core.io.jobfile.Scene`.
+"""Objects' triangles -> one bake :class:`~prtt_addon.core.model.scene.Scene`.
 
 The one assembly path of the Blender export (prtt_addon/blender/export/job.py)
 and of :func:`prtt_addon.core.io.meshgen.assemble`: each object (or instance)

@@ -53,12 +53,6 @@ class KTX2Error(ValueError):
     """A KTX2 file this module cannot write or read; the message says why."""
 
 
-def _dfd_rgba16f() -> bytes:
-    """The Data Format Descriptor of linear RGBA16F: its total size, then one
-    basic descriptor block (24 bytes) with four 16-byte samples."""
-    return _dfd(np.dtype(np.float16))
-
-
 def _dfd(dtype) -> bytes:
     """The Data Format Descriptor of linear RGBA16F (float16) or RGBA8 UNORM
     (uint8): its total size, then one basic descriptor block (24 bytes) with

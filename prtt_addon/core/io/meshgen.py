@@ -1,5 +1,5 @@
 """Meshes without Blender: procedural primitives, OBJ loading, and assembling
-them into a bake :class:`~prtt_addon.core.io.jobfile.Scene`.
+them into a bake :class:`~prtt_addon.core.model.scene.Scene`.
 
 Used by the tests, the benchmark scenes and the demo. Units are metres, Z up.
 A :class:`Mesh` is indexed: vertices (V, 3), faces (F, 3); ``normals`` are

@@ -365,7 +365,8 @@ def _hash_array(h, a) -> None:
 
 
 def scene_hash(sc: Scene) -> str:
-    """sha256 over every array and list of the scene (the bake's input identity)."""
+    """sha256 over every array of the scene: equal for equal scenes (a job
+    file's round trip). A bake's identity starts from :func:`geometry_hash`."""
     h = hashlib.sha256()
     for a in (sc.positions, sc.normals, sc.uvs, sc.set_id, sc.set_resolution, sc.object_id,
               sc.nm_index, sc.nm_uvs, sc.tangents, sc.material_id, sc.mat_uvs):

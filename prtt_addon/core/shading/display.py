@@ -2,7 +2,7 @@
 
 A view transform (AgX, Filmic, Khronos PBR Neutral, Standard with a look,
 ...) with its look and display device is sampled from Blender itself, on a
-lattice of scene-linear colours (blender/preview/display.py), and applied here
+lattice of scene-linear colours (blender/preview/colour_management.py), and applied here
 by trilinear interpolation; ``shaders/prtt_display.glsl`` is this module's GLSL
 twin (tests/test_display.py holds them together, and both against Blender's
 own colour management of the same linear images).

@@ -26,7 +26,7 @@ def island_labels(mask: np.ndarray) -> np.ndarray:
     their own label; rounds repeat until nothing changes (a few dozen for
     islands hundreds of texels long). With numba (core/base/jit.py) a compiled
     union-find gives the same labels (islands_jit)."""
-    name = "prtt_addon.core.texels.islands_jit"
+    name = "prtt_addon.core.texels.islands_jit"       # by name: numba is optional (core/base/jit.py)
     fast = jit.load(name)
     if fast is not None:
         try:

@@ -208,6 +208,11 @@ def shade_set_hits(sel: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarr
                             ex.glossy if has else _NO_GLOSSY, bands, *consts, out)
 
 
+def numba_version() -> str | None:
+    """numba's version when the hit shading's compiled loops load, else None."""
+    return jit.version(_JIT)
+
+
 def relight_loop(bands: int, glossy_bands: int, shared_exit: bool):
     """The relightable loop (hit_jit.relight_for) for exit forms shared
     between the colours or not (only when usable("relight", glossy_bands, bands))."""

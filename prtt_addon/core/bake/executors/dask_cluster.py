@@ -66,7 +66,6 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ...base import jit
 from ...base.errors import BakeError, Cancelled
 from ...base.memory import (
     GiB,
@@ -76,6 +75,7 @@ from ...base.memory import (
     release_free_memory,
     resident_bytes,
 )
+from ..estimators import hit_kernel
 from ..estimators.bounce import trace_chunk
 from ..estimators.raytrace import RayScene
 from ..estimators.transfer import SWITCH_INTERVAL, ChunkKernel
@@ -186,7 +186,7 @@ def code_identity() -> str:
             embree = importlib.metadata.version("embreex")
         except Exception:               # no metadata (a vendored wheel): the module's own
             embree = "?"
-        h = hashlib.sha256(f"numpy {np.__version__} embreex {embree} numba {jit.version()}".encode())
+        h = hashlib.sha256(f"numpy {np.__version__} embreex {embree} numba {hit_kernel.numba_version()}".encode())
         core = Path(__file__).resolve().parents[2]          # prtt_addon/core
         for p in sorted(core.rglob("*.py")):
             h.update(p.relative_to(core).as_posix().encode())

@@ -216,7 +216,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
     inputs' ``sources`` are what the levels bake. Not ``lit`` (relightable
     bounces): the transfer rows T (M, K) instead of Lp, and in
     ``level1_diffuse`` the fine grid's T rows; ``direct`` is then the energy
-    under a uniform unit light (relight.uniform_energy). ``sources`` is
+    under a uniform unit light (relightable.uniform_energy). ``sources`` is
     consumed (its items become None)."""
     st, sc = ctx.settings, ctx.scene
     skip, surf, level1_diffuse, grids, baked, Lp = {}, {}, {}, {}, [], {}

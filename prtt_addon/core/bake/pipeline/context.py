@@ -211,7 +211,7 @@ class BakeContext:
     warnings: list[str] = dataclasses.field(init=False)         # every warning emitted, in order
     tables: cf.Future | None = dataclasses.field(init=False)    # warm_tables on a helper (stages.start_tables)
     dask: object | None = None                  # distributed.DaskSpec: trace on a Dask cluster (runner opens it)
-    remote: object | None = dataclasses.field(init=False)       # the open distributed.DaskBake, else None
+    remote: object | None = dataclasses.field(init=False)       # the open executors.dask_cluster.DaskBake, else None
     memory: StagePeaks = dataclasses.field(init=False)          # peak RSS per stage (the manifest's "memory")
     bounce_grids: dict = dataclasses.field(init=False)          # set index -> bounce_stage.BounceGrid, chosen
                                                                 # from its G-buffer (runner; bounce_inputs reads it)

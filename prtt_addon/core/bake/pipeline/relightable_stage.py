@@ -5,7 +5,7 @@ per set, ``<set>.relight.exr`` (kind "relight": exr_io.relight_channel_names).
 The same inputs, grids, rays, seeds and skips as the baked levels
 (bounce_stage.bounce_inputs, bounce.trace_bounce_level); the light is not
 needed. Levels stop early by the energy under a uniform white light
-(relight.uniform_energy), so what is stored does not depend on any light.
+(relightable.uniform_energy), so what is stored does not depend on any light.
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from .stages import BounceSource, Geometry, write_planes
 
 
 def relight_glossy_bands(st) -> int:
-    """Bands of the relightable glossy part, in and out (relight.GLOSSY_BANDS, at most the bake's)."""
+    """Bands of the relightable glossy part, in and out (relightable.GLOSSY_BANDS, at most the bake's)."""
     return min(GLOSSY_BANDS, st.bands)
 
 
