@@ -50,7 +50,7 @@ def test_unwrap_writes_only_the_prtt_map(tmp_path, method):
         np.testing.assert_array_equal(a_sel, sel)                     # mesh selection too
         uv = a_maps["PRTT"][0]
         assert uv.min() >= -1e-6 and uv.max() <= 1 + 1e-6
-    from prtt_addon.blender.export.uv_maps import overlap_texels
+    from prtt_addon.blender.scene.uv_maps import overlap_texels
     # Non-planar quads can fold over in UV space: a few texels at most (reported).
     assert overlap_texels(monkey, 256) <= 64 and overlap_texels(plane, 256) == 0
     if method == "EXISTING":
@@ -106,7 +106,7 @@ def test_bake_through_the_worker_matches_core_bake(tmp_path):
     assert sorted(man["files"]) == ["Plane.transfer.exr", "Suzanne.transfer.exr"]
     assert not os.path.exists(out / ".prtt-job.npz")
     from prtt_addon.blender.bake.run import bake_settings
-    from prtt_addon.blender.export.job import export_scene
+    from prtt_addon.blender.scene.job import export_scene
     from prtt_addon.core.bake.pipeline.context import BakeSettings
     from prtt_addon.core.bake.pipeline.runner import bake_scene
     from prtt_addon.core.io.exr_io import read_sh_exr
@@ -147,7 +147,7 @@ def test_export_modifiers_transforms_instances(tmp_path):
     select_only(bpy, [cube])
     bpy.context.scene.prtt.unwrap_method = "XATLAS"
     bpy.ops.prtt.unwrap()
-    from prtt_addon.blender.export.job import export_scene
+    from prtt_addon.blender.scene.job import export_scene
     exp = export_scene(bpy.context, with_light=False)
     sc = exp.scene
     dg = bpy.context.evaluated_depsgraph_get()
@@ -200,7 +200,7 @@ def test_normal_mapped_floor(tmp_path):
     select_only(bpy, [floor])
     bpy.context.scene.prtt.unwrap_method = "SMART"
     bpy.ops.prtt.unwrap()
-    from prtt_addon.blender.export.job import export_scene
+    from prtt_addon.blender.scene.job import export_scene
     from prtt_addon.core.texels.gbuffer import build_gbuffer
     exp = export_scene(bpy.context, with_light=False)
     sc = exp.scene
@@ -235,7 +235,7 @@ def test_missing_normal_map_image_warns_and_bakes(tmp_path):
     bpy.ops.prtt.unwrap()
     st = bpy.context.scene.prtt
     st.resolution, st.rays, st.output_dir, st.bounces = 16, 16, str(tmp_path / "out"), 0
-    from prtt_addon.blender.export.job import export_scene
+    from prtt_addon.blender.scene.job import export_scene
     exp = export_scene(bpy.context, with_light=False)
     assert any("normal map image" in w and "baking without it" in w for w in exp.warnings)
     assert bpy.ops.prtt.bake_transfer() == {"FINISHED"}
@@ -246,7 +246,7 @@ def test_auto_tuning_sizes_object_sets_by_texel_density(tmp_path):
     at AUTO_TEXEL_DENSITY (a power of two, up to the scene resolution); an
     object's Resolution Override still wins; Fixed keeps the scene resolution."""
     bpy = addon_bpy()
-    from prtt_addon.blender.export.job import AUTO_TEXEL_DENSITY, export_scene
+    from prtt_addon.blender.scene.job import AUTO_TEXEL_DENSITY, export_scene
     bpy.ops.mesh.primitive_plane_add(size=6.0)                  # 36 m²
     floor = bpy.context.active_object
     bpy.ops.mesh.primitive_cube_add(size=0.2, location=(0, 0, 1))  # 0.24 m²

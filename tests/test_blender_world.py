@@ -53,7 +53,7 @@ def world_with_image(bpy, rotation=None, strength=1.0, vector_type="POINT"):
 def test_world_light_matches_cycles(tmp_path, rotation, vtype):
     bpy = addon_bpy()
     world_with_image(bpy, rotation, strength=1.5, vector_type=vtype)
-    from prtt_addon.blender.export.world import world_light
+    from prtt_addon.blender.scene.world import world_light
     L, desc = world_light(bpy.context.scene, 3)
     assert "x1.5" in desc and ("rotated" in desc) == (rotation is not None)
     # Not at a pole: Cycles' equirect lookup wraps vertically, blending in the
@@ -68,7 +68,7 @@ def test_world_light_matches_cycles(tmp_path, rotation, vtype):
 
 def test_constant_world_and_errors(tmp_path):
     bpy = addon_bpy()
-    from prtt_addon.blender.export.world import WorldLightError, world_light
+    from prtt_addon.blender.scene.world import WorldLightError, world_light
     world = bpy.data.worlds.new("W")
     bpy.context.scene.world = world
     bg = world.node_tree.nodes["Background"]
@@ -91,7 +91,7 @@ def test_constant_world_and_errors(tmp_path):
 def test_world_image_without_pixels_is_a_clear_error(tmp_path):
     """An Environment Texture whose file is gone: WorldLightError naming it, no crash."""
     bpy = addon_bpy()
-    from prtt_addon.blender.export.world import WorldLightError, world_light
+    from prtt_addon.blender.scene.world import WorldLightError, world_light
     world = bpy.data.worlds.new("W")
     bpy.context.scene.world = world
     nt = world.node_tree
@@ -109,7 +109,7 @@ def test_non_finite_world_settings_are_clear_errors(tmp_path):
     clamped to 3.4e38: WorldLightError naming the setting (the fuzz target
     `world` found the core making NaN or float32-overflowing lights of them)."""
     bpy = addon_bpy()
-    from prtt_addon.blender.export.world import WorldLightError, world_light
+    from prtt_addon.blender.scene.world import WorldLightError, world_light
     world_with_image(bpy, strength=float("nan"))
     with pytest.raises(WorldLightError, match="strength is nan"):
         world_light(bpy.context.scene, 2)

@@ -237,7 +237,7 @@ FLOORS = [
     ("worker", ["prtt_addon.worker"]),
     ("Blender ground", ["prtt_addon.blender.shared", "prtt_addon.blender.rna_arrays", "prtt_addon.blender.blendfile",
                         "prtt_addon.blender.versions"]),
-    ("Blender export", ["prtt_addon.blender.export"]),
+    ("Blender scene", ["prtt_addon.blender.scene"]),
     ("Blender preview", ["prtt_addon.blender.preview"]),
     ("Blender bake", ["prtt_addon.blender.bake"]),
     ("Blender glTF export", ["prtt_addon.blender.gltf"]),

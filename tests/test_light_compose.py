@@ -94,7 +94,7 @@ def test_world_export_and_job_cli_agree():
     --env-rotation 40`` uses."""
     from tests.blender_util import addon_bpy
     bpy = addon_bpy()
-    from prtt_addon.blender.export.world import world_light
+    from prtt_addon.blender.scene.world import world_light
     from prtt_addon.cli import env_light
     path = envmap.builtin_environment_path("forest")
     world = bpy.data.worlds.new("W")

@@ -83,7 +83,7 @@ def test_bake_at_the_largest_resolution_with_unwrap_on_a_tiny_scene(tmp_path):
     # the unwrap's islands are sized for those resolutions: the PRTT maps at
     # 512² for the box have no overlapping texels (margins of 1/16384 would)
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "scene.blend"))
-    from prtt_addon.blender.export.uv_maps import overlap_texels
+    from prtt_addon.blender.scene.uv_maps import overlap_texels
     assert overlap_texels(bpy.data.objects["Box"], 512) == 0
     # render at a size no machine holds, under the same limit: refused in one line, nothing written
     r = run_limited("render", "scene.blend", "--out", "big.png", "--size", "100000x100000", cwd=tmp_path)

@@ -76,7 +76,7 @@ def test_blender_export_and_meshgen_give_the_same_scene(tmp_path):
     (exported from the evaluated depsgraph) and as meshgen meshes: one scene."""
     from tests.blender_util import addon_bpy
     bpy = addon_bpy()
-    from prtt_addon.blender.export.job import export_scene
+    from prtt_addon.blender.scene.job import export_scene
     objects = _meshes()
     for name, m in objects:
         me = bpy.data.meshes.new(name)

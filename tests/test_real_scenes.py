@@ -55,7 +55,7 @@ def test_instances_geometry_nodes_curves_text_and_faceless_all_bake(tmp_path):
     eye_hidden.prtt.bake = False                                      # an occluder the viewport hides
     eye_hidden.hide_set(True)
     before = uv_snapshot(bpy)
-    from prtt_addon.blender.export.job import export_scene
+    from prtt_addon.blender.scene.job import export_scene
     exp = export_scene(bpy.context, with_light=False)
     recs = _by_name(exp)
     # every instance has texels of its own: 2 of Src (A, B nested), 1 linked, 3 geometry-nodes
@@ -180,7 +180,7 @@ def test_more_kinds_metaball_surface_skinned_particles_linked_object(tmp_path):
             col.hide_render = True
         else:
             bpy.context.view_layer.layer_collection.children[cname].exclude = True
-    from prtt_addon.blender.export.job import export_scene
+    from prtt_addon.blender.scene.job import export_scene
     exp = export_scene(bpy.context, with_light=False)
     recs = exp.objects
     kinds = {"Mball": "generated", "SurfSphere": "generated", "Skinned": "map", "Emitter": "map",
@@ -221,7 +221,7 @@ def test_unwrap_has_no_overlapping_texels(tmp_path, method):
     Suzanne and the room; an Array stack gets a layout per copy at export."""
     bpy = addon_bpy()
     _settings(bpy, tmp_path, res=1024)
-    from prtt_addon.blender.export.uv_maps import overlap_texels, unwrap_objects
+    from prtt_addon.blender.scene.uv_maps import overlap_texels, unwrap_objects
     bpy.ops.mesh.primitive_monkey_add()
     suzanne = bpy.context.active_object
     stack = rs.add_object(bpy, "Stack", rs.cube_mesh(bpy, "stack"), location=(4, 0, 0.5))
@@ -229,7 +229,7 @@ def test_unwrap_has_no_overlapping_texels(tmp_path, method):
     got = unwrap_objects(bpy.context, [suzanne, stack], method=method, resolution=1024, padding=4, dilate=3)
     assert got == {"Suzanne": 0, "Stack": 0}
     assert overlap_texels(suzanne, 1024) == 0
-    from prtt_addon.blender.export.job import export_scene
+    from prtt_addon.blender.scene.job import export_scene
     exp = export_scene(bpy.context, with_light=False)
     assert exp.objects["Stack"]["uv"] == "generated" and exp.objects["Suzanne"]["uv"] == "map"
     from prtt_addon.core.texels.raster import rasterize
@@ -246,7 +246,7 @@ def test_unwrap_room_has_no_overlapping_texels(tmp_path):
     from prtt_addon.bench.scene_build import mesh_object
     from prtt_addon.bench.scene_library import room_objects
     objects = [mesh_object(name, mesh) for name, mesh in room_objects()]
-    from prtt_addon.blender.export.uv_maps import unwrap_objects
+    from prtt_addon.blender.scene.uv_maps import unwrap_objects
     for method in ("SMART", "LIGHTMAP", "XATLAS"):
         got = unwrap_objects(bpy.context, objects, method=method, resolution=1024, padding=4, dilate=3, atlas=True)
         assert set(got.values()) == {0}, (method, got)

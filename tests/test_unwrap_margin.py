@@ -14,7 +14,7 @@ pytestmark = pytest.mark.blender
 
 def test_margin_follows_the_bounce_grid_the_bake_asks_for():
     addon_bpy()
-    from prtt_addon.blender.export.uv_maps import bake_downscale, margin_texels
+    from prtt_addon.blender.scene.uv_maps import bake_downscale, margin_texels
     assert margin_texels(4, 3) == 4 and margin_texels(4, 3, 1) == 4
     assert margin_texels(4, 3, 2) == 6 and margin_texels(8, 3, 2) == 8 and margin_texels(0, 0, 4) == 12
     st = lambda **kw: types.SimpleNamespace(**{"tuning": "AUTO", "bounces": 1, "bounce_downscale": 1, **kw})  # noqa
@@ -29,7 +29,7 @@ def test_margin_follows_the_bounce_grid_the_bake_asks_for():
 def test_demo_room_unwrap_keeps_the_half_grid_island_safe(tuning, mixed):
     bpy = addon_bpy()
     from prtt_addon import demo
-    from prtt_addon.blender.export.uv_maps import _tri_uvs
+    from prtt_addon.blender.scene.uv_maps import _tri_uvs
     from prtt_addon.core.texels.islands import coarse_grid_conflicts
     from prtt_addon.core.texels.raster import rasterize
     objects = demo.build_scene(bpy)
@@ -50,7 +50,7 @@ def test_generated_uvs_do_not_follow_the_bounce_settings():
     """UVs generated at bake time are part of the geometry's hash: their margin
     must not change with bounce settings (a transfer rebake for a bounce change)."""
     addon_bpy()
-    from prtt_addon.blender.export.uv_maps import generated_margin
+    from prtt_addon.blender.scene.uv_maps import generated_margin
     st = lambda **kw: types.SimpleNamespace(**{"padding": 4, "dilate": 3, "tuning": "AUTO", "bounces": 1,  # noqa
                                               "bounce_downscale": 1, **kw})
     got = {generated_margin(st(**kw)) for kw in ({}, {"bounces": 0}, {"tuning": "FIXED"}, {"bounce_downscale": 4})}

@@ -28,7 +28,7 @@ def demo_scene(resolution: int):
     import bpy  # Blender as a module: only this scene needs it
 
     from .. import demo, register
-    from ..blender.export.job import export_scene  # needs bpy
+    from ..blender.scene.job import export_scene  # needs bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if not hasattr(bpy.types.Scene, "prtt"):
         register()

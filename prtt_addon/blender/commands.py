@@ -33,11 +33,11 @@ from ..core.io.atomic import atomic_write
 from ..core.texels.unwrap import UnwrapError
 from .bake.run import bake_blocking, prepare
 from .blendfile import blend_relative, open_scene, save_blend
-from .export.job import ExportError, output_folder, unwrap_resolution
-from .export.uv_maps import bake_downscale, needs_user_unwrap, unwrap_objects
 from .gltf.export import export_file
 from .preview.offscreen import RenderError, check_out, render_file
 from .rna_arrays import RnaArrayError
+from .scene.job import ExportError, output_folder, unwrap_resolution
+from .scene.uv_maps import bake_downscale, needs_user_unwrap, unwrap_objects
 
 _CLI_HANDLE = None
 

@@ -65,13 +65,13 @@ from ...core.preview import pack as pp
 from ...core.shading.shade import light_hash
 from .. import versions
 from ..blendfile import native_output_captured, open_scene
-from ..export.job import GENERATED_UVS
-from ..export.scene_objects import GEOMETRY_TYPES, render_enabled
-from ..export.world import world_setup
 from ..preview import colour_management as colour
 from ..preview.drawlist import bake_folder, collect, generated_uvs, last_bake, materials_signature
 from ..preview.offscreen import RenderError, check_out
 from ..rna_arrays import RnaArrayError, read, write
+from ..scene.job import GENERATED_UVS
+from ..scene.scene_objects import GEOMETRY_TYPES, render_enabled
+from ..scene.world import world_setup
 from ..shared import UV_MAP
 
 #: The largest World image carried in the .glb; a larger one is left out with a note.
@@ -111,7 +111,7 @@ def _extension(data: dict):
 
 @dataclasses.dataclass
 class _Part:
-    """A baked object or instance as the bake recorded it (export/job._records)."""
+    """A baked object or instance as the bake recorded it (the bake record's "parts": scene/job.py)."""
 
     name: str
     key: str

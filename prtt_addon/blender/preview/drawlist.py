@@ -32,11 +32,11 @@ from ...core.light.envmap import compose_light
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import MAX_PREVIEW_BANDS
 from ...core.shading.shade import light_hash
-from ..export.job import GENERATED_UVS, apply_tile, output_folder
-from ..export.material_nodes import image_array, parse_material
-from ..export.scene_objects import scene_geometry
-from ..export.world import WorldLightError, project_setup, world_setup
 from ..rna_arrays import read
+from ..scene.job import GENERATED_UVS, apply_tile, output_folder
+from ..scene.material_nodes import image_array, parse_material
+from ..scene.scene_objects import scene_geometry
+from ..scene.world import WorldLightError, project_setup, world_setup
 from ..shared import UV_MAP
 
 _MESHES: dict = {}          # object name -> (signature, DrawMesh)

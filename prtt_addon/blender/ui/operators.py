@@ -4,11 +4,11 @@ from bpy_extras.io_utils import ExportHelper
 
 from ...core.texels.unwrap import UnwrapError
 from ..bake import run as bake_run
-from ..export.job import ExportError, unwrap_resolution
-from ..export.uv_maps import bake_downscale, unwrap_objects
 from ..gltf.export import GltfExportError, export_glb
 from ..preview.offscreen import RenderError, exposure_of, render_scene
 from ..rna_arrays import RnaArrayError, write_pixels
+from ..scene.job import ExportError, unwrap_resolution
+from ..scene.uv_maps import bake_downscale, unwrap_objects
 from ..shared import PREVIEW_MODES
 from .panels import draw_progress
 

@@ -1,6 +1,6 @@
 """Objects' triangles -> one bake :class:`~prtt_addon.core.model.scene.Scene`.
 
-The one assembly path of the Blender export (prtt_addon/blender/export/job.py)
+The one assembly path of the Blender export (prtt_addon/blender/scene/job.py)
 and of :func:`prtt_addon.core.io.meshgen.assemble`: each object (or instance)
 is a :class:`MeshPart` in world space, already laid out in its texture set;
 :func:`assemble_parts` concatenates them in order (object ids follow the

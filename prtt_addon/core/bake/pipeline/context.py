@@ -49,7 +49,7 @@ AUTO_DOWNSCALE = 2
 def asked_downscale(bounces: int, tuning: str, bounce_downscale: int) -> int:
     """The coarsest bounce grid (1/N per side) a bake asks for; choose_grid
     then takes the coarsest of 1/N, 1/(N/2) ... that mixes no UV islands (the
-    unwrap leaves room for 1/N: blender/export/uv_maps.margin_texels)."""
+    unwrap leaves room for 1/N: blender/scene/uv_maps.margin_texels)."""
     if bounces <= 0:
         return 1
     return max(bounce_downscale, AUTO_DOWNSCALE) if tuning == "auto" else bounce_downscale

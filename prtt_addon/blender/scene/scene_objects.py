@@ -1,6 +1,6 @@
 """What a scene shows: every object and instance with faces, its identity and visibility.
 
-The bake (export/job.py) and the preview (preview/drawlist.py) walk the evaluated
+The bake (scene/job.py) and the preview (preview/drawlist.py) walk the evaluated
 scene the same way, through :func:`scene_geometry`, so that the n-th instance a
 bake gave texels to is the one the preview draws with them.
 
