@@ -238,6 +238,7 @@ FLOORS = [
     ("Blender ground", ["prtt_addon.blender.shared", "prtt_addon.blender.rna_arrays", "prtt_addon.blender.blendfile",
                         "prtt_addon.blender.versions"]),
     ("Blender scene", ["prtt_addon.blender.scene"]),
+    ("Blender bake record", ["prtt_addon.blender.record"]),
     ("Blender preview", ["prtt_addon.blender.preview"]),
     ("Blender bake", ["prtt_addon.blender.bake"]),
     ("Blender glTF export", ["prtt_addon.blender.gltf"]),

@@ -25,7 +25,7 @@ from ...core.io.atomic import atomic_write, temp_prefix
 from ...core.io.exr_io import TextureError, read_dc_plane
 from ...core.io.jobfile import save_scene
 from ...core.settings_schema import core_from_ui
-from ..preview.drawlist import materials_signature
+from ..record import materials_signature
 from ..rna_arrays import write_pixels
 from ..scene.job import GENERATED_UVS, ExportError, export_scene, output_folder
 from ..shared import redraw_viewports

@@ -66,8 +66,9 @@ from ...core.shading.shade import light_hash
 from .. import versions
 from ..blendfile import native_output_captured, open_scene
 from ..preview import colour_management as colour
-from ..preview.drawlist import bake_folder, collect, generated_uvs, last_bake, materials_signature
+from ..preview.drawlist import collect
 from ..preview.offscreen import RenderError, check_out
+from ..record import bake_folder, generated_uvs, last_bake, materials_signature
 from ..rna_arrays import RnaArrayError, read, write
 from ..scene.job import GENERATED_UVS
 from ..scene.scene_objects import GEOMETRY_TYPES, render_enabled

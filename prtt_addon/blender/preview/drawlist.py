@@ -19,21 +19,20 @@ any material changed since they were baked).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import os
 import zipfile
 
 import bpy
 import numpy as np
 
-from ...core.io.sidecars import read_corner_vertex, read_generated_uvs
+from ...core.io.sidecars import read_corner_vertex
 from ...core.light.envmap import compose_light
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import MAX_PREVIEW_BANDS
 from ...core.shading.shade import light_hash
+from .. import record
 from ..rna_arrays import read
-from ..scene.job import GENERATED_UVS, apply_tile, output_folder
+from ..scene.job import GENERATED_UVS, apply_tile
 from ..scene.material_nodes import image_array, parse_material
 from ..scene.scene_objects import scene_geometry
 from ..scene.world import WorldLightError, project_setup, world_setup
@@ -44,15 +43,12 @@ _IMAGES: dict = {}          # image key -> array
 _PROJECTIONS: dict = {}     # (world key, bands) -> (K, 3)
 _VERTEX_TABLES: dict = {}   # (path, mtime) -> corner_vertex
 _GEOMETRY_GEN: dict = {}    # object name -> counter bumped on geometry updates
-_MATERIALS_GEN = [0]        # bumped on material/image/object updates
-_SIGNATURES: dict = {}      # scene name -> (generation, signature)
-_GENERATED: dict = {}       # generated_uvs.npz path -> ((path, mtime), {uv group: UVs})
 
 
 def clear_caches() -> None:
-    for c in (_MESHES, _IMAGES, _VERTEX_TABLES, _SIGNATURES, _GENERATED):
+    for c in (_MESHES, _IMAGES, _VERTEX_TABLES):
         c.clear()
-    _MATERIALS_GEN[0] += 1
+    record.clear_caches()
 
 
 def note_depsgraph_updates(depsgraph) -> None:
@@ -63,9 +59,9 @@ def note_depsgraph_updates(depsgraph) -> None:
             if u.is_updated_geometry:
                 name = idb.original.name if idb.original is not None else idb.name
                 _GEOMETRY_GEN[name] = _GEOMETRY_GEN.get(name, 0) + 1
-                _MATERIALS_GEN[0] += 1            # slots and assignments live with the geometry
+                record.materials_changed()        # slots and assignments live with the geometry
         elif isinstance(idb, (bpy.types.Material, bpy.types.Image, bpy.types.NodeTree)):
-            _MATERIALS_GEN[0] += 1
+            record.materials_changed()
             if isinstance(idb, bpy.types.Image):
                 for k in [k for k in _IMAGES if k[0] == idb.name]:
                     del _IMAGES[k]
@@ -82,29 +78,6 @@ class PreviewStatus:
 
     def add(self, level: str, text: str) -> None:
         self.messages.append((level, text))
-
-
-def last_bake(scene) -> dict | None:
-    raw = scene.prtt.last_bake
-    if not raw:
-        return None
-    try:
-        return json.loads(raw)
-    except ValueError:
-        return None
-
-
-def bake_folder(scene, info: dict) -> str:
-    """The folder of the last bake: its //-relative form resolved against the
-    .blend where it holds the bake (the project folder may have moved), else
-    the absolute folder the bake wrote (the .blend saved elsewhere), else the
-    scene's Output Folder."""
-    for d in (info.get("out_dir_relative") or "", info.get("out_dir") or ""):
-        if d.startswith("//"):
-            d = bpy.path.abspath(d) if bpy.data.filepath else ""
-        if d and os.path.isfile(os.path.join(d, "manifest.json")):
-            return os.path.abspath(d)
-    return output_folder(scene)
 
 
 # --- light ----------------------------------------------------------------------------
@@ -175,40 +148,6 @@ class _MaterialTable:
             self.names.append(key)
             self.exports.append(ex)
         return i
-
-
-def materials_signature(scene) -> str:
-    """A hash of what the bounce bake took from materials: every render-visible
-    object's and instance source's slots (Principled values, image names and
-    sizes, normal maps) and which faces use them. Cached until a material,
-    image or geometry changes."""
-    gen = _MATERIALS_GEN[0]
-    got = _SIGNATURES.get(scene.name)
-    if got is not None and got[0] == gen:
-        return got[1]
-    h = hashlib.sha256()
-    done = set()
-    view_layer = bpy.context.view_layer if bpy.context.scene == scene else scene.view_layers[0]
-    depsgraph = bpy.context.evaluated_depsgraph_get() if bpy.context.scene == scene else None
-    owners = ([f.source or f.owner for f in scene_geometry(depsgraph, scene, view_layer)]
-              if depsgraph is not None else [o for o in scene.objects if o.visible_get()])
-    for ob in sorted(owners, key=lambda o: o.name_full):
-        if ob.name_full in done:
-            continue
-        done.add(ob.name_full)
-        h.update(ob.name_full.encode())
-        for slot in ob.material_slots:
-            ex = parse_material(slot.material, lambda _msg: None)
-            imgs = [(i.name, tuple(i.size)) if i is not None else None
-                    for i in (ex.base_image, ex.rough_image, ex.normal_image)]
-            h.update(json.dumps([ex.spec, imgs, ex.normal_strength, ex.texture_uv, ex.normal_uv],
-                                sort_keys=True, default=str).encode())
-        me = ob.data if ob.type == "MESH" else None
-        if me is not None and len(me.polygons):
-            h.update(read(me.polygons, "material_index", 1, np.int32).tobytes())
-    sig = h.hexdigest()
-    _SIGNATURES[scene.name] = (gen, sig)
-    return sig
 
 
 # --- meshes ---------------------------------------------------------------------------
@@ -289,19 +228,6 @@ def mesh_corners(ob_eval, table: _MaterialTable) -> tuple[dict, np.ndarray, list
         ob_eval.to_mesh_clear()
 
 
-def generated_uvs(out_dir: str) -> dict:
-    """{uv group: (T, 3, 2) float32} from the bake's generated_uvs.npz (cached by mtime)."""
-    path = os.path.join(out_dir, GENERATED_UVS)
-    try:
-        key = (path, os.stat(path).st_mtime_ns)
-    except OSError:
-        return {}
-    got = _GENERATED.get(path)
-    if got is None or got[0] != key:
-        got = _GENERATED[path] = (key, read_generated_uvs(path))
-    return got[1]
-
-
 def _draw_mesh(found, rec: dict, pset: pp.PreviewSet, table, status, generated: dict) -> pp.DrawMesh | None:
     """The DrawMesh of a baked object or instance (cached per part), its UVs
     the bake's (the PRTT map or generated ones, in its tile), its ranges mapped
@@ -377,7 +303,7 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
     World's light cannot be read (the export's; status.light_fallback says why)."""
     scene = context.scene
     status = PreviewStatus()
-    info = last_bake(scene)
+    info = record.last_bake(scene)
     status.bake = info
     if info is None:
         status.add("INFO", "nothing baked yet: Bake Transfer first")
@@ -389,7 +315,7 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
                             f"themselves are valid)")
         return None, status
     try:
-        out_dir = bake_folder(scene, info)
+        out_dir = record.bake_folder(scene, info)
     except ValueError as exc:
         status.add("ERROR", str(exc))
         return None, status
@@ -428,7 +354,7 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
     generated = {}
     if any(r.get("uv") == "generated" for r in parts.values()):
         try:
-            generated = generated_uvs(out_dir)
+            generated = record.generated_uvs(out_dir)
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             status.add("ERROR", f"cannot read {os.path.join(out_dir, GENERATED_UVS)} ({exc}); bake again")
     meshes, moved, edited = [], [], []
@@ -457,7 +383,7 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
         if b.get("light_hash") and light_hash(light) != b["light_hash"]:
             status.bounce_stale.append("the World light changed")
         sig = info.get("materials_signature")
-        if sig and materials_signature(scene) != sig:
+        if sig and record.materials_signature(scene) != sig:
             status.bounce_stale.append("materials changed")
         if status.bounce_stale:
             status.add("WARNING", "bounce textures are stale (" + ", ".join(status.bounce_stale)
