@@ -107,11 +107,10 @@ def test_bake_through_the_worker_matches_core_bake(tmp_path):
     assert not os.path.exists(out / ".prtt-job.npz")
     from prtt_addon.blender.bake.run import bake_settings
     from prtt_addon.blender.scene.job import export_scene
-    from prtt_addon.core.bake.pipeline.context import BakeSettings
     from prtt_addon.core.bake.pipeline.runner import bake_scene
     from prtt_addon.core.io.exr_io import read_sh_exr
     exp = export_scene(bpy.context, with_light=False)
-    bake_scene(exp.scene, tmp_path / "core", BakeSettings.from_dict(bake_settings(bpy.context.scene)))
+    bake_scene(exp.scene, tmp_path / "core", bake_settings(bpy.context.scene))
     for f in man["files"]:
         a, _ = read_sh_exr(out / f)
         b, _ = read_sh_exr(tmp_path / "core" / f)

@@ -221,7 +221,7 @@ def test_bake_settings_come_from_the_scene_through_the_schema():
     bpy = addon_bpy()
     from prtt_addon.blender.bake.run import bake_settings
     st = bpy.context.scene.prtt
-    assert bake_settings(bpy.context.scene) == BakeSettings().as_dict()
+    assert bake_settings(bpy.context.scene).as_dict() == BakeSettings().as_dict()
     values = {"bands": 16, "rays": 1, "adaptive_tol": 0.25, "dilate": 64, "half": False, "normal_maps": False,
               "vertex_mode": True, "bounces": 0, "bounce_rays": 16384, "min_rays": 8, "seed": 9}
     props, once = schema.ui_from_values(values)
@@ -231,10 +231,10 @@ def test_bake_settings_come_from_the_scene_through_the_schema():
     assert once == {"min_rays": 8, "seed": 9}
     for k, v in props.items():
         setattr(st, k, v)
-    got = bake_settings(bpy.context.scene)
+    got = bake_settings(bpy.context.scene).as_dict()
     assert got == {**BakeSettings().as_dict(), **{k: v for k, v in values.items() if k not in once}}
     st.adaptive = False
-    assert bake_settings(bpy.context.scene)["adaptive_tol"] == 0.0
+    assert bake_settings(bpy.context.scene).adaptive_tol == 0.0
     assert schema.ui_from_values({"adaptive_tol": 0.0})[0] == {"adaptive": False}
     assert schema.ui_from_values({"resolution": 64, "padding": 8})[0] == {"resolution": 64, "padding": 8}
 

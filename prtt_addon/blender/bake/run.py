@@ -63,24 +63,26 @@ class Outcome:
     warnings: list = dataclasses.field(default_factory=list)   # the export's (the worker reports its own)
 
 
-def bake_settings(scene) -> dict:
-    """The scene's bake settings as a BakeSettings dict: the settings scene.prtt
-    holds, mapped by core/settings_schema.py (Storage -> half, Adaptive +
-    Tolerance -> adaptive_tol, Vertex Transfer -> vertex_mode, ...); the
-    others at their defaults."""
+def bake_settings(scene, overrides: dict | None = None) -> BakeSettings:
+    """The scene's bake settings, made once per bake on this side of the
+    worker: the settings scene.prtt holds, mapped by core/settings_schema.py
+    (Storage -> half, Adaptive + Tolerance -> adaptive_tol, Vertex Transfer ->
+    vertex_mode, ...), the others at their defaults, then ``overrides``
+    (BakeSettings fields: the command line's), validated. The job file
+    carries its dict, from which the worker makes its own once."""
     st = scene.prtt
-    s = BakeSettings(**core_from_ui(lambda name: getattr(st, name)))
-    return s.validate().as_dict()
+    merged = core_from_ui(lambda name: getattr(st, name))
+    merged.update(overrides or {})
+    return BakeSettings.from_dict(merged).validate()
 
 
 def prepare(context, overrides: dict | None = None) -> Prepared:
     """Export the scene to a job file. Raises ExportError (nothing written)."""
     scene = context.scene
     out_dir = output_folder(scene)
-    settings = bake_settings(scene)
-    settings.update(overrides or {})
-    BakeSettings.from_dict(settings).validate()
-    exp = export_scene(context, with_light=settings.get("bounces", 0) > 0)
+    st = bake_settings(scene, overrides)
+    settings = st.as_dict()
+    exp = export_scene(context, with_light=st.bounces > 0)
     try:
         check_out_dir(out_dir)
     except BakeError as exc:
