@@ -301,7 +301,7 @@ def add_output_options(p: argparse.ArgumentParser) -> None:
 
 def dask_spec(value: str) -> str:
     """``--dask``'s value, checked (argparse type: a bad one is a usage error naming it)."""
-    from .core.bake.executors.dask_cluster import parse_spec  # deferred: as above
+    from .core.bake.executors.dask_spec import parse_spec  # deferred: as above
     from .core.base.errors import BakeError  # deferred: the option module loads before numpy
     try:
         parse_spec(value)

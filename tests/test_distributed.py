@@ -25,9 +25,11 @@ from prtt_addon.bench import scene_library
 from prtt_addon.cli import env_light
 from prtt_addon.core.bake.estimators.transfer import Chunk
 from prtt_addon.core.bake.executors import dask_cluster as dd
+from prtt_addon.core.bake.executors import dask_spec, dask_worker
 from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.base.errors import BakeError, Cancelled
+from prtt_addon.core.base.memory import MemoryLimitError
 from prtt_addon.core.io.jobfile import save_scene
 from tests.scenes_util import floor_and_box
 
@@ -99,25 +101,25 @@ def test_peer_timeout_from_the_environment_is_bounded():
     0.5-300 s; anything else is refused naming the value. A local cluster
     keeps the default."""
     env = {"PRTT_DASK_PEER_TIMEOUT": "12.5"}
-    assert dd.parse_spec("tls://farm:8786", env).peer_timeout == 12.5
-    assert dd.parse_spec("tcp://farm:8786", {}).peer_timeout == dd.PEER_CONNECT_TIMEOUT == 3.0
-    assert dd.parse_spec("local:2", env).peer_timeout == dd.PEER_CONNECT_TIMEOUT
+    assert dask_spec.parse_spec("tls://farm:8786", env).peer_timeout == 12.5
+    assert dask_spec.parse_spec("tcp://farm:8786", {}).peer_timeout == dask_spec.PEER_CONNECT_TIMEOUT == 3.0
+    assert dask_spec.parse_spec("local:2", env).peer_timeout == dask_spec.PEER_CONNECT_TIMEOUT
     for bad in ("0.1", "301", "nan", "inf", "-3", "soon"):
         with pytest.raises(BakeError, match=rf"PRTT_DASK_PEER_TIMEOUT must be seconds from 0.5 to 300, got '{bad}'"):
-            dd.parse_spec("tcp://farm:8786", {"PRTT_DASK_PEER_TIMEOUT": bad})
+            dask_spec.parse_spec("tcp://farm:8786", {"PRTT_DASK_PEER_TIMEOUT": bad})
 
 
 def test_spec_parsing_and_clear_errors(monkeypatch):
-    assert dd.parse_spec("local:3") == dd.DaskSpec("local", 3)
-    assert dd.parse_spec("local").workers == max(1, os.cpu_count() or 1)
-    assert dd.parse_spec("tcp://farm:8786") == dd.DaskSpec("address", address="tcp://farm:8786")
-    assert dd.parse_spec("env", {"DASK_SCHEDULER_ADDRESS": "tls://10.0.0.1:8786"}).address == "tls://10.0.0.1:8786"
+    assert dask_spec.parse_spec("local:3") == dask_spec.DaskSpec("local", 3)
+    assert dask_spec.parse_spec("local").workers == max(1, os.cpu_count() or 1)
+    assert dask_spec.parse_spec("tcp://farm:8786") == dask_spec.DaskSpec("address", address="tcp://farm:8786")
+    assert dask_spec.parse_spec("env", {"DASK_SCHEDULER_ADDRESS": "tls://10.0.0.1:8786"}).address == "tls://10.0.0.1:8786"
     for bad, words in [("local:0", "1..256"), ("local:x", "local:N"), ("farm:8786", "tcp://HOST:PORT"),
                        ("tcp://", "tcp://HOST:PORT"), ("local:300", "1..256")]:
         with pytest.raises(BakeError, match=words):
-            dd.parse_spec(bad, {})
+            dask_spec.parse_spec(bad, {})
     with pytest.raises(BakeError, match="DASK_SCHEDULER_ADDRESS, which is not set"):
-        dd.parse_spec("env", {})
+        dask_spec.parse_spec("env", {})
 
 
 def test_units_cover_every_chunk_once_in_order():
@@ -258,7 +260,7 @@ def test_worker_state_keeps_each_tasks_own_scene():
     """WorkerState under threads: every caller gets the BVH of its own scene
     token, each object is built once, old ones are evicted, a bake's slot
     objects are forgotten by its run id."""
-    state = dd.WorkerState()
+    state = dask_worker.WorkerState()
     scenes_ = {f"s{i}": floor_and_box(res=8, box=(1.0, 1.0, 0.5 + i)) for i in range(3)}
     builds = []
     got = {}
@@ -277,29 +279,29 @@ def test_worker_state_keeps_each_tasks_own_scene():
     bvh = {t: next(iter(v))[0] for t, v in got.items()}
     assert bvh["s0"] != bvh["s1"]
     look("s2")                                            # a third scene evicts the oldest
-    assert len(state.scenes) == dd.KEEP_SCENES and "s2" in state.scenes
-    assert state.forget("run1-") == dd.KEEP_PER_SLOT and not state.slots["points"]
+    assert len(state.scenes) == dask_worker.KEEP_SCENES and "s2" in state.scenes
+    assert state.forget("run1-") == dask_worker.KEEP_PER_SLOT and not state.slots["points"]
 
 
 def test_worker_memory_check_adds_up_each_hosts_workers():
     """Workers of one machine share its memory: their needs add up against
     the most limited one's; another host is checked on its own; a worker
     that knows no limit passes."""
-    need = dd.WorkerNeed(data=300 * 2 ** 20, chunks=40 * 2 ** 20, code=60 * 2 ** 20)
+    need = dask_worker.WorkerNeed(data=300 * 2 ** 20, chunks=40 * 2 ** 20, code=60 * 2 ** 20)
     MiB = 2 ** 20
     a = {"tcp://10.0.0.1:1": {"available": 2000 * MiB, "rss": 100 * MiB, "nthreads": 2, "numba": True},
          "tcp://10.0.0.1:2": {"available": 1900 * MiB, "rss": 100 * MiB, "nthreads": 1, "numba": False},
          "tcp://10.0.0.2:1": {"available": None, "rss": 50 * MiB, "nthreads": 4, "numba": True}}
-    est = dd.check_worker_memory("bounce", need, a)
+    est = dask_worker.check_worker_memory("bounce", need, a)
     assert est == {"tcp://10.0.0.1:1": (100 + 300 + 80) * MiB, "tcp://10.0.0.1:2": (100 + 300 + 40 + 60) * MiB,
                    "tcp://10.0.0.2:1": (50 + 300 + 160) * MiB}
     # 380 + 400 = 780 MiB on 10.0.0.1 against 0.8 x 950: refused, naming the host and what to change.
     a["tcp://10.0.0.1:2"]["available"] = 950 * MiB
-    with pytest.raises(dd.MemoryLimitError, match=r"bounce pass needs about 0\.76 GiB on Dask host 10\.0\.0\.1 "
+    with pytest.raises(MemoryLimitError, match=r"bounce pass needs about 0\.76 GiB on Dask host 10\.0\.0\.1 "
                                                   r"\(2 workers.*only 0\.93 GiB is available there.*previous "
                                                   r"outputs are intact.*--bounce-downscale"):
-        dd.check_worker_memory("bounce", need, a)
-    assert dd.host_of("tls://[::1]:8786") == "[::1]" and dd.host_of("tcp://h:1") == "h"
+        dask_worker.check_worker_memory("bounce", need, a)
+    assert dask_worker.host_of("tls://[::1]:8786") == "[::1]" and dask_worker.host_of("tcp://h:1") == "h"
 
 
 @pytest.fixture
@@ -348,13 +350,13 @@ def test_worker_memory_limit_refuses_a_pass_it_cannot_fit(tmp_path, external_clu
     before, names = files(out), sorted(os.listdir(out))
     with distributed.Client(addr, set_as_default=False) as c:
         c.wait_for_workers(1, timeout=60)
-        rss = max(m["rss"] for m in c.run(dd.worker_memory).values())
+        rss = max(m["rss"] for m in c.run(dask_worker.worker_memory).values())
         c.run(lambda dask_worker, limit=rss + 100 * 2 ** 20: setattr(dask_worker.memory_manager, "memory_limit",
                                                                       limit))
-        with pytest.raises(dd.MemoryLimitError, match=r"the transfer pass needs about .* on Dask host 127\.0\.0\.1 "
+        with pytest.raises(MemoryLimitError, match=r"the transfer pass needs about .* on Dask host 127\.0\.0\.1 "
                                                       r".*only 0\.\d+ GiB is available there.*previous outputs are intact"):
             bake_scene(sc, out, BakeSettings(rays=64, bounces=0), dask=addr)
-        assert max(m["peak"] for m in c.run(dd.worker_memory).values()) < rss + 100 * 2 ** 20
+        assert max(m["peak"] for m in c.run(dask_worker.worker_memory).values()) < rss + 100 * 2 ** 20
     assert files(out) == before and sorted(os.listdir(out)) == names
 
 
@@ -370,11 +372,11 @@ def test_a_farm_lets_go_of_each_bake(tmp_path, room, external_cluster):
     st = BakeSettings(rays=64, bounces=1, bounce_rays=32)
     with distributed.Client(addr, set_as_default=False) as c:
         c.wait_for_workers(1, timeout=60)
-        idle = c.run(dd.worker_memory)
+        idle = c.run(dask_worker.worker_memory)
         after = []
         for i in range(3):
             bake_scene(sc, tmp_path / f"bake{i}", st, light=light, dask=addr)
-            after.append(next(iter(c.run(dd.worker_memory).values())))
+            after.append(next(iter(c.run(dask_worker.worker_memory).values())))
     print("idle", idle, "after", after)
     assert all(a["held"] == {"objects": 0, "scenes": 0} for a in after), after
     # the second and third bakes hold nothing more than the first left behind
@@ -441,10 +443,10 @@ def test_bad_cluster_inputs_are_clear_errors(tmp_path, monkeypatch):
         bake_scene(sc, tmp_path / "a", st, dask="tcp://127.0.0.1:9")
     assert time.monotonic() - t < 30
     # A worker running other code than the client fails the bake, not its bits.
-    monkeypatch.setattr(dd, "_IDENTITY", "0" * 64)
+    monkeypatch.setattr(dask_worker, "_IDENTITY", "0" * 64)
     with pytest.raises(BakeError, match="runs other PRTT code"):
         bake_scene(sc, tmp_path / "b", st, dask="local:1")
-    monkeypatch.setattr(dd, "_IDENTITY", None)
+    monkeypatch.setattr(dask_worker, "_IDENTITY", None)
     monkeypatch.setitem(sys.modules, "distributed", None)
     with pytest.raises(BakeError, match="optional packages dask and distributed"):
         bake_scene(sc, tmp_path / "c", st, dask="local:1")

@@ -36,7 +36,7 @@ import tempfile
 import time
 
 from ..cli import env_light
-from ..core.bake.executors.dask_cluster import parse_spec
+from ..core.bake.executors.dask_spec import parse_spec
 from ..core.bake.pipeline.context import BakeSettings
 from ..core.bake.pipeline.runner import bake_scene
 from . import figures, scene_library

@@ -180,7 +180,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
-    executors/dask_cluster.check_worker_memory).
+    executors/dask_worker.check_worker_memory).
     Returns {stage: bytes} with the stage names of the manifest's ``memory``.
     """
     K = bands * bands

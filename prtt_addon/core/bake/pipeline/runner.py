@@ -50,7 +50,8 @@ from ...io import atomic
 from ...io.outdir import FolderBusyError, FolderLock
 from ...model.scene import Scene
 from ..estimators import hit_kernel
-from ..executors.dask_cluster import DaskBake, parse_spec
+from ..executors.dask_cluster import DaskBake
+from ..executors.dask_spec import parse_spec
 from . import memory_plan
 from .bounce_stage import bounce_levels, choose_grid
 from .commit import commit_bake, finish_skipped, make_manifest
