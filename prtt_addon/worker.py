@@ -32,7 +32,7 @@ import threading  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
 
-from .core.io import atomic  # noqa: E402  (no numpy: the environment above still applies)
+from .core.base import atomic  # noqa: E402  (no numpy: the environment above still applies)
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_CANCELLED = 0, 1, 2, 3
 

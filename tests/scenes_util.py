@@ -1,7 +1,7 @@
 """Small scenes for the bake tests, built with explicit UVs (no unwrapper)."""
 import numpy as np
 
-from prtt_addon.core.io import meshgen as mg
+from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.model.scene import Scene
 
 

@@ -8,13 +8,13 @@ import threading
 import numpy as np
 import pytest
 
+from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.bake.estimators.transfer import unoccluded_transfer
 from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.base.errors import BakeError, Cancelled
 from prtt_addon.core.base.memory import MemoryLimitError
 from prtt_addon.core.io import exr_io
-from prtt_addon.core.io import meshgen as mg
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -286,7 +286,7 @@ def test_bad_settings(bad, match, tmp_path):
 def test_atomic_writes_get_normal_permissions(tmp_path):
     """mkstemp makes 0600 files; outputs must be as readable as open() would make
     them (others on a render farm read the textures), and keep an old file's mode."""
-    from prtt_addon.core.io import atomic
+    from prtt_addon.core.base import atomic
     good = np.zeros((4, 4, 9), np.float32)
     exr_io.write_sh_exr(tmp_path / "new.exr", good, kind="transfer")
     assert os.stat(tmp_path / "new.exr").st_mode & 0o777 == 0o666 & ~atomic._UMASK

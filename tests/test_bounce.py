@@ -5,6 +5,7 @@ import os
 import numpy as np
 import pytest
 
+from prtt_addon.bench import meshgen as mg
 from prtt_addon.core import sh
 from prtt_addon.core.bake.estimators.raytrace import RAY_EPSILON, RayScene
 from prtt_addon.core.bake.estimators.sampling import sobol2, to_hemisphere
@@ -12,7 +13,6 @@ from prtt_addon.core.bake.estimators.transfer import Points, TransferSettings, b
 from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.io import exr_io
-from prtt_addon.core.io import meshgen as mg
 from prtt_addon.core.shading.materials import eval_materials
 from prtt_addon.core.shading.shade import shade
 from tests.scenes_util import planar_uvs, scene_from

@@ -1,4 +1,4 @@
-"""io.column_spill and texels.dilate.DilatedRows.band (#35): one relightable
+"""estimators.column_spill and texels.dilate.DilatedRows.band (#35): one relightable
 level waits in a temporary file, not in memory, and the texture written from
 it a band of rows at a time is the one the whole in-memory table gives, bit
 for bit, whatever the islands, the dilation, the band heights or the order
@@ -11,8 +11,9 @@ import threading
 import numpy as np
 import pytest
 
-from prtt_addon.core.io import atomic, exr_io
-from prtt_addon.core.io.column_spill import ColumnSpill
+from prtt_addon.core.bake.estimators.column_spill import ColumnSpill
+from prtt_addon.core.base import atomic
+from prtt_addon.core.io import exr_io
 from prtt_addon.core.texels.dilate import DilatedRows, dilation_rings, grown_mask
 from tests.scenes_util import random_islands
 

@@ -27,6 +27,7 @@ import threading
 import numpy as np
 import pytest
 
+from prtt_addon.bench import meshgen as mg
 from prtt_addon.cli import env_light
 from prtt_addon.core.bake.estimators import bounce, transfer
 from prtt_addon.core.bake.estimators.raytrace import RayScene
@@ -36,7 +37,6 @@ from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.bake.pipeline.stages import bake_points_input, scene_face_data
 from prtt_addon.core.base import threads as base_threads
-from prtt_addon.core.io import meshgen as mg
 from prtt_addon.core.texels.gbuffer import build_gbuffer
 
 

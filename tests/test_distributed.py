@@ -176,7 +176,7 @@ def test_cluster_bake_under_load_is_bit_identical(tmp_path):
     locally and then twice on `local:2` while two processes keep both cores
     busy. Every file byte for byte (measured on 2026-11-28 at load 5-6, with
     the suite running beside it: 6 of 6 cluster bakes identical)."""
-    from prtt_addon.core.io import meshgen as mg
+    from prtt_addon.bench import meshgen as mg
     sc = mg.assemble([("floor", mg.plane(4.0, subdiv=2)),
                       ("sphere", mg.uv_sphere(0.5, 48, 24).transformed(translate=(0.0, 0, 0.5)))],
                      resolution=384, atlas=False)

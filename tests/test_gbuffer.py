@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from prtt_addon.core.io import meshgen as mg
+from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.model.scene import NormalMap
 from prtt_addon.core.texels.gbuffer import build_gbuffer
 from prtt_addon.core.texels.raster import rasterize

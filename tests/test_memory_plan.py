@@ -84,7 +84,7 @@ def test_estimate_counts_texels_and_the_relightable_operator():
                              n_triangles=10_000, bouncing=True)
     fixed = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, tuning="fixed", half=False), n_triangles=10_000,
                              bouncing=True)
-    # One relightable level waits in a file (io.column_spill) at either precision, and holds less
+    # One relightable level waits in a file (estimators.column_spill) at either precision, and holds less
     # than a baked level's planes; two hold every level's columns, more than the baked ones.
     halfed = bake_stage_bytes(sizes(1024), BakeSettings(bounces=1, tuning="fixed"), n_triangles=10_000,
                               bouncing=True)

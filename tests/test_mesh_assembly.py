@@ -1,9 +1,9 @@
-"""One mesh assembly path (core.io.assembly): meshgen's and the Blender export's."""
+"""One mesh assembly path (core.model.assembly): meshgen's and the Blender export's."""
 import numpy as np
 import pytest
 
-from prtt_addon.core.io import meshgen as mg
-from prtt_addon.core.io.assembly import MeshPart, assemble_parts
+from prtt_addon.bench import meshgen as mg
+from prtt_addon.core.model.assembly import MeshPart, assemble_parts
 from prtt_addon.core.model.scene import NormalMap
 from prtt_addon.core.texels.unwrap import unwrap
 

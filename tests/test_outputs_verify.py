@@ -1,7 +1,7 @@
 """Outputs are verifiable and folders are not shared: the manifest's file_info
 (size, sha256) catches missing, truncated and replaced outputs, which are
 re-baked; stale temporaries of dead bakes are removed, a live bake's kept;
-one bake per output folder (core/io/outdir.py, core/io/atomic.py, core/bake/pipeline/runner.py)."""
+one bake per output folder (core/io/outdir.py, core/base/atomic.py, core/bake/pipeline/runner.py)."""
 import json
 import os
 import subprocess
@@ -14,8 +14,9 @@ import pytest
 
 from prtt_addon.core.bake.pipeline.context import MANIFEST, BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
+from prtt_addon.core.base import atomic
 from prtt_addon.core.base.errors import BakeError, Cancelled
-from prtt_addon.core.io import atomic, exr_io
+from prtt_addon.core.io import exr_io
 from prtt_addon.core.io.outdir import LOCK_FILE, FolderLock, file_info
 from tests.scenes_util import floor_and_box
 

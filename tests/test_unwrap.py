@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from prtt_addon.core.io import meshgen as mg
+from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.texels.raster import rasterize
 from prtt_addon.core.texels.unwrap import UnwrapError, unwrap
 

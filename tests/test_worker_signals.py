@@ -1,6 +1,6 @@
 """SIGTERM/SIGINT stop the worker within 2 s at every stage, exit 3, and leave
 the previous outputs byte-identical with no temporaries (worker.Watchdog,
-core/bake/pipeline/runner.py's cancel checks, core/io/atomic.py).
+core/bake/pipeline/runner.py's cancel checks, core/base/atomic.py).
 
 Each test starts ``python -m prtt_addon.worker`` on a job that spends a few
 seconds in one stage (natural inputs: a 2M-triangle floor for loading, BVH and
@@ -18,7 +18,7 @@ import time
 
 import pytest
 
-from prtt_addon.core.io import meshgen as mg
+from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.io.jobfile import save_scene
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 
@@ -175,7 +175,7 @@ def test_watchdog_ends_a_stuck_main_thread(tmp_path):
     probe = (
         "import os, sys, threading, time\n"
         "from prtt_addon import worker\n"
-        "from prtt_addon.core.io import atomic\n"
+        "from prtt_addon.core.base import atomic\n"
         "cancel = threading.Event()\n"
         "w = worker.install_cancel_handlers(cancel, worker.JsonLines())\n"
         f"tmp = os.path.join({str(tmp_path)!r}, atomic.temp_prefix('stuck') + '0.exr')\n"

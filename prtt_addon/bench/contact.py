@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from ..core.io import meshgen as mg
+from . import meshgen as mg
 from . import scene_library
 
 ROOT = scene_library.ROOT

@@ -40,7 +40,7 @@ def band_limited_environment(path: str, bands: int = 5, source: str = "city", he
     """Write the band-limited, Hann-windowed environment as an equirect EXR; returns its SH."""
     import OpenEXR
 
-    from ..core.io.atomic import atomic_write
+    from ..core.base.atomic import atomic_write
     from ..core.light.envmap import project_equirect, reconstruct_equirect
     from ..core.sh.zonal import convolve, window_factors
     L = convolve(project_equirect(source, bands), window_factors(bands, "hanning"))

@@ -22,7 +22,7 @@ import platform
 import re
 import sys
 
-from ..core.io.atomic import atomic_write
+from ..core.base.atomic import atomic_write
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -37,9 +37,9 @@ import numpy as np
 from ..cli import env_light
 from ..core.bake.pipeline.context import BakeSettings, bounce_seconds
 from ..core.bake.pipeline.runner import bake_scene
-from ..core.io import meshgen as mg
 from ..core.sh.rotation import rotate_zyz
 from . import figures, scene_library
+from . import meshgen as mg
 from .sweep import Previewer, write_csv
 from .texture_error import image_error
 

@@ -16,9 +16,9 @@ import os
 
 import numpy as np
 
-from ..core.io import meshgen as mg
 from ..core.io.jobfile import load_scene, save_scene
 from ..core.model.scene import Scene
+from . import meshgen as mg
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CACHE = os.path.join(ROOT, ".cache", "bench")

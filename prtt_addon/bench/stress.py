@@ -26,10 +26,10 @@ import numpy as np
 from ..core.bake.estimators.transfer import unoccluded_transfer
 from ..core.bake.pipeline.context import BakeSettings
 from ..core.bake.pipeline.runner import bake_scene
-from ..core.io import meshgen as mg
 from ..core.io.exr_io import read_sh_exr
 from ..core.model.scene import Scene
 from ..core.sh.basis import eval_basis
+from . import meshgen as mg
 
 T0_MAX = math.sqrt(math.pi) / 2.0            # DC of max(0, n.w) with nothing in the way
 

@@ -29,7 +29,7 @@ from ..cli_options import (
     given_settings,
 )
 from ..core import settings_schema as schema
-from ..core.io.atomic import atomic_write
+from ..core.base.atomic import atomic_write
 from ..core.texels.unwrap import UnwrapError
 from .bake.run import bake_blocking, prepare
 from .blendfile import blend_relative, open_scene, save_blend

@@ -23,7 +23,7 @@ SEED_KINDS = ("job", "manifest", "exr", "sidecar", "env", "world", "events", "kt
 
 
 def seed_scene(resolution: int = 8):
-    from ..core.io import meshgen as mg
+    from ..bench import meshgen as mg
     from ..core.model.scene import Scene
     floor = mg.plane(4.0, subdiv=1)
     box = mg.box((1.0, 1.0, 1.0), (0.0, 0.0, 0.5))

@@ -213,7 +213,7 @@ def run_world(data: bytes) -> None:
 
 def run_events(data: bytes) -> None:
     """The worker's stdout lines as the Blender side reads them (read_event)."""
-    from ..core.io.worker_events import TYPES, read_event
+    from ..core.base.worker_events import TYPES, read_event
     for line in data.decode("utf-8", "replace").splitlines() or [""]:
         e = read_event(line)
         if e is None:
@@ -255,22 +255,21 @@ def run_glb(data: bytes) -> None:
         declared(path, exc, (ValueError,))
 
 
-_IO = "prtt_addon.core.io."
 TARGETS = {t.name: t for t in [
-    Target("job", "load_scene (.npz job)", "job", run_job, 1 << 15, (_IO + "jobfile",)),
+    Target("job", "load_scene (.npz job)", "job", run_job, 1 << 15, ("prtt_addon.core.io.jobfile",)),
     Target("manifest", "read_manifest + plan_bake (up-to-date check)", "manifest", run_manifest, 1 << 14,
-           ("prtt_addon.core.bake.pipeline.plan", _IO + "outdir"), _plan_context),
+           ("prtt_addon.core.bake.pipeline.plan", "prtt_addon.core.io.outdir"), _plan_context),
     Target("exr", "read_sh_exr, read_relight_exr, preview layer sources", "exr", run_exr, 1 << 16,
-           (_IO + "exr_io", "prtt_addon.core.preview.pack")),
+           ("prtt_addon.core.io.exr_io", "prtt_addon.core.preview.pack")),
     Target("sidecar", "read_vertex_transfer, read_generated_uvs", "sidecar", run_sidecar, 1 << 14,
-           (_IO + "sidecars",)),
+           ("prtt_addon.core.io.sidecars",)),
     Target("env", "read_hdr_image (.exr, .hdr RLE) + SH projection", "env", run_env, 1 << 14,
-           (_IO + "image_io", "prtt_addon.core.light.envmap")),
+           ("prtt_addon.core.io.image_io", "prtt_addon.core.light.envmap")),
     Target("world", "a World's strength, colour and Mapping rotation -> light", "world", run_world, 256,
            ("prtt_addon.core.light.envmap",)),
-    Target("events", "read_event (worker stdout lines)", "events", run_events, 1 << 12, (_IO + "worker_events",)),
-    Target("ktx2", "parse_ktx2", "ktx2", run_ktx2, 1 << 16, (_IO + "ktx2",)),
-    Target("glb", "read_glb_json", "glb", run_glb, 1 << 14, (_IO + "gltf_prtt",)),
+    Target("events", "read_event (worker stdout lines)", "events", run_events, 1 << 12, ("prtt_addon.core.base.worker_events",)),
+    Target("ktx2", "parse_ktx2", "ktx2", run_ktx2, 1 << 16, ("prtt_addon.core.io.ktx2",)),
+    Target("glb", "read_glb_json", "glb", run_glb, 1 << 14, ("prtt_addon.core.io.gltf_prtt",)),
 ]}
 
 

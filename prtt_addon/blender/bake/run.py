@@ -20,8 +20,8 @@ import numpy as np
 
 from ...core.bake.pipeline.context import BakeSettings
 from ...core.bake.pipeline.runner import check_out_dir
+from ...core.base.atomic import atomic_write, temp_prefix
 from ...core.base.errors import BakeError
-from ...core.io.atomic import atomic_write, temp_prefix
 from ...core.io.exr_io import TextureError, read_dc_plane
 from ...core.io.jobfile import save_scene
 from ...core.settings_schema import core_from_ui

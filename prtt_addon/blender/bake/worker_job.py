@@ -14,7 +14,7 @@ import subprocess
 import threading
 
 from ...core.base.child import child_env, python_executable
-from ...core.io.worker_events import read_event
+from ...core.base.worker_events import read_event
 
 
 class WorkerJob:

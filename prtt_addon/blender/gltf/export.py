@@ -45,7 +45,7 @@ import sys
 import bpy
 import numpy as np
 
-from ...core.io.atomic import atomic_write
+from ...core.base.atomic import atomic_write
 from ...core.io.exr_io import read_relight_exr, read_sh_exr
 from ...core.io.gltf_prtt import (
     ENCODINGS,

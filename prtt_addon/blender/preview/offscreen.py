@@ -28,8 +28,8 @@ import bpy
 import numpy as np
 
 from ...cli_options import choice_option, parse_size
+from ...core.base.atomic import TMP_PREFIX
 from ...core.base.memory import GiB, MiB, available_bytes, resident_bytes
-from ...core.io.atomic import TMP_PREFIX
 from ...core.io.image_write import WRITE_BYTES_PER_PIXEL, ImageWriteError, write_image
 from ...core.preview.shader_source import MODES
 from ..blendfile import native_stderr_filtered, open_scene

@@ -27,7 +27,7 @@ What goes in (scene_objects.py decides what the scene shows):
   from Blender's MikkTSpace ``calc_tangents``);
 * the light: the World (world.py) or a studio HDRI, as RGB SH.
 
-The parts become one core Scene through core.io.assembly (``assemble_parts``,
+The parts become one core Scene through core.model.assembly (``assemble_parts``,
 as meshgen's meshes do). Nothing in the .blend is modified: evaluated meshes
 are temporary.
 """
@@ -41,7 +41,7 @@ import re
 import bpy
 import numpy as np
 
-from ...core.io.assembly import MeshPart, assemble_parts, default_tangents
+from ...core.model.assembly import MeshPart, assemble_parts, default_tangents
 from ...core.model.scene import MAX_RESOLUTION, NormalMap, Scene, SceneError
 from ...core.texels.raster import overlap_count
 from ...core.texels.unwrap import UnwrapError, unwrap
@@ -92,7 +92,7 @@ class ExportResult:
 @dataclasses.dataclass
 class Part:
     """One object or instance's triangles in world space, and where they go:
-    the Blender side of a core.io.assembly.MeshPart (:func:`_mesh_parts`)."""
+    the Blender side of a core.model.assembly.MeshPart (:func:`_mesh_parts`)."""
 
     key: str
     kind: str                    # "object" | "instance"

@@ -25,10 +25,10 @@ import subprocess
 
 import numpy as np
 
+from ..base.atomic import atomic_write
 from ..base.child import child_env, python_executable
 from ..base.memory import MemoryLimitError, check_fits, discard_pages
 from ..sh.basis import bands_of
-from .atomic import atomic_write
 
 #: Version of the texture format described in docs/format.md.
 TEXTURE_FORMAT_VERSION = 1

@@ -20,7 +20,7 @@ import zlib
 
 import numpy as np
 
-from .atomic import atomic_write
+from ..base.atomic import atomic_write
 
 #: Rows encoded at once: bounds the float64 temporaries of the sRGB encode.
 BAND_ROWS = 256

@@ -49,6 +49,7 @@ import zlib
 
 import numpy as np
 
+from ..base.atomic import atomic_write
 from ..base.errors import Cancelled
 from ..base.memory import check_fits
 from ..model.scene import (
@@ -68,7 +69,6 @@ from ..model.scene import (
     check_image_shape,
     check_kind,
 )
-from .atomic import atomic_write
 
 FORMAT_NAME = "prtt-scene"
 FORMAT_VERSION = 1

@@ -27,8 +27,8 @@ import struct
 
 import numpy as np
 
+from ..base.atomic import atomic_write
 from ..base.memory import MemoryLimitError, check_fits
-from .atomic import atomic_write
 
 IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
 VK_FORMAT_R16G16B16A16_SFLOAT = 97

@@ -21,7 +21,7 @@ import json
 import os
 import socket
 
-from . import atomic
+from ..base import atomic
 
 LOCK_FILE = ".prtt-lock"
 #: Bytes read per hash update (large reads keep the per-call overhead negligible).

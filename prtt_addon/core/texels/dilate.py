@@ -140,7 +140,7 @@ class DilatedRows:
     reaches that far beyond the band and keeps the band's rows).
 
     levels : list of (C, N) float32, column i the value at texel ``texel[i]``;
-             or one io.column_spill.ColumnSpill (``scatter_rows``: the
+             or one estimators.column_spill.ColumnSpill (``scatter_rows``: the
              columns are in its file; :meth:`band` only).
     texel : (N,) int64 flat texel indices (row 0 = bottom) of ``mask`` (H, W).
     """

@@ -44,13 +44,13 @@ import math
 import numpy as np
 
 from ...base.memory import discard_pages
-from ...io.column_spill import ColumnSpill
 from ...sh.basis import basis_unchecked
 from ...sh.gaunt import sparse_gaunt
 from ...shading.shade import lobe_factors
 from ...texels.gbuffer import GBuffer
 from . import hit_kernel
 from .bounce import ChunkHits, SurfaceTexels, TexelRows, hits_by_set, reflect_rows, trace_bounce_level, uv_frames
+from .column_spill import ColumnSpill
 from .raytrace import RayScene
 from .transfer import Points, TransferSettings
 
@@ -415,7 +415,7 @@ def bake_relight_set(rs: RayScene, gb: GBuffer, pts: Points, skip: np.ndarray, s
 
     ``spill_folder``: the rows are this level's whole texture, read only to be
     written: they are kept in a temporary file there
-    (io.column_spill.ColumnSpill, returned in place of the array; the DC
+    (estimators.column_spill.ColumnSpill, returned in place of the array; the DC
     responses c K stay in memory), not in memory (#35: 1.0 GB at a 4096²
     atlas). The caller closes it."""
     K, kg = shader.K, shader.glossy_bands ** 2

@@ -9,9 +9,9 @@ import os
 import time
 
 from ....version import __version__
+from ...base import atomic
+from ...base.atomic import atomic_write
 from ...base.errors import BakeError
-from ...io import atomic
-from ...io.atomic import atomic_write
 from .bounce_stage import BounceResult
 from .context import BAKE_FORMAT_VERSION, MANIFEST, BakeContext
 from .plan import BakePlan, manifest_dicts, plain_names

@@ -21,9 +21,9 @@ from collections.abc import Callable
 import numpy as np
 
 from ... import settings_schema as _schema
+from ...base import atomic
 from ...base.errors import BakeError, Cancelled
 from ...base.memory import StagePeaks
-from ...io import atomic
 from ...io.outdir import file_info
 from ...model.scene import Scene
 from ...shading.shade import prepare_light

@@ -30,7 +30,7 @@ K = bands², C the relightable channels (3K + the glossy rows). Bytes:
   diffuse exit table 4 K V and its scales (FINE_SCALE V + 4 A), on the bounce
   grid the G-buffer and points, the glossy exit table 4 Kg² V and its
   scales and normals (EXIT_SCALES), and each set's traced columns: one level
-  waits in a temporary file (io.column_spill), only its DC responses in
+  waits in a temporary file (estimators.column_spill), only its DC responses in
   memory (12 B a covered texel); more levels hold 4 C N each and the
   surface (SURFACE_SHADING a valid texel). Baked bounces hold the level's
   (3K, A) planes and exit rows instead;

@@ -39,7 +39,7 @@ def relight_glossy_bands(st) -> int:
 
 
 def close_spills(levels) -> None:
-    """Delete the temporary files of the levels kept in one (io.column_spill)."""
+    """Delete the temporary files of the levels kept in one (estimators.column_spill)."""
     for t in levels:
         if hasattr(t, "close"):
             t.close()
@@ -69,7 +69,7 @@ def _relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: li
     glossy_sets = {s.index: bool(inputs.glossy_tri[sc.triangles_of_set(s.index)].any()) for s in inputs.sources}
     reports, stopped, rows = [], None, {}
     # One level: each set's rows are only written, so they wait in a temporary
-    # file (io.column_spill) instead of memory, the bounce's largest table (#35).
+    # file (estimators.column_spill) instead of memory, the bounce's largest table (#35).
     one_level = st.bounces == 1
     for level in range(1, st.bounces + 1):
         ctx.check_cancel()

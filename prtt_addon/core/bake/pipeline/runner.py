@@ -44,9 +44,9 @@ import os
 import threading
 import time
 
+from ...base import atomic
 from ...base.errors import BakeError
 from ...base.memory import numpy_hugepage_advice
-from ...io import atomic
 from ...io.outdir import FolderBusyError, FolderLock
 from ...model.scene import Scene
 from ..estimators import hit_kernel

@@ -30,7 +30,7 @@ import threading
 
 import numpy as np
 
-from .atomic import temp_prefix
+from ...base.atomic import temp_prefix
 
 #: Rows of a bucket. The writer's bands are whole multiples of 32 rows (exr_io.WRITE_BAND_BLOCK)
 #: and read their dilation rings beyond: buckets of 8 rows read a few rows more than the

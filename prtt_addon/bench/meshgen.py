@@ -14,9 +14,9 @@ import os
 
 import numpy as np
 
-from ..model.scene import Scene
-from ..texels.unwrap import unwrap
-from .assembly import MeshPart, assemble_parts
+from ..core.model.assembly import MeshPart, assemble_parts
+from ..core.model.scene import Scene
+from ..core.texels.unwrap import unwrap
 
 
 @dataclasses.dataclass
@@ -262,7 +262,7 @@ def load_obj(path, *, smooth: bool = True) -> Mesh:
 
 def asset_path(name: str) -> str:
     """Path of a bundled test mesh in assets/models/."""
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))   # prtt_addon/bench/ -> the repository
     p = os.path.join(root, "assets", "models", name)
     if not os.path.isfile(p):
         raise FileNotFoundError(f"test mesh {name} not found at {p}")
@@ -273,7 +273,7 @@ def asset_path(name: str) -> str:
 
 def assemble(objects: list[tuple[str, Mesh]], *, resolution: int = 1024, atlas: bool = False,
              padding: int = 4, keep_uvs: bool = False, resolutions: dict | None = None) -> Scene:
-    """A bake Scene from named meshes, unwrapped with xatlas (core.io.assembly
+    """A bake Scene from named meshes, unwrapped with xatlas (core.model.assembly
     joins them, as it does the Blender export's objects).
 
     atlas=False: one texture set per object (each with its own unwrap);
