@@ -112,7 +112,7 @@ def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
     not fit in the available memory, from its headers alone (before loading):
     a refusal here would truly not have fit. The bake's full estimate, which
     needs the loaded UV layout, is checked once the job is loaded
-    (core/bake/pipeline/plan.check_memory). ``bouncing`` is kept for callers."""
+    (core/bake/pipeline/memory_check.check_memory). ``bouncing`` is kept for callers."""
     import numpy as np
 
     # Deferred imports (start-up): the worker installs its signal handlers

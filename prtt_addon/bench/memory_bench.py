@@ -12,7 +12,7 @@ Measured in this run, each bake and render in a fresh process:
 
   - the worker's peak RSS per stage (the manifest's ``memory``: VmHWM reset
     at each stage, base/memory.StagePeaks) and its estimate before the bake
-    (plan.check_memory), seconds per stage;
+    (memory_check.check_memory), seconds per stage;
   - the Blender-side process's own peak RSS (VmHWM read in that process);
   - the render process's peak RSS and wall seconds, beside the bytes of the
     textures it draws (channels x texels x bytes a sample in the files), the

@@ -278,7 +278,7 @@ class StagePeaks:
         self.stage = "setup"
         self._peaks: dict[str, float] = {}
         self.process: float | None = None
-        self.estimate_mb: float | None = None     # what the bake said it would need (plan.check_memory)
+        self.estimate_mb: float | None = None     # what the bake said it would need (memory_check.check_memory)
         self.held_extra: int | None = None        # bytes held beyond a bare worker at the first check
         self.dask_workers: dict | None = None      # the Dask workers' peaks and estimate (DaskBake.worker_report)
         # Not reset here: "setup" keeps what the process held before the bake (its job, imports).

@@ -1,5 +1,5 @@
 """What a bake will hold in memory, estimated before it starts, stage by stage
-(plan.check_memory checks the largest against the memory available,
+(memory_check.check_memory checks the largest against the memory available,
 base/memory.check_fits; the manifest's ``memory`` records it beside the peak
 each stage measured).
 

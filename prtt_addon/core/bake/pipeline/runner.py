@@ -21,7 +21,7 @@ machine). :func:`run_stages` is the order:
 
 1. plan.plan_bake: input hashes, what the folder's outputs let it reuse (an
    identical bake is not repeated; when only the light or materials changed,
-   only the bounce textures are re-baked), plan.check_memory;
+   only the bounce textures are re-baked), memory_check.check_memory;
 2. stages.build_geometry: Embree BVH and per-face data (the first G-buffer
    and the ray tables start on helper threads meanwhile);
 3. per texture set, stages.transfer_set: G-buffer, trace (transfer rows),
@@ -56,10 +56,9 @@ from . import memory_plan
 from .bounce_stage import bounce_levels, choose_grid
 from .commit import commit_bake, finish_skipped, make_manifest
 from .context import BAKE_FORMAT_VERSION, BAKE_INT_LIMITS, MANIFEST, BakeContext, BakeSettings, asked_downscale, emit
+from .memory_check import bake_memory_bytes, check_memory
 from .plan import (
-    bake_memory_bytes,
     bounce_key,
-    check_memory,
     manifest_dicts,
     outputs_changed,
     plan_bake,
