@@ -25,7 +25,7 @@ from .cli_options import (
 )
 from .core import settings_schema as schema
 from .core.base.memory import MemoryLimitError
-from .core.light.envmap import environment_light as env_light  # (the benchmarks import it from here)
+from .core.light.envmap import environment_light
 from .env_report import report
 
 
@@ -73,7 +73,7 @@ def _cmd_bake_job(args) -> int:
     light = None
     if args.env:
         try:
-            light = env_light(args.env, max(args.bands or 5, 5), args.env_strength, args.env_rotation)
+            light = environment_light(args.env, max(args.bands or 5, 5), args.env_strength, args.env_rotation)
         except (ValueError, OSError, MemoryLimitError) as exc:
             print(f"prtt: error: {exc}", file=sys.stderr)
             return finish(1, watchdog)

@@ -33,32 +33,16 @@ import time
 import numpy as np
 
 from . import register
-from .bench.scene_library import ROOM_MATERIALS, room_objects
 from .bench.texture_error import image_error
 from .cli_options import CheckedValue, int_range, parse_size
 from .core import settings_schema as schema
 from .core.bake.pipeline.context import bounce_seconds
 from .core.io.image_write import srgb_encode, write_image
-from .core.light.envmap import builtin_environment_path
 from .core.settings_schema import BY_NAME as _SETTINGS
 
 _BOUNCE_RAYS_DEFAULT = _SETTINGS["bounce_rays"].default
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def floor_textures(n: int = 512, planks: int = 8, seed: int = 3):
-    """Wood-plank base colour (linear) and roughness (0.15..0.6), file order."""
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:n, 0:n] / n
-    plank = np.floor(x * planks).astype(int)
-    per_plank_rough = rng.uniform(0.15, 0.45, planks)[plank]
-    grain = 0.5 + 0.5 * np.sin(2 * np.pi * (y * 6 + 0.3 * np.sin(2 * np.pi * x * 3) + plank * 0.37))
-    gap = (np.abs(x * planks - np.round(x * planks)) < 0.02)
-    rough = np.clip(per_plank_rough + 0.15 * grain + 0.35 * gap, 0.0, 1.0)
-    tone = rng.uniform(0.7, 1.1, planks)[plank] * (0.85 + 0.15 * grain)
-    base = np.stack([0.42 * tone, 0.26 * tone, 0.14 * tone], axis=-1) * np.where(gap, 0.4, 1.0)[..., None]
-    return base.astype(np.float32), np.repeat(rough[..., None], 3, axis=2).astype(np.float32)
 
 
 def _world_image_beside(bpy, out_dir: str) -> None:
@@ -74,33 +58,6 @@ def _world_image_beside(bpy, out_dir: str) -> None:
         if os.path.abspath(src) != os.path.abspath(dst):
             shutil.copyfile(src, dst)
         img.filepath = "//" + os.path.basename(src)     # relative to the .blend saved beside it
-
-
-def build_scene(bpy) -> dict:
-    """The demo scene in the current (empty) Blender file; returns its objects."""
-    from .bench import scene_build as sb  # needs bpy: this module loads without it (the CLI's parser)
-    base, rough = floor_textures()
-    mats = {}
-    for name, spec in ROOM_MATERIALS.items():
-        kw = dict(base_color=tuple(spec["base_color"]), roughness=spec.get("roughness", 0.5),
-                  metallic=spec.get("metallic", 0.0), specular=spec.get("specular", 0.5))
-        if name == "floor":
-            kw.update(base_image=sb.float_image("floor_color", base, non_color=False),
-                      roughness_image=sb.float_image("floor_roughness", rough, non_color=True))
-        mats[name] = sb.principled(name, **kw)
-    objects = {}
-    for name, mesh in room_objects():
-        objects[name] = sb.mesh_object(name, mesh, material=mats.get(name),
-                                       uv_scale=0.5 if name == "floor" else None)
-    scene = bpy.context.scene
-    scene.world = sb.environment_world("Forest", builtin_environment_path("forest"), strength=1.0)
-    scene.camera = sb.camera_object("Camera", (0.0, -5.6, 2.3), (0.0, 0.6, 0.7), fov_y_deg=62.0)
-    # Standard: the demo's figures set PRTT beside Cycles, and Standard shows their
-    # radiance unbent (the preview draws any view transform: docs/preview.md)
-    scene.view_settings.view_transform = "Standard"
-    scene.view_settings.exposure = -0.7                  # the forest HDRI lights white walls to ~2
-    bpy.context.view_layer.update()         # new objects get their view-layer bases (selection)
-    return objects
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray, labels, path: str, *, exposure: float = 1.0,
@@ -232,6 +189,8 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         size=(960, 540), relight: bool = True, log=print) -> dict:
     import bpy
 
+    from .bench.scene_build import demo_scene  # needs bpy (see above)
+
     # The Blender side needs bpy: this module loads without it (the CLI's parser).
     from .blender.bake.run import bake_blocking  # needs bpy (see above)
     from .blender.blendfile import blend_relative  # needs bpy (see above)
@@ -246,7 +205,7 @@ def run(out_dir: str, *, resolution: int = 1024, rays: int = 256, bounce_rays: i
         register()
 
     t = time.perf_counter()
-    objects = build_scene(bpy)
+    objects = demo_scene()
     tris = 0
     for ob in objects.values():
         ob.data.calc_loop_triangles()

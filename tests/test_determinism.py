@@ -28,7 +28,6 @@ import numpy as np
 import pytest
 
 from prtt_addon.bench import meshgen as mg
-from prtt_addon.cli import env_light
 from prtt_addon.core.bake.estimators import bounce, transfer
 from prtt_addon.core.bake.estimators.raytrace import RayScene
 from prtt_addon.core.bake.estimators.transfer import ChunkKernel, Points, TransferSettings, chunk_plan
@@ -37,6 +36,7 @@ from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.bake.pipeline.stages import bake_points_input, scene_face_data
 from prtt_addon.core.base import threads as base_threads
+from prtt_addon.core.light.envmap import environment_light
 from prtt_addon.core.texels.gbuffer import build_gbuffer
 
 
@@ -129,7 +129,7 @@ def test_files_do_not_depend_on_chunk_order_or_threads(scene, tmp_path, monkeypa
     """The whole bake (transfer, per-vertex transfer, two bounce levels) with
     its chunks run in two seeded shuffled orders, on one thread and on two,
     gives the planned order's files byte for byte."""
-    light = env_light("forest", 5, 1.0, 0.0)
+    light = environment_light("forest", 5, 1.0, 0.0)
     st = dict(rays=64, chunk_rays=2048, bounces=2, bounce_rays=32, bounce_tolerance=0.0, bounce_mode=mode,
               half=half, vertex_mode=True)
     bake_scene(scene, tmp_path / "planned", BakeSettings(**st), light=light)

@@ -22,7 +22,6 @@ import psutil
 import pytest
 
 from prtt_addon.bench import scene_library
-from prtt_addon.cli import env_light
 from prtt_addon.core.bake.estimators.transfer import Chunk
 from prtt_addon.core.bake.executors import dask_cluster as dd
 from prtt_addon.core.bake.executors import dask_spec, dask_worker
@@ -31,6 +30,7 @@ from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.base.errors import BakeError, Cancelled
 from prtt_addon.core.base.memory import MemoryLimitError
 from prtt_addon.core.io.jobfile import save_scene
+from prtt_addon.core.light.envmap import environment_light
 from tests.scenes_util import floor_and_box
 
 pytest.importorskip("distributed")
@@ -85,7 +85,7 @@ def no_workers_left(timeout=10.0) -> bool:
 
 @pytest.fixture(scope="module")
 def room():
-    return scene_library.room_scene(64, atlas=False, materials=True), env_light("forest", 5, 1.0, 0.0)
+    return scene_library.room_scene(64, atlas=False, materials=True), environment_light("forest", 5, 1.0, 0.0)
 
 
 @pytest.fixture
@@ -180,7 +180,7 @@ def test_cluster_bake_under_load_is_bit_identical(tmp_path):
     sc = mg.assemble([("floor", mg.plane(4.0, subdiv=2)),
                       ("sphere", mg.uv_sphere(0.5, 48, 24).transformed(translate=(0.0, 0, 0.5)))],
                      resolution=384, atlas=False)
-    light = env_light("forest", 5)
+    light = environment_light("forest", 5)
     st = BakeSettings(rays=256, bounces=1, bounce_mode="relightable", half=False)
     bake_scene(sc, tmp_path / "local", st, light=light)
     want = files(tmp_path / "local")

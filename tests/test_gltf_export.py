@@ -345,8 +345,8 @@ def demo(tmp_path_factory):
     -0.7 with the Standard view transform), baked small."""
     tmp = tmp_path_factory.mktemp("demo")
     bpy = addon_bpy()
-    from prtt_addon.demo import build_scene
-    build_scene(bpy)
+    from prtt_addon.bench.scene_build import demo_scene
+    demo_scene()
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "demo.blend"))
     r = run("bake", "demo.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp)
     assert r.returncode == 0, r.stderr + r.stdout

@@ -79,12 +79,12 @@ def test_constant_light_is_the_dc_term():
 
 
 def test_job_cli_light_is_the_core_light():
-    from prtt_addon.cli import env_light
+    from prtt_addon.core.light.envmap import environment_light
     try:
         path = envmap.builtin_environment_path("forest")
     except OSError:
         pytest.skip("Blender's studio lights are not installed")
-    np.testing.assert_array_equal(env_light("forest", 3, 1.5, 40.0), envmap.environment_light(path, 3, 1.5, 40.0))
+    np.testing.assert_array_equal(environment_light("forest", 3, 1.5, 40.0), envmap.environment_light(path, 3, 1.5, 40.0))
 
 
 @pytest.mark.blender
@@ -95,7 +95,7 @@ def test_world_export_and_job_cli_agree():
     from tests.blender_util import addon_bpy
     bpy = addon_bpy()
     from prtt_addon.blender.scene.world import world_light
-    from prtt_addon.cli import env_light
+    from prtt_addon.core.light.envmap import environment_light
     path = envmap.builtin_environment_path("forest")
     world = bpy.data.worlds.new("W")
     bpy.context.scene.world = world
@@ -112,4 +112,4 @@ def test_world_export_and_job_cli_agree():
     L, desc = world_light(bpy.context.scene, 4)
     assert "rotated" in desc
     # float32 angle in the node vs float64 on the command line: 1e-7 of a radian
-    np.testing.assert_allclose(L, env_light("forest", 4, 1.5, 40.0), rtol=0, atol=1e-6 * np.abs(L).max())
+    np.testing.assert_allclose(L, environment_light("forest", 4, 1.5, 40.0), rtol=0, atol=1e-6 * np.abs(L).max())

@@ -28,9 +28,9 @@ import time
 
 import numpy as np
 
-from ..cli import env_light
 from ..core.bake.pipeline.context import BakeSettings, bounce_seconds
 from ..core.bake.pipeline.runner import bake_scene
+from ..core.light.envmap import environment_light
 from . import scene_library
 from .sweep import Previewer, write_csv
 from .texture_error import image_error
@@ -150,7 +150,7 @@ def main(argv=None) -> int:
         names = [n for n in names if n in ("room", "plants")]
     names.sort(key=lambda n: n == "room")              # the room's summary is the last line
     res, size = (128, (160, 90)) if args.quick else (1024, (640, 360))
-    light = env_light("forest", 5)
+    light = environment_light("forest", 5)
     rows = []
     for name in names:
         sc, camera = scene_and_camera(name, res if name == "room" or not args.quick else 64)

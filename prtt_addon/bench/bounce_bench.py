@@ -15,24 +15,25 @@ import os
 import tempfile
 import time
 
-from ..cli import env_light
 from ..core.bake.pipeline.context import BakeSettings, bounce_seconds
 from ..core.bake.pipeline.runner import bake_scene
 from ..core.base import jit
+from ..core.light.envmap import environment_light
 from . import figures, scene_library
 
 
 def demo_scene(resolution: int):
-    """The demo's scene (prtt_addon.demo) built and unwrapped in Blender and
+    """The demo's scene (scene_build.demo_scene) built and unwrapped in Blender and
     exported as the add-on does: (core Scene, the World's light as SH)."""
     import bpy  # Blender as a module: only this scene needs it
 
-    from .. import demo, register
+    from .. import register
     from ..blender.scene.job import export_scene  # needs bpy
+    from .scene_build import demo_scene  # needs bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if not hasattr(bpy.types.Scene, "prtt"):
         register()
-    objects = demo.build_scene(bpy)
+    objects = demo_scene()
     st = bpy.context.scene.prtt
     st.resolution, st.texture_sets, st.unwrap_method = resolution, "ATLAS", "SMART"
     for ob in bpy.context.view_layer.objects:
@@ -65,7 +66,7 @@ def main(argv=None) -> int:
         sc, light = demo_scene(args.resolution)
     else:
         sc = scene_library.room_scene(args.resolution, atlas=True, materials=True)
-        light = env_light(args.env, 5)
+        light = environment_light(args.env, 5)
     st = BakeSettings(rays=args.rays, bounces=args.bounces, bounce_mode="baked", bounce_rays=args.bounce_rays,
                       bounce_denoise=args.bounce_denoise, tuning=args.tuning)
     print("settings: " + figures.settings_line(st, BakeSettings()))

@@ -68,13 +68,13 @@ def experiment(width: int = 480, height: int = 320, *, resolution: int = 512, ra
     """Render the three pictures and the ground truth; returns images and errors."""
     from ..blender.preview.offscreen import ensure_gpu
     from ..blender.preview.renderer import Renderer, render_offscreen
-    from ..cli import env_light
     from ..core.bake.pipeline.context import BakeSettings
     from ..core.bake.pipeline.runner import bake_scene
+    from ..core.light.envmap import environment_light
     from ..core.preview.pack import from_core_scene
     from ..core.preview.reference import trace_pixels, traced_reference
     ensure_gpu()
-    light = env_light(env, 5)
+    light = environment_light(env, 5)
     vp, cam = camera(width, height)
     out = {"seconds": {}}
     tmp = tempfile.TemporaryDirectory(prefix="prtt-contact-") if work_dir is None else None

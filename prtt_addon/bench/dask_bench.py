@@ -35,10 +35,10 @@ from __future__ import annotations
 import tempfile
 import time
 
-from ..cli import env_light
 from ..core.bake.executors.dask_spec import parse_spec
 from ..core.bake.pipeline.context import BakeSettings
 from ..core.bake.pipeline.runner import bake_scene
+from ..core.light.envmap import environment_light
 from . import figures, scene_library
 from .farm_model import model
 
@@ -72,7 +72,7 @@ def fit_of(wall: float, m: dict, sm: dict) -> dict:
 
 def run(args) -> int:
     spec = parse_spec(args.dask)
-    light = env_light("forest", 5)
+    light = environment_light("forest", 5)
     st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads)
     print("settings: " + figures.settings_line(st, BakeSettings()))
     record = {"settings": figures.settings_dict(st), "cluster": spec.describe(), "resolution": args.resolution,

@@ -34,9 +34,9 @@ import time
 
 import numpy as np
 
-from ..cli import env_light
 from ..core.bake.pipeline.context import BakeSettings, bounce_seconds
 from ..core.bake.pipeline.runner import bake_scene
+from ..core.light.envmap import environment_light
 from ..core.sh.rotation import rotate_zyz
 from . import figures, scene_library
 from . import meshgen as mg
@@ -199,7 +199,7 @@ def main(argv=None) -> int:
     p.add_argument("--figure", default=os.path.join(scene_library.ROOT, "docs", "images", "relight_room_90.png"),
                    help="the room at 90 deg: relit beside rebaked (with --quick: not written)")
     args = p.parse_args(argv)
-    light = env_light("forest", 5)
+    light = environment_light("forest", 5)
     if args.quick:
         res, size, angles = 64, (160, 90), (0.0, 90.0)
     else:

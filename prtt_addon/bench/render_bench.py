@@ -93,10 +93,10 @@ def main(argv=None) -> int:
 
     from ..blender.preview.offscreen import ensure_gpu
     from ..blender.preview.renderer import Renderer
-    from ..cli import env_light
+    from ..core.light.envmap import environment_light
     ensure_gpu()
     print(f"GPU: {gpu.platform.renderer_get()} ({gpu.platform.backend_type_get()}), {os.cpu_count()} CPU cores")
-    light = env_light("forest", 5)
+    light = environment_light("forest", 5)
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
     modes = args.modes.split(",")
     rows = []

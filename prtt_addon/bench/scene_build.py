@@ -9,6 +9,9 @@ import math
 import bpy
 import numpy as np
 
+from ..core.light.envmap import builtin_environment_path
+from .scene_library import ROOM_MATERIALS, room_objects
+
 
 def mesh_object(name: str, mesh, *, material=None, uv_scale: float | None = None, collection=None):
     """A mesh object from a core ``meshgen.Mesh`` (smooth shaded when it has
@@ -109,3 +112,45 @@ def camera_object(name: str, eye, target, *, fov_y_deg: float, collection=None):
     ob.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
     (collection or bpy.context.scene.collection).objects.link(ob)
     return ob
+
+
+def floor_textures(n: int = 512, planks: int = 8, seed: int = 3):
+    """Wood-plank base colour (linear) and roughness (0.15..0.6), file order."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:n, 0:n] / n
+    plank = np.floor(x * planks).astype(int)
+    per_plank_rough = rng.uniform(0.15, 0.45, planks)[plank]
+    grain = 0.5 + 0.5 * np.sin(2 * np.pi * (y * 6 + 0.3 * np.sin(2 * np.pi * x * 3) + plank * 0.37))
+    gap = (np.abs(x * planks - np.round(x * planks)) < 0.02)
+    rough = np.clip(per_plank_rough + 0.15 * grain + 0.35 * gap, 0.0, 1.0)
+    tone = rng.uniform(0.7, 1.1, planks)[plank] * (0.85 + 0.15 * grain)
+    base = np.stack([0.42 * tone, 0.26 * tone, 0.14 * tone], axis=-1) * np.where(gap, 0.4, 1.0)[..., None]
+    return base.astype(np.float32), np.repeat(rough[..., None], 3, axis=2).astype(np.float32)
+
+
+def demo_scene() -> dict:
+    """The demo's scene (``./prtt.sh demo``) in the current (empty) Blender
+    file: the room's objects and materials, the floor's plank textures, the
+    forest World, the camera; returns its objects."""
+    base, rough = floor_textures()
+    mats = {}
+    for name, spec in ROOM_MATERIALS.items():
+        kw = dict(base_color=tuple(spec["base_color"]), roughness=spec.get("roughness", 0.5),
+                  metallic=spec.get("metallic", 0.0), specular=spec.get("specular", 0.5))
+        if name == "floor":
+            kw.update(base_image=float_image("floor_color", base, non_color=False),
+                      roughness_image=float_image("floor_roughness", rough, non_color=True))
+        mats[name] = principled(name, **kw)
+    objects = {}
+    for name, mesh in room_objects():
+        objects[name] = mesh_object(name, mesh, material=mats.get(name),
+                                       uv_scale=0.5 if name == "floor" else None)
+    scene = bpy.context.scene
+    scene.world = environment_world("Forest", builtin_environment_path("forest"), strength=1.0)
+    scene.camera = camera_object("Camera", (0.0, -5.6, 2.3), (0.0, 0.6, 0.7), fov_y_deg=62.0)
+    # Standard: the demo's figures set PRTT beside Cycles, and Standard shows their
+    # radiance unbent (the preview draws any view transform: docs/preview.md)
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.exposure = -0.7                  # the forest HDRI lights white walls to ~2
+    bpy.context.view_layer.update()         # new objects get their view-layer bases (selection)
+    return objects

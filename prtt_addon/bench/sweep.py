@@ -413,8 +413,8 @@ def main(argv=None) -> int:
     out = args.out or (tempfile.mkdtemp(prefix="prtt-sweep-") if args.quick else OUT)
     os.makedirs(out, exist_ok=True)
     parts = args.only.split(",")
-    from ..cli import env_light
-    light_fn = lambda n: env_light("forest", n)          # noqa: E731
+    from ..core.light.envmap import environment_light
+    light_fn = lambda n: environment_light("forest", n)          # noqa: E731
     sc = scene_library.with_room_materials(scene_library.paper_scene("room", cfg.sweep_res))
     results, part_seconds, t_all = {}, {}, time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="prtt-sweep-") as tmp:

@@ -1,7 +1,7 @@
 """``python -m prtt_addon.bench web``: the glTF export and the web viewer,
 measured on the demo room (issue 34's goals).
 
-1. **Export against bake.** The demo room (``demo.build_scene`` in a fresh
+1. **Export against bake.** The demo room (``scene_build.demo_scene`` in a fresh
    file) is baked by the command line as a user bakes it
    (``prtt bake room.blend --out textures --unwrap SMART --atlas``) at the
    demo's settings: a 1024² atlas, 256 rays, one relightable bounce of 64
@@ -120,7 +120,7 @@ def _loadavg() -> list:
 # --- scenes, bake and export (Blender) ----------------------------------------------------
 
 def build_blend(path: str, bunnies: int = 0) -> dict:
-    """The demo room (demo.build_scene) in a fresh file, plus ``bunnies``
+    """The demo room (scene_build.demo_scene) in a fresh file, plus ``bunnies``
     copies of the bunny with its cached xatlas unwrap as their PRTT map (no
     unwrap of 69K triangles at bake time); saved at ``path``. Returns the
     objects and triangles."""
@@ -130,12 +130,12 @@ def build_blend(path: str, bunnies: int = 0) -> dict:
     from .. import register
     from ..blender.blendfile import blender_log_muted
     from ..blender.shared import UV_MAP
-    from ..demo import build_scene
     from . import scene_build as sb
+    from .scene_build import demo_scene  # needs bpy
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if not hasattr(bpy.types.Scene, "prtt"):
         register()
-    objects = list(build_scene(bpy).values())
+    objects = list(demo_scene().values())
     if bunnies:
         bunny, uv = scene_library.bunny_unwrapped(256)
         mat = sb.principled("bunny", base_color=(0.85, 0.85, 0.85), roughness=0.5)
