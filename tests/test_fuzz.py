@@ -116,7 +116,7 @@ def test_a_crash_put_back_is_found_within_the_ci_budget(corpus, tmp_path):
 
 
 def test_the_pages_readers_take_their_ci_budget_clean(corpus):
-    """viewer/prtt_env.js and viewer/prtt.js's KTX2 reader on 3000 mutants in node."""
+    """viewer/prtt_env.js and viewer/prtt_textures.js's KTX2 reader on 3000 mutants in node."""
     from prtt_addon.fuzz import page
     if shutil.which("node") is None:
         pytest.skip("node is not installed")

@@ -230,15 +230,15 @@ ROOM_TURN = 90.0
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    """The demo's room (prtt_addon.demo.build_scene: 21K triangles, a glossy
+    """The demo's room (prtt_addon.bench.scene_build.demo_scene: 21K triangles, a glossy
     plank floor with textured colour and roughness, the forest HDRI, the
     demo camera), baked into one atlas with one relightable bounce (the
     default), exported, and rendered by Blender's `render` in each mode
     compared, at the World of the export and turned by ROOM_TURN degrees."""
-    from prtt_addon.demo import build_scene
+    from prtt_addon.bench.scene_build import demo_scene
     tmp = tmp_path_factory.mktemp("room")
     bpy = addon_bpy()
-    build_scene(bpy)
+    demo_scene()
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = RW, RH
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "room.blend"))
     r = run("bake", "room.blend", "--out", "textures", "--unwrap", "SMART", "--atlas", "--resolution", "256",

@@ -1,6 +1,6 @@
 """The page's own readers, fuzzed in node (the JavaScript the browser runs):
 viewer/prtt_env.js ``environmentFromBytes`` (a dropped .exr or .hdr) and
-viewer/prtt.js ``arrayTexture`` (a KTX2 payload against what the glTF
+viewer/prtt_textures.js ``arrayTexture`` (a KTX2 payload against what the glTF
 extension says it holds).
 
 There is no coverage feedback across the language boundary: the inputs are

@@ -1,6 +1,6 @@
 // The page's own readers on a bundle of inputs (prtt_addon/fuzz/page.py writes
 // it): viewer/prtt_env.js environmentFromBytes (a dropped .exr or .hdr) and
-// viewer/prtt.js arrayTexture (a KTX2 payload, checked against what the
+// viewer/prtt_textures.js arrayTexture (a KTX2 payload, checked against what the
 // extension says it holds). Prints one JSON line: executions, the inputs
 // answered outside the contract (an Error naming the input, or a result),
 // the slowest input and the process's peak RSS.
@@ -11,7 +11,7 @@ import { pathToFileURL } from 'node:url';
 
 const [bundlePath, viewerDir] = process.argv.slice(2);
 const { environmentFromBytes } = await import(pathToFileURL(`${viewerDir}/prtt_env.js`).href);
-const { arrayTexture } = await import(pathToFileURL(`${viewerDir}/prtt.js`).href);
+const { arrayTexture } = await import(pathToFileURL(`${viewerDir}/prtt_textures.js`).href);
 const { ZSTDDecoder } = await import('three/addons/libs/zstddec.module.js');
 const zstd = new ZSTDDecoder();
 await zstd.init();
