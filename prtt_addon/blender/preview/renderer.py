@@ -447,7 +447,7 @@ class Renderer:
         """The display table as a 3D texture (RGBA16F: 2**-11 relative steps,
         below an 8-bit display's; the GPU filters it trilinearly)."""
         n = display.size
-        return self._get(("display", _digest(display.lut)), lambda: gpu.types.GPUTexture(
+        return self._get(("display", display.lut_digest), lambda: gpu.types.GPUTexture(
             (n, n, n), format="RGBA16F", data=_buffer(display.block())))
 
     def _draw_mesh(self, ps, m, mode, light, transfer, bounce, vertex, lut=None):

@@ -214,8 +214,8 @@ def display_extension(stops: float, view_transform: str, *, look: str = "None", 
     multiplies linear radiance first; then the sRGB encode (Blender's plain
     Standard) or, with ``table`` (a core.shading.display.DisplayTransform),
     the scene's view transform as that table (``table``: size N, encoding
-    uint16, shaper [lo, hi] stops; its bufferView, N**3 RGB, is filled by the
-    writer) and the display ``gamma`` after it
+    LUT_ENCODING, shaper [lo, hi] stops; its bufferView, the table's
+    payload, is filled by the writer) and the display ``gamma`` after it
     (core.io.image_write.write_image)."""
     out = {"exposure": float(2.0 ** float(stops)), "stops": float(stops), "viewTransform": str(view_transform)}
     if table is not None:

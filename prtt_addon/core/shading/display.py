@@ -29,6 +29,8 @@ one channel 1000x below the others.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 
 import numpy as np
 
@@ -91,6 +93,12 @@ class DisplayTransform:
     def size(self) -> int:
         return int(self.lut.shape[0])
 
+    @functools.cached_property
+    def lut_digest(self) -> str:
+        """sha256 of the table (not the gamma): what the GPU's 3D texture is
+        cached by, hashed once per instance."""
+        return hashlib.sha256(np.ascontiguousarray(self.lut).tobytes()).hexdigest()
+
     def with_gamma(self, gamma: float) -> "DisplayTransform":
         return dataclasses.replace(self, gamma=float(gamma))
 
@@ -100,17 +108,17 @@ class DisplayTransform:
         ENCODE_CHUNK colours at a time (bounded temporaries)."""
         x = np.asarray(linear)
         flat = x.reshape(-1, 3)
+        table = self.lut.reshape(-1, 3).astype(np.float64)     # once per call, not per chunk
         out = np.empty(flat.shape, np.float64)
         for a in range(0, flat.shape[0], ENCODE_CHUNK):
-            out[a:a + ENCODE_CHUNK] = self._encode(flat[a:a + ENCODE_CHUNK])
+            out[a:a + ENCODE_CHUNK] = self._encode(flat[a:a + ENCODE_CHUNK], table)
         return out.reshape(x.shape)
 
-    def _encode(self, x: np.ndarray) -> np.ndarray:
+    def _encode(self, x: np.ndarray, flat: np.ndarray) -> np.ndarray:
         s = shaper(x, self.lo, self.hi) * (self.size - 1)
         i0 = np.minimum(s.astype(np.int64), self.size - 2)
         f = s - i0
         n = self.size
-        flat = self.lut.reshape(-1, 3).astype(np.float64)
         base = i0[:, 0] + n * (i0[:, 1] + n * i0[:, 2])
         out = np.zeros((s.shape[0], 3))
         for dr in (0, 1):
