@@ -2,7 +2,7 @@
 # PRTT developer entry point. Sets the machine up (tools/bootstrap.sh) and then:
 #   ./prtt.sh demo [args]   the main job (see README)
 #   ./prtt.sh test [args]   the whole test suite (pytest on PRTT_TEST_WORKERS processes, default 2:
-#                           11.9 min on 2 cores against 20.5 in one; extra args are passed on, -n 0 for one)
+#                           about 12 min on 2 cores against 20.5 in one; extra args are passed on, -n 0 for one)
 #   ./prtt.sh slow [args]   the slow, large benchmark-style tests only
 #   ./prtt.sh fuzz [args]   fuzz every reader of outside data (docs/fuzzing.md; --help)
 #   ./prtt.sh compat [VERSION ...]  the installed extension zip in each Blender it claims (docs/addon.md)
