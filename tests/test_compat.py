@@ -45,7 +45,9 @@ def test_every_claimed_blender_runs_the_users_chain(compat):
     for v, res in rec["results"].items():
         assert set(res["steps"]) == {"install", "unwrap", "bake", "draw_handler", "render", "bake_again",
                                      "render_vertex", "export", "page"}, (v, res["steps"])
-        assert res["numba"] is None, v                 # what Blender's Python has: no numba
+        # numba comes with the zip (issue 46, item 4), one per numpy line, and shades the bounce
+        assert res["numba"] == ("0.61.2" if v < "5.1" else "0.68.1"), (v, res["numba"])
+        assert res["hit_shading"] == ["compiled"], (v, res["hit_shading"])
         assert res["installed_at"].startswith(os.path.join(rec["work"], v)), res["installed_at"]
         # the defaults were baked (what a user gets from Bake Transfer)
         assert res["bake_settings"] == {"resolution": 1024, "rays": 256, "bounces": 1, "bounce_mode": "RELIGHTABLE"}
@@ -92,8 +94,10 @@ def test_every_version_draws_its_own_agx(compat):
 
 def test_textures_are_the_same_numbers_in_every_version(compat):
     """The second bake (xatlas UVs, the same in every Blender): bytes equal
-    within a numpy line; across numpy 1.26 (4.2-5.0) and numpy 2 (5.1+) the
-    values are equal as numbers (some zeros differ in sign), nothing else."""
+    within a numpy line (4.2-5.0: numpy 1.26, numba 0.61; 5.1+: numpy 2.5,
+    numba 0.68). Across the lines the transfer's values are equal as numbers
+    (some zeros differ in sign); the bounce's, shaded by two numba versions
+    that order the 25-term sums differently, within float32 rounding."""
     _, rec = compat
     res = rec["results"]
     assert len({r["uv"] for r in res.values()}) == 1
@@ -101,4 +105,8 @@ def test_textures_are_the_same_numbers_in_every_version(compat):
     assert res["5.2.3"]["files"] == res["5.3.0"]["files"]
     for name, per in rec["textures"]["files"].items():
         for v, d in per.items():
-            assert isinstance(d, dict) and d["max_abs_difference"] == 0.0, (name, v, d)
+            assert isinstance(d, dict), (name, v, d)
+            if ".relight." in name:
+                assert d["max_abs_difference"] <= 1e-5 * d["largest_value"], (name, v, d)
+            else:
+                assert d["max_abs_difference"] == 0.0, (name, v, d)

@@ -117,12 +117,28 @@ def test_zip_holds_its_platforms_wheels_only(built, blender_ext, plat):
     for w in wheels:
         assert blender_ext.blender_platform_compatible_with_wheel_platform_from_filepath(plat, w), w
     pins = tool.runtime_pins()
-    for python in tool.PYTHONS:
+    assert tool.pythons_for(plat) == (["3.11"] if plat == "macos-x64" else ["3.11", "3.13"])
+    for python in tool.pythons_for(plat):
         version = tuple(int(x) for x in python.split("."))
         # Blender reads "py3" (a pure-Python wheel) as (3,): any Python 3.
         have = [w for w in wheels if {version, version[:1]} & set(blender_ext.python_versions_from_wheel(w))]
-        assert sorted(tool._normalise(w.split("-")[0]) for w in have) == \
-            sorted(tool._normalise(p.split("==")[0]) for p in pins), (python, have)
+        want = tool.pins_for(pins, python)
+        assert sorted(tool._normalise(w.split("-")[0]) + "==" + w.split("-")[1] for w in have) == \
+            sorted(tool._normalise(p.split("==")[0]) + "==" + p.split("==")[1] for p in want), (python, have)
+        # numba, the bounce's compiled shading, ships for every Blender.
+        assert {"numba", "llvmlite"} <= {tool._normalise(w.split("-")[0]) for w in have}, (python, have)
+
+
+def test_wheel_pins_follow_their_python_markers():
+    """Each Python gets one numba (the one its Blender's numpy takes), and a
+    marker this build cannot read is refused, not read differently from pip."""
+    pins = tool.runtime_pins()
+    assert "numba==0.61.2" in tool.pins_for(pins, "3.11") and "numba==0.68.1" not in tool.pins_for(pins, "3.11")
+    assert "numba==0.68.1" in tool.pins_for(pins, "3.13") and "numba==0.61.2" not in tool.pins_for(pins, "3.13")
+    assert tool.marker_holds("", "3.13") and tool.marker_holds('python_version >= "3.13"', "3.13")
+    assert not tool.marker_holds("python_version < '3.13'", "3.13")
+    with pytest.raises(SystemExit, match="not supported"):
+        tool.marker_holds('sys_platform == "linux"', "3.11")
 
 
 def test_build_prints_each_zip_and_its_size(built):
@@ -225,7 +241,8 @@ def test_missing_wheel_means_no_zip(built, tmp_path, monkeypatch, capsys):
     rc = tool.main(["--platform", plat, "--out", str(out), "--stage", str(tmp_path / "stage")])
     err = capsys.readouterr().err
     assert rc == 1
-    assert re.search(rf"NOT built: {plat}: no embreex==\S+, OpenEXR==\S+, xatlas==\S+, threadpoolctl==\S+ wheel "
+    assert re.search(rf"NOT built: {plat}: no embreex==\S+, OpenEXR==\S+, xatlas==\S+, threadpoolctl==\S+, "
+                     rf"numba==0\.68\.1, llvmlite==\S+ wheel "
                      rf"for Python 3.99", err), err
     assert not old.exists() and not list(out.iterdir())
 

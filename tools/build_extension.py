@@ -4,8 +4,10 @@
                                           [--stage build/extension] [--wheels build/wheels]
 
 * fetches the runtime wheels pinned in requirements.txt (the lines marked
-  "wheel": embreex, OpenEXR, xatlas) unmodified from PyPI, for CPython 3.11
-  (Blender 4.2-5.0) and 3.13 (Blender 5.1+), for every platform asked for
+  "wheel": embreex, OpenEXR, xatlas, threadpoolctl, numba and llvmlite, a
+  line's ``python_version`` marker choosing its Pythons) unmodified from
+  PyPI, for CPython 3.11 (Blender 4.2-5.0) and 3.13 (Blender 5.1+; not on
+  macos-x64, where Blender 4.5 is the last), for every platform asked for
   (default: all of linux-x64, windows-x64, macos-arm64, macos-x64). They are
   cached in ``build/wheels``, so a second build needs no network
   (``--fetch-only`` fills the cache, as tools/bootstrap.sh does; ``--offline``
@@ -47,6 +49,10 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MANIFEST = "blender_manifest.toml"
 #: Blender 4.2-5.0 embed CPython 3.11, Blender 5.1+ CPython 3.13.
 PYTHONS = ("3.11", "3.13")
+#: The newest Python a platform's Blenders embed, where that is not the
+#: newest of PYTHONS: Blender 4.5 LTS is the last with Intel Mac builds, so
+#: no Blender on macos-x64 runs Python 3.13 (and numba has no such wheel).
+LAST_PYTHON = {"macos-x64": "3.11"}
 #: Marks a folder this tool staged, so --stage never deletes anything else.
 STAGE_MARK = ".prtt-extension-stage"
 
@@ -174,17 +180,49 @@ def repository_sources(root: str = ROOT):
 
 # --- wheels ---------------------------------------------------------------------------------
 
-def runtime_pins(root: str = ROOT) -> list[str]:
-    """'name==version' of every requirements.txt line marked 'wheel'."""
+def runtime_pins(root: str = ROOT) -> list[tuple[str, str]]:
+    """('name==version', marker) of every requirements.txt line marked 'wheel';
+    marker is the line's environment marker (``python_version < "3.13"``) or ''."""
     pins = []
     with open(os.path.join(root, "requirements.txt"), encoding="utf-8") as f:
         for line in f:
-            m = re.match(r"^([A-Za-z0-9_.-]+==\S+)\s+#\s*wheel\b", line)
+            m = re.match(r"^([A-Za-z0-9_.-]+==[^\s;]+)\s*(?:;\s*([^#]*?))?\s+#\s*wheel\b", line)
             if m:
-                pins.append(m.group(1))
+                pins.append((m.group(1), m.group(2) or ""))
     if not pins:
         raise SystemExit("requirements.txt marks no runtime wheels")
     return pins
+
+
+def _version(text: str) -> tuple[int, ...]:
+    return tuple(int(x) for x in text.split("."))
+
+
+_COMPARE = {"<": lambda a, b: a < b, "<=": lambda a, b: a <= b, ">": lambda a, b: a > b,
+            ">=": lambda a, b: a >= b, "==": lambda a, b: a == b, "!=": lambda a, b: a != b}
+
+
+def marker_holds(marker: str, python: str) -> bool:
+    """Whether a requirements marker holds for a Python ("3.11"). Only the one
+    form the pins use, ``python_version <op> "X.Y"``, is read: anything else
+    is refused rather than read differently from pip."""
+    if not marker:
+        return True
+    m = re.fullmatch(r'python_version\s*(<=|>=|==|!=|<|>)\s*["\'](\d+\.\d+)["\']', marker.strip())
+    if m is None:
+        raise SystemExit(f"requirements.txt: marker {marker!r} on a wheel pin is not supported by this build")
+    return _COMPARE[m.group(1)](_version(python), _version(m.group(2)))
+
+
+def pins_for(pins, python: str) -> list[str]:
+    """The 'name==version' pins of ``runtime_pins()`` that hold for one Python."""
+    return [pin for pin, marker in pins if marker_holds(marker, python)]
+
+
+def pythons_for(plat: str) -> list[str]:
+    """The Pythons of PYTHONS that Blender embeds on ``plat``."""
+    last = LAST_PYTHON.get(plat)
+    return [p for p in PYTHONS if last is None or _version(p) <= _version(last)]
 
 
 def _normalise(name: str) -> str:
@@ -254,12 +292,13 @@ def pip_download(pins, python: str, plat: str, cache: str) -> tuple[dict, str]:
 
 
 def platform_wheels(pins, plat: str, cache: str, log, *, offline: bool = False) -> list[str]:
-    """The wheel files of every pin for every Python on ``plat`` (a pure-Python
-    wheel once), downloading what the cache lacks; PlatformError naming what
+    """The wheel files of every pin (``runtime_pins()``) that holds for each of
+    ``plat``'s Pythons (a pure-Python wheel once), downloading what the cache lacks; PlatformError naming what
     PyPI does not have, or, ``offline``, what the cache does not."""
     found = []
-    for python in PYTHONS:
-        missing = [p for p in pins if cached_wheel(cache, p, python, plat) is None]
+    for python in pythons_for(plat):
+        wanted = pins_for(pins, python)
+        missing = [p for p in wanted if cached_wheel(cache, p, python, plat) is None]
         if missing and offline:
             raise PlatformError(f"{', '.join(missing)} for Python {python} on {plat} not in the wheel cache "
                                 f"{cache} (tools/bootstrap.sh fetches them; or build without --offline)")
@@ -271,7 +310,7 @@ def platform_wheels(pins, plat: str, cache: str, log, *, offline: bool = False) 
                 still = [p for p in missing if p not in got]
                 raise PlatformError(f"no {', '.join(still)} wheel for Python {python} on {plat}"
                                     + (f" ({error})" if error else ""))
-        found += [cached_wheel(cache, p, python, plat) for p in pins]
+        found += [cached_wheel(cache, p, python, plat) for p in wanted]
     return list(dict.fromkeys(found))
 
 

@@ -1,6 +1,6 @@
 """Try the installed extension in every Blender it claims: ``./prtt.sh compat``.
 
-    ./prtt.sh compat [VERSION ...] [--json FILE] [--work DIR] [--no-page]
+    ./prtt.sh compat [VERSION ...] [--json FILE] [--work DIR] [--no-page] [--bench]
 
 For each Blender version (default: the oldest claimed, 4.2 LTS; the LTS
 lines 4.5 and 5.2; the newest on PyPI, 5.3; ``all`` adds 5.0 and 5.1):
@@ -9,7 +9,7 @@ lines 4.5 and 5.2; the newest on PyPI, 5.3; ``all`` adds 5.0 and 5.1):
    PyPI, on the Python that Blender embeds (3.11 for 4.2-5.0, 3.13 for 5.1+)
    and the numpy it ships, made once and kept in ``$PRTT_COMPAT_CACHE``
    (default ``~/.cache/prtt-compat``): nothing else, in particular no numba
-   and none of the source tree;
+   (the zip brings its own) and none of the source tree;
 2. this platform's extension zip, built once by tools/build_extension.py;
 3. tools/compat_chain.py in that Python: install and enable the zip with
    ``package_install_files`` into an empty user folder, then Unwrap, Bake
@@ -189,8 +189,9 @@ def _decoded(path: str) -> dict:
 def compare_textures(results: dict, work: str) -> dict | None:
     """The second bake's textures (xatlas UVs: the same in every Blender)
     compared across the versions that made them: by their bytes, and where
-    those differ, by their decoded values (``equal`` when every value is the
-    same number: the only difference is the sign of some zeros)."""
+    those differ, by their decoded values (``max_abs_difference`` 0 when
+    every value is the same number: the only difference is the sign of some
+    zeros; ``largest_value``: the file's largest magnitude, to judge the rest)."""
     hashed = {v: {k: h for k, h in r.get("files", {}).items() if h} for v, r in results.items() if r.get("files")}
     if len(hashed) < 2:
         return None
@@ -209,7 +210,9 @@ def compare_textures(results: dict, work: str) -> dict | None:
             bits = sum(int((a[k].view(f"u{a[k].itemsize}") != b[k].view(f"u{b[k].itemsize}")).sum()) for k in a)
             worst = max(float(np.nanmax(np.abs(a[k].astype(np.float64) - b[k].astype(np.float64)), initial=0.0))
                         for k in a)
-            out["files"].setdefault(name, {})[v] = {"values_differing_in_bits": bits, "max_abs_difference": worst}
+            largest = max(float(np.nanmax(np.abs(a[k].astype(np.float64)), initial=0.0)) for k in a)
+            out["files"].setdefault(name, {})[v] = {"values_differing_in_bits": bits, "max_abs_difference": worst,
+                                                    "largest_value": largest}
     if not out["files"]:
         out["summary"] = f"{len(names)} files, byte-identical across {', '.join(hashed)}"
     else:
@@ -225,6 +228,64 @@ def compare_textures(results: dict, work: str) -> dict | None:
     return out
 
 
+BENCH = os.path.join(ROOT, "tools", "compat_bench.py")
+
+
+def bench_one(py: str, zip_path: str | None, work: str, timeout: float) -> dict:
+    """tools/compat_bench.py's two steps in one Python (``zip_path`` None: the
+    source tree): its BENCH record, or {"error": ...}."""
+    shutil.rmtree(work, ignore_errors=True)
+    os.makedirs(work)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env["BLENDER_USER_RESOURCES"] = os.path.join(work, "blender-user")
+    blend = os.path.join(work, "demo.blend")
+    runs = [([py, BENCH, "scene", blend], dict(env, PYTHONPATH=ROOT)),
+            ([py, BENCH, "bake", blend, work] + ([zip_path] if zip_path else []),
+             env if zip_path else dict(env, PYTHONPATH=ROOT))]
+    out = ""
+    for cmd, e in runs:
+        r = subprocess.run(cmd, capture_output=True, text=True, env=e, cwd=work, timeout=timeout)
+        out = r.stdout
+        if r.returncode:
+            tail = [ln for ln in (r.stderr or r.stdout).splitlines() if ln.strip()][-1:] or [f"exit {r.returncode}"]
+            return {"error": f"{os.path.basename(cmd[2])} {cmd[2]} step: {tail[0][:200]}"}
+    return next((json.loads(ln[6:]) for ln in reversed(out.splitlines()) if ln.startswith("BENCH ")),
+                {"error": "no BENCH record"})
+
+
+def bench(versions, pythons, zip_path: str, work: str, timeout: float) -> dict:
+    """The demo's default bake in the development venv (before and after the
+    Blenders, the faster counts) and through the zip in each Blender: {name: record}."""
+    out = {"development": bench_one(sys.executable, None, os.path.join(work, "bench-dev"), timeout)}
+    print(bench_line("development", out["development"], None), flush=True)
+    for v in versions:
+        out[v] = bench_one(pythons[v], zip_path, os.path.join(work, f"bench-{v}"), timeout)
+        print(bench_line(v, out[v], out["development"]), flush=True)
+    again = bench_one(sys.executable, None, os.path.join(work, "bench-dev"), timeout)
+    if fastest(again) < fastest(out["development"]):
+        out["development"] = again
+    print(bench_line("development", again, None) + "  (again)", flush=True)
+    return out
+
+
+def fastest(rec: dict, key: str = "seconds") -> float:
+    """The fastest timed bake of a record (the first round warms numba's
+    cache): as the user waits for it (``seconds``) or in the worker (``worker_seconds``)."""
+    return min((b[key] for b in rec.get("bakes", [])[1:]), default=float("inf"))
+
+
+def bench_line(name: str, rec: dict, dev: dict | None) -> str:
+    if "error" in rec:
+        return f"bench {name:<12} FAIL {rec['error']}"
+    shading = sorted({s for b in rec["bakes"] for s in b["hit_shading"]})
+    times = ", ".join(f"{b['seconds']:.1f}" for b in rec["bakes"])
+    ratio = (f"  {fastest(rec) / fastest(dev):.3f} / {fastest(rec, 'worker_seconds') / fastest(dev, 'worker_seconds'):.3f}"
+             " x development" if dev and "error" not in dev else "")
+    return (f"bench {name:<12} Blender {rec['blender']:<8} numba {rec['numba'] or 'none':<7} "
+            f"shading {'/'.join(shading)}  demo bake {fastest(rec):.2f} s, worker {fastest(rec, 'worker_seconds'):.2f} s "
+            f"(rounds {times}){ratio}")
+
+
 def summary(version: str, rec: dict) -> str:
     steps, secs = rec["steps"], rec["seconds"]
     bad = {k: v for k, v in steps.items() if not (v == "ok" or v.startswith("ok "))}
@@ -232,7 +293,9 @@ def summary(version: str, rec: dict) -> str:
     if bad:
         step, why = next(iter(bad.items()))
         return f"{head} FAIL at {step}: {why}"
-    return (f"{head} PASS  install {secs.get('install', 0):.1f} s, bake {secs.get('bake', 0):.1f} s, "
+    shading = "/".join(rec.get("hit_shading") or ["?"])
+    return (f"{head} PASS  install {secs.get('install', 0):.1f} s, bake {secs.get('bake', 0):.1f} s "
+            f"(numba {rec.get('numba') or 'none'}, {shading} shading), "
             f"bake again {secs.get('bake_again', 0):.1f} s, draw handler ok, "
             f"render {len(rec.get('preview', {})) - 1} modes, "
             f"export {rec.get('glb_bytes', 0) / 1e6:.2f} MB, page {steps.get('page', 'not opened')}")
@@ -247,6 +310,9 @@ def main(argv=None) -> int:
                                                   "(default: a temporary folder, removed)")
     ap.add_argument("--no-page", action="store_true", help="do not open the exports in the web viewer")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds one version's chain may take")
+    ap.add_argument("--bench", action="store_true",
+                    help="instead of the chain: the demo's default bake through the zip in each Blender "
+                         "against the development venv (tools/compat_bench.py)")
     args = ap.parse_args(argv)
     names = args.versions or list(DEFAULT)
     if names == ["all"]:
@@ -262,6 +328,14 @@ def main(argv=None) -> int:
         pythons = dict(zip(versions, pool.map(lambda v: venv(v, log), versions)))
     zip_path = build_zip(work)
     log(f"[compat] {os.path.basename(zip_path)}; each version's log under {work}")
+    if args.bench:
+        records = bench(versions, pythons, zip_path, work, args.timeout)
+        if args.json:
+            with open(args.json, "w", encoding="utf-8") as f:
+                json.dump({"zip": os.path.basename(zip_path), "bench": records}, f, indent=1)
+        if not args.work:
+            shutil.rmtree(work, ignore_errors=True)
+        return 1 if any("error" in r for r in records.values()) else 0
     site = None if args.no_page else Site(os.path.join(work, "site"))
     results = {}
     try:

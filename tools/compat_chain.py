@@ -172,6 +172,10 @@ def main(zip_path, work):
         result["bake_settings"] = {k: getattr(st, k) for k in ("resolution", "rays", "bounces", "bounce_mode")
                                    if hasattr(st, k)}
         result["default_bake"] = {"uv": _uv_sha256(), "files": _hash_outputs(out_dir)}
+        with open(os.path.join(out_dir, "manifest.json"), encoding="utf-8") as f:
+            sets = (json.load(f).get("bounce") or {}).get("sets", [])
+        # "compiled" when the worker shaded the bounce's hits with numba's loops.
+        result["hit_shading"] = sorted({s.get("hit_shading", "?") for s in sets})
 
     step("bake", bake)
 
