@@ -60,12 +60,15 @@ def test_zip_layout(extension_zip):
         assert licence == f.read()
     assert man["id"] == "prtt_addon" and man["platforms"] == [_host_platform()]
     wheels = man["wheels"]
-    for pkg in ("embreex", "openexr", "xatlas"):
+    for pkg in ("embreex", "openexr", "xatlas", "numba", "llvmlite"):
         for tag in ("cp311", "cp313"):
             assert any(os.path.basename(w).lower().startswith(pkg) and f"-{tag}-" in w for w in wheels)
+    # numba for the bounce's compiled shading, one per numpy line (requirements.txt's markers)
+    assert any(os.path.basename(w).startswith("numba-0.61.2-cp311-") for w in wheels)
+    assert any(os.path.basename(w).startswith("numba-0.68.1-cp313-") for w in wheels)
     # threadpoolctl is pure Python: one wheel serves both Pythons.
     assert [w for w in wheels if "threadpoolctl" in w] == ["./wheels/threadpoolctl-3.8.0-py3-none-any.whl"]
-    assert len(wheels) == 7
+    assert len(wheels) == 11
     assert {w[2:] for w in wheels} == {n for n in names if n.startswith("wheels/")}
 
 

@@ -110,3 +110,21 @@ def image_hook_args(args: tuple):
     gather = importlib.import_module("io_scene_gltf2.blender.exp.material.gltf2_blender_gather_image")
     get_image_data = vars(gather)["__get_image_data"]        # module-level: not name-mangled
     return get_image_data(sockets, None, export_settings), sockets, export_settings
+
+
+# --- uv: Lightmap Pack with a margin in texels ---------------------------------------
+
+
+def lightmap_pack(meshes, *, pack_in_one: bool, divisions: int) -> None:
+    """Blender's Lightmap Pack of ``meshes`` (Object Mode, each mesh's active
+    UV map, every face) with every packed box inset by 1 / ``divisions`` of
+    the UV square on each side. The operator takes that inset as a
+    percentage capped at 1 % (``PREF_MARGIN_DIV``, read as int(100 / m)
+    divisions); PRTT needs up to padding / resolution (6 texels at 256²:
+    2.3 %), so it calls the function behind the operator, whose signature is
+    the same in every version claimed (bl_operators/uvcalc_lightmap.py,
+    ``lightmap_uvpack``, 4.2 to 5.3). ``PREF_BOX_DIV`` is the operator's default."""
+    from bl_operators import uvcalc_lightmap  # Blender's own scripts: loaded only to unwrap
+    uvcalc_lightmap.lightmap_uvpack(list(meshes), PREF_SEL_ONLY=False, PREF_NEW_UVLAYER=False,
+                                    PREF_PACK_IN_ONE=bool(pack_in_one), PREF_BOX_DIV=12,
+                                    PREF_MARGIN_DIV=max(1, int(divisions)))

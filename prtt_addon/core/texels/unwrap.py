@@ -4,7 +4,8 @@
 in a single non-overlapping atlas (one texture set) and returns per-triangle
 corner UVs in [0, 1]. xatlas treats its resolution as a hint, so the atlas is
 re-packed with a lower texel density until it fits ``resolution`` exactly
-(a bounded number of tries), keeping ``padding`` texels between charts; a
+(a bounded number of tries), keeping ``padding`` texels between charts
+(at least, and about one more: :func:`xatlas_padding`); a
 small texture that cannot hold the charts with that padding is retried with
 half the padding, down to 0, before giving up.
 
@@ -22,6 +23,14 @@ import tempfile
 import numpy as np
 
 from ..base.child import child_env, python_executable
+
+
+def xatlas_padding(gap: int) -> int:
+    """xatlas's PackOptions.padding for charts ``gap`` texels apart or more.
+    xatlas pads each chart on every side, and with ``bilinear`` adds one texel
+    more between charts: charts end 2 p + 1 texels apart (measured on the UV
+    map: padding 6 gave 13-texel gaps, twice the space asked, issue 53)."""
+    return max(0, -(-(int(gap) - 1) // 2))
 
 
 class UnwrapError(RuntimeError):
@@ -225,7 +234,7 @@ def unwrap_here(meshes, resolution, padding, max_tries, uv_mesh=False, keep: lis
                 atlas.add_mesh(v, f)
         po = xatlas.PackOptions()
         po.resolution = int(resolution)
-        po.padding = int(padding)
+        po.padding = xatlas_padding(padding)
         po.bilinear = True
         po.texels_per_unit = float(tpu)
         atlas.generate(pack_options=po)

@@ -1,0 +1,95 @@
+"""Padding that holds (issue 53): the unwrap's islands are as many texels
+apart as docs/format.md says (`padding`: the Margin, raised to the bake's
+needs: 6 by default), measured on the UV map at each resolution and with
+every method, on meshes the unwrap was not tuned for.
+
+Before: Lightmap Pack left 0.77 / 1.54 / 3.08 texels at 256² / 512² / 1024²
+(a margin fixed in UV units), xatlas 13 where 6 were asked (it pads each
+chart, so twice the space). Smart UV Project keeps Blender's SCALED margin
+(2.5 texels on a cube, 3.2 on a torus, 6.8-13 on the monkey, 7.25 on the
+demo room): its exact FRACTION margin packs the demo's atlas 6.6 % fewer
+texels, left open in issue 53's note."""
+import numpy as np
+import pytest
+
+from tests.blender_util import addon_bpy, select_only
+
+pytestmark = pytest.mark.blender
+
+
+def test_gap_measure_against_a_drawn_layout():
+    """bench/uv_gaps on squares placed by hand: 3 and 5 texels apart, a
+    touching pair (one island: shared corners), and crossing triangles."""
+    from prtt_addon.bench.uv_gaps import island_gaps, triangle_distances, uv_islands
+
+    def square(x0, y0, s):
+        return np.array([[[x0, y0], [x0 + s, y0], [x0 + s, y0 + s]], [[x0, y0], [x0 + s, y0 + s], [x0, y0 + s]]])
+    r = 512
+    uv = np.concatenate([square(0.1, 0.1, 0.2), square(0.3 + 3 / r, 0.1, 0.2), square(0.1, 0.3 + 5 / r, 0.1)])
+    assert len(set(uv_islands(uv))) == 3
+    assert np.allclose(island_gaps(uv, r), [3, 3, 3, 3, 5, 5])
+    a = np.array([[[0, 0], [4, 0], [0, 4]]], float)
+    assert triangle_distances(a, a + [[1, 1]])[0] == 0.0                     # overlapping
+    assert np.isclose(triangle_distances(a, a + [[10, 0]])[0], 6.0)           # 4 -> 10 along x
+    assert np.isclose(triangle_distances(a, -a + [[6, 6]])[0], 2 * np.sqrt(2))  # x+y=4 against x+y=8
+
+
+def _scene(bpy, kind):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    if kind == "torus":
+        bpy.ops.mesh.primitive_torus_add(major_segments=48, minor_segments=24)
+    elif kind == "monkey":
+        bpy.ops.mesh.primitive_monkey_add()
+        bpy.ops.object.subdivision_set(level=1)
+        bpy.ops.object.convert(target="MESH")
+    elif kind == "triangles":                    # Lightmap Pack pairs triangles into boxes
+        bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2)
+        bpy.ops.mesh.primitive_cone_add(location=(3, 0, 0))
+    else:
+        bpy.ops.mesh.primitive_cube_add()
+        bpy.ops.mesh.primitive_plane_add(size=5, location=(0, 0, -1))
+    return [o for o in bpy.context.scene.objects if o.type == "MESH"]
+
+
+@pytest.mark.parametrize("method", ["SMART", "LIGHTMAP", "XATLAS"])
+@pytest.mark.parametrize("kind", ["torus", "monkey", "cube", "triangles"])
+def test_islands_are_the_padding_apart(method, kind):
+    bpy = addon_bpy()
+    from prtt_addon.bench.uv_gaps import island_gaps
+    from prtt_addon.blender.scene.uv_maps import _tri_uvs, bake_downscale, margin_texels
+    for res in (512, 1024):
+        objects = _scene(bpy, kind)
+        st = bpy.context.scene.prtt
+        st.resolution, st.texture_sets, st.unwrap_method = res, "ATLAS", method
+        select_only(bpy, objects)
+        bpy.context.view_layer.objects.active = objects[0]
+        assert bpy.ops.prtt.unwrap() == {"FINISHED"}
+        want = margin_texels(st.padding, st.dilate, bake_downscale(st))
+        gap = island_gaps(np.concatenate([_tri_uvs(o) for o in objects]), res)
+        # Smart UV Project's packer is exact. xatlas packs on whole texels and leaves
+        # some charts further apart, never the twice-the-gap it left before.
+        # Lightmap Pack: quads exact (their boxes on a grid of whole divisions);
+        # paired triangles sit from one inset to sqrt(2) insets across their box.
+        most = {"SMART": want + 0.05, "XATLAS": 2 * want - 0.5,
+                "LIGHTMAP": (np.sqrt(2) * want if kind == "triangles" else want) + 0.2}[method]
+        if method == "SMART":
+            # Blender's SCALED margin (kept: the default's atlas unchanged, uv_maps.py):
+            # at least the 2 texels bilinear lookups need, 6 on the monkey
+            assert gap.min() >= 2.0 and (kind != "monkey" or gap.min() >= want - 0.01), (kind, res, gap.min())
+            continue
+        assert want - 0.01 <= gap.min() <= most, (method, kind, res, want, gap.min())
+
+
+def test_lightmap_pack_seams_are_no_worse_than_smart_uv_projects():
+    """The picture at UV seams against a traced ground truth (bench/seam_error:
+    a torus at 512², TPFL, pixels within a texel of an island border). Before
+    the fix Lightmap Pack's 1.5-texel gaps gave a seam p99 of 1.46 % against
+    Smart UV Project's 0.94 %; after, 0.87 % against 0.83 %."""
+    addon_bpy()
+    from prtt_addon.bench.seam_error import torus_errors
+    smart, lightmap = torus_errors("SMART"), torus_errors("LIGHTMAP")
+    print({"smart": smart, "lightmap": lightmap})
+    assert lightmap["seam"]["pixels"] > 1000 and smart["seam"]["pixels"] > 500
+    assert lightmap["seam"]["mean"] <= 1.25 * smart["seam"]["mean"]
+    assert lightmap["seam"]["p99"] <= 1.25 * smart["seam"]["p99"]
+    assert smart["seam"]["p99"] < 0.02
