@@ -100,11 +100,16 @@ def can_build_offline() -> bool:
 
 
 def pins() -> dict:
-    """{name (lower case): version} of requirements.txt's ``name==version`` lines."""
+    """{name (lower case): version} of requirements.txt's ``name==version``
+    lines for this Python (a ``python_version`` marker chooses between two
+    lines of one name: numba's two lines)."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    from build_extension import marker_holds
+    python = f"{sys.version_info[0]}.{sys.version_info[1]}"
     out = {}
     for line in (ROOT / "requirements.txt").read_text().splitlines():
-        m = re.match(r"\s*([A-Za-z0-9_.-]+)==(\S+)", line)
-        if m:
+        m = re.match(r"\s*([A-Za-z0-9_.-]+)==([^\s;]+)\s*(?:;\s*([^#]*?))?\s*(?:#.*)?$", line)
+        if m and marker_holds(m.group(3) or "", python):
             out[m.group(1).lower()] = m.group(2)
     return out
 

@@ -5,10 +5,10 @@ every method, on meshes the unwrap was not tuned for.
 
 Before: Lightmap Pack left 0.77 / 1.54 / 3.08 texels at 256² / 512² / 1024²
 (a margin fixed in UV units), xatlas 13 where 6 were asked (it pads each
-chart, so twice the space). Smart UV Project keeps Blender's SCALED margin
-(2.5 texels on a cube, 3.2 on a torus, 6.8-13 on the monkey, 7.25 on the
-demo room): its exact FRACTION margin packs the demo's atlas 6.6 % fewer
-texels, left open in issue 53's note."""
+chart, so twice the space). Smart UV Project keeps Blender's SCALED margin,
+which follows the islands' scale (7.25 texels on the demo room, 6.8-13 on
+the monkey, but 2.5 on a cube and 3.2 on a torus): its exact FRACTION
+margin packs much sparser, so it stays open in issue 53's note."""
 import numpy as np
 import pytest
 
@@ -18,9 +18,9 @@ pytestmark = pytest.mark.blender
 
 
 def test_gap_measure_against_a_drawn_layout():
-    """bench/uv_gaps on squares placed by hand: 3 and 5 texels apart, a
+    """bench/island_gaps on squares placed by hand: 3 and 5 texels apart, a
     touching pair (one island: shared corners), and crossing triangles."""
-    from prtt_addon.bench.uv_gaps import island_gaps, triangle_distances, uv_islands
+    from prtt_addon.bench.island_gaps import island_gaps, triangle_distances, uv_islands
 
     def square(x0, y0, s):
         return np.array([[[x0, y0], [x0 + s, y0], [x0 + s, y0 + s]], [[x0, y0], [x0 + s, y0 + s], [x0, y0 + s]]])
@@ -55,7 +55,7 @@ def _scene(bpy, kind):
 @pytest.mark.parametrize("kind", ["torus", "monkey", "cube", "triangles"])
 def test_islands_are_the_padding_apart(method, kind):
     bpy = addon_bpy()
-    from prtt_addon.bench.uv_gaps import island_gaps
+    from prtt_addon.bench.island_gaps import island_gaps
     from prtt_addon.blender.scene.uv_maps import _tri_uvs, bake_downscale, margin_texels
     for res in (512, 1024):
         objects = _scene(bpy, kind)
@@ -66,18 +66,18 @@ def test_islands_are_the_padding_apart(method, kind):
         assert bpy.ops.prtt.unwrap() == {"FINISHED"}
         want = margin_texels(st.padding, st.dilate, bake_downscale(st))
         gap = island_gaps(np.concatenate([_tri_uvs(o) for o in objects]), res)
-        # Smart UV Project's packer is exact. xatlas packs on whole texels and leaves
+        # xatlas packs on whole texels and leaves
         # some charts further apart, never the twice-the-gap it left before.
         # Lightmap Pack: quads exact (their boxes on a grid of whole divisions);
         # paired triangles sit from one inset to sqrt(2) insets across their box.
-        most = {"SMART": want + 0.05, "XATLAS": 2 * want - 0.5,
+        most = {"SMART": np.inf, "XATLAS": 2 * want - 0.5,
                 "LIGHTMAP": (np.sqrt(2) * want if kind == "triangles" else want) + 0.2}[method]
         if method == "SMART":
-            # Blender's SCALED margin (kept: the default's atlas unchanged, uv_maps.py):
-            # at least the 2 texels bilinear lookups need, 6 on the monkey
-            assert gap.min() >= 2.0 and (kind != "monkey" or gap.min() >= want - 0.01), (kind, res, gap.min())
+            # Blender's SCALED margin, kept (uv_maps.py): at least the 2 texels
+            # bilinear lookups need everywhere, and the margin on the monkey
+            assert gap.min() >= 2.0 and (kind != "monkey" or gap.min() >= want - 0.05), (kind, res, gap.min())
             continue
-        assert want - 0.01 <= gap.min() <= most, (method, kind, res, want, gap.min())
+        assert want - 0.05 <= gap.min() <= most, (method, kind, res, want, gap.min())
 
 
 def test_lightmap_pack_seams_are_no_worse_than_smart_uv_projects():

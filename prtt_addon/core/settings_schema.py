@@ -305,7 +305,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("padding", "blender", "int", 4, "space the unwrap leaves between UV islands, in texels of "
             "each object's own resolution (its override or texel density, else the scene's; the atlas's for "
             "One Atlas); at least 2, at least the dilation, and at least 3 x the bounce grid's downscale the "
-            "bake will ask for (tuning auto: 6), so that the coarse bounce grid mixes no islands",
+            "bake will ask for (tuning auto: 6), so that the coarse bounce grid mixes no islands (measured on "
+            "the UV map for each unwrap method: docs/addon.md, Unwrap)",
             unit="texels", lo=0, hi=64,
             option="--margin", metavar="N", ui=Ui("padding", "Margin (texels)", soft_hi=16,
                                                   why_soft="a few texels keep islands apart")),

@@ -241,7 +241,7 @@ def island_margin(padding: int, resolution: int) -> float:
     """Blender's ``FRACTION`` island margin (Pack Islands, Smart UV Project)
     for islands ``padding`` texels apart at ``resolution``: Blender keeps that
     fraction of the UV square around every island, so two islands end up
-    twice it apart (measured on the UV map, bench/uv_gaps.py: 12 texels for
+    twice it apart (measured on the UV map, bench/island_gaps.py: 12 texels for
     a margin of 6 texels; PRTT's repacking of overlaps passed padding /
     resolution, twice the gap asked)."""
     return padding / (2.0 * max(resolution, 1))
@@ -319,11 +319,11 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
             # Objects edited together are packed together: one call per object
             # for per-object texture sets, one call for an atlas.
             for group, r in zip(groups, res):
-                # Blender's SCALED margin (the default), which follows the islands'
-                # scale: on the demo room 7.25 texels at least where 6 are asked, on
-                # a cube 2.5, a torus 3.2 (bench/uv_gaps.py). FRACTION (island_margin)
-                # would be exact, but packs the demo's atlas 6.6 % fewer texels
-                # (772,905 against 827,779): kept as it was, issue 53's note.
+                # Blender's SCALED margin follows the islands' scale: 7.25 texels on the
+                # demo room where 6 are asked, but 2.5 on a cube and 3.2 on a torus
+                # (bench/island_gaps.py). Its exact FRACTION margin packs much sparser
+                # (the demo: 6.6 % fewer texels; the web test's room at 256²: a 2.5x
+                # smaller export), so the default keeps it: issue 53's note.
                 margin = padding / max(r, 1)
                 for angle in SMART_ANGLES:
                     _run_edit_mode_op(context, group, lambda a=angle, m=margin: bpy.ops.uv.smart_project(
