@@ -13,6 +13,8 @@ BENCHMARKS = {
     "sweep": ("prtt_addon.bench.sweep", "run time against error: rays, strategies, resolution, bands, storage, scenes"),
     "cycles": ("prtt_addon.bench.cycles_compare", "diffuse PRTT against Cycles under a band-limited environment"),
     "contact": ("prtt_addon.bench.contact", "the paper's contact-shadow figure, measured against ray tracing"),
+    "contact-profile": ("prtt_addon.bench.contact_profile", "the floor's baked light beside a box against the "
+                        "traced light, in quarter-texel bins (dark creases at contacts)"),
     "web": ("prtt_addon.bench.web_bench", "glTF export vs bake (time, bytes) and the web viewer's page load and "
             "frame time (headless Chromium, SwiftShader)"),
     "figures": ("prtt_addon.bench.figures", "write the docs' figures blocks from the benchmarks' records (--check)"),
@@ -25,7 +27,7 @@ def main(argv=None) -> int:
     if not argv or argv[0] not in BENCHMARKS:
         print("usage: python -m prtt_addon.bench <benchmark> [--help]\n\nbenchmarks:")
         for k, (_, doc) in BENCHMARKS.items():
-            print(f"  {k:8s} {doc}")
+            print(f"  {k:15s} {doc}")
         return 2 if argv and argv[0] not in ("-h", "--help") else 0
     import importlib
     return importlib.import_module(BENCHMARKS[argv[0]][0]).main(argv[1:])
