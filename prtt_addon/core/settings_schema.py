@@ -226,6 +226,11 @@ SETTINGS: tuple[Setting, ...] = (
             "exceed 65504)", flags=("--half", "--float"), off_help="float32 EXR textures"),
     Setting("mips", "bake", "bool", False, "also write coverage-weighted mip levels", flags=("--mips", "--no-mips"),
             off_help="no mip levels"),
+    Setting("texel_validity", "bake", "bool", False, "drop the texels whose sample point lies inside "
+            "geometry (nine in ten of 32 rays hit back faces: a floor under a box resting on it) and fill "
+            "them from their valid neighbours by the dilation, so no dark crease shows where objects touch "
+            "(the bounce textures keep them as traced)", flags=("--texel-validity", "--no-texel-validity"),
+            off_help="keep every texel as traced"),
     Setting("normal_maps", "bake", "bool", True, "shade with the scene's tangent-space normal maps",
             flags=("--normal-maps", "--no-normal-maps"), off_help="ignore normal maps",
             ui=Ui("normal_maps", "Normal Maps")),

@@ -75,6 +75,7 @@ class BakeSettings(TransferSettings):
     dilate: int = _d("dilate")              # texels of dilation
     half: bool = _d("half")                 # float16 EXR (auto float32 on overflow)
     mips: bool = _d("mips")                 # write coverage-weighted mip levels
+    texel_validity: bool = _d("texel_validity")   # fill texels inside geometry from their neighbours
     normal_maps: bool = _d("normal_maps")
     vertex_mode: bool = _d("vertex_mode")   # also bake per-vertex transfer
     textures: bool = _d("textures")         # bake texture sets (False: vertex mode only)
@@ -122,6 +123,8 @@ class BakeSettings(TransferSettings):
             d.pop(k)
         if self.storage_bits() < 10:
             d["storage_bits"] = self.storage_bits()     # absent under fixed: its keys are as before
+        if not self.texel_validity:
+            d.pop("texel_validity")                     # off: the keys of the bakes before it
         return d
 
 

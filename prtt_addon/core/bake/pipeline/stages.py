@@ -39,6 +39,7 @@ from ...model.scene import Scene
 from ...texels.dilate import dilate, mip_chain
 from ...texels.gbuffer import GBuffer, build_gbuffer, face_normals
 from ...texels.texsample import planes_from_rows
+from ..estimators import validity
 from ..estimators.bounce import (
     HALF_OPEN_TOLERANCE,
     OPEN_TOLERANCE,
@@ -272,15 +273,23 @@ def project_rows(ctx: BakeContext, traced: SetRows, *, keep_rows: bool = True,
     return SetPlanes(tex, mask.reshape(gb.height, gb.width))
 
 
-def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer) -> SetPlanes:
+def mip_and_dilate(ctx: BakeContext, sp: SetPlanes, gb: GBuffer, inside: np.ndarray | None = None) -> SetPlanes:
     """With settings.mips, the coverage-weighted mip levels of the undilated
     planes (weights: gb.coverage); then settings.dilate rings of dilation, in
-    place. Returns ``sp``."""
+    place. ``inside`` (N,) bool (settings.texel_validity: validity.inside_texels):
+    those texels are emptied first, so the dilation fills them from their
+    valid neighbours and the mips leave them out. Returns ``sp``."""
     st = ctx.settings
     t = time.perf_counter()
+    if inside is not None and inside.any():
+        drop = gb.texel[inside]
+        sp.planes.reshape(sp.planes.shape[0], -1)[:, drop] = 0.0
+        sp.mask.reshape(-1)[drop] = False
     if st.mips:
         cov = np.zeros(gb.height * gb.width, np.float32)
         cov[gb.texel] = gb.coverage
+        if inside is not None:
+            cov[gb.texel[inside]] = 0.0
         sp.mips = mip_chain(sp.planes, cov.reshape(gb.height, gb.width))
     sp.grown = dilate(sp.planes, sp.mask, st.dilate, executor=ctx.helpers)
     ctx.seconds["dilate"] += time.perf_counter() - t
@@ -394,6 +403,12 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     name = rep["name"]
     if rep.get("skipped"):
         return SetResult(gb.set_index, name, rep, [])
+    inside = None
+    if ctx.settings.texel_validity:
+        inside = validity.inside_texels(geo.rays if geo.rays is not None else RayScene(ctx.scene.positions),
+                                        validity.winding_normals(ctx.scene.positions), gb.position,
+                                        gb.geo_normal, seed=ctx.settings.seed)
+        rep["inside_texels"] = int(inside.sum())
     traced = trace_set(ctx, geo, gb, position=position)
     grid = ctx.bounce_grids.get(gb.set_index) if keep_for_bounce else None
     fine = analytic = None
@@ -410,7 +425,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
         gb.release_geometry()
         fine = surface_texels(ctx.scene, gb, ctx.settings.dilate, diffuse_only=True)
         traced.release_surface()
-        sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=False), gb)
+        sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=False), gb, inside)
     else:
         # The bounce reads of the rows only which texels are open: found as the rows
         # are projected (and consumed), run by run.
@@ -420,7 +435,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
         def opened(a, b):
             is_open[a:b] = open_texels(rows[a:b], gb.normal[a:b], ctx.settings.bands, OPEN_TOLERANCE)
         sp = mip_and_dilate(ctx, project_rows(ctx, traced, keep_rows=keep_for_bounce,
-                                              visit=opened if keep_for_bounce else None), gb)
+                                              visit=opened if keep_for_bounce else None), gb, inside)
         rows = None
     info = traced.info
     # What the bounce reads of the texture, taken band by band as the write consumes them.
