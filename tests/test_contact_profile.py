@@ -47,3 +47,23 @@ def test_no_texel_under_a_single_sided_table_top_reads_as_inside():
     inside = validity.inside_texels(RayScene(sc.positions), validity.winding_normals(sc.positions),
                                     gb.position, gb.geo_normal)
     assert gb.n > 10000 and not inside.any()
+
+
+def test_the_texels_found_inside_are_those_under_the_box():
+    """validity.inside_texels on the contact scene: exactly the floor texels
+    whose centres lie in the box's footprint (the turned square, computed
+    from its corners), at 1.8 and 2.8 cm texels."""
+    from prtt_addon.bench import contact_profile as cp
+    from prtt_addon.core.bake.estimators import validity
+    from prtt_addon.core.bake.estimators.raytrace import RayScene
+    from prtt_addon.core.texels.gbuffer import build_gbuffer
+    for res in (112, 72):
+        sc = cp.build(res)
+        gb = build_gbuffer(sc, sc.set_names.index("floor"))
+        inside = validity.inside_texels(RayScene(sc.positions), validity.winding_normals(sc.positions),
+                                        gb.position, gb.geo_normal)
+        c, s = np.cos(cp.BOX_TURN), np.sin(cp.BOX_TURN)
+        rel = gb.position[:, :2] - np.asarray(cp.BOX_CENTRE)
+        local = rel @ np.array([[c, -s], [s, c]])            # into the box's frame
+        under = np.all(np.abs(local) < cp.BOX_SIZE / 2, axis=1)
+        assert under.sum() > 300 and np.array_equal(inside, under), (res, inside.sum(), under.sum())

@@ -227,7 +227,7 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("mips", "bake", "bool", False, "also write coverage-weighted mip levels", flags=("--mips", "--no-mips"),
             off_help="no mip levels"),
     Setting("texel_validity", "bake", "bool", False, "drop the texels whose sample point lies inside "
-            "geometry (nine in ten of 32 rays hit back faces: a floor under a box resting on it) and fill "
+            "geometry (nine in ten of 16 rays hit back faces: a floor under a box resting on it) and fill "
             "them from their valid neighbours by the dilation, so no dark crease shows where objects touch "
             "(the bounce textures keep them as traced)", flags=("--texel-validity", "--no-texel-validity"),
             off_help="keep every texel as traced"),

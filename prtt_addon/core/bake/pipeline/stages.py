@@ -407,7 +407,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     if ctx.settings.texel_validity:
         inside = validity.inside_texels(geo.rays if geo.rays is not None else RayScene(ctx.scene.positions),
                                         validity.winding_normals(ctx.scene.positions), gb.position,
-                                        gb.geo_normal, seed=ctx.settings.seed)
+                                        gb.geo_normal, seed=ctx.settings.seed, executor=ctx.helpers)
         rep["inside_texels"] = int(inside.sum())
     traced = trace_set(ctx, geo, gb, position=position)
     grid = ctx.bounce_grids.get(gb.set_index) if keep_for_bounce else None
