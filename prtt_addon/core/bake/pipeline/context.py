@@ -217,6 +217,7 @@ class BakeContext:
     remote: object | None = dataclasses.field(init=False)       # the open executors.dask_cluster.DaskBake, else None
     memory: StagePeaks = dataclasses.field(init=False)          # peak RSS per stage (the manifest's "memory")
     bounce_grids: dict = dataclasses.field(init=False)          # set index -> bounce_stage.BounceGrid, chosen
+    validity_scene: tuple | None = dataclasses.field(init=False)  # (RayScene, winding normals): texel_validity's, made once
                                                                 # from its G-buffer (runner; bounce_inputs reads it)
 
     def __post_init__(self):
@@ -229,6 +230,7 @@ class BakeContext:
         self.remote = None
         self.memory = StagePeaks()
         self.bounce_grids = {}
+        self.validity_scene = None
 
     @classmethod
     def create(cls, scene: Scene, out_dir: str, settings: BakeSettings, *, light=None,

@@ -405,9 +405,13 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
         return SetResult(gb.set_index, name, rep, [])
     inside = None
     if ctx.settings.texel_validity:
-        inside = validity.inside_texels(geo.rays if geo.rays is not None else RayScene(ctx.scene.positions),
-                                        validity.winding_normals(ctx.scene.positions), gb.position,
-                                        gb.geo_normal, seed=ctx.settings.seed, executor=ctx.helpers)
+        if ctx.validity_scene is None:
+            # Once per bake, not per set: the winding normals, and under Dask (no
+            # local BVH in geo) the BVH the pass traces.
+            ctx.validity_scene = (geo.rays if geo.rays is not None else RayScene(ctx.scene.positions),
+                                  validity.winding_normals(ctx.scene.positions))
+        inside = validity.inside_texels(*ctx.validity_scene, gb.position, gb.geo_normal,
+                                        seed=ctx.settings.seed, executor=ctx.helpers)
         rep["inside_texels"] = int(inside.sum())
     traced = trace_set(ctx, geo, gb, position=position)
     grid = ctx.bounce_grids.get(gb.set_index) if keep_for_bounce else None
