@@ -18,7 +18,20 @@ RECORDED = [_DATA["cases"]] + [m["cases"] for m in _DATA.get("other_machines", [
 @pytest.mark.parametrize("case", sorted(bake_identity.CASES))
 def test_outputs_byte_identical(case, tmp_path):
     got = bake_identity.bake_case(case, str(tmp_path))
+    # Which files differ from the nearest record tells a changed input (every
+    # file, or one set's) from another CPU's rounding (every traced file).
+    nearest = min((sorted(f for f in set(got) | set(m[case]) if got.get(f) != m[case].get(f)) for m in RECORDED),
+                  key=len)
     assert any(got == machine[case] for machine in RECORDED), (
-        f"{case}: not the bytes the code at {_DATA['recorded_at_commit'][:7]} wrote on any machine recorded; on a "
-        f"new kind of CPU, run tests/bake_identity.py --record with that commit's code there and add it to "
+        f"{case}: not the bytes the code at {_DATA['recorded_at_commit'][:7]} wrote on any machine recorded "
+        f"(this CPU: {_cpu()}; {len(nearest)} of {len(got)} files differ from the nearest record: {nearest[:6]}); "
+        f"on a new kind of CPU, run tests/bake_identity.py --record with that commit's code there and add it to "
         f"other_machines")
+
+
+def _cpu() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            return next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), "?")
+    except OSError:
+        return "?"

@@ -93,3 +93,24 @@ def test_lightmap_pack_seams_are_no_worse_than_smart_uv_projects():
     assert lightmap["seam"]["mean"] <= 1.25 * smart["seam"]["mean"]
     assert lightmap["seam"]["p99"] <= 1.25 * smart["seam"]["p99"]
     assert smart["seam"]["p99"] < 0.02
+
+
+def test_bench_scenes_keep_the_layout_they_were_measured_with():
+    """meshgen.chart_gap turns the benchmark scenes' xatlas padding into the gap
+    core's unwrap takes now: xatlas gets the same padding at the first try and
+    at every halving of a retry (a trailing extra try at 0 aside), so the
+    scenes, the bake identity record and the benchmark figures keep their
+    layouts."""
+    from prtt_addon.bench.meshgen import chart_gap
+    from prtt_addon.core.texels.unwrap import xatlas_padding
+
+    def halvings(p):
+        out = [p]
+        while p:
+            p //= 2
+            out.append(p)
+        return out
+
+    for p in range(0, 65):
+        asked = [xatlas_padding(g) for g in halvings(chart_gap(p))]
+        assert asked[:len(halvings(p))] == halvings(p) and not any(asked[len(halvings(p)):]), (p, asked)

@@ -43,7 +43,7 @@ def texture_bytes(out_dir: str, manifest: dict) -> int:
 
 
 def reference_dir(name: str, sc, light, res: int, rays: int, bounce_rays: int) -> str:
-    d = os.path.join(scene_library.CACHE, f"auto-ref-{name}-{res}-{rays}-{bounce_rays}")
+    d = os.path.join(scene_library.CACHE, f"auto-ref-{name}-{res}-{rays}-{bounce_rays}-{scene_library.layout_code()}")
     if not os.path.isfile(os.path.join(d, "manifest.json")):
         print(f"converged reference of {name}: {rays} transfer rays, {bounce_rays} bounce rays (once; cached in "
               f"{os.path.relpath(d, scene_library.ROOT)})", flush=True)

@@ -137,7 +137,7 @@ def sweep_transfer_denoise(cfg, sc, tmp: str) -> list:
     blurs shows up in it)."""
     rays_list = (16, 64) if cfg.quick else (32, 64, 128, 256, 512)
     ref_rays = 1024 if cfg.quick else REF_TRANSFER_RAYS
-    ref_dir = os.path.join(scene_library.CACHE, f"denoise-ref-{cfg.sweep_res}-{ref_rays}")
+    ref_dir = os.path.join(scene_library.CACHE, f"denoise-ref-{cfg.sweep_res}-{ref_rays}-{scene_library.layout_code()}")
     if not os.path.isfile(os.path.join(ref_dir, "manifest.json")):
         print(f"  transfer reference ({ref_rays} rays per texel, cached) ...", flush=True)
         bake_scene(sc, ref_dir, BakeSettings(rays=ref_rays, bands=5, half=False, bounces=0, seed=777),

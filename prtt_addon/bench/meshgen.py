@@ -271,6 +271,14 @@ def asset_path(name: str) -> str:
 
 # --- scene assembly --------------------------------------------------------------------
 
+def chart_gap(xatlas_padding: int) -> int:
+    """The gap in texels to ask core's unwrap for, so that xatlas gets
+    ``xatlas_padding`` on each side, at every halving of a retry too
+    (unwrap.xatlas_padding(2 p + 1) = p, and of (2 p + 1) // 2 = p // 2 with
+    p even, the same as halving p; odd p round as before: tested)."""
+    return 2 * int(xatlas_padding) + 1
+
+
 def assemble(objects: list[tuple[str, Mesh]], *, resolution: int = 1024, atlas: bool = False,
              padding: int = 4, keep_uvs: bool = False, resolutions: dict | None = None) -> Scene:
     """A bake Scene from named meshes, unwrapped with xatlas (core.model.assembly
@@ -280,13 +288,17 @@ def assemble(objects: list[tuple[str, Mesh]], *, resolution: int = 1024, atlas: 
     atlas=True: one shared set "atlas" holding every object.
     keep_uvs: use a mesh's own UVs (must lie in [0, 1] without overlaps).
     resolutions: per-object resolution overrides (per-object sets only).
+    padding: xatlas's own padding on each side of a chart (charts end
+    :func:`chart_gap` = 2 p + 1 texels apart): the benchmark scenes, the bake
+    identity record and every benchmark figure were made with it, before
+    core's unwrap took the gap instead (issue 53), so their layouts stay.
     """
     names = [n for n, _ in objects]
     if len(set(names)) != len(names):
         raise ValueError(f"object names must be unique: {names}")
     if atlas:
         todo = [(m.vertices, m.faces) for _, m in objects]
-        uvs = unwrap(todo, resolution, padding=padding)
+        uvs = unwrap(todo, resolution, padding=chart_gap(padding))
         set_names, set_res = ["atlas"], [[resolution, resolution]]
     else:
         uvs = []
@@ -295,7 +307,7 @@ def assemble(objects: list[tuple[str, Mesh]], *, resolution: int = 1024, atlas: 
                 uvs.append(m.uvs)
             else:
                 r = (resolutions or {}).get(n, resolution)
-                uvs.append(unwrap([(m.vertices, m.faces)], r, padding=padding)[0])
+                uvs.append(unwrap([(m.vertices, m.faces)], r, padding=chart_gap(padding))[0])
         set_names = names
         set_res = [[(resolutions or {}).get(n, resolution)] * 2 for n in names]
     parts = [MeshPart(n, m.corner_positions(), m.corner_normals(), uvs[i], 0 if atlas else i)

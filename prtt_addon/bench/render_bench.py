@@ -38,7 +38,7 @@ def baked_preview(bunnies: int, light, *, bands: int = 5, rays: int = 32):
     from ..core.preview.pack import from_core_scene
     sc = scene_library.render_scaling_scene(bunnies)
     sc = scene_library.with_room_materials(sc)
-    out = os.path.join(scene_library.CACHE, f"render-{bunnies}")
+    out = os.path.join(scene_library.CACHE, f"render-{bunnies}-{scene_library.layout_code()}")
     t = time.perf_counter()
     st = BakeSettings(bands=bands, rays=rays, vertex_mode=True, bounces=1, bounce_rays=16, bounce_mode="baked")
     print("settings of the bake drawn: " + figures.settings_line(st, BakeSettings()))

@@ -109,9 +109,22 @@ def triangle_scaling_scene(target: int, resolution: int = 1024) -> Scene:
                  object_names=room.object_names + ["bunnies"])
 
 
+def layout_code() -> str:
+    """A digest of the code that makes the cached layouts (core's unwrap and
+    meshgen): part of every cache key, so an edit there makes the scenes
+    again instead of loading layouts the code no longer makes (a cache keyed
+    by name alone hid issue 53's unwrap change from this machine's tests)."""
+    from ..core.texels import unwrap
+    h = hashlib.sha256()
+    for mod in (unwrap, mg):
+        with open(mod.__file__, "rb") as f:
+            h.update(f.read())
+    return h.hexdigest()[:8]
+
+
 def cached_scene(name: str, builder, *, resolution: int, atlas: bool) -> Scene:
     """Build (or load from .cache/bench) a scene job unwrapped at ``resolution``."""
-    key = hashlib.sha256(f"{name}-{resolution}-{atlas}-v2".encode()).hexdigest()[:12]
+    key = hashlib.sha256(f"{name}-{resolution}-{atlas}-v2-{layout_code()}".encode()).hexdigest()[:12]
     path = os.path.join(CACHE, f"{name}-{resolution}-{'atlas' if atlas else 'sets'}-{key}.npz")
     if os.path.isfile(path):
         return load_scene(path)[0]
@@ -166,7 +179,7 @@ def with_room_materials(sc: Scene) -> Scene:
 def bunny_unwrapped(resolution: int = 256):
     """The 69K-triangle bunny (smooth, Z up, 0.5 m tall) and an xatlas unwrap,
     cached (the unwrap takes ~15 s)."""
-    path = os.path.join(CACHE, f"bunny-uv-{resolution}-v1.npz")
+    path = os.path.join(CACHE, f"bunny-uv-{resolution}-{layout_code()}.npz")
     b = mg.load_obj(mg.asset_path("stanford-bunny.obj"), smooth=True)
     # The scan is Y up: turn it Z up, scale to 0.5 m, stand it at the origin.
     v = b.vertices[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])
@@ -179,7 +192,7 @@ def bunny_unwrapped(resolution: int = 256):
         with np.load(path) as z:
             return b, np.array(z["uv"])
     from ..core.texels.unwrap import unwrap
-    uv = unwrap([(b.vertices, b.faces)], resolution, padding=2)[0]
+    uv = unwrap([(b.vertices, b.faces)], resolution, padding=mg.chart_gap(2))[0]
     os.makedirs(CACHE, exist_ok=True)
     np.savez(path, uv=uv)
     return b, uv
@@ -235,13 +248,13 @@ def unwrapped_asset(name: str, resolution: int, *, y_up: bool) -> mg.Mesh:
     m.uvs = None
     if y_up:
         m = _y_up_to_z_up(m)
-    path = os.path.join(CACHE, f"uv-{os.path.splitext(name)[0]}-{resolution}-v1.npz")
+    path = os.path.join(CACHE, f"uv-{os.path.splitext(name)[0]}-{resolution}-{layout_code()}.npz")
     if os.path.isfile(path):
         with np.load(path) as z:
             m.uvs = np.array(z["uv"])
         return m
     from ..core.texels.unwrap import unwrap
-    m.uvs = unwrap([(m.vertices, m.faces)], resolution, padding=2)[0]
+    m.uvs = unwrap([(m.vertices, m.faces)], resolution, padding=mg.chart_gap(2))[0]
     os.makedirs(CACHE, exist_ok=True)
     np.savez(path, uv=m.uvs)
     return m
@@ -329,7 +342,7 @@ def paper_scene(name: str, resolution: int = 1024) -> Scene:
     builder, atlas = PAPER_SCENES[name]
     if atlas:
         return cached_scene(name, builder, resolution=resolution, atlas=True)
-    key = hashlib.sha256(f"{name}-{resolution}-v1".encode()).hexdigest()[:12]
+    key = hashlib.sha256(f"{name}-{resolution}-v1-{layout_code()}".encode()).hexdigest()[:12]
     path = os.path.join(CACHE, f"{name}-{resolution}-sets-{key}.npz")
     if os.path.isfile(path):
         return load_scene(path)[0]

@@ -168,7 +168,7 @@ class Previewer:
 
 def reference(cfg: Config, sc) -> tuple[str, dict]:
     """The converged reference of the sweep scene (cached): folder and textures."""
-    d = os.path.join(scene_library.CACHE, f"sweep-ref-{cfg.sweep_res}-{cfg.ref_rays}-b{cfg.ref_bands}")
+    d = os.path.join(scene_library.CACHE, f"sweep-ref-{cfg.sweep_res}-{cfg.ref_rays}-b{cfg.ref_bands}-{scene_library.layout_code()}")
     if not os.path.isfile(os.path.join(d, "manifest.json")):
         print(f"  converged reference: {cfg.ref_rays} stratified rays per texel, {cfg.ref_bands} bands "
               f"(once; cached in {os.path.relpath(d, scene_library.ROOT)})", flush=True)
