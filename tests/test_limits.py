@@ -22,13 +22,11 @@ from tests.test_headless_chain import ROOT
 LIMIT = 6 << 30
 
 
-def _limited():
-    resource.setrlimit(resource.RLIMIT_AS, (LIMIT, LIMIT))
-
-
-def run_limited(*args, cwd):
+def run_limited(*args, cwd, limit=LIMIT):
+    """``python -m prtt_addon ARGS`` in ``cwd`` under an address-space limit of ``limit`` bytes."""
     return subprocess.run([sys.executable, "-m", "prtt_addon", *args], capture_output=True, text=True, cwd=cwd,
-                          timeout=900, preexec_fn=_limited, env={"PYTHONPATH": ROOT, "PATH": "/usr/bin:/bin"})
+                          timeout=900, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (limit, limit)),
+                          env={"PYTHONPATH": ROOT, "PATH": "/usr/bin:/bin"})
 
 
 def test_overlap_count_is_rasterize_s_count_in_bands():
@@ -110,3 +108,29 @@ def test_every_bake_setting_at_its_largest_is_refused_before_it_is_baked(tmp_pat
         assert r.returncode == 1 and "needs about" in out and "but only" in out, out[-3000:]
         assert "Traceback" not in out and "during the bake" not in out and "trace [" not in out, out[-3000:]
         assert not (tmp_path / "tex" / "manifest.json").exists()
+
+
+@pytest.mark.blender
+def test_export_under_a_memory_limit_is_made_or_refused_up_front(tmp_path):
+    """The glTF export of relightable sets (tuning fixed: the relightable
+    textures at the set's resolution) under a 3 GiB address-space limit: at
+    512² it is written; at 1024² (a set's payloads need about 2.2 GiB while
+    they are made) it is refused in one line before a texture is read, and
+    nothing is written. Before the payloads were made a band of rows at a
+    time, the 2048² export peaked at 21.6 GB."""
+    bpy = addon_bpy()
+    rs.floor_and_box(bpy)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    for res in ("512", "1024"):
+        r = run_limited("bake", "scene.blend", "--unwrap", "smart", "--tuning", "fixed", "--resolution", res,
+                        "--rays", "8", "--bounce-rays", "4", "--out", f"tex{res}", "--save-as", f"s{res}.blend",
+                        cwd=tmp_path)
+        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
+    limit = 3 << 30
+    small = run_limited("export", "s512.blend", "--out", "s512.glb", cwd=tmp_path, limit=limit)
+    assert small.returncode == 0 and (tmp_path / "s512.glb").stat().st_size > 0, small.stderr[-3000:]
+    big = run_limited("export", "s1024.blend", "--out", "s1024.glb", cwd=tmp_path, limit=limit)
+    assert big.returncode == 1, big.stdout[-2000:] + big.stderr[-3000:]
+    assert "exporting texture set" in big.stderr and "needs about" in big.stderr and "--encoding u8" in big.stderr
+    assert "Traceback" not in big.stderr and not (tmp_path / "s1024.glb").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".s1024")]      # no temporary left

@@ -46,19 +46,18 @@ import bpy
 import numpy as np
 
 from ...core.base.atomic import atomic_write
-from ...core.io.exr_io import read_relight_exr, read_sh_exr
+from ...core.base.memory import MemoryLimitError, check_fits
 from ...core.io.gltf_prtt import (
     ENCODINGS,
     NAME,
-    bounce_payload,
+    bounce_files_payload,
     display_extension,
     environment_extension,
+    file_payloads,
     material_extension,
     read_glb_json,
-    relight_dc_payload,
-    relight_glossy_payload,
     root_extension,
-    transfer_payload,
+    set_payload_bytes,
 )
 from ...core.io.image_write import png_bytes, srgb8
 from ...core.preview import pack as pp
@@ -415,38 +414,61 @@ def _check_exportable(context, info: dict):
     return ps, status
 
 
+def _set_files(ps: pp.PreviewScene, folder: str, info: dict) -> list:
+    """Per texture set, in export order: (set name, its objects, transfer
+    file, relightable file or None, baked bounce level files)."""
+    out = []
+    for set_name, objects in sorted(info["set_objects"].items()):
+        pset = ps.sets.get(set_name)
+        relight = pset.relight if pset is not None and pset.relight else None
+        bounces = list(pset.bounces) if pset is not None and not relight and pset.bounces else []
+        out.append((set_name, objects, os.path.join(folder, f"{set_name}.transfer.exr"), relight, bounces))
+    return out
+
+
+#: Copies of the payloads' bytes Blender's glTF exporter makes beyond PRTT's
+#: own: its buffer (a bytearray they are appended to) and that buffer's
+#: growth (a reallocation copies it).
+EXPORTER_COPIES = 2
+
+
+def _fits(needed: int, what: str) -> None:
+    try:
+        check_fits(needed, what, advice="free memory, export with --encoding u8, or bake at a lower resolution")
+    except MemoryLimitError as exc:
+        raise GltfExportError(str(exc)) from None
+
+
 def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
                   encoding: str = "half") -> tuple[list, list, dict]:
     """The root's ``sets`` (transfer and bounce textures as KTX2), the blobs
-    that go into buffer views, and {object: set index}."""
+    that go into buffer views, and {object: set index}. Each payload is
+    made from its file a band of rows at a time (gltf_prtt.file_payloads),
+    each set after a check that it fits (gltf_prtt.set_payload_bytes) beside the
+    payloads made before it."""
     K = ps.bands * ps.bands
     sets, blobs, set_index = [], [], {}
-    for i, (set_name, objects) in enumerate(sorted(info["set_objects"].items())):
-        data, _ = read_sh_exr(os.path.join(folder, f"{set_name}.transfer.exr"))      # (H, W, K), row 0 at the bottom
-        planes = np.ascontiguousarray(data[::-1].transpose(2, 0, 1))               # (K, H, W), top row first
-        blob, meta = transfer_payload(planes, encoding=encoding)
-        entry = {"name": set_name, "resolution": [meta["width"], meta["height"]], "transfer": meta}
-        payload = {"transfer": blob}
-        pset = ps.sets.get(set_name)
-        if pset is not None and pset.relight:
-            # (H, W, 3, K), and (H, W, 3, Kg - 1, Kg) or shared (H, W, Kg - 1, Kg) as stored; row 0 at the bottom
-            dc, glossy, attrs = read_relight_exr(pset.relight, expand=False)
-            payload["relightDC"], entry["relightDC"] = relight_dc_payload(
-                np.ascontiguousarray(dc[::-1].transpose(2, 3, 0, 1)), encoding=encoding)
-            if glossy is not None and int(attrs.get("glossy_bands", 0)) > 0:
-                axes = (2, 3, 4, 0, 1) if glossy.ndim == 5 else (2, 3, 0, 1)
-                payload["relightGlossy"], entry["relightGlossy"] = relight_glossy_payload(
-                    np.ascontiguousarray(glossy[::-1].transpose(*axes)), dc.shape[-1], encoding=encoding)
-        elif pset is not None and pset.bounces:
-            b = pset.load_bounce(K)                                 # (H, W, 3, K): every level summed, as drawn
-            if b.shape[-1] != K:
-                notes.append(f"texture set {set_name!r}: its bounce textures hold {b.shape[-1]} coefficients, "
+    held = 0
+    for i, (set_name, objects, transfer, relight, bounces) in enumerate(_set_files(ps, folder, info)):
+        _fits(set_payload_bytes(transfer, relight, bounces, K, encoding),
+              f"exporting texture set {set_name!r} (beside the {held / 2 ** 20:.0f} MiB of sets made before it)")
+        made = file_payloads(transfer, encoding)
+        meta = made["transfer"][1]
+        entry = {"name": set_name, "resolution": [meta["width"], meta["height"]]}
+        if relight:
+            made.update(file_payloads(relight, encoding))
+        elif bounces:
+            b = bounce_files_payload(bounces, K, encoding)
+            if isinstance(b, int):
+                notes.append(f"texture set {set_name!r}: its bounce textures hold {b} coefficients, "
                              f"the bake {K}: left out of the glTF (bake again)")
             else:
-                payload["bounce"], entry["bounce"] = bounce_payload(
-                    np.ascontiguousarray(b[::-1].transpose(2, 3, 0, 1)), len(pset.bounces), encoding=encoding)
+                made["bounce"] = b
+        for key, (blob, meta) in made.items():
+            entry[key] = meta
+            blobs.append((("sets", i, key), blob))
+            held += len(blob)
         sets.append(entry)
-        blobs += [(("sets", i, key), blob) for key, blob in payload.items()]
         for name in objects:
             set_index[name] = i
     return sets, blobs, set_index
@@ -536,6 +558,9 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
     bands = int(info["settings"]["bands"])
     notes = []
     sets, blobs, set_index = _set_payloads(ps, folder, info, notes, encoding)
+    payload = sum(len(b) for _, b in blobs)
+    _fits(EXPORTER_COPIES * payload, f"Blender's glTF exporter's copy of the {payload / 2 ** 20:.0f} MiB of "
+          f"baked textures")
     environment, env_blob = _environment(scene, notes, status.light_fallback)
     if env_blob is not None:
         blobs.append((("environment", "image"), env_blob))

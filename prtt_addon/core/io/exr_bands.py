@@ -255,3 +255,29 @@ def channel_bands(path, names: list, height: int, width: int, rows: int, error=V
         yield bands.start()
     finally:
         bands.close()
+
+
+#: Bytes of file rows :func:`read_layers` asks the child for at a time (what
+#: this process holds of the file beside the layers it fills).
+READ_BAND_BYTES = 64 << 20
+
+
+def read_layers(path, groups: list, height: int, width: int, *, dtype=np.float16,
+                error=ValueError) -> np.ndarray:
+    """(len(groups), height, width, 4) ``dtype`` layers of a texture whose
+    header the caller has checked: layer l's channel c holds the file's
+    channel ``groups[l][c]`` (None: 0), rows in file order (top first), read
+    a band of rows at a time (:func:`channel_bands`), so this process never
+    holds the whole file besides the layers."""
+    names = list(dict.fromkeys(n for g in groups for n in g if n is not None))
+    out = np.zeros((len(groups), height, width, 4), dtype)
+    if not names:
+        return out
+    rows = max(1, READ_BAND_BYTES // max(1, width * len(names) * 4))
+    with channel_bands(path, names, height, width, rows, error=error) as stream:
+        for top, n, chans in stream:
+            for layer, group in enumerate(groups):
+                for c, name in enumerate(group):
+                    if name is not None:
+                        out[layer, top:top + n, :, c] = chans[name]
+    return out

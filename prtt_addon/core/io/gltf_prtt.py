@@ -19,11 +19,14 @@ viewer turns a glTF world direction d into the bake frame with
 from __future__ import annotations
 
 import json
+import os
 import struct
 
 import numpy as np
 
 from ..shading.display import LUT_ENCODING
+from .exr_bands import read_layers
+from .exr_io import TextureError, bands_of_header, channel_names, checked_header, relight_channel_names
 from .ktx2 import ktx2_bytes, sh_layers
 
 NAME = "PRTT_radiance_transfer"
@@ -88,9 +91,9 @@ def encode_u8(layers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     constant plane gets scale 0 (q = 0)."""
     a = np.asarray(layers, np.float32)
     L = a.shape[0]
-    planes = a.transpose(0, 3, 1, 2).reshape(4 * L, -1)
-    lo = planes.min(axis=1).astype(np.float64)
-    hi = planes.max(axis=1).astype(np.float64)
+    # Plane by plane: a transposed copy of the layers would double them.
+    lo = np.array([a[p // 4, :, :, p % 4].min() for p in range(4 * L)], np.float64)
+    hi = np.array([a[p // 4, :, :, p % 4].max() for p in range(4 * L)], np.float64)
     scale = (hi - lo) / 255.0
     q = np.zeros(a.shape, np.uint8)
     for p in range(4 * L):                   # one plane at a time: no float64 copy of the whole payload
@@ -142,8 +145,10 @@ def relight_dc_payload(dc: np.ndarray, *, supercompression: str = "zstd",
     layer c * ceil(K / 4), coefficient i in layer i // 4, channel i % 4 of
     them) and their JSON. The bounce's diffuse radiance under a light L is
     sqrt(4 pi) * sum_i DC_c,i L_c,i per colour c (docs/shading.md)."""
-    C, K = dc.shape[:2]
-    layers = _row_layers(dc)
+    return _dc_payload(_row_layers(dc), dc.shape[0], dc.shape[1], supercompression, encoding)
+
+
+def _dc_payload(layers, C: int, K: int, supercompression: str, encoding: str) -> tuple[bytes, dict]:
     return _payload(layers, "relight-dc", K, supercompression, encoding, colours=int(C),
                     layersPerColour=int(layers.shape[0] // C))
 
@@ -174,7 +179,12 @@ def relight_glossy_payload(glossy: np.ndarray, K: int, *, supercompression: str 
     C, O, Kg = g.shape[:3]
     if O != Kg - 1 or C not in (1, 3):
         raise ValueError(f"glossy rows: expected (3, Kg - 1, Kg, H, W) or (Kg - 1, Kg, H, W), got {glossy.shape}")
-    layers = _row_layers(g.reshape(C * O, Kg, *g.shape[3:]))
+    return _glossy_payload(_row_layers(g.reshape(C * O, Kg, *g.shape[3:])), shared, Kg, K, supercompression,
+                           encoding)
+
+
+def _glossy_payload(layers, shared: bool, Kg: int, K: int, supercompression: str,
+                    encoding: str) -> tuple[bytes, dict]:
     return _payload(layers, "relight-glossy", K, supercompression, encoding, colours=3,
                     glossyColour="shared" if shared else "per-colour",
                     glossyBands=int(round(Kg ** 0.5)), glossyCoefficients=int(Kg),
@@ -188,10 +198,175 @@ def bounce_payload(bounce: np.ndarray, levels: int, *, supercompression: str = "
     layout: colour c's coefficient k in layer c * ceil(K / 4) + k // 4,
     channel k % 4). The bounce radiance's SH coefficients, added to the
     incident light before shading (docs/shading.md)."""
-    C, K = bounce.shape[:2]
-    layers = _row_layers(bounce)
+    return _bounce_payload(_row_layers(bounce), bounce.shape[0], bounce.shape[1], levels, supercompression,
+                           encoding)
+
+
+def _bounce_payload(layers, C: int, K: int, levels: int, supercompression: str,
+                    encoding: str) -> tuple[bytes, dict]:
     return _payload(layers, "bounce", K, supercompression, encoding, colours=int(C),
                     layersPerColour=int(layers.shape[0] // C), levels=int(levels))
+
+
+# --- payloads read from the bake's files ------------------------------------------------
+#
+# The same bytes as the functions above on the arrays exr_io reads, made
+# from the files' channels a band of rows at a time (exr_bands: decoded in a
+# child): what this process holds is the payload's layers (half floats, or
+# float32 for "u8") and one band, instead of the whole texture as float32,
+# its transposed copy, its padded layers and their bytes (a 2048²
+# relightable set's export peaked at 21.6 GB that way).
+
+def _groups(names: list) -> list:
+    """Channel names four to a layer, the last padded with None (sh_layers'
+    layout of one row of coefficients)."""
+    padded = list(names) + [None] * (-len(names) % 4)
+    return [padded[i:i + 4] for i in range(0, len(padded), 4)]
+
+
+def _row_groups(names: list, rows: int, per_row: int) -> list:
+    """:func:`_groups` of each of ``rows`` consecutive rows of ``per_row`` names (_row_layers' layout)."""
+    return [g for r in range(rows) for g in _groups(names[r * per_row:(r + 1) * per_row])]
+
+
+def _layer_dtype(encoding: str):
+    return np.float32 if encoding == "u8" else np.float16
+
+
+def _file_plan(path: str) -> tuple[int, int, set, list]:
+    """(H, W, the channels the file has, [(payload key, its layers' channel
+    groups, a function (layers, supercompression, encoding) -> (blob,
+    meta))]) of a bake texture, from its checked header alone."""
+    header, H, W = checked_header(path, decoded=0)
+    attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
+    try:
+        have = {c.name for c in header.get("channels") or []}
+    except (UnicodeDecodeError, AttributeError) as exc:      # names are bytes from the file
+        raise TextureError(f"{path}: unreadable EXR (its channel names: {exc})") from None
+    K = bands_of_header(path, attrs) ** 2
+    if attrs["kind"] != "relight":
+        return H, W, have, [("transfer", _groups(channel_names(K)),
+                             lambda lay, sc, enc: _payload(lay, "transfer", K, sc, enc))]
+    kg = bands_of_header(path, attrs, "glossy_bands", 0, int(round(K ** 0.5))) ** 2
+    colour = attrs.get("glossy_colour", "per-colour")
+    if colour not in ("per-colour", "shared"):
+        raise TextureError(f"{path}: unknown prtt_glossy_colour {colour!r:.40} (per-colour or shared)")
+    shared = colour == "shared"
+    names = relight_channel_names(K, kg, shared)
+    plan = [("relightDC", _row_groups(names, 3, K), lambda lay, sc, enc: _dc_payload(lay, 3, K, sc, enc))]
+    if kg:
+        rows = (1 if shared else 3) * (kg - 1)
+        plan.append(("relightGlossy", _row_groups(names[3 * K:], rows, kg),
+                     lambda lay, sc, enc: _glossy_payload(lay, shared, kg, K, sc, enc)))
+    return H, W, have, plan
+
+
+#: Bytes a payload value costs while it is made, by encoding: the layers
+#: (half floats; "u8": float32 and the 8-bit copy) and the compressed bytes
+#: beside them (:data:`STORED_BYTES`).
+MAKING_BYTES = {"half": 2 + 2.02, "u8": 4 + 1 + 1.01}
+#: Bytes a payload value costs at most once compressed: the stored value and
+#: 1 % for data zstd cannot compress.
+STORED_BYTES = {"half": 2.02, "u8": 1.01}
+
+
+def file_payload_values(path) -> int:
+    """Values (layers x 4 x H x W) of the payloads :func:`file_payloads` makes
+    of the texture at ``path``, from its checked header alone."""
+    H, W, _, plan = _file_plan(os.fspath(path))
+    return sum(len(groups) for _, groups, _ in plan) * 4 * H * W
+
+
+def file_payloads(path, encoding: str = "half", supercompression: str = "zstd") -> dict:
+    """{"transfer": (blob, meta)} of a transfer texture, or {"relightDC": ...,
+    "relightGlossy": ...} of a relightable bounce texture, from its file:
+    the bytes :func:`transfer_payload`, :func:`relight_dc_payload` and
+    :func:`relight_glossy_payload` make of what read_sh_exr /
+    read_relight_exr(expand=False) return, rows top first."""
+    if encoding not in ENCODINGS:
+        raise ValueError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    path = os.fspath(path)
+    H, W, have, plan = _file_plan(path)
+    out = {}
+    for key, groups, make in plan:
+        missing = [n for g in groups for n in g if n is not None and n not in have]
+        if missing:
+            raise TextureError(f"{path}: missing channels {missing[:4]}{'...' if len(missing) > 4 else ''}")
+        out[key] = make(read_layers(path, groups, H, W, dtype=_layer_dtype(encoding), error=TextureError),
+                        supercompression, encoding)
+    return out
+
+
+def _bounce_plan(paths: list, K: int) -> tuple[int, int, list] | int:
+    """(H, W, [(path, channel groups)]) of baked bounce levels summed to K
+    coefficients (a band-limited level padded with zeros, as
+    PreviewSet.load_bounce pads it), or the coefficients a level holds
+    instead of K (left out of the glTF)."""
+    H = W = None
+    plan = []
+    for p in paths:
+        header, h, w = checked_header(p, decoded=0)
+        attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
+        k = bands_of_header(p, attrs) ** 2
+        if k != K and not (attrs.get("band_limited") and k < K):
+            return k
+        if H is not None and (h, w) != (H, W):
+            raise TextureError(f"{p}: bounce level of {w}x{h} texels does not match the others' {W}x{H}")
+        H, W = h, w
+        names = channel_names(K, rgb=True)
+        held = set(channel_names(k, rgb=True))
+        plan.append((p, _row_groups([n if n in held else None for n in names], 3, K)))
+    return H, W, plan
+
+
+def bounce_files_values(paths: list, K: int) -> int:
+    """Values of :func:`bounce_files_payload`'s payload (0 when it is left
+    out); while it is made it also holds 8 bytes a value (the float32 sum and
+    one level's float32 layers)."""
+    plan = _bounce_plan([os.fspath(p) for p in paths], K)
+    if isinstance(plan, int):
+        return 0
+    H, W, levels = plan
+    return len(levels[0][1]) * 4 * H * W
+
+
+def bounce_files_payload(paths: list, K: int, encoding: str = "half",
+                         supercompression: str = "zstd") -> tuple[bytes, dict] | int:
+    """:func:`bounce_payload` of the baked bounce levels ``paths`` summed in
+    order (PreviewSet.load_bounce's float32 sum), from their files, or the
+    coefficients a level holds when it is not K."""
+    if encoding not in ENCODINGS:
+        raise ValueError(f"encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    plan = _bounce_plan([os.fspath(p) for p in paths], K)
+    if isinstance(plan, int):
+        return plan
+    H, W, levels = plan
+    total = None
+    for p, groups in levels:
+        layers = read_layers(p, groups, H, W, dtype=np.float32, error=TextureError)
+        if total is None:
+            total = layers
+        else:
+            total += layers
+            del layers
+    if encoding == "half":
+        total = total.astype(np.float16)
+    return _bounce_payload(total, 3, K, len(levels), supercompression, encoding)
+
+
+def set_payload_bytes(transfer, relight, bounces: list, K: int, encoding: str = "half") -> int:
+    """Bytes one texture set's payloads hold at most while they are made
+    (:func:`file_payloads` of ``transfer`` and ``relight``, or
+    :func:`bounce_files_payload` of ``bounces``), from the files' headers
+    alone: the largest payload's layers and compressed bytes
+    (:data:`MAKING_BYTES` a value; a baked bounce's float32 sum and level, 8
+    more) and the set's other payloads' compressed bytes (at most
+    :data:`STORED_BYTES` a value). The band exr_bands holds is checked when
+    it starts."""
+    values = [file_payload_values(p) for p in (transfer, relight) if p]
+    bounce = bounce_files_values(bounces, K) if bounces else 0
+    making = max([v * MAKING_BYTES[encoding] for v in values] + [bounce * (8 + MAKING_BYTES[encoding])])
+    return int(making + (sum(values) + bounce) * STORED_BYTES[encoding])
 
 
 def material_extension(*, base_color, metallic: float, roughness: float, f0: float, normal_strength: float,
