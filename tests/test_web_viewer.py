@@ -462,6 +462,16 @@ def _too_wide(doc, binary):
     payload(doc, binary, doc["extensions"][EXT]["sets"][0]["transfer"], np.zeros((7, 2, 8200, 4)))
 
 
+def _too_much(doc, binary):
+    """Six more sets, each texture within the viewer's 1 GiB (0.9), together 5.5 GiB:
+    refused from the declared sizes before anything is decoded."""
+    ext = doc["extensions"][EXT]
+    big = dict(ext["sets"][0], transfer=dict(ext["sets"][0]["transfer"], width=4096, height=4096))
+    for key in ("bounce", "relightDC", "relightGlossy"):
+        big.pop(key, None)
+    ext["sets"] = ext["sets"] + [dict(big, name=f"big{i}") for i in range(6)]
+
+
 def _table(size):
     """A display table whose bytes are the first transfer's KTX2 (not a Zstandard frame of a table)."""
     def edit(doc, binary):
@@ -479,6 +489,7 @@ BAD_FILES = {
     "wrong coefficient count": (_coefficients, "24 coefficients for 5 bands"),
     "layers against the extension": (_fewer_layers, "transfer: 256x256 in 7 layers, the extension says 256x256 in 4"),
     "over MAX_TEXTURE_SIZE": (_too_wide, "exceeds this browser's MAX_TEXTURE_SIZE (8192)"),
+    "over the scene budget": (_too_much, "over the viewer's 2048 MiB for a whole scene"),
 }
 
 

@@ -21,7 +21,8 @@ import {
 } from './prtt_shaders.js';
 import { gauntTable, lightBlock, relightBlock, turnLightZ } from './prtt_sh.js';
 import {
-  PRTTError, arrayTexture, concatLayers, displayTable, dummy2D, expandSharedGlossy, gpuLimits, keepLayers,
+  MAX_SCENE_BYTES, PRTTError, arrayTexture, concatLayers, declaredBytes, displayTable, dummy2D, expandSharedGlossy,
+  gpuLimits, keepLayers,
 } from './prtt_textures.js';
 
 export const NAME = 'PRTT_radiance_transfer';
@@ -348,6 +349,12 @@ export class PRTTLoaderPlugin {
       ...relightVariant(bands, 1).fragmentFiles, ...depthVariant().vertexFiles, ...depthVariant().fragmentFiles])];
     const read = await fetchSources(files, this.shaderBase);
     const prtt = new PRTTScene(ext, limits, read);
+    const planned = declaredBytes(ext.sets);
+    if (planned > MAX_SCENE_BYTES) {
+      throw new PRTTError(`the file's textures unpack to ${Math.round(planned / 2 ** 20)} MiB, over the viewer's `
+        + `${MAX_SCENE_BYTES / 2 ** 20} MiB for a whole scene; export a bake at a lower resolution or with `
+        + 'fewer bands (nothing was decoded)');
+    }
     const zstd = new ZSTDDecoder();
     await zstd.init();
     prtt.notes.push(...fallback);

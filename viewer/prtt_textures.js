@@ -17,6 +17,25 @@ const KTX2_ZSTD = 2;
 /** The most one texture may unpack to in the page (a 4096^2 band-5 transfer is 896 MiB). */
 export const MAX_TEXTURE_BYTES = 1024 * 2 ** 20;
 
+/** The most a whole file's textures may unpack to in the page, checked from what the extension
+ * declares before any is decoded (each texture is held on the CPU while it goes up, and on the GPU). */
+export const MAX_SCENE_BYTES = 2048 * 2 ** 20;
+
+/** Bytes the sets' textures unpack to, from the extension's declared layers and sizes alone
+ * (half floats, 8 bytes a texel of a layer; shared glossy rows are expanded to three colours). */
+export function declaredBytes(sets) {
+  let total = 0;
+  for (const s of Array.isArray(sets) ? sets : []) {
+    for (const key of ['transfer', 'bounce', 'relightDC', 'relightGlossy']) {
+      const p = s && s[key];
+      if (!p || ![p.layers, p.width, p.height].every((v) => Number.isInteger(v) && v > 0)) continue;
+      const copies = key === 'relightGlossy' && p.glossyColour === 'shared' ? 3 : 1;
+      total += copies * p.layers * p.width * p.height * 8;
+    }
+  }
+  return total;
+}
+
 /** A problem with the file or the browser, said on the page (never a bare exception). */
 export class PRTTError extends Error {}
 
