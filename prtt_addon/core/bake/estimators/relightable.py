@@ -213,13 +213,16 @@ def later_exit(surf: SurfaceTexels, rows: RelightRows, glossy_bands: int) -> Rel
     if surf.glossy:
         kg = glossy_bands * glossy_bands
         M = surf.valid.size
-        R = np.zeros((M, 3, kg, kg), np.float32)
-        R[:, :, 0, :] = rows.dc[:, :, :kg]
+        # Made in place with its zero row (M + 1 rows): the rows are 3 Kg² floats a
+        # texel, and a product and a padded copy of them tripled the level's peak.
+        R = np.zeros((M + 1, 3, kg, kg), np.float32)
+        R[:M, :, 0, :] = rows.dc[:, :, :kg]
         if rows.glossy is not None:
-            R[:, :, 1:, :] = rows.glossy[:, :, :kg - 1, :kg]
+            R[:M, :, 1:, :] = rows.glossy[:, :, :kg - 1, :kg]
         A = lobe_factors(surf.exponent, glossy_bands).astype(np.float32)               # (M, Kg)
+        R[:M] *= A[:, None, :, None]
         ex.glossy_grid = grid
-        ex.g_rows = _with_zero_row(R * A[:, None, :, None])
+        ex.g_rows = R
         ex.g_scale = _with_zero_row(surf.spec)
         ex.normal = _with_zero_row(surf.normal)
     return ex

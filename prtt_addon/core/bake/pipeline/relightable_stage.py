@@ -84,7 +84,9 @@ def _relight_levels(ctx: BakeContext, geo: Geometry, plan: BakePlan, sources: li
                                        consume_surface=last)
             T = None
         else:
-            exits = {i: later_exit(inputs.surface[i], r, gbands) for i, r in rows.items()}
+            # The previous level's rows go as each exit is made from them: not held
+            # through this level's trace (3 K + 3 (Kg - 1) Kg floats a texel).
+            exits = {i: later_exit(inputs.surface[i], rows.pop(i), gbands) for i in list(rows)}
         shader = RelightShader(sc, exits, st.bands, gbands, inputs.glossy_tri)
         if level == st.bounces:
             # The exits hold what the last level reads: the surface texels' float64
