@@ -17,7 +17,7 @@ export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
 py="$root/.venv/bin/python"
 cmd="${1:-}"; shift || true
 case "$cmd" in
-    demo) exec "$py" -m prtt_addon demo "$@" ;;
+    demo) exec "$py" -m prtt_addon.demo "$@" ;;
     test) cd "$root" && exec "$py" -m pytest -m "not slow" -n "${PRTT_TEST_WORKERS:-2}" "$@" ;;
     slow) cd "$root" && exec "$py" -m pytest -m slow "$@" ;;
     fuzz) cd "$root" && exec "$py" -m prtt_addon.fuzz "$@" ;;

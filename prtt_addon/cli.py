@@ -34,11 +34,6 @@ def _cmd_env(args) -> int:
     return 0
 
 
-def _cmd_demo(args) -> int:
-    from .demo import run_args  # dev-only: the extension zip leaves the demo out
-    return run_args(args)
-
-
 #: --env-strength: 0 or less would bake no light (or negative light), silently.
 ENV_STRENGTH_MAX = 1e6
 
@@ -156,14 +151,6 @@ def build_parser() -> argparse.ArgumentParser:
                         add_help=False)
     ex.add_argument("rest", nargs=argparse.REMAINDER)
     ex.set_defaults(func=_cmd_export_blend)
-
-    try:
-        from .demo import add_arguments as demo_arguments  # dev-only: the extension zip leaves it out
-    except ImportError:
-        return p
-    d = sub.add_parser("demo", help="the main job: demo scene, unwrap, bake, TPFL vs vertex-TPFL (see README)")
-    demo_arguments(d)
-    d.set_defaults(func=_cmd_demo)
     return p
 
 

@@ -1,4 +1,4 @@
-"""The main job (``./prtt.sh demo``, ``python -m prtt_addon demo``).
+"""The main job (``./prtt.sh demo``, ``python -m prtt_addon.demo``).
 
 In real Blender (bpy), through the add-on's own operators:
 
@@ -333,7 +333,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m prtt_addon demo", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m prtt_addon.demo", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(p)
     return run_args(p.parse_args(argv))
@@ -355,3 +355,7 @@ def run_args(args) -> int:
         print(f"prtt: error: {exc}", file=sys.stderr)
         return 1
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -131,7 +131,9 @@ def _help_target(cmd: str):
         return ["-m", "prtt_addon.bench", m.group(1)]
     if re.search(r"-m prtt_addon\.worker\b", cmd):
         return ["-m", "prtt_addon.worker"]
-    m = re.search(r"(?:-m prtt_addon|blender -c prtt|\./prtt\.sh) (demo|bake-job|bake|render|export|env)\b", cmd)
+    if re.search(r"(?:-m prtt_addon\.demo|\./prtt\.sh demo)\b", cmd):
+        return ["-m", "prtt_addon.demo"]
+    m = re.search(r"(?:-m prtt_addon|blender -c prtt|\./prtt\.sh) (bake-job|bake|render|export|env)\b", cmd)
     if m:
         return ["-m", "prtt_addon", m.group(1)]
     return None
