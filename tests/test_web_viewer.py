@@ -184,6 +184,21 @@ def test_turning_the_light_in_the_browser_is_turning_the_world(exported, server,
     assert rel_unturned > 5 * max(rel, 0.002), rel_unturned
 
 
+def test_threes_own_render_draws_prtt(exported, server, tmp_path):
+    """prepass=0 (the page's default): the page draws with three's own
+    renderer.render(scene, camera), nothing of PRTT's called per frame: the
+    meshes' onBeforeRender relight the bounce under the turned light and set
+    the view. With prtt.render's depth pre-pass (prepass=1) it draws the same:
+    both what Blender draws with the World turned."""
+    addon_bpy()
+    for prepass in ("0", "1"):
+        title = browser_shot(f"{server}/viewer/index.html?glb=/room.glb&mode=diffuse&w={W}&h={H}&turn={TURN}"
+                             f"&prepass={prepass}", tmp_path / f"t{prepass}.png")
+        assert title == "ready 2", title
+        med, p99, rel = compare(read_png(tmp_path / f"t{prepass}.png"), read_png(exported / "turned.png"))
+        assert med == 0 and p99 <= 2 and rel < 0.01, (prepass, med, p99, rel)
+
+
 def test_the_slider_turns_the_light_live(exported, server, tmp_path):
     """Moving the page's World-turn slider to 70 draws what ?turn=70 draws:
     the light is turned in place, no reload; dragging orbits the camera."""

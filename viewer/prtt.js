@@ -10,7 +10,8 @@
 //   loader.register((parser) => new PRTTLoaderPlugin(parser, { renderer }));
 //   const gltf = await loader.loadAsync('room.glb');
 //   const prtt = gltf.userData.prtt;          // null: the file has no PRTT data
-//   prtt.render(renderer, gltf.scene, camera);
+//   renderer.render(gltf.scene, camera);      // three's own: PRTT's meshes relight and set their view
+//   prtt.render(renderer, gltf.scene, camera); // or with a depth pre-pass (each pixel shaded once)
 //   prtt.setTurn(90); prtt.setMode('diffuse', { bounces: true });
 import * as THREE from 'three';
 import { ZSTDDecoder } from 'three/addons/libs/zstddec.module.js';
@@ -75,6 +76,7 @@ class PRTTScene {
     this.materials = new Map();
     this.prepass = true;           // a depth pre-pass, as the Blender preview's fragment modes
     this.depth = null;
+    this.drawn = null;             // {frame, camera} beforeDraw last prepared
   }
 
   /** Turn the World by ``degrees`` about Z from the export's (no reload). */
@@ -208,23 +210,31 @@ class PRTTScene {
     }
   }
 
-  /** Draw ``scene`` from ``camera``: the view block, the relight passes, then the frame. */
+  /**
+   * What a frame needs before PRTT's objects draw from ``camera``: the relight passes when the
+   * light changed, then the view block. Each PRTT mesh's onBeforeRender calls it (the first one
+   * of a frame does the work), so three's own renderer.render(scene, camera) draws PRTT; the
+   * relight passes are renders to targets nested in that render, as three's Reflector does.
+   */
+  beforeDraw(renderer, camera) {
+    const frame = renderer.info.render.frame;
+    if (this.drawn && this.drawn.frame === frame && this.drawn.camera === camera) return;
+    this.relight(renderer);             // a nested render counts a frame: read the count after it
+    this.setView(camera);
+    this.drawn = { frame: renderer.info.render.frame, camera };
+  }
+
+  /**
+   * Draw ``scene`` from ``camera`` with a depth pre-pass (``prepass``, as Blender's preview:
+   * each pixel shaded once); without it, the same as renderer.render(scene, camera).
+   */
   render(renderer, scene, camera) {
-    this.relight(renderer);
-    camera.updateMatrixWorld();
-    const toBake = new THREE.Matrix4();
-    const g = this.ext.sh.gltfToBakeFrame;
-    toBake.set(g[0][0], g[0][1], g[0][2], 0, g[1][0], g[1][1], g[1][2], 0, g[2][0], g[2][1], g[2][2], 0, 0, 0, 0, 1);
-    const vp = new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse)
-      .multiply(toBake.clone().invert());
-    this.viewData.set(vp.elements, 0);                    // column-major, as GLSL reads it
-    const eye = new THREE.Vector3().setFromMatrixPosition(camera.matrixWorld).applyMatrix4(toBake);
-    this.viewData.set([eye.x, eye.y, eye.z, 1.0], 16);
-    this.viewData.set([this.exposure, 0.0, this.K, this.display ? this.display.gammaInv : 0.0], 20);
     if (!this.prepass) {
       renderer.render(scene, camera);
       return;
     }
+    camera.updateMatrixWorld();
+    this.beforeDraw(renderer, camera);
     // As Blender's preview: depth first, then each pixel shaded once (LESS_EQUAL on equal depths)
     const depth = this.depthMaterial();
     const autoClear = renderer.autoClear;
@@ -238,6 +248,19 @@ class PRTTScene {
       renderer.autoClear = autoClear;
       for (const m of this.meshes) m.mesh.material = m.shading;
     }
+  }
+
+  /** The view block (the clip transform from the bake frame, the eye, exposure, K, gamma) of ``camera``. */
+  setView(camera) {
+    const toBake = new THREE.Matrix4();
+    const g = this.ext.sh.gltfToBakeFrame;
+    toBake.set(g[0][0], g[0][1], g[0][2], 0, g[1][0], g[1][1], g[1][2], 0, g[2][0], g[2][1], g[2][2], 0, 0, 0, 0, 1);
+    const vp = new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse)
+      .multiply(toBake.clone().invert());
+    this.viewData.set(vp.elements, 0);                    // column-major, as GLSL reads it
+    const eye = new THREE.Vector3().setFromMatrixPosition(camera.matrixWorld).applyMatrix4(toBake);
+    this.viewData.set([eye.x, eye.y, eye.z, 1.0], 16);
+    this.viewData.set([this.exposure, 0.0, this.K, this.display ? this.display.gammaInv : 0.0], 20);
   }
 }
 
@@ -485,6 +508,7 @@ export class PRTTLoaderPlugin {
       const block = materialBlock(source, matExt, textures);
       prtt.meshes.push({ mesh: m, set: nodeExt.set, textures, block,
         matKey: `${matIndex}|${m.uuid}` });
+      m.onBeforeRender = (renderer, _scene, camera) => prtt.beforeDraw(renderer, camera);
     }
     prtt.setMode(this.mode, { bounces: this.bounces });
     gltf.userData.prtt = prtt;

@@ -17,6 +17,8 @@ BENCHMARKS = {
                         "traced light, in quarter-texel bins (dark creases at contacts)"),
     "web": ("prtt_addon.bench.web_bench", "glTF export vs bake (time, bytes) and the web viewer's page load and "
             "frame time (headless Chromium, SwiftShader)"),
+    "draw-path": ("prtt_addon.bench.draw_path", "the page's prtt.render (depth pre-pass) against three's own "
+                  "renderer.render, frame times in one run"),
     "figures": ("prtt_addon.bench.figures", "write the docs' figures blocks from the benchmarks' records (--check)"),
     "stress": ("prtt_addon.bench.stress", "numerical stress cases (scale, normals, thin shells, degenerate, bands, overflow)"),
 }

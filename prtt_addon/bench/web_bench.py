@@ -30,7 +30,9 @@ measured on the demo room (issue 34's goals).
 4. **Frame time per mode** (tpfl, tp, diffuse; bounces on) at
    ``--size``: ``window.prttDraw()`` (one frame, waited for with a 1-pixel
    readPixels) ``--frames`` + 1 times, the first discarded; median and
-   spread.
+   spread. Drawn by ``prtt.render`` with its depth pre-pass (``prepass=1``,
+   as recorded); the page's default, three's own ``renderer.render``, took
+   0.955-0.995 of it (``bench draw-path``).
 5. **Frame time against triangles**, as the paper's table: the room alone
    (21K triangles) and with 4 (~300K) or 18 (~1.27M, ``--scenes
    21K,300K,1.3M``) copies of the 69K-triangle bunny (bench/scene_library.py),
@@ -309,7 +311,9 @@ class Site:
 
 def page_url(site: Site, src: str, size, mode: str = "tpfl") -> str:
     w, h = size
-    return f"{site.url}/viewer/index.html?src={src}&w={w}&h={h}&ui=0&mode={mode}&bounces=1"
+    # prepass=1: prtt.render's depth pre-pass, the path docs/bench/web.json's frames were
+    # recorded with (the page draws with three's own renderer.render since: bench draw-path).
+    return f"{site.url}/viewer/index.html?src={src}&w={w}&h={h}&ui=0&mode={mode}&bounces=1&prepass=1"
 
 
 def open_page(pw, url: str, size):
