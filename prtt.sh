@@ -6,7 +6,7 @@
 #   ./prtt.sh slow [args]   the slow, large benchmark-style tests only
 #   ./prtt.sh fuzz [args]   fuzz every reader of outside data (docs/fuzzing.md; --help)
 #   ./prtt.sh compat [VERSION ...]  the installed extension zip in each Blender it claims (docs/addon.md)
-#   ./prtt.sh py ARGS...    run the project's Python (e.g. ./prtt.sh py -m prtt_addon.bench bake)
+#   ./prtt.sh py ARGS...    run the project's Python (e.g. ./prtt.sh py -m prtt_addon.dev.bench bake)
 # demo and py run in the folder you call them from, so relative paths you give
 # (--out textures, job.npz, scene.blend) are yours; test and slow run in the
 # repository (pytest's configuration and test paths are there).
@@ -17,10 +17,10 @@ export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
 py="$root/.venv/bin/python"
 cmd="${1:-}"; shift || true
 case "$cmd" in
-    demo) exec "$py" -m prtt_addon.demo "$@" ;;
+    demo) exec "$py" -m prtt_addon.dev.demo "$@" ;;
     test) cd "$root" && exec "$py" -m pytest -m "not slow" -n "${PRTT_TEST_WORKERS:-2}" "$@" ;;
     slow) cd "$root" && exec "$py" -m pytest -m slow "$@" ;;
-    fuzz) cd "$root" && exec "$py" -m prtt_addon.fuzz "$@" ;;
+    fuzz) cd "$root" && exec "$py" -m prtt_addon.dev.fuzz "$@" ;;
     compat) cd "$root" && exec "$py" tools/compat.py "$@" ;;
     py)   exec "$py" "$@" ;;
     *) echo "usage: ./prtt.sh demo|test|slow|fuzz|compat|py ..." >&2; exit 2 ;;

@@ -37,10 +37,10 @@ CASES = {
 
 def bake_case(name: str, out_dir: str) -> dict:
     """Bake case ``name`` into ``out_dir``; {file name: sha256} of its outputs."""
-    from prtt_addon.bench.scene_library import room_scene
     from prtt_addon.core.bake.pipeline.context import BakeSettings
     from prtt_addon.core.bake.pipeline.runner import bake_scene
     from prtt_addon.core.light.envmap import builtin_environment_path, environment_light
+    from prtt_addon.dev.bench.scene_library import room_scene
 
     res, atlas, settings = CASES[name]
     sc = room_scene(res, atlas=atlas, materials=True)

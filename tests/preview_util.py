@@ -68,8 +68,8 @@ def floor_material(bpy):
 
 
 def world_forest(bpy, strength=1.5, rot_z=0.6):
-    from prtt_addon.bench.scene_build import environment_world
     from prtt_addon.core.light.envmap import builtin_environment_path
+    from prtt_addon.dev.bench.scene_build import environment_world
     w = environment_world("Forest", builtin_environment_path("forest"), strength=strength, rotation_z=rot_z)
     bpy.context.scene.world = w
     return w

@@ -1,8 +1,8 @@
 """Small scenes for the bake tests, built with explicit UVs (no unwrapper)."""
 import numpy as np
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.model.scene import Scene
+from prtt_addon.dev.bench import meshgen as mg
 
 
 def planar_uvs(m: mg.Mesh, axes=(0, 1)) -> np.ndarray:

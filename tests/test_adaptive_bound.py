@@ -3,7 +3,7 @@ against its closed form on synthetic estimates with known per-texel noise."""
 import numpy as np
 import pytest
 
-from prtt_addon.bench.adaptive_bound import oracle_gain
+from prtt_addon.dev.bench.adaptive_bound import oracle_gain
 
 
 def _pair(sigma, channels=400, seed=0):

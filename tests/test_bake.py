@@ -8,13 +8,13 @@ import threading
 import numpy as np
 import pytest
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.bake.estimators.transfer import unoccluded_transfer
 from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.base.errors import BakeError, Cancelled
 from prtt_addon.core.base.memory import MemoryLimitError
 from prtt_addon.core.io import exr_io
+from prtt_addon.dev.bench import meshgen as mg
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

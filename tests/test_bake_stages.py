@@ -6,12 +6,12 @@ import os
 import numpy as np
 import pytest
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.bake.pipeline import bounce_stage, stages
 from prtt_addon.core.bake.pipeline.context import BakeContext, BakeSettings
 from prtt_addon.core.bake.pipeline.plan import plan_bake
 from prtt_addon.core.bake.pipeline.runner import bake_scene, check_out_dir
 from prtt_addon.core.io import exr_io
+from prtt_addon.dev.bench import meshgen as mg
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 from tests.test_bounce import corner_scene, sky
 

@@ -1,7 +1,7 @@
 """Benchmarks print the settings they measured and write records the docs'
 figures are made from (issue 37): `bench bake` times the transfer alone, its
 stages add up to its total, and every generated block of README.md matches
-its record (`python -m prtt_addon.bench figures --check`)."""
+its record (`python -m prtt_addon.dev.bench figures --check`)."""
 import json
 import os
 import subprocess
@@ -13,7 +13,7 @@ ENV = dict(os.environ, PYTHONPATH=ROOT)
 
 def test_bench_bake_measures_the_transfer_it_prints(tmp_path):
     record = tmp_path / "bake.json"
-    r = subprocess.run([sys.executable, "-m", "prtt_addon.bench", "bake", "--resolution", "64", "--rays", "16",
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.dev.bench", "bake", "--resolution", "64", "--rays", "16",
                         "--repeat", "1", "--json", str(record)], capture_output=True, text=True, env=ENV,
                        cwd=ROOT, timeout=600)
     assert r.returncode == 0, r.stderr
@@ -22,7 +22,7 @@ def test_bench_bake_measures_the_transfer_it_prints(tmp_path):
     rec = json.loads(record.read_text())
     assert rec["settings"]["bounces"] == 0 and rec["settings"]["rays"] == 16
     assert rec["date"] and rec["machine"]["cores"] == os.cpu_count() and "embreex" in rec["machine"]["versions"]
-    assert rec["command"].startswith("python -m prtt_addon.bench bake --resolution 64")
+    assert rec["command"].startswith("python -m prtt_addon.dev.bench bake --resolution 64")
     s = rec["seconds"]
     stages = sum(v for k, v in s.items() if k != "total")
     # the stages are the bake (a bounce would add time no stage shows)
@@ -31,6 +31,6 @@ def test_bench_bake_measures_the_transfer_it_prints(tmp_path):
 
 
 def test_readme_figures_match_their_records():
-    r = subprocess.run([sys.executable, "-m", "prtt_addon.bench", "figures", "--check"], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.dev.bench", "figures", "--check"], capture_output=True,
                        text=True, env=ENV, cwd=ROOT, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr

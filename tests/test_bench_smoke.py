@@ -5,7 +5,7 @@ import sys
 
 import pytest
 
-from prtt_addon.bench.stress import CASES
+from prtt_addon.dev.bench.stress import CASES
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ENV = dict(os.environ, PYTHONPATH=ROOT)
@@ -13,7 +13,7 @@ pytestmark = pytest.mark.slow
 
 
 def bench(*args):
-    r = subprocess.run([sys.executable, "-m", "prtt_addon.bench", *args], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.dev.bench", *args], capture_output=True,
                        text=True, env=ENV, cwd=ROOT, timeout=1200)
     assert r.returncode == 0, r.stderr
     return r.stdout

@@ -5,7 +5,6 @@ import os
 import numpy as np
 import pytest
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core import sh
 from prtt_addon.core.bake.estimators.raytrace import RAY_EPSILON, RayScene
 from prtt_addon.core.bake.estimators.sampling import sobol2, to_hemisphere
@@ -15,6 +14,7 @@ from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.io import exr_io
 from prtt_addon.core.shading.materials import eval_materials
 from prtt_addon.core.shading.shade import shade
+from prtt_addon.dev.bench import meshgen as mg
 from tests.scenes_util import planar_uvs, scene_from
 
 

@@ -46,14 +46,14 @@ def subparser(name):
     (["-m", "prtt_addon", "-h"], "bake-job"),
     (["-m", "prtt_addon", "env", "-h"], "--bands"),
     (["-m", "prtt_addon", "bake-job", "-h"], "--rays"),
-    (["-m", "prtt_addon.demo", "-h"], "--out"),
+    (["-m", "prtt_addon.dev.demo", "-h"], "--out"),
     (["-m", "prtt_addon", "bake", "-h"], "--unwrap"),
     (["-m", "prtt_addon", "render", "-h"], "--mode"),
     (["-m", "prtt_addon.worker", "-h"], "out_dir"),
     (["-m", "prtt_addon.core.settings_schema", "-h"], "--write"),
 ])
 def test_dash_h_on_every_subcommand(args, says, tmp_path):
-    if args[2:3] in (["bake"], ["render"]) or args[1] == "prtt_addon.demo":
+    if args[2:3] in (["bake"], ["render"]) or args[1] == "prtt_addon.dev.demo":
         pytest.importorskip("bpy")
     r = py(*args, cwd=tmp_path)
     assert r.returncode == 0 and r.stdout.startswith("usage:") and says in r.stdout, r.stdout + r.stderr

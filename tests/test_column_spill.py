@@ -125,10 +125,10 @@ def test_nan_and_values_beyond_half_reach_the_writer_as_before(tmp_path):
 def test_a_cancelled_relightable_bake_leaves_no_spill_file(tmp_path, monkeypatch):
     """Cancelled during the bounce's trace: the bake stops, and neither its
     spill file nor any other temporary is left in the output folder."""
-    from prtt_addon.bench.scene_library import room_scene
     from prtt_addon.core.bake.pipeline.context import BakeSettings
     from prtt_addon.core.bake.pipeline.runner import bake_scene
     from prtt_addon.core.base.errors import Cancelled
+    from prtt_addon.dev.bench.scene_library import room_scene
 
     cancel = threading.Event()
     made = []

@@ -7,7 +7,7 @@ import numpy as np
 
 
 def test_far_bins_agree_with_the_traced_light():
-    from prtt_addon.bench.contact_profile import profile
+    from prtt_addon.dev.bench.contact_profile import profile
     r = profile(112, rays=256, ref_rays=1024, samples=120)
     assert np.allclose(r["bins"], (np.arange(8) + 0.5) / 4)
     far = r["ratio"][r["bins"] > 1.0]
@@ -20,8 +20,8 @@ def test_texel_validity_fills_the_crease():
     of the 784 its footprint covers at 112², none elsewhere) and filled from
     their neighbours: every bin >= 0.9 of the traced light (before 0.70 /
     0.87 / 0.97), and no more than 5 % over it."""
-    from prtt_addon.bench.contact_profile import profile
     from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.dev.bench.contact_profile import profile
     for res in (112, 72):
         r = profile(res, ref_rays=1024, samples=120, settings=BakeSettings(rays=256, bounces=0, texel_validity=True))
         assert np.all(r["ratio"] >= 0.9) and np.all(r["ratio"] <= 1.05), (res, r["ratio"])
@@ -31,11 +31,11 @@ def test_no_texel_under_a_single_sided_table_top_reads_as_inside():
     """A floor under a 0.8 m plane 0.4 m up, facing up (Blender draws it from
     both sides): up to half of a floor texel's rays hit the plane's back, so
     a back-face tolerance like Unity's 10 % would mark 4,139 texels; none here."""
-    from prtt_addon.bench import meshgen as mg
     from prtt_addon.core.bake.estimators import validity
     from prtt_addon.core.bake.estimators.raytrace import RayScene
     from prtt_addon.core.model.scene import validate
     from prtt_addon.core.texels.gbuffer import build_gbuffer
+    from prtt_addon.dev.bench import meshgen as mg
     floor = mg.plane(2.0, 2.0, subdiv=1)
     floor.uvs = ((floor.vertices[:, :2] + 1) / 2)[floor.faces]
     top = mg.plane(0.8, 0.8, subdiv=1).transformed(translate=(0.1, 0.05, 0.4))
@@ -53,10 +53,10 @@ def test_the_texels_found_inside_are_those_under_the_box():
     """validity.inside_texels on the contact scene: exactly the floor texels
     whose centres lie in the box's footprint (the turned square, computed
     from its corners), at 1.8 and 2.8 cm texels."""
-    from prtt_addon.bench import contact_profile as cp
     from prtt_addon.core.bake.estimators import validity
     from prtt_addon.core.bake.estimators.raytrace import RayScene
     from prtt_addon.core.texels.gbuffer import build_gbuffer
+    from prtt_addon.dev.bench import contact_profile as cp
     for res in (112, 72):
         sc = cp.build(res)
         gb = build_gbuffer(sc, sc.set_names.index("floor"))

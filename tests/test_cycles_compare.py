@@ -18,7 +18,7 @@ def test_diffuse_prtt_matches_cycles_under_band_limited_light(tmp_path, bounces,
     """Direct light; and one bounce baked relightable, the World turned by 120
     degrees after the bake (Cycles renders the turned World, PRTT relights)."""
     pytest.importorskip("bpy")
-    from prtt_addon.bench.cycles_compare import compare
+    from prtt_addon.dev.bench.cycles_compare import compare
     r = compare((160, 90), samples=32, resolution=256, rays=128, bounces=bounces, work_dir=str(tmp_path),
                 bounce_mode=mode, turn=turn)
     assert r["pixels_compared"] > 5000

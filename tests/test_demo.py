@@ -14,7 +14,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def test_demo_runs_end_to_end(tmp_path):
     pytest.importorskip("bpy")
     out = tmp_path / "demo"
-    r = subprocess.run([sys.executable, "-m", "prtt_addon.demo", "--out", str(out), "--resolution", "128",
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.dev.demo", "--out", str(out), "--resolution", "128",
                         "--rays", "32", "--bounce-rays", "8", "--size", "160x90"],
                        capture_output=True, text=True, timeout=900, cwd=str(tmp_path),
                        env=dict(os.environ, PYTHONPATH=ROOT))
@@ -62,7 +62,7 @@ def test_captions_do_not_overlap_at_any_size(size):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from prtt_addon.demo import labelled_figure
+    from prtt_addon.dev.demo import labelled_figure
     w, h = size
     img = np.zeros((h, w, 4), np.float32)
     img[..., 3] = 1.0

@@ -27,7 +27,6 @@ import threading
 import numpy as np
 import pytest
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.bake.estimators import bounce, transfer
 from prtt_addon.core.bake.estimators.raytrace import RayScene
 from prtt_addon.core.bake.estimators.transfer import ChunkKernel, Points, TransferSettings, chunk_plan
@@ -38,6 +37,7 @@ from prtt_addon.core.bake.pipeline.stages import bake_points_input, scene_face_d
 from prtt_addon.core.base import threads as base_threads
 from prtt_addon.core.light.envmap import environment_light
 from prtt_addon.core.texels.gbuffer import build_gbuffer
+from prtt_addon.dev.bench import meshgen as mg
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,6 @@ import numpy as np
 import psutil
 import pytest
 
-from prtt_addon.bench import scene_library
 from prtt_addon.core.bake.estimators.transfer import Chunk
 from prtt_addon.core.bake.executors import dask_cluster as dd
 from prtt_addon.core.bake.executors import dask_spec, dask_worker
@@ -31,6 +30,7 @@ from prtt_addon.core.base.errors import BakeError, Cancelled
 from prtt_addon.core.base.memory import MemoryLimitError
 from prtt_addon.core.io.jobfile import save_scene
 from prtt_addon.core.light.envmap import environment_light
+from prtt_addon.dev.bench import scene_library
 from tests.scenes_util import floor_and_box
 
 pytest.importorskip("distributed")
@@ -176,7 +176,7 @@ def test_cluster_bake_under_load_is_bit_identical(tmp_path):
     locally and then twice on `local:2` while two processes keep both cores
     busy. Every file byte for byte (measured on 2026-11-28 at load 5-6, with
     the suite running beside it: 6 of 6 cluster bakes identical)."""
-    from prtt_addon.bench import meshgen as mg
+    from prtt_addon.dev.bench import meshgen as mg
     sc = mg.assemble([("floor", mg.plane(4.0, subdiv=2)),
                       ("sphere", mg.uv_sphere(0.5, 48, 24).transformed(translate=(0.0, 0, 0.5)))],
                      resolution=384, atlas=False)

@@ -79,7 +79,7 @@ NOT_HERE = [
                               "for the default versions"),
     (r"^python -m http\.server", "a static server for viewer/: tests/test_web_viewer.py serves the same folders "
                                   "and drives the page in headless Chromium"),
-    (r"prtt_addon\.bench \w+", "a benchmark (minutes, writes docs/bench/): options checked against -h"),
+    (r"prtt_addon\.dev\.bench \w+", "a benchmark (minutes, writes docs/bench/): options checked against -h"),
     (r"[\[\]]|\|| (N|DIR|OUTDIR|JOB\.npz|FILE\.blend|IMG\.png|PATH|M|NAME|F|DEG|TOL)\b",
      "a synopsis (placeholders, [optional] parts, a|b choices): options checked against -h"),
 ]
@@ -126,13 +126,13 @@ def test_every_command_is_run_or_listed(capsys):
 
 def _help_target(cmd: str):
     """The module and subcommand whose -h documents ``cmd`` (None: not PRTT's)."""
-    m = re.search(r"(?:-m prtt_addon\.bench|prtt_addon\.bench) (\w+)", cmd)
+    m = re.search(r"(?:-m prtt_addon\.dev\.bench|prtt_addon\.dev\.bench) (\w+)", cmd)
     if m:
-        return ["-m", "prtt_addon.bench", m.group(1)]
+        return ["-m", "prtt_addon.dev.bench", m.group(1)]
     if re.search(r"-m prtt_addon\.worker\b", cmd):
         return ["-m", "prtt_addon.worker"]
-    if re.search(r"(?:-m prtt_addon\.demo|\./prtt\.sh demo)\b", cmd):
-        return ["-m", "prtt_addon.demo"]
+    if re.search(r"(?:-m prtt_addon\.dev\.demo|\./prtt\.sh demo)\b", cmd):
+        return ["-m", "prtt_addon.dev.demo"]
     m = re.search(r"(?:-m prtt_addon|blender -c prtt|\./prtt\.sh) (bake-job|bake|render|export|env)\b", cmd)
     if m:
         return ["-m", "prtt_addon", m.group(1)]

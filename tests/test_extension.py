@@ -51,8 +51,7 @@ def test_zip_layout(extension_zip):
     assert {"blender_manifest.toml", "LICENSE", "__init__.py", "worker.py", "core/sh/__init__.py", "blender/ui/operators.py",
             "core/preview/shader_source.py", "shaders/prtt_common.glsl", "shaders/prtt_surface_frag.glsl"} <= names
     # Runtime files only: the package's modules, shaders, wheels, the licence.
-    assert "demo.py" not in names
-    assert not any(n.startswith(("bench/", "fuzz/", "tests/", "docs/", "tools/", "assets/")) or "__pycache__" in n
+    assert not any(n.startswith(("dev/", "tests/", "docs/", "tools/", "assets/")) or "__pycache__" in n
                    or n.endswith(".pyc") for n in names)
     assert all(n.endswith(".py") or n.startswith(("shaders/", "wheels/")) or n in {"LICENSE", "blender_manifest.toml"}
                for n in names), sorted(names)

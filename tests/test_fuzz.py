@@ -1,4 +1,4 @@
-"""The fuzz harnesses (issue #36, prtt_addon/fuzz, docs/fuzzing.md).
+"""The fuzz harnesses (issue #36, prtt_addon/dev/fuzz, docs/fuzzing.md).
 
 CI runs every harness for a short fixed budget from its seeds and saved
 inputs (not the grown corpus of a developer's machine), replays every input
@@ -15,8 +15,8 @@ import time
 
 import pytest
 
-from prtt_addon.fuzz import targets
-from prtt_addon.fuzz.seeds import ensure_seeds
+from prtt_addon.dev.fuzz import targets
+from prtt_addon.dev.fuzz.seeds import ensure_seeds
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SAVED = os.path.join(ROOT, "tests", "fuzz_corpus")
@@ -37,7 +37,7 @@ def fuzz(corpus, *args, pythonpath=ROOT):
     env = dict(os.environ, PYTHONPATH=pythonpath)
     out = corpus / f"report-{time.monotonic_ns()}.json"
     t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "prtt_addon.fuzz", *args, "--fresh", "--corpus", str(corpus),
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.dev.fuzz", *args, "--fresh", "--corpus", str(corpus),
                         "--json", str(out)], capture_output=True, text=True, env=env, timeout=900, cwd=pythonpath)
     return r, json.loads(out.read_text())["reports"], time.perf_counter() - t0
 
@@ -117,7 +117,7 @@ def test_a_crash_put_back_is_found_within_the_ci_budget(corpus, tmp_path):
 
 def test_the_pages_readers_take_their_ci_budget_clean(corpus):
     """viewer/prtt_env.js and viewer/prtt_textures.js's KTX2 reader on 3000 mutants in node."""
-    from prtt_addon.fuzz import page
+    from prtt_addon.dev.fuzz import page
     if shutil.which("node") is None:
         pytest.skip("node is not installed")
     r = page.run(ensure_seeds(str(corpus / "seeds")), CI_RUNS)
@@ -129,7 +129,7 @@ def test_the_pages_readers_take_their_ci_budget_clean(corpus):
 def test_a_page_reader_that_forgets_the_file_name_is_found(corpus, tmp_path):
     """The page's Radiance decoder with one message that no longer names the
     file (the page shows it to the user): found within the CI budget."""
-    from prtt_addon.fuzz import page
+    from prtt_addon.dev.fuzz import page
     if shutil.which("node") is None:
         pytest.skip("node is not installed")
     viewer = tmp_path / "viewer"

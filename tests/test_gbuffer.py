@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.model.scene import NormalMap
 from prtt_addon.core.texels.gbuffer import build_gbuffer
 from prtt_addon.core.texels.raster import rasterize
+from prtt_addon.dev.bench import meshgen as mg
 from tests.scenes_util import planar_uvs, scene_from
 
 
@@ -178,8 +178,8 @@ def test_more_row_bands_build_the_same_gbuffer(monkeypatch):
     temporaries); the G-buffer is the same array for array."""
     import concurrent.futures as cf
 
-    from prtt_addon.bench.scene_library import room_scene
     from prtt_addon.core.texels import gbuffer as gbm
+    from prtt_addon.dev.bench.scene_library import room_scene
     sc = room_scene(256, atlas=True)
     sc.set_resolution[:] = 512
     with cf.ThreadPoolExecutor(3) as ex:

@@ -305,7 +305,7 @@ def bake_scene(tmp, *bake):
     """Floor and a box with a normal-mapped material (a float Non-Color image
     on the PRTT map, the box's only UV map), baked with ``bake``'s options."""
     bpy = addon_bpy()
-    from prtt_addon.bench import scene_build as sb  # needs bpy
+    from prtt_addon.dev.bench import scene_build as sb  # needs bpy
     rs.floor(bpy, 6.0)
     box = rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
     mat = sb.principled("Bumpy", base_color=(0.6, 0.5, 0.4), roughness=0.3)
@@ -340,12 +340,12 @@ def bounced(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
-    """The demo scene (prtt_addon/demo.py: the plank floor's float base colour
+    """The demo scene (prtt_addon/dev/demo.py: the plank floor's float base colour
     and roughness images, the forest World through a Mapping node, exposure
     -0.7 with the Standard view transform), baked small."""
     tmp = tmp_path_factory.mktemp("demo")
     bpy = addon_bpy()
-    from prtt_addon.bench.scene_build import demo_scene
+    from prtt_addon.dev.bench.scene_build import demo_scene
     demo_scene()
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "demo.blend"))
     r = run("bake", "demo.blend", "--out", "textures", "--unwrap", "SMART", *BAKE, cwd=tmp)
@@ -743,9 +743,9 @@ def test_a_missing_world_image_exports_with_a_named_stand_in(tmp_path):
     50, defect 6): export refused it ("has no pixels ... bake again", and
     baking again did not help). It exports, lit by the studio HDRI that
     FALLBACK_LIGHT names, and says so in a note and in the light's description."""
-    from prtt_addon.bench.scene_build import environment_world
     from prtt_addon.blender.gltf.export import FALLBACK_LIGHT
     from prtt_addon.core.light.envmap import builtin_environment_path
+    from prtt_addon.dev.bench.scene_build import environment_world
     bpy = addon_bpy()
     rs.floor(bpy, 6.0)
     rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(0, 0, 0.5))
@@ -776,7 +776,7 @@ def _lamp_and_udim_scene(tmp, *, lamp: bool, udim: bool):
         ob.location = (1, 1, 3)
         bpy.context.scene.collection.objects.link(ob)
     if udim:
-        from prtt_addon.bench.scene_build import principled
+        from prtt_addon.dev.bench.scene_build import principled
         img = bpy.data.images.new("tiles", 8, 8, tiled=True)
         img.source = "TILED"
         img.filepath = str(tmp / "test.<UDIM>.png")        # no such files

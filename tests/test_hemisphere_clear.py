@@ -1,12 +1,12 @@
 """The zero-ray analytic path's triangle test vs brute force, and occluder-only triangles."""
 import numpy as np
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.bake.estimators.hemisphere_clear import PLANE_EPSILON, clear_triangles
 from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene
 from prtt_addon.core.bake.pipeline.stages import scene_face_data
 from prtt_addon.core.texels.gbuffer import face_normals
+from prtt_addon.dev.bench import meshgen as mg
 from tests.scenes_util import floor_and_box
 
 

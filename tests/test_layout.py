@@ -89,7 +89,7 @@ def test_cli_demo_runs():
 PKG = "prtt_addon"
 #: Development-only code the extension zip leaves out: it imports Blender-side
 #: modules lazily so that `bench bake` runs without bpy; held to "no cycles" only.
-DEV_ONLY = ("prtt_addon.bench", "prtt_addon.demo", "prtt_addon.fuzz")
+DEV_ONLY = ("prtt_addon.dev",)
 
 
 def _modules():
@@ -336,10 +336,10 @@ def test_docstrings_carry_no_timings_of_a_machine():
 
 #: First path segments of the project's own folders (a path with another
 #: start, such as three/addons/... or image/vnd.radiance, is not ours).
-_OUR_ROOTS = ("prtt_addon", "core", "blender", "bench", "fuzz", "tools", "tests", "shaders", "viewer", "docs",
+_OUR_ROOTS = ("prtt_addon", "core", "blender", "dev", "bench", "fuzz", "tools", "tests", "shaders", "viewer", "docs",
               "sh", "texels", "io", "light", "model", "shading", "preview", "bake", "export", "gltf", "ui", "base",
               "estimators", "executors", "pipeline")
-_SEARCHED = ("", PKG, f"{PKG}/core", f"{PKG}/blender", f"{PKG}/core/bake", f"{PKG}/bench")
+_SEARCHED = ("", PKG, f"{PKG}/core", f"{PKG}/blender", f"{PKG}/core/bake", f"{PKG}/dev", f"{PKG}/dev/bench")
 _EXTENSIONS = ("py", "md", "glsl", "js", "json", "toml", "sh", "txt", "csv", "png", "jpg", "exr", "hdr", "npz",
                "blend", "glb", "gltf", "ktx2", "zip", "whl", "html", "cube")
 

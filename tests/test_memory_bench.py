@@ -1,4 +1,4 @@
-"""`python -m prtt_addon.bench memory --quick` end to end: the demo scene
+"""`python -m prtt_addon.dev.bench memory --quick` end to end: the demo scene
 (unwrapped at 256²) baked through `prtt bake` at 128² and 256² and rendered;
 the record holds every figure docs/benchmarks.md's block reads, and the
 bake's estimate is within the ±20 % the docs claim."""
@@ -16,8 +16,8 @@ pytestmark = [pytest.mark.slow, pytest.mark.blender]
 
 def test_memory_bench_quick(tmp_path):
     pytest.importorskip("bpy")
-    from prtt_addon.bench import figures
-    r = subprocess.run([sys.executable, "-m", "prtt_addon.bench", "memory", "--quick", "--out", str(tmp_path)],
+    from prtt_addon.dev.bench import figures
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.dev.bench", "memory", "--quick", "--out", str(tmp_path)],
                        capture_output=True, text=True, cwd=ROOT, timeout=900,
                        env=dict(os.environ, PYTHONPATH=ROOT))
     assert r.returncode == 0, r.stderr[-3000:]

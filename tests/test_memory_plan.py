@@ -9,13 +9,13 @@ import sys
 
 import pytest
 
-from prtt_addon.bench.scene_library import room_scene
 from prtt_addon.core.bake.pipeline import memory_plan
 from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.memory_check import bake_stage_bytes, scene_set_sizes
 from prtt_addon.core.base import memory
 from prtt_addon.core.io.jobfile import save_scene
 from prtt_addon.core.light.envmap import builtin_environment_path, environment_light
+from prtt_addon.dev.bench.scene_library import room_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

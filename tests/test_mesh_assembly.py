@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.model.assembly import MeshPart, assemble_parts
 from prtt_addon.core.model.scene import NormalMap
 from prtt_addon.core.texels.unwrap import unwrap
+from prtt_addon.dev.bench import meshgen as mg
 
 
 def _meshes():

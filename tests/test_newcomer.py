@@ -24,7 +24,7 @@ NOISE = ("EGL Error", "not available. Keeping packed image", "does not support b
 def blend(tmp_path_factory):
     """Floor and a cube whose material samples a packed float image (as the
     demo's do), a camera, the built-in light; saved without a PRTT map."""
-    from prtt_addon.bench.scene_build import float_image, principled
+    from prtt_addon.dev.bench.scene_build import float_image, principled
     tmp = tmp_path_factory.mktemp("newcomer")
     bpy = addon_bpy()
     rs.floor(bpy, 6.0)
@@ -102,7 +102,7 @@ def test_a_baked_project_folder_moves(blend, tmp_path):
 ])
 def test_demo_refuses_bad_options_before_any_work(tmp_path, args, message):
     out = tmp_path / "demo"
-    r = subprocess.run([sys.executable, "-m", "prtt_addon", "demo", "--out", str(out), *args],
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.dev.demo", "--out", str(out), *args],
                        capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=ROOT))
     assert r.returncode == 2 and message in r.stderr, r.stderr
     assert not out.exists()

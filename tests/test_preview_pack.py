@@ -130,11 +130,11 @@ def test_layer_sources_fill_the_packed_layers_exactly(tmp_path, tuning):
     pack_relight_operator of the readers' arrays, bit for bit: shared glossy
     rows (tuning auto) tinted per colour as expand_shared_glossy, per-colour
     rows (fixed) as stored."""
-    from prtt_addon.bench.scene_library import room_scene
     from prtt_addon.core.bake.pipeline.context import BakeSettings
     from prtt_addon.core.bake.pipeline.runner import bake_scene
     from prtt_addon.core.io.exr_io import read_relight_exr, read_sh_exr
     from prtt_addon.core.light.envmap import builtin_environment_path, environment_light
+    from prtt_addon.dev.bench.scene_library import room_scene
     sc = room_scene(64, atlas=True, materials=True)
     bake_scene(sc, tmp_path, BakeSettings(rays=16, bounce_rays=8, bounces=1, tuning=tuning),
                light=environment_light(builtin_environment_path("forest"), 5))
@@ -168,10 +168,10 @@ def test_level_sum_source_is_load_bounce_packed_exactly(tmp_path):
     to pack_bounce(PreviewSet.load_bounce(K)) bit for bit: two levels, one
     band-limited (tuning auto) and padded, bands of 7 rows (a short last
     band); the sum is not half-exact, so the renderer checks it."""
-    from prtt_addon.bench.scene_library import room_scene
     from prtt_addon.core.bake.pipeline.context import BakeSettings
     from prtt_addon.core.bake.pipeline.runner import bake_scene
     from prtt_addon.core.light.envmap import builtin_environment_path, environment_light
+    from prtt_addon.dev.bench.scene_library import room_scene
     sc = room_scene(48, atlas=True, materials=True)
     bake_scene(sc, tmp_path, BakeSettings(rays=16, bounce_rays=8, bounces=2, bounce_mode="baked", tuning="auto"),
                light=environment_light(builtin_environment_path("forest"), 5))

@@ -243,8 +243,8 @@ def test_unwrap_has_no_overlapping_texels(tmp_path, method):
 def test_unwrap_room_has_no_overlapping_texels(tmp_path):
     bpy = addon_bpy()
     _settings(bpy, tmp_path, res=1024)
-    from prtt_addon.bench.scene_build import mesh_object
-    from prtt_addon.bench.scene_library import room_objects
+    from prtt_addon.dev.bench.scene_build import mesh_object
+    from prtt_addon.dev.bench.scene_library import room_objects
     objects = [mesh_object(name, mesh) for name, mesh in room_objects()]
     from prtt_addon.blender.scene.uv_maps import unwrap_objects
     for method in ("SMART", "LIGHTMAP", "XATLAS"):

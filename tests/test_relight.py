@@ -185,8 +185,8 @@ def test_compiled_relight_projection_equals_the_numpy_path(tmp_path, monkeypatch
     colours; level 2: one per colour) of glossy and diffuse sets, flat ones
     (one frame per chunk) and a ball (a frame per texel), with glossy rows per
     colour and shared; the manifest says which path ran."""
-    from prtt_addon.bench.relight_bench import ball_scene
     from prtt_addon.core.base import jit
+    from prtt_addon.dev.bench.relight_bench import ball_scene
     assert jit.available(), "numba is pinned in requirements.txt"
     monkeypatch.setattr(relightable_stage, "relight_shared_colour", lambda st: shared)
     sc = _scene(GLOSSY_WALL, res=16) if scene == "corner" else ball_scene(32)[0]

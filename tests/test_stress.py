@@ -1,4 +1,4 @@
-"""The numerical stress suite (prtt_addon/bench/stress.py): every case holds.
+"""The numerical stress suite (prtt_addon/dev/bench/stress.py): every case holds.
 
 Scene scale 1e-3 .. 1e4, grazing and flipped normals, a 10 um slab and
 coincident faces, needle / zero-area / zero-UV-area triangles, a texture-sized
@@ -8,7 +8,7 @@ The preview side (NaN-free pixels for degenerate input) is tests/test_preview_st
 import numpy as np
 import pytest
 
-from prtt_addon.bench.stress import CASES, T0_MAX, run_case
+from prtt_addon.dev.bench.stress import CASES, T0_MAX, run_case
 
 
 @pytest.mark.parametrize("name", list(CASES))

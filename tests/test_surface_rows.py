@@ -7,11 +7,11 @@ import sys
 import numpy as np
 import pytest
 
-from prtt_addon.bench.scene_library import room_scene
 from prtt_addon.core.bake.estimators.bounce import surface_texels
 from prtt_addon.core.shading.materials import eval_materials
 from prtt_addon.core.texels.dilate import dilate, dilate_rows, dilation_rings
 from prtt_addon.core.texels.gbuffer import build_gbuffer
+from prtt_addon.dev.bench.scene_library import room_scene
 from tests.scenes_util import random_islands
 
 

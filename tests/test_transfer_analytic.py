@@ -103,7 +103,7 @@ def test_next_to_wall_matches_analytic():
 
 
 def test_inside_closed_box_is_dark():
-    from prtt_addon.bench import meshgen as mg
+    from prtt_addon.dev.bench import meshgen as mg
     box = mg.box((2, 2, 2)).corner_positions()
     rs = RayScene(box)
     pts = floor_points(200, z=-0.5, spread=0.8)

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.texels.raster import rasterize
 from prtt_addon.core.texels.unwrap import UnwrapError, unwrap
+from prtt_addon.dev.bench import meshgen as mg
 
 
 def test_unwrap_fits_inside_without_overlaps():

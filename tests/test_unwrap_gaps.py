@@ -20,7 +20,7 @@ pytestmark = pytest.mark.blender
 def test_gap_measure_against_a_drawn_layout():
     """bench/island_gaps on squares placed by hand: 3 and 5 texels apart, a
     touching pair (one island: shared corners), and crossing triangles."""
-    from prtt_addon.bench.island_gaps import island_gaps, triangle_distances, uv_islands
+    from prtt_addon.dev.bench.island_gaps import island_gaps, triangle_distances, uv_islands
 
     def square(x0, y0, s):
         return np.array([[[x0, y0], [x0 + s, y0], [x0 + s, y0 + s]], [[x0, y0], [x0 + s, y0 + s], [x0, y0 + s]]])
@@ -55,8 +55,8 @@ def _scene(bpy, kind):
 @pytest.mark.parametrize("kind", ["torus", "monkey", "cube", "triangles"])
 def test_islands_are_the_padding_apart(method, kind):
     bpy = addon_bpy()
-    from prtt_addon.bench.island_gaps import island_gaps
     from prtt_addon.blender.scene.uv_maps import _tri_uvs, bake_downscale, margin_texels
+    from prtt_addon.dev.bench.island_gaps import island_gaps
     for res in (512, 1024):
         objects = _scene(bpy, kind)
         st = bpy.context.scene.prtt
@@ -86,7 +86,7 @@ def test_lightmap_pack_seams_are_no_worse_than_smart_uv_projects():
     the fix Lightmap Pack's 1.5-texel gaps gave a seam p99 of 1.46 % against
     Smart UV Project's 0.94 %; after, 0.87 % against 0.83 %."""
     addon_bpy()
-    from prtt_addon.bench.seam_error import torus_errors
+    from prtt_addon.dev.bench.seam_error import torus_errors
     smart, lightmap = torus_errors("SMART"), torus_errors("LIGHTMAP")
     print({"smart": smart, "lightmap": lightmap})
     assert lightmap["seam"]["pixels"] > 1000 and smart["seam"]["pixels"] > 500
@@ -101,8 +101,8 @@ def test_bench_scenes_keep_the_layout_they_were_measured_with():
     at every halving of a retry (a trailing extra try at 0 aside), so the
     scenes, the bake identity record and the benchmark figures keep their
     layouts."""
-    from prtt_addon.bench.meshgen import chart_gap
     from prtt_addon.core.texels.unwrap import xatlas_padding
+    from prtt_addon.dev.bench.meshgen import chart_gap
 
     def halvings(p):
         out = [p]

@@ -28,10 +28,10 @@ def test_margin_follows_the_bounce_grid_the_bake_asks_for():
 @pytest.mark.parametrize("tuning,mixed", [("AUTO", False), ("FIXED", True)])
 def test_demo_room_unwrap_keeps_the_half_grid_island_safe(tuning, mixed):
     bpy = addon_bpy()
-    from prtt_addon.bench.scene_build import demo_scene
     from prtt_addon.blender.scene.uv_maps import _tri_uvs
     from prtt_addon.core.texels.islands import coarse_grid_conflicts
     from prtt_addon.core.texels.raster import rasterize
+    from prtt_addon.dev.bench.scene_build import demo_scene
     objects = demo_scene()
     st = bpy.context.scene.prtt
     st.resolution, st.texture_sets, st.unwrap_method, st.tuning = 1024, "ATLAS", "SMART", tuning

@@ -200,7 +200,7 @@ def test_exclusions_match_blenders_builder(blender_ext, tmp_path):
     shutil.copy(os.path.join(ROOT, "blender_manifest.toml"), raw / "blender_manifest.toml")
     # Litter a working tree has.
     for junk in ("__pycache__/x.cpython-311.pyc", "core/__pycache__/y.pyc", "stray.pyc", "core/.DS_Store",
-                 ".pytest_cache/README.md", "bench/extra.py"):
+                 ".pytest_cache/README.md", "dev/extra.py"):
         (raw / junk).parent.mkdir(parents=True, exist_ok=True)
         (raw / junk).write_text("junk")
     zip_path = tmp_path / "blender.zip"
@@ -213,7 +213,7 @@ def test_exclusions_match_blenders_builder(blender_ext, tmp_path):
     ours = {rel for _, rel in tool.extension_files([(str(raw), "")], patterns)} - {"blender_manifest.toml"}
     assert ours == blenders
     assert {"__init__.py", "worker.py", "LICENSE", "shaders/prtt_common.glsl"} <= ours
-    assert not [n for n in ours if n == "demo.py" or n.startswith("bench/") or "__pycache__" in n
+    assert not [n for n in ours if n.startswith("dev/") or "__pycache__" in n
                 or n.endswith(".pyc") or "/." in "/" + n]
 
 

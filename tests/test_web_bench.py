@@ -1,4 +1,4 @@
-"""`python -m prtt_addon.bench web` end to end at a toy size: the demo room
+"""`python -m prtt_addon.dev.bench web` end to end at a toy size: the demo room
 baked at 64² with 16 rays, exported, loaded in headless Chromium and drawn at
 160 × 90 (one timed frame), and the room with 4 bunnies for the triangle
 table; the record holds every figure docs/benchmarks.md's block reads."""
@@ -21,18 +21,18 @@ def positive(value, what):
 def test_web_bench_at_a_toy_size(tmp_path):
     pytest.importorskip("bpy")
     pytest.importorskip("playwright")
-    from prtt_addon.bench import figures, web_bench
+    from prtt_addon.dev.bench import figures, web_bench
     if not os.path.exists(web_bench.BROWSER):
         pytest.skip("Debian's chromium-headless-shell is needed: ./prtt.sh installs it")
     out = tmp_path / "web.json"
-    r = subprocess.run([sys.executable, "-m", "prtt_addon.bench", "web", "--resolution", "64", "--rays", "16",
+    r = subprocess.run([sys.executable, "-m", "prtt_addon.dev.bench", "web", "--resolution", "64", "--rays", "16",
                         "--bounce-rays", "16", "--size", "160x90", "--small-size", "80x45", "--frames", "1",
                         "--loads", "1", "--scenes", "21K,300K", "--scaling-resolution", "64",
                         "--json", str(out)],
                        capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=ROOT), cwd=ROOT, timeout=1800)
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     rec = json.loads(out.read_text())
-    assert rec["command"].startswith("python -m prtt_addon.bench web ") and rec["date"] and rec["machine"]["cores"]
+    assert rec["command"].startswith("python -m prtt_addon.dev.bench web ") and rec["date"] and rec["machine"]["cores"]
     assert rec["settings"]["resolution"] == 64 and rec["settings"]["size"] == [160, 90]
     assert rec["errors"] == []
     assert "SwiftShader" in rec["browser"]["webgl_renderer"], rec["browser"]

@@ -46,7 +46,7 @@ def exported(tmp_path_factory, request):
     known colours, the forest HDRI as the World, a camera; room.glb beside it.
     Baked with no bounce, and with one relightable bounce (the default mode:
     the glTF carries its DC rows, the viewer relights them)."""
-    from prtt_addon.bench.scene_build import principled
+    from prtt_addon.dev.bench.scene_build import principled
     tmp = tmp_path_factory.mktemp("web")
     bpy = addon_bpy()
     floor = rs.floor(bpy, 6.0)
@@ -55,8 +55,8 @@ def exported(tmp_path_factory, request):
     box.data.materials.append(principled("Box", base_color=(0.05, 0.12, 0.30), roughness=1.0, specular=0.0))
     rs.scene_camera(bpy, (0.5, -6, 3.5), (1.1, 0, 0.1))
     bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = W, H
-    from prtt_addon.bench.scene_build import environment_world
     from prtt_addon.core.light.envmap import builtin_environment_path
+    from prtt_addon.dev.bench.scene_build import environment_world
     bpy.context.scene.world = environment_world("Forest", builtin_environment_path("forest"))
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp / "scene.blend"))
     r = run("bake", "scene.blend", "--out", "textures", "--unwrap", "SMART", "--resolution", "64", "--rays", "64",
@@ -245,12 +245,12 @@ ROOM_TURN = 90.0
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    """The demo's room (prtt_addon.bench.scene_build.demo_scene: 21K triangles, a glossy
+    """The demo's room (prtt_addon.dev.bench.scene_build.demo_scene: 21K triangles, a glossy
     plank floor with textured colour and roughness, the forest HDRI, the
     demo camera), baked into one atlas with one relightable bounce (the
     default), exported, and rendered by Blender's `render` in each mode
     compared, at the World of the export and turned by ROOM_TURN degrees."""
-    from prtt_addon.bench.scene_build import demo_scene
+    from prtt_addon.dev.bench.scene_build import demo_scene
     tmp = tmp_path_factory.mktemp("room")
     bpy = addon_bpy()
     demo_scene()

@@ -18,8 +18,8 @@ import time
 
 import pytest
 
-from prtt_addon.bench import meshgen as mg
 from prtt_addon.core.io.jobfile import save_scene
+from prtt_addon.dev.bench import meshgen as mg
 from tests.scenes_util import floor_and_box, planar_uvs, scene_from
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -37,9 +37,9 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
-    sys.path.insert(0, ROOT)              # prtt_addon.bench's page server, when run as a file
+    sys.path.insert(0, ROOT)              # prtt_addon.dev.bench's page server, when run as a file
 # The page benchmark's browser and server over viewer/, shaders/ and tools/js.
-from prtt_addon.bench.web_bench import BROWSER, BROWSER_ARGS, Site, page_url  # noqa: E402
+from prtt_addon.dev.bench.web_bench import BROWSER, BROWSER_ARGS, Site, page_url  # noqa: E402
 
 CHAIN = os.path.join(ROOT, "tools", "compat_chain.py")
 #: Blender line -> the release tried (the newest on PyPI when this was written).

@@ -36,7 +36,7 @@ def build_scene(out_blend: str) -> None:
     """Step 1, in the Blender under test, from the source tree."""
     import bpy
 
-    from prtt_addon.bench.scene_build import demo_scene
+    from prtt_addon.dev.bench.scene_build import demo_scene
     bpy.ops.wm.read_factory_settings(use_empty=True)
     demo_scene()
     bpy.ops.wm.save_as_mainfile(filepath=out_blend)

@@ -26,15 +26,15 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from prtt_addon.bench import scene_library  # noqa: E402
-from prtt_addon.bench.relight_bench import turned  # noqa: E402
-from prtt_addon.bench.sweep import Previewer  # noqa: E402
-from prtt_addon.bench.texture_error import image_error  # noqa: E402
 from prtt_addon.cli import env_light  # noqa: E402
 from prtt_addon.core.bake.pipeline import relightable_stage as relight_stage  # noqa: E402
 from prtt_addon.core.bake.pipeline.context import BakeSettings
 from prtt_addon.core.bake.pipeline.runner import bake_scene  # noqa: E402
 from prtt_addon.core.io.exr_io import expand_shared_glossy, read_relight_exr, relight_channel_names, write_sh_planes
+from prtt_addon.dev.bench import scene_library  # noqa: E402
+from prtt_addon.dev.bench.relight_bench import turned  # noqa: E402
+from prtt_addon.dev.bench.sweep import Previewer  # noqa: E402
+from prtt_addon.dev.bench.texture_error import image_error  # noqa: E402
 
 
 def main() -> int:

@@ -56,7 +56,7 @@ export function gpuLimits(renderer) {
  * One KTX2 payload as a half-float 2D array texture, checked against what
  * the extension says it holds (layers, size) and the browser's limits.
  * ``what`` names it in every message. Exported for the page reader's fuzz harness
- * (prtt_addon/fuzz/page.py).
+ * (prtt_addon/dev/fuzz/page.py).
  */
 export function arrayTexture(bytes, zstd, what, { layers, width, height, encoding = 'half', scale, offset }, limits) {
   let c;

@@ -1,7 +1,7 @@
 """Objects' triangles -> one bake :class:`~prtt_addon.core.model.scene.Scene`.
 
 The one assembly path of the Blender export (prtt_addon/blender/scene/job.py)
-and of :func:`prtt_addon.bench.meshgen.assemble`: each object (or instance)
+and of :func:`prtt_addon.dev.bench.meshgen.assemble`: each object (or instance)
 is a :class:`MeshPart` in world space, already laid out in its texture set;
 :func:`assemble_parts` concatenates them in order (object ids follow the
 list) and fills what a part leaves out with the format's defaults.

@@ -1,1 +1,0 @@
-"""Benchmarks: ``python -m prtt_addon.bench <bake|...>`` print numbers (see docs/benchmarks.md)."""

@@ -1,0 +1,104 @@
+"""Dark creases at contacts (issue 53, item 2), measured: the floor's baked
+light next to a box resting on it, against the light traced at the same
+points, in quarter-texel bins of distance from the box.
+
+A 2 m floor (two triangles, its own ``resolution``² set: 2 / resolution m
+texels) and a 0.5 m box standing on it (its bottom face on the floor, its
+sides off the texel grid). Along the middle 60 % of the box's -x side,
+``samples`` floor points at each bin centre (0.125, 0.375, ... texels out)
+are shaded two ways with the same light (SH, ``env``): the floor's transfer
+texture sampled as the preview samples it (texsample.bilinear, the baked
+texels as written), and the transfer traced at the point itself
+(``ref_rays`` rays: core.bake.estimators.transfer, as the traced reference
+of bench contact). The profile is the ratio of their irradiance (the light's
+dot product with the transfer, mean over RGB) per bin: 1 is exact, below 1
+a dark crease (texels whose centres lie under the box are baked black and
+blend into the visible floor).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+
+import numpy as np
+
+from . import meshgen as mg
+
+#: The box: size, centre (its bottom face on the floor, z = 0) and turn about
+#: z: 0.05 rad, so that along the measured side the edge crosses the texel
+#: grid at every phase (the profile is an average over where texel centres fall).
+BOX_SIZE = 0.5
+BOX_CENTRE = (0.1234, 0.0567)
+BOX_TURN = 0.05
+
+
+def build(resolution: int):
+    """The core scene: floor (own UVs over [0, 1]) and box (xatlas, 128²)."""
+    from ...core.model.scene import validate
+    floor = mg.plane(2.0, 2.0, subdiv=1)
+    floor.uvs = ((floor.vertices[:, :2] + 1.0) / 2.0)[floor.faces]
+    box = mg.box((BOX_SIZE,) * 3).transformed(rotate_z=BOX_TURN, translate=(*BOX_CENTRE, BOX_SIZE / 2))
+    sc = mg.assemble([("floor", floor), ("box", box)], resolution=resolution, keep_uvs=True,
+                     resolutions={"box": 128})
+    sc.materials = [dict(name="grey", base_color=[0.7, 0.7, 0.7], roughness=0.6)]
+    sc.material_id = np.zeros_like(sc.object_id)
+    validate(sc)
+    return sc
+
+
+def profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, samples: int = 300,
+            env: str = "forest", bins: int = 8, settings=None) -> dict:
+    """{"bins": bin centres in texels, "ratio": baked / traced irradiance per
+    bin, "texel_m": the floor's texel in metres}."""
+    from ...core.bake.estimators.raytrace import RayScene
+    from ...core.bake.estimators.transfer import Points, TransferSettings, bake_points
+    from ...core.bake.pipeline.context import BakeSettings
+    from ...core.bake.pipeline.runner import bake_scene
+    from ...core.io.exr_io import read_sh_exr
+    from ...core.light.envmap import environment_light
+    from ...core.texels.texsample import bilinear
+
+    sc = build(resolution)
+    light = environment_light(env, 5)
+    texel = 2.0 / resolution
+    centres = (np.arange(bins) + 0.5) / 4.0
+    # In the box's frame: x out of its -x side by the bin's distance, y along the side.
+    along = np.linspace(-0.3, 0.3, samples) * BOX_SIZE
+    out = -(BOX_SIZE / 2 + centres[:, None] * texel) * np.ones_like(along)[None, :]
+    local = np.stack([out.ravel(), np.repeat(along[None, :], bins, 0).ravel()], axis=1)
+    c, s_ = np.cos(BOX_TURN), np.sin(BOX_TURN)
+    xy = local @ np.array([[c, s_], [-s_, c]]) + np.asarray(BOX_CENTRE)
+    P = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+    up = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+    with tempfile.TemporaryDirectory(prefix="prtt-contact-profile-") as d:
+        bake_scene(sc, os.path.join(d, "b"), settings or BakeSettings(rays=rays, bounces=0))
+        tex, _ = read_sh_exr(os.path.join(d, "b", "floor.transfer.exr"))
+    H, W, K = tex.shape
+    uv = (P[:, :2] + 1.0) / 2.0
+    baked = bilinear(np.ascontiguousarray(tex.reshape(H * W, K), np.float32), W, H, uv).astype(np.float64)
+    pts = Points(P, up, up, np.arange(len(P), dtype=np.int64), np.zeros(len(P), bool))
+    traced, _ = bake_points(RayScene(np.asarray(sc.positions, np.float64)), pts, TransferSettings(bands=5, rays=ref_rays, seed=11))
+    e_baked = (baked @ light).mean(axis=1).reshape(bins, samples)
+    e_traced = (traced.astype(np.float64) @ light).mean(axis=1).reshape(bins, samples)
+    return {"bins": centres, "ratio": e_baked.mean(axis=1) / e_traced.mean(axis=1), "texel_m": texel,
+            "resolution": resolution}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m prtt_addon.dev.bench contact-profile", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--resolution", type=int, default=112, help="the floor's texels a side (112: 1.8 cm texels)")
+    p.add_argument("--rays", type=int, default=256)
+    p.add_argument("--ref-rays", type=int, default=4096)
+    args = p.parse_args(argv)
+    r = profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays)
+    print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m); baked / traced irradiance "
+          f"by distance from the box, in texels:")
+    for c, v in zip(r["bins"], r["ratio"]):
+        print(f"  {c:5.3f}  {v:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
