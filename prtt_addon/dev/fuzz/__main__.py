@@ -72,8 +72,8 @@ def run_target(name: str, *, runs: int | None, seconds: float | None, corpus: st
 
 def combine(paths: list[str], record: str) -> int:
     """Write ``record`` (the machine, and each run's command, date and reports) from --json files."""
-    from ..bench.figures import machine
     from ...core.base.atomic import atomic_write
+    from ..bench.figures import machine
     runs = []
     for p in paths:
         with open(p, encoding="utf-8") as f:

@@ -23,8 +23,8 @@ SEED_KINDS = ("job", "manifest", "exr", "sidecar", "env", "world", "events", "kt
 
 
 def seed_scene(resolution: int = 8):
-    from ..bench import meshgen as mg
     from ...core.model.scene import Scene
+    from ..bench import meshgen as mg
     floor = mg.plane(4.0, subdiv=1)
     box = mg.box((1.0, 1.0, 1.0), (0.0, 0.0, 0.5))
     p = floor.vertices[:, :2]
