@@ -67,3 +67,27 @@ def test_the_texels_found_inside_are_those_under_the_box():
         local = rel @ np.array([[c, -s], [s, c]])            # into the box's frame
         under = np.all(np.abs(local) < cp.BOX_SIZE / 2, axis=1)
         assert under.sum() > 300 and np.array_equal(inside, under), (res, inside.sum(), under.sum())
+
+
+def test_the_panels_setting_reaches_the_bake(tmp_path):
+    """Bake › Quality › Fill Texels Inside Geometry (scene.prtt.texel_validity)
+    in a saved .blend: `prtt bake` empties the floor's texels under the box
+    (the manifest counts them), and without it none are."""
+    import json
+
+    import pytest
+    pytest.importorskip("bpy")
+    from tests import real_scenes as rs
+    from tests.blender_util import addon_bpy
+    from tests.test_headless_chain import run
+    bpy = addon_bpy()
+    rs.floor_and_box(bpy)
+    for on in (False, True):
+        bpy.context.scene.prtt.texel_validity = on
+        bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / f"s{on}.blend"))
+        r = run("bake", f"s{on}.blend", "--unwrap", "smart", "--resolution", "128", "--rays", "16", "--bounces", "0",
+                "--out", f"t{on}", cwd=tmp_path)
+        assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+        sets = {s["name"]: s for s in json.loads((tmp_path / f"t{on}" / "manifest.json").read_text())["sets"]}
+        inside = sets["Floor"].get("inside_texels", 0)
+        assert (inside > 0) if on else (inside == 0), (on, sets["Floor"])

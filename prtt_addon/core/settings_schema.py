@@ -230,7 +230,7 @@ SETTINGS: tuple[Setting, ...] = (
             "geometry (nine in ten of 16 rays hit back faces: a floor under a box resting on it) and fill "
             "them from their valid neighbours by the dilation, so no dark crease shows where objects touch "
             "(the bounce textures keep them as traced)", flags=("--texel-validity", "--no-texel-validity"),
-            off_help="keep every texel as traced"),
+            off_help="keep every texel as traced", ui=Ui("texel_validity", "Fill Texels Inside Geometry")),
     Setting("normal_maps", "bake", "bool", True, "shade with the scene's tangent-space normal maps",
             flags=("--normal-maps", "--no-normal-maps"), off_help="ignore normal maps",
             ui=Ui("normal_maps", "Normal Maps")),
