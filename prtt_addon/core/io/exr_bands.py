@@ -262,6 +262,13 @@ def channel_bands(path, names: list, height: int, width: int, rows: int, error=V
 READ_BAND_BYTES = 64 << 20
 
 
+def channel_groups(names: list) -> list:
+    """Channel names four to a layer, the last padded with None (ktx2.sh_layers'
+    layout of one row of coefficients: coefficient i in layer i // 4, channel i % 4)."""
+    padded = list(names) + [None] * (-len(names) % 4)
+    return [padded[i:i + 4] for i in range(0, len(padded), 4)]
+
+
 def read_layers(path, groups: list, height: int, width: int, *, dtype=np.float16,
                 error=ValueError) -> np.ndarray:
     """(len(groups), height, width, 4) ``dtype`` layers of a texture whose

@@ -485,6 +485,19 @@ def open_sh_channels(path):
         yield chans, attrs
 
 
+def texture_header(path: str) -> tuple:
+    """(channel names (set), attrs (``prtt_*`` headers without the prefix), H, W,
+    bytes per stored value) of a PRTT texture, from its checked header alone
+    (nothing decoded)."""
+    header, H, W = checked_header(path, decoded=0)
+    attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
+    try:
+        names = {c.name for c in header.get("channels") or []}
+    except (UnicodeDecodeError, AttributeError) as exc:      # names are bytes from the file
+        raise TextureError(f"{path}: unreadable EXR (its channel names: {exc})") from None
+    return names, attrs, H, W, 2 if attrs.get("storage") == "half" else 4
+
+
 def _read_channels(path) -> tuple[dict, dict]:
     """(name -> (H, W) array copied out of the file, attrs): :func:`open_sh_channels`'
     channels, kept after the file closes."""

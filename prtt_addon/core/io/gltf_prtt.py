@@ -25,8 +25,8 @@ import struct
 import numpy as np
 
 from ..shading.display import LUT_ENCODING
-from .exr_bands import read_layers
-from .exr_io import TextureError, bands_of_header, channel_names, checked_header, relight_channel_names
+from .exr_bands import channel_groups, read_layers
+from .exr_io import TextureError, bands_of_header, channel_names, relight_channel_names, texture_header
 from .ktx2 import ktx2_bytes, sh_layers
 
 NAME = "PRTT_radiance_transfer"
@@ -217,16 +217,10 @@ def _bounce_payload(layers, C: int, K: int, levels: int, supercompression: str,
 # its transposed copy, its padded layers and their bytes (a 2048²
 # relightable set's export peaked at 21.6 GB that way).
 
-def _groups(names: list) -> list:
-    """Channel names four to a layer, the last padded with None (sh_layers'
-    layout of one row of coefficients)."""
-    padded = list(names) + [None] * (-len(names) % 4)
-    return [padded[i:i + 4] for i in range(0, len(padded), 4)]
-
-
 def _row_groups(names: list, rows: int, per_row: int) -> list:
-    """:func:`_groups` of each of ``rows`` consecutive rows of ``per_row`` names (_row_layers' layout)."""
-    return [g for r in range(rows) for g in _groups(names[r * per_row:(r + 1) * per_row])]
+    """exr_bands.channel_groups of each of ``rows`` consecutive rows of
+    ``per_row`` names (_row_layers' layout)."""
+    return [g for r in range(rows) for g in channel_groups(names[r * per_row:(r + 1) * per_row])]
 
 
 def _layer_dtype(encoding: str):
@@ -237,15 +231,10 @@ def _file_plan(path: str) -> tuple[int, int, set, list]:
     """(H, W, the channels the file has, [(payload key, its layers' channel
     groups, a function (layers, supercompression, encoding) -> (blob,
     meta))]) of a bake texture, from its checked header alone."""
-    header, H, W = checked_header(path, decoded=0)
-    attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
-    try:
-        have = {c.name for c in header.get("channels") or []}
-    except (UnicodeDecodeError, AttributeError) as exc:      # names are bytes from the file
-        raise TextureError(f"{path}: unreadable EXR (its channel names: {exc})") from None
+    have, attrs, H, W, _ = texture_header(path)
     K = bands_of_header(path, attrs) ** 2
     if attrs["kind"] != "relight":
-        return H, W, have, [("transfer", _groups(channel_names(K)),
+        return H, W, have, [("transfer", channel_groups(channel_names(K)),
                              lambda lay, sc, enc: _payload(lay, "transfer", K, sc, enc))]
     kg = bands_of_header(path, attrs, "glossy_bands", 0, int(round(K ** 0.5))) ** 2
     colour = attrs.get("glossy_colour", "per-colour")
@@ -305,8 +294,7 @@ def _bounce_plan(paths: list, K: int) -> tuple[int, int, list] | int:
     H = W = None
     plan = []
     for p in paths:
-        header, h, w = checked_header(p, decoded=0)
-        attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
+        _, attrs, h, w, _ = texture_header(p)
         k = bands_of_header(p, attrs) ** 2
         if k != K and not (attrs.get("band_limited") and k < K):
             return k

@@ -26,17 +26,17 @@ import os
 
 import numpy as np
 
-from ..io.exr_bands import channel_bands
+from ..io.exr_bands import channel_bands, channel_groups
 from ..io.exr_io import (
     TextureError,
     bands_of_header,
     channel_names,
-    checked_header,
     glossy_tint,
     read_relight_exr,
     read_sh_exr,
     relight_channel_names,
     shown,
+    texture_header,
 )
 from ..io.sidecars import read_corner_vertex, read_vertex_coeffs
 from ..model.material import DEFAULT
@@ -510,40 +510,21 @@ class LayerSource(_BandedTexture):
                 and all(d == np.float16 for d in self.dtypes.values()))
 
 
-def _groups(names: list) -> list:
-    """Channel names four to a layer, the last padded with None."""
-    L = layers(len(names))
-    padded = list(names) + [None] * (4 * L - len(names))
-    return [padded[4 * l:4 * l + 4] for l in range(L)]
-
-
 def _missing(path: str, chans, names: list) -> None:
     missing = [n for n in names if n not in chans]
     if missing:
         raise TextureError(f"{path}: missing channels {missing[:4]}{'...' if len(missing) > 4 else ''}")
 
 
-def _texture_header(path: str) -> tuple:
-    """(channel names, attrs, H, W, bytes per stored value) of a PRTT
-    texture, from its checked header alone (nothing decoded)."""
-    header, H, W = checked_header(path, decoded=0)
-    attrs = {k[5:]: v for k, v in header.items() if k.startswith("prtt_")}
-    try:
-        names = {c.name for c in header.get("channels") or []}
-    except (UnicodeDecodeError, AttributeError) as exc:      # names are bytes from the file
-        raise TextureError(f"{path}: unreadable EXR (its channel names: {exc})") from None
-    return names, attrs, H, W, 2 if attrs.get("storage") == "half" else 4
-
-
 def transfer_layers(path: str) -> LayerSource:
     """LayerSource of a transfer texture (pack_layers(read_sh_exr(path)[0]))."""
     path = os.fspath(path)
-    chans, attrs, H, W, nbytes = _texture_header(path)
+    chans, attrs, H, W, nbytes = texture_header(path)
     K = bands_of_header(path, attrs) ** 2
     rgb = any(n.startswith("R.") for n in chans)
     names = channel_names(K, rgb)
     _missing(path, chans, names)
-    return LayerSource(path, _groups(names), H, W, K, rgb, channel_bytes=nbytes)
+    return LayerSource(path, channel_groups(names), H, W, K, rgb, channel_bytes=nbytes)
 
 
 def relight_operator_layers(path: str, *, expand: bool = True) -> LayerSource:
@@ -555,7 +536,7 @@ def relight_operator_layers(path: str, *, expand: bool = True) -> LayerSource:
     three times as many), for the relight pass to tint (shader_source.
     relight_variant(shared=True)); they are then half floats as in the file."""
     path = os.fspath(path)
-    chans, attrs, H, W, nbytes = _texture_header(path)
+    chans, attrs, H, W, nbytes = texture_header(path)
     if attrs["kind"] != "relight":
         raise TextureError(f"{path}: a {shown(attrs['kind'])} texture, not a relightable bounce texture")
     bands = bands_of_header(path, attrs)
@@ -565,16 +546,16 @@ def relight_operator_layers(path: str, *, expand: bool = True) -> LayerSource:
         raise TextureError(f"{path}: unknown prtt_glossy_colour {shown(colour)} (per-colour or shared)")
     shared = colour == "shared"
     _missing(path, chans, relight_channel_names(K, kg, shared))
-    groups = [g for c in "RGB" for g in _groups([f"{c}.dc.i{i:03d}" for i in range(K)])]
+    groups = [g for c in "RGB" for g in channel_groups([f"{c}.dc.i{i:03d}" for i in range(K)])]
     tint_from = None
     if kg and shared and not expand:
-        groups += [g for o in range(1, kg) for g in _groups([f"S.o{o:03d}.i{i:03d}" for i in range(kg)])]
+        groups += [g for o in range(1, kg) for g in channel_groups([f"S.o{o:03d}.i{i:03d}" for i in range(kg)])]
     elif kg and shared:
         tint_from = tuple(f"{c}.dc.i000" for c in "RGB")
         groups += [g for c in range(3) for o in range(1, kg)
-                   for g in _groups([(f"S.o{o:03d}.i{i:03d}", c) for i in range(kg)])]
+                   for g in channel_groups([(f"S.o{o:03d}.i{i:03d}", c) for i in range(kg)])]
     elif kg:
-        groups += [g for c in "RGB" for o in range(1, kg) for g in _groups([f"{c}.o{o:03d}.i{i:03d}"
+        groups += [g for c in "RGB" for o in range(1, kg) for g in channel_groups([f"{c}.o{o:03d}.i{i:03d}"
                                                                            for i in range(kg)])]
     src = LayerSource(path, groups, H, W, K, tint_from=tint_from, channel_bytes=nbytes)
     src.glossy_bands = int(attrs.get("glossy_bands", 0)) if kg else 0
@@ -673,7 +654,7 @@ def bounce_level_layers(paths, n_coeffs: int) -> LevelSumSource:
     levels, shape, nbytes = [], None, 2
     for p in paths:
         p = os.fspath(p)
-        chans, attrs, H, W, b = _texture_header(p)
+        chans, attrs, H, W, b = texture_header(p)
         kl = bands_of_header(p, attrs) ** 2
         if not any(n.startswith("R.") for n in chans):
             raise TextureError(f"{p}: not a bounce texture (no colour channels R.sh000 ...)")
