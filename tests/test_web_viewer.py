@@ -10,6 +10,7 @@ import os
 import pathlib
 import shutil
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -615,6 +616,38 @@ def test_a_garbage_environment_is_a_message(room, room_server, tmp_path):
     title, shown, errors, console = page_run(room_server, "/room.glb", files=str(bad))
     assert title.startswith("error: ") and "broken.hdr" in title, title
     assert not errors and not console, (errors, console)
+
+
+def test_an_environment_that_never_decodes_is_a_message(room, room_server, tmp_path):
+    """A damaged EXR on which three's EXRLoader.parse never returns (found by
+    the page fuzz: an attribute size that throws its string reader past the
+    end of the buffer) is decoded in a worker the page ends after its time
+    limit (?envseconds=): the page names the file, and the next environment
+    dropped on it still lights the room."""
+    from playwright.sync_api import sync_playwright
+    hang = tmp_path / "hang.exr"
+    shutil.copy(os.path.join(ROOT, "tests", "fuzz_corpus", "page-hang", "exrloader-hang.exr"), hang)
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
+        try:
+            page = b.new_page(viewport={"width": RW, "height": RH})
+            errors = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(f"{room_server}/viewer/index.html?src=/room.glb&w={RW}&h={RH}&mode=tpfl&envseconds=2")
+            page.wait_for_function("document.title.startsWith('ready')", timeout=120_000)
+            t0 = time.monotonic()
+            page.locator("#file").set_input_files(str(hang))
+            page.wait_for_function("document.title.startsWith('error')", timeout=60_000)
+            waited = time.monotonic() - t0
+            assert "hang.exr: not decoded after 2 s" in page.title(), page.title()
+            assert waited < 30, waited
+            page.locator("#file").set_input_files(str(room / "city.hdr"))
+            page.wait_for_function("document.getElementById('msg').textContent.includes('city.hdr')",
+                                   timeout=60_000)
+            assert not errors, errors
+        finally:
+            b.close()
+    print(f"the damaged EXR was given up after {waited:.1f} s")
 
 
 def test_a_bundled_hdri_lights_the_room_as_blender_does(room, room_server, tmp_path):

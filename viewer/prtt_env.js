@@ -11,9 +11,29 @@
 // (m + 0.5) / 256 * 2^(e - 128) — up to 0.2 % apart on bright channels and
 // several % on dim ones — and it reads neither "+Y" (bottom-up) files nor
 // checks a size before allocating.
-import * as THREE from 'three';
-import { EXRLoader } from 'three/addons/loaders/EXRLoader.js';
+//
+// three is imported when an EXR is first decoded, not at the top: this module
+// also runs in a Web Worker (prtt_env_worker.js, where the page decodes what a
+// user drops), and import maps do not reach workers, so there the worker hands
+// in three and EXRLoader itself (useExrModules).
 import { MAX_PROJECT_BANDS, MAX_PROJECT_PIXELS, projectEquirect } from './prtt_sh.js';
+
+let exrModules = null;
+let loadExrModules = async () => {
+  const [THREE, { EXRLoader }] = await Promise.all([import('three'), import('three/addons/loaders/EXRLoader.js')]);
+  return { THREE, EXRLoader };
+};
+
+/** Decode EXR with the {THREE, EXRLoader} that `load` (async) gives, loaded at the first EXR (a worker's). */
+export function useExrModules(load) {
+  loadExrModules = load;
+  exrModules = null;
+}
+
+async function exrLoader() {
+  if (!exrModules) exrModules = await loadExrModules();
+  return exrModules;
+}
 
 /** Most pixels a side of an environment image (image_io.MAX_ENV_SIDE). */
 export const MAX_ENV_SIDE = 1 << 15;
@@ -83,9 +103,10 @@ function exrDataWindow(name, b) {
   return { width: win[2] - win[0] + 1, height: win[3] - win[1] + 1 };
 }
 
-function decodeExr(name, b) {
+async function decodeExr(name, b) {
   const { width, height } = exrDataWindow(name, b);
   checkSize(name, width, height);
+  const { THREE, EXRLoader } = await exrLoader();
   const loader = new EXRLoader();
   loader.setDataType(THREE.FloatType);
   let r;
@@ -218,7 +239,7 @@ export async function environmentFromBytes(bytes, name, bands) {
   else throw new Error(`${name}: expected the file's bytes (Uint8Array or ArrayBuffer)`);
   let img;
   if (b.length >= 4 && b[0] === 0x76 && b[1] === 0x2f && b[2] === 0x31 && b[3] === 0x01) {
-    img = decodeExr(name, b);
+    img = await decodeExr(name, b);
   } else if (b.length >= 2 && b[0] === 0x23 && b[1] === 0x3f) {
     img = decodeRadiance(name, b);
   } else {
@@ -233,4 +254,36 @@ export async function environmentFromBytes(bytes, name, bands) {
     throw new Error(`${name}: ${e.message}`);
   }
   return { L, width: img.width, height: img.height, name };
+}
+
+/** Seconds the page gives an environment to decode and project: a damaged
+ * file can keep three's EXRLoader in a loop for ever (docs/fuzzing.md), so the
+ * worker doing it is ended after this (plus a second per MiB of file). */
+export const ENV_DECODE_SECONDS = 30;
+
+/**
+ * environmentFromBytes in a Web Worker that is ended when it takes longer
+ * than `seconds` + 1 s per MiB: the page stays responsive while a large image
+ * decodes, and a file that would never finish is an Error naming it.
+ * @param {Uint8Array} bytes the file's bytes (copied to the worker)
+ * @param {string} name the file's name, for messages
+ * @param {number} bands 1..8
+ * @param {number} [seconds] the base limit (ENV_DECODE_SECONDS)
+ * @returns {Promise<{L: number[][], width: number, height: number, name: string}>} as environmentFromBytes
+ */
+export function environmentInWorker(bytes, name, bands, seconds = ENV_DECODE_SECONDS) {
+  const limit = seconds + bytes.byteLength / (1 << 20);
+  const worker = new Worker(new URL('./prtt_env_worker.js', import.meta.url), { type: 'module' });
+  return new Promise((resolve, reject) => {
+    const done = (fn, v) => { clearTimeout(timer); worker.terminate(); fn(v); };
+    const timer = setTimeout(() => done(reject, new Error(
+      `${name}: not decoded after ${limit.toFixed(0)} s (a damaged file?); the page stopped reading it`)), limit * 1000);
+    worker.onmessage = ({ data }) => (data.error !== undefined ? done(reject, new Error(data.error)) : done(resolve, data.env));
+    worker.onerror = (ev) => { ev.preventDefault(); done(reject, new Error(`${name}: the decoder failed (${ev.message || 'worker error'})`)); };
+    const copy = bytes.slice();
+    worker.postMessage({
+      bytes: copy, name, bands,
+      three: import.meta.resolve('three'), exrLoader: import.meta.resolve('three/addons/loaders/EXRLoader.js'),
+    }, [copy.buffer]);
+  });
 }

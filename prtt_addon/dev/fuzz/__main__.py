@@ -41,8 +41,9 @@ def run_target(name: str, *, runs: int | None, seconds: float | None, corpus: st
     os.makedirs(found, exist_ok=True)
     before = set(os.listdir(found))
     dirs = [work, os.path.dirname(seeds[t.seeds][0])]
-    if os.path.isdir(os.path.join(SAVED, name)):
-        dirs.append(os.path.join(SAVED, name))
+    for kind in dict.fromkeys((name, t.seeds)):       # exr-bands grows from exr's saved inputs too
+        if os.path.isdir(os.path.join(SAVED, kind)):
+            dirs.append(os.path.join(SAVED, kind))
     flags = [f"-timeout={timeout}", f"-rss_limit_mb={rss_mb}", f"-max_len={t.max_len}", f"-seed={seed}",
              "-print_final_stats=1", f"-artifact_prefix={found}/"]
     flags.append(f"-runs={runs}" if runs is not None else f"-max_total_time={max(1, int(seconds))}")

@@ -82,6 +82,35 @@ def _bundle(path: str, items: list[tuple[str, bytes, dict | None]]) -> None:
             f.write(d)
 
 
+def run_bundle(items: list[tuple[str, bytes, dict | None]], bundle: str,
+               viewer: str = os.path.join(ROOT, "viewer")) -> tuple[dict | None, str]:
+    """Run ``items`` (kind "env" or "ktx2", bytes, the KTX2's spec) through
+    page_fuzz.mjs in one node process, the bundle written to ``bundle``;
+    returns (its report, or None, and why not)."""
+    node = shutil.which("node")
+    if node is None:
+        raise RuntimeError("node is not installed: the page's readers cannot run (tools/bootstrap.sh)")
+    _bundle(bundle, items)
+    here = os.path.dirname(bundle)
+    with open(os.path.join(here, "hooks.mjs"), "w") as f:
+        f.write(_HOOKS)
+    with open(os.path.join(here, "register.mjs"), "w") as f:
+        f.write("import { register } from 'node:module';\n"
+                f"register(new URL('./hooks.mjs', import.meta.url), "
+                f"{{ data: {{ parent: {json.dumps('file://' + NODE_MODULES_PARENT)} }} }});\n")
+    try:
+        # A bundle runs in a few seconds: one that takes BUNDLE_SECONDS holds an input that crashed
+        # or stalled node itself (an input that hangs a decoder is timed in page_fuzz.mjs).
+        p = subprocess.run([node, "--import", "file://" + os.path.join(here, "register.mjs"),
+                            os.path.join(os.path.dirname(__file__), "page_fuzz.mjs"), bundle,
+                            viewer], capture_output=True, text=True, timeout=BUNDLE_SECONDS)
+    except subprocess.TimeoutExpired:
+        return None, f"node did not finish {len(items)} inputs in {BUNDLE_SECONDS} s"
+    if p.returncode != 0:
+        return None, f"node exited with {p.returncode}: {p.stderr.strip()[-300:]}"
+    return json.loads(p.stdout.strip().splitlines()[-1]), ""
+
+
 def run(seeds: dict, runs: int, *, seed: int = 1, found_dir: str | None = None,
         viewer: str = os.path.join(ROOT, "viewer")) -> dict:
     """Fuzz the page's readers (the modules in ``viewer``) with ``runs``
@@ -98,14 +127,8 @@ def run(seeds: dict, runs: int, *, seed: int = 1, found_dir: str | None = None,
     ktx = [(read(p), json.loads(read(os.path.join(specs, os.path.basename(p) + ".json")))) for p in seeds["ktx2"]]
     rng = random.Random(seed)
     t0 = time.perf_counter()
-    done, failures, slowest, rss, accepted = 0, [], 0.0, 0, 0
+    done, failures, hangs, slowest, rss, accepted = 0, [], [], 0.0, 0, 0
     with tempfile.TemporaryDirectory(prefix="prtt-page-fuzz-") as tmp:
-        with open(os.path.join(tmp, "hooks.mjs"), "w") as f:
-            f.write(_HOOKS)
-        with open(os.path.join(tmp, "register.mjs"), "w") as f:
-            f.write("import { register } from 'node:module';\n"
-                    f"register(new URL('./hooks.mjs', import.meta.url), "
-                    f"{{ data: {{ parent: {json.dumps('file://' + NODE_MODULES_PARENT)} }} }});\n")
         while done < runs:
             items = []
             for _ in range(min(BUNDLE, runs - done)):
@@ -115,17 +138,7 @@ def run(seeds: dict, runs: int, *, seed: int = 1, found_dir: str | None = None,
                     blob, spec = rng.choice(ktx)
                     items.append(("ktx2", mutate(blob, rng, [b for b, _ in ktx]), spec))
             bundle = os.path.join(tmp, "bundle.bin")
-            _bundle(bundle, items)
-            try:
-                # A bundle runs in a few seconds: one that takes BUNDLE_SECONDS holds an input that hangs
-                # (page_fuzz.mjs can time only the inputs that return).
-                p = subprocess.run([node, "--import", "file://" + os.path.join(tmp, "register.mjs"),
-                                    os.path.join(os.path.dirname(__file__), "page_fuzz.mjs"), bundle,
-                                    viewer], capture_output=True, text=True, timeout=BUNDLE_SECONDS)
-                r = json.loads(p.stdout.strip().splitlines()[-1]) if p.returncode == 0 else None
-                why = f"node exited with {p.returncode}: {p.stderr.strip()[-300:]}"
-            except subprocess.TimeoutExpired:
-                r, why = None, f"node did not finish {len(items)} inputs in {BUNDLE_SECONDS} s (an input hangs)"
+            r, why = run_bundle(items, bundle, viewer)
             if r is None:
                 # Keep the whole bundle: one of its inputs hung or crashed the reader.
                 name = f"page-bundle-{len(failures):03d}"
@@ -143,6 +156,14 @@ def run(seeds: dict, runs: int, *, seed: int = 1, found_dir: str | None = None,
                     with open(os.path.join(found_dir, name), "wb") as f:
                         f.write(data)
                 failures.append(f"{name}: {why}")
+            for i in r["hangs"]:
+                kind, data, _ = items[i]
+                name = f"page-hang-{len(hangs):03d}"
+                if found_dir:
+                    os.makedirs(found_dir, exist_ok=True)
+                    with open(os.path.join(found_dir, name), "wb") as f:
+                        f.write(data)
+                hangs.append(name)
             slowest = max(slowest, r["slowest_ms"])
             rss = max(rss, r["maxrss_kb"] // 1024)
             done += r["executions"]
@@ -151,4 +172,4 @@ def run(seeds: dict, runs: int, *, seed: int = 1, found_dir: str | None = None,
     return {"target": "page", "reader": "viewer: environmentFromBytes, arrayTexture (node, mutational)",
             "executions": done, "seconds": round(wall, 1), "exec_per_s": int(done / max(wall, 1e-9)),
             "peak_rss_mb": rss, "corpus": len(env_seeds) + len(ktx), "findings": failures, "exit": 0,
-            "slowest_ms": round(slowest, 1), "accepted": accepted}
+            "slowest_ms": round(slowest, 1), "accepted": accepted, "hangs": hangs}

@@ -114,32 +114,48 @@ def run_manifest(data: bytes) -> None:
         declared(folder, exc, (BakeError,))
 
 
-def run_exr(data: bytes) -> None:
-    """The texture readers of the preview, `render` and the next bake:
-    read_sh_exr, read_relight_exr and the preview's per-layer sources
-    (transfer_layers, relight_operator_layers) with their bands' fills (decoded
-    in a child process, exr_bands). read_dc_plane
-    decodes in a child process (a crash there is its TextureError): its
-    inputs are tests/fuzz_corpus/exr, replayed by tests/test_fuzz.py."""
+def _exr_readers(data: bytes, fill: bool) -> None:
     from ...core.io.exr_io import TextureError, read_relight_exr, read_sh_exr
     from ...core.preview.pack import relight_operator_layers, transfer_layers
     path = _put("texture.exr", data)
 
     def layered(opener, **kw):
         src = opener(path, **kw)
-        if src.height * src.width <= 1 << 20:
+        if fill and src.height * src.width <= 1 << 20:
             with src.bands() as bands:
                 for band in bands:
                     out = np.empty((band.n, src.width, 4), np.float32)
                     for i in range(min(src.layers, 64)):
                         band.fill_layer(i, out)
-    for reader in (read_sh_exr, read_relight_exr, lambda p: layered(transfer_layers),
-                   lambda p: layered(relight_operator_layers, expand=False),
-                   lambda p: layered(relight_operator_layers)):
+    readers = (lambda p: layered(transfer_layers), lambda p: layered(relight_operator_layers, expand=False),
+               lambda p: layered(relight_operator_layers))
+    if not fill:
+        readers = (read_sh_exr, read_relight_exr) + readers
+    for reader in readers:
         try:
             reader(path)
         except (Exception, MemoryError) as exc:   # noqa: BLE001
             declared(path, exc, (TextureError,))
+
+
+def run_exr(data: bytes) -> None:
+    """The texture readers of the preview, `render` and the next bake, in
+    this process: read_sh_exr, read_relight_exr and the preview's per-layer
+    sources (transfer_layers, relight_operator_layers: header, channels,
+    attributes). Coverage-guided; the rows the layer sources decode in child
+    processes are exr-bands'."""
+    _exr_readers(data, fill=False)
+
+
+def run_exr_bands(data: bytes) -> None:
+    """The preview's per-layer sources with their bands filled: the rows are
+    decoded in child processes (exr_bands), whose crash or garbage must come
+    back as a TextureError naming the file. libFuzzer sees no coverage inside
+    a child and each input starts up to three of them (tens of executions a
+    second), so this target runs for a time, not to 10^6. read_dc_plane
+    decodes in a child process too: its inputs are tests/fuzz_corpus/exr,
+    replayed by tests/test_fuzz.py."""
+    _exr_readers(data, fill=True)
 
 
 def run_sidecar(data: bytes) -> None:
@@ -259,8 +275,10 @@ TARGETS = {t.name: t for t in [
     Target("job", "load_scene (.npz job)", "job", run_job, 1 << 15, ("prtt_addon.core.io.jobfile",)),
     Target("manifest", "read_manifest + plan_bake (up-to-date check)", "manifest", run_manifest, 1 << 14,
            ("prtt_addon.core.bake.pipeline.plan", "prtt_addon.core.io.outdir"), _plan_context),
-    Target("exr", "read_sh_exr, read_relight_exr, preview layer sources", "exr", run_exr, 1 << 16,
+    Target("exr", "read_sh_exr, read_relight_exr, preview layer sources (in process)", "exr", run_exr, 1 << 16,
            ("prtt_addon.core.io.exr_io", "prtt_addon.core.preview.pack")),
+    Target("exr-bands", "preview layer sources' rows (decoded in child processes)", "exr", run_exr_bands, 1 << 16,
+           ("prtt_addon.core.io.exr_io", "prtt_addon.core.io.exr_bands", "prtt_addon.core.preview.pack")),
     Target("sidecar", "read_vertex_transfer, read_generated_uvs", "sidecar", run_sidecar, 1 << 14,
            ("prtt_addon.core.io.sidecars",)),
     Target("env", "read_hdr_image (.exr, .hdr RLE) + SH projection", "env", run_env, 1 << 14,
