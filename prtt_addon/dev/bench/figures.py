@@ -474,6 +474,8 @@ def fuzz_block(r: dict | None = None) -> str:
     for x in r["runs"]:
         for t in x["reports"]:
             found = ", ".join(t["findings"]) if t["findings"] else "none"
+            if t.get("hangs"):          # the page's: contained by its decoder's time limit
+                found += f" ({len(t['hangs'])} hung, ended by the page's time limit)"
             lines.append(f"| `{t['target']}` | {t['reader']} | {t['executions']:,} | {t['seconds']:.0f} | "
                          f"{t['exec_per_s']:,} | {t['peak_rss_mb']} MB | {t['corpus']} | {found} |")
     return "\n".join(lines)

@@ -137,6 +137,9 @@ def main(argv=None) -> int:
               f"{r['peak_rss_mb']:>6} MB {r['corpus']:>7}  {len(r['findings']) or 'none'}", flush=True)
         for f in r["findings"]:
             print(f"    {f}")
+        if r.get("hangs"):
+            print(f"    {len(r['hangs'])} inputs hung a decoder (the page ends it after its time limit; "
+                  f"kept as {', '.join(r['hangs'][:3])}{' ...' if len(r['hangs']) > 3 else ''})")
         if r["findings"] or r["exit"]:
             print("    " + "\n    ".join(r.get("log", "").splitlines()[-25:]))
     if a.json:
