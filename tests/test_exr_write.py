@@ -99,3 +99,52 @@ def test_band_rows_are_whole_blocks_of_32_mib():
     assert exr_io.write_band_rows(147, 2048, True) == 32
     assert exr_io.write_band_rows(147, 2048, False) == 32     # at least one block
     assert exr_io.write_band_rows(1, 64, True) % exr_io.WRITE_BAND_BLOCK == 0
+
+
+_WRITER_CHILD = r"""
+import json, sys
+import numpy as np
+from prtt_addon.core.base.memory import large_frees_to_os, resident_bytes
+from prtt_addon.core.io import exr_io
+large_frees_to_os()                      # as the bake worker does
+kind, C, W, H, threads = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+exr_io.WRITE_THREADS = threads
+names = exr_io.relight_channel_names(25, 9) if kind == "relight" else None
+planes = np.random.default_rng(1).random((C, H, W), dtype=np.float32)
+before = resident_bytes()
+with open("/proc/self/clear_refs", "w") as f:      # the high-water mark from here (Linux)
+    f.write("5")
+exr_io.write_sh_planes(sys.argv[6], planes, kind=kind, names=names, bands=5, atomic=False)
+hwm = next(int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmHWM:"))
+print(json.dumps({"growth": hwm - before, "threads": exr_io.write_threads()}))
+"""
+
+
+@pytest.mark.parametrize("kind, C", [("relight", 291), ("transfer", 25)])
+def test_the_writers_line_buffers_are_what_the_memory_plan_counts(tmp_path, kind, C):
+    """OpenEXR's scanline writer keeps line buffers that grow with its threads
+    (what memory_plan's write stages add: exr_io.writer_bytes). The resident
+    growth of a real write of a wide texture (its band plus the writer) stays
+    within the model (and 4 MiB), and the model is not far above it (>= 0.6 of it)."""
+    import json
+    import subprocess
+    if not os.access("/proc/self/clear_refs", os.W_OK):
+        pytest.skip("no /proc/self/clear_refs (Linux) to measure a peak from")
+    W, H = 512, 512
+    got = {}
+    for threads in (1, 2):
+        r = subprocess.run([sys.executable, "-c", _WRITER_CHILD, kind, str(C), str(W), str(H), str(threads),
+                            str(tmp_path / f"{kind}{threads}.exr")], capture_output=True, text=True,
+                           cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))), timeout=300)
+        assert r.returncode == 0, r.stderr
+        out = json.loads(r.stdout.strip().splitlines()[-1])
+        t = out["threads"]
+        band = exr_io.write_band_rows(C, W, True) * C * W * 2
+        model = exr_io.writer_bytes(C, W, True, kind, t) + min(band, C * W * H * 2)
+        got[t] = (out["growth"], model)
+        print(f"{kind}, {C} channels x {W}, {t} thread(s): grew {out['growth'] / 2**20:.0f} MB, "
+              f"model {model / 2**20:.0f} MB")
+        # 4 MiB: the header, the value-range checks' temporaries, the allocator's pages.
+        assert 0.6 * model <= out["growth"] <= model + (4 << 20), (t, out["growth"], model)
+    if len(got) == 2:                      # a 1-core machine runs one thread twice
+        assert got[2][0] > got[1][0]

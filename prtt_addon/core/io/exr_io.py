@@ -180,6 +180,36 @@ def compression_of(kind: str):
     return OpenEXR.PIZ_COMPRESSION if kind == "relight" else OpenEXR.ZIP_COMPRESSION
 
 
+#: Most threads OpenEXR compresses with as write_sh_planes writes. Its scanline
+#: writer keeps two line buffers a thread, each about three compression blocks of
+#: the file's rows, resident until the file closes: 4 threads hold ~400 (ZIP) or
+#: ~775 (PIZ) rows beside the band being written, where 32 cores would hold 3000 or
+#: 6000 (a 4096^2 relightable texture's 2048-texel rows of 291 half channels: 1.2 MB a row).
+WRITE_THREADS = 4
+#: Lines of OpenEXR's compression block (ZIP 16, PIZ 32): what a line buffer holds.
+BLOCK_LINES = {"ZIP": 16, "PIZ": 32}
+
+
+def write_threads() -> int:
+    """Threads OpenEXR compresses with while a texture is written (the
+    machine's cores, at most WRITE_THREADS)."""
+    return max(1, min(os.cpu_count() or 1, WRITE_THREADS))
+
+
+def writer_bytes(channels: int, width: int, half: bool, kind: str, threads: int | None = None) -> int:
+    """Resident bytes OpenEXR's scanline writer holds while a ``kind`` texture
+    of ``channels`` x ``width`` texels a row is written with ``threads``
+    (default :func:`write_threads`): 35 rows of the file plus, a thread, two
+    line buffers of three compression blocks (the block, its compressed copy,
+    the compressor's scratch). Measured (291 half channels, 1024 wide, peak RSS
+    growth in rows of the file, threads 1 / 2 / 4): ZIP 126 / 216 / 398, PIZ
+    220 / 405 / 775; this gives 131 / 227 / 419 and 227 / 419 / 803."""
+    t = max(1, int(threads if threads is not None else write_threads()))
+    block = BLOCK_LINES["PIZ" if kind == "relight" else "ZIP"]
+    row = int(channels) * int(width) * (2 if half else 4)
+    return row * (35 + t * 2 * 3 * block)
+
+
 #: Bytes of the file's channels one band of rows holds as write_sh_planes converts and
 #: writes it (the float32 band it is made from is twice that for half files).
 WRITE_BAND_BYTES = 32 << 20
@@ -256,8 +286,9 @@ def write_sh_planes(path, planes, *, kind: str, half: bool = True,
     """
     import OpenEXR
 
-    # ZIP compression runs on OpenEXR's thread pool (~1.6x faster on 2 cores).
-    OpenEXR.set_global_thread_count(os.cpu_count() or 1)
+    # ZIP compression runs on OpenEXR's thread pool (~1.6x faster on 2 cores); its
+    # line buffers grow with the threads (writer_bytes), so at most WRITE_THREADS.
+    OpenEXR.set_global_thread_count(write_threads())
     made = hasattr(planes, "band")         # planes made a band at a time
     if made and rng is None:
         raise ValueError("planes made a band at a time need their value range (rng)")

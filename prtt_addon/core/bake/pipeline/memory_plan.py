@@ -22,7 +22,10 @@ K = bands², C the relightable channels (3K + the glossy rows). Bytes:
   keeps of the surface;
 * write: the planes, given back a band at a time as the file is written
   (exr_io.write_sh_planes), while the texture at its valid texels (4 K V)
-  fills when the bake bounces: the two are not both whole;
+  fills when the bake bounces: the two are not both whole. Beside them one
+  band of rows in the file's type (B, a band's file bytes: exr_io.write_band_rows
+  rows, about WRITE_BAND_BYTES) and OpenEXR's line buffers (exr_io.writer_bytes:
+  a few hundred of the file's rows, with its threads);
 * bounce (relightable), the largest of two moments. Its inputs: on the
   transfer's grid the texture (4 K V) and the albedo (FINE_DIFFUSE a valid
   texel), while the bounce grid (1/f per side: A/f², N/f², V/f² texels) gets
@@ -34,6 +37,12 @@ K = bands², C the relightable channels (3K + the glossy rows). Bytes:
   memory (12 B a covered texel); more levels hold 4 C N each and the
   surface (SURFACE_SHADING a valid texel). Baked bounces hold the level's
   (3K, A) planes and exit rows instead;
+* write relight: each set's relightable texture made a band of rows at a
+  time from its levels' columns (texels.dilate.DilatedRows: a float32 band
+  per level summed with its dilation rings, 2.5 B each, the file's band B and
+  OpenEXR's line buffers for its C channels),
+  beside every set's G-buffer (SURFACE N) and, with more than one level, the
+  levels' columns (4 C N/f² each; one level is read from its file);
 * sets baked earlier keep, when bouncing, their surface and texture (SURFACE
   N + 4 K V; with a coarser bounce grid the albedo instead of the surface,
   FINE_DIFFUSE V + 4 K V) until the bounce.
@@ -47,6 +56,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from ...io.exr_io import write_band_rows, writer_bytes
 
 MiB = 1 << 20
 
@@ -156,6 +167,13 @@ def process_extra(resident: int | None, job_arrays: int, after_imports: int | No
     return extra
 
 
+def band_bytes(channels: int, width: int, height: int, half: bool = True) -> int:
+    """File bytes of one band of rows the EXR writer holds (exr_io.write_band_rows,
+    at most the whole texture) of a ``channels`` x ``width`` x ``height`` texture."""
+    rows = min(int(height), write_band_rows(channels, width, half))
+    return int(channels) * int(width) * rows * (2 if half else 4)
+
+
 def scene_bytes(n_triangles: int) -> int:
     """The scene's arrays and Embree's BVH (per triangle)."""
     return TRIANGLE * int(n_triangles)
@@ -165,7 +183,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
-                dask: bool = False) -> dict[str, int]:
+                dask: bool = False, half: bool = True) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -177,6 +195,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     compiling: numba compiles the bounce's kernels in this process (JIT_COMPILE
     from the start: they are compiled on a helper thread while the first set is).
     extra: bytes the process holds beyond BASE's assumption (:func:`process_extra`).
+    half: the textures are written as half floats (the write's band bytes).
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -207,8 +226,10 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         # the projection's holdings are not both whole.
         projection = base + held + int(planes) + LAYOUT * n + surface
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays), projection)
-        # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A).
-        out["write transfer"] = max(out["write transfer"], projection)
+        # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);
+        # beside them the band in the file's type and OpenEXR's copy of it.
+        out["write transfer"] = max(out["write transfer"], projection + band_bytes(K, w, h, half)
+                                    + writer_bytes(K, w, half, "transfer"))
         held += (surface + 4 * K * v) if bounces else 0
     if bounces:
         total = base + chunks(max((n for _, _, n in sets), default=0), bounce_rays)
@@ -247,6 +268,19 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 # bake's, bench memory), not traced further: DASK_COPIES of them.
                 total += int(DASK_COPIES * (exits + 4 * K * v + 12 * v))
         out["bounce"] = max(total, inputs + build) if bounce_mode == "relightable" else total
+        if bounce_mode == "relightable":
+            # The sums are written set by set once every level is traced: what each set keeps
+            # until its turn, and the largest set's band (a float32 band per level, the file's).
+            levels = max(1, int(bounces))
+            kept, band = 0, 0
+            for (w, h, n), f in zip(sets, per_set):
+                f = max(1, int(f))
+                wc, hc, nc = max(1, w // f), max(1, h // f), max(1, n // (f * f))
+                kept += SURFACE * n + (4 * relight_channels * nc * levels if levels > 1 else 0)
+                b = band_bytes(relight_channels, wc, hc, half)
+                band = max(band, int((2.5 * min(levels, 2) + 1) * b) + writer_bytes(relight_channels, wc, half,
+                                                                                     "relight"))
+            out["write relight"] = base + kept + band
     return out
 
 
