@@ -15,6 +15,8 @@ BENCHMARKS = {
     "contact": ("prtt_addon.dev.bench.contact", "the paper's contact-shadow figure, measured against ray tracing"),
     "contact-profile": ("prtt_addon.dev.bench.contact_profile", "the floor's baked light beside a box against the "
                         "traced light, in quarter-texel bins (dark creases at contacts)"),
+    "window-room": ("prtt_addon.dev.bench.window_room", "a room lit only through a window: the transfer's "
+                    "noise against its converged value, raw and denoised"),
     "web": ("prtt_addon.dev.bench.web_bench", "glTF export vs bake (time, bytes) and the web viewer's page load and "
             "frame time (headless Chromium, SwiftShader)"),
     "draw-path": ("prtt_addon.dev.bench.draw_path", "the page's prtt.render (depth pre-pass) against three's own "

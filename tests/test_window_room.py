@@ -1,0 +1,36 @@
+"""The window-lit room's measurement (bench/window_room.py, issue 53 item 1):
+the scene is closed (light reaches the inside only through the window), the
+reference is converged far below the bake's noise, and the measure sees the
+noise fall with rays and with a denoiser."""
+import numpy as np
+
+
+def test_only_the_window_lets_light_in():
+    """Rays from the room's centre escape exactly through the window's solid
+    angle: every escaping ray leaves through the window's rectangle."""
+    from prtt_addon.core.bake.estimators.raytrace import RayScene
+    from prtt_addon.dev.bench import window_room as wr
+    sc = wr.build(128)
+    rs = RayScene(np.asarray(sc.positions, np.float64))
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(20000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.tile([0.0, 0.0, 1.3], (len(d), 1))
+    escape = ~rs.occluded(rs.to_local(o), d.astype(np.float32))     # origins in Embree's normalised frame
+    # Where an escaping ray crosses the +y wall's plane (y = 2).
+    t = (wr.ROOM[1] / 2 - o[escape, 1]) / d[escape, 1]
+    x, z = o[escape, 0] + t * d[escape, 0], o[escape, 2] + t * d[escape, 2]
+    ww, wh, sill = wr.WINDOW
+    assert escape.sum() > 50
+    assert np.all(d[escape, 1] > 0)
+    assert np.all((np.abs(x) <= ww / 2 + 1e-6) & (z >= sill - 1e-6) & (z <= sill + wh + 1e-6))
+
+
+def test_the_error_falls_with_rays_and_with_a_denoiser():
+    from prtt_addon.dev.bench import window_room as wr
+    r = wr.measure(256, rays=(64, 1024), ref_rays=16384, ref_texels=600, denoisers=("none", "edge-aware:2"))
+    by = {(x["rays"], x["denoiser"]): x for x in r["rows"]}
+    raw64, raw1024 = by[(64, "none")]["mean"], by[(1024, "none")]["mean"]
+    assert raw1024 < 0.5 * raw64, (raw64, raw1024)
+    assert by[(64, "edge-aware:2")]["mean"] < 0.7 * raw64, r["rows"]
+    assert by[(1024, "none")]["texels"] > 200
