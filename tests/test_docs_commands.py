@@ -79,7 +79,7 @@ NOT_HERE = [
                               "for the default versions"),
     (r"^python -m http\.server", "a static server for viewer/: tests/test_web_viewer.py serves the same folders "
                                   "and drives the page in headless Chromium"),
-    (r"prtt_addon\.dev\.bench \w+", "a benchmark (minutes, writes docs/bench/): options checked against -h"),
+    (r"prtt_addon\.dev\.bench [\w-]+", "a benchmark (minutes, writes docs/bench/): options checked against -h"),
     (r"[\[\]]|\|| (N|DIR|OUTDIR|JOB\.npz|FILE\.blend|IMG\.png|PATH|M|NAME|F|DEG|TOL)\b",
      "a synopsis (placeholders, [optional] parts, a|b choices): options checked against -h"),
 ]
@@ -126,7 +126,7 @@ def test_every_command_is_run_or_listed(capsys):
 
 def _help_target(cmd: str):
     """The module and subcommand whose -h documents ``cmd`` (None: not PRTT's)."""
-    m = re.search(r"(?:-m prtt_addon\.dev\.bench|prtt_addon\.dev\.bench) (\w+)", cmd)
+    m = re.search(r"(?:-m prtt_addon\.dev\.bench|prtt_addon\.dev\.bench) ([\w-]+)", cmd)
     if m:
         return ["-m", "prtt_addon.dev.bench", m.group(1)]
     if re.search(r"-m prtt_addon\.worker\b", cmd):
