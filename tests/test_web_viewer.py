@@ -618,36 +618,70 @@ def test_a_garbage_environment_is_a_message(room, room_server, tmp_path):
     assert not errors and not console, (errors, console)
 
 
-def test_an_environment_that_never_decodes_is_a_message(room, room_server, tmp_path):
-    """A damaged EXR on which three's EXRLoader.parse never returns (found by
-    the page fuzz: an attribute size that throws its string reader past the
-    end of the buffer) is decoded in a worker the page ends after its time
-    limit (?envseconds=): the page names the file, and the next environment
-    dropped on it still lights the room."""
+def _drop(server, query, files, *, until):
+    """The page on room.glb with ``query``; each of ``files`` given to its file
+    picker in turn, waiting for the JS condition ``until`` (one per file);
+    returns (titles after each, seconds each took, uncaught errors)."""
     from playwright.sync_api import sync_playwright
-    hang = tmp_path / "hang.exr"
-    shutil.copy(os.path.join(ROOT, "tests", "fuzz_corpus", "page-hang", "exrloader-hang.exr"), hang)
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=BROWSER, args=BROWSER_ARGS)
         try:
             page = b.new_page(viewport={"width": RW, "height": RH})
             errors = []
             page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(f"{room_server}/viewer/index.html?src=/room.glb&w={RW}&h={RH}&mode=tpfl&envseconds=2")
+            page.goto(f"{server}/viewer/index.html?src=/room.glb&w={RW}&h={RH}&mode=tpfl{query}")
             page.wait_for_function("document.title.startsWith('ready')", timeout=120_000)
-            t0 = time.monotonic()
-            page.locator("#file").set_input_files(str(hang))
-            page.wait_for_function("document.title.startsWith('error')", timeout=60_000)
-            waited = time.monotonic() - t0
-            assert "hang.exr: not decoded after 2 s" in page.title(), page.title()
-            assert waited < 30, waited
-            page.locator("#file").set_input_files(str(room / "city.hdr"))
-            page.wait_for_function("document.getElementById('msg').textContent.includes('city.hdr')",
-                                   timeout=60_000)
-            assert not errors, errors
+            titles, took = [], []
+            for f, cond in zip(files, until):
+                t0 = time.monotonic()
+                page.locator("#file").set_input_files(str(f))
+                page.wait_for_function(cond, timeout=60_000)
+                took.append(time.monotonic() - t0)
+                titles.append(page.title())
+            return titles, took, errors
         finally:
             b.close()
-    print(f"the damaged EXR was given up after {waited:.1f} s")
+
+
+def test_an_exr_three_would_never_finish_is_refused_at_once(room, room_server, tmp_path):
+    """A damaged EXR on which three's EXRLoader.parse never returns (found by
+    the page fuzz: its channel list's entries overrun the list, so three's
+    header walk parts from the file's declared sizes and its string reader
+    runs past the end of the buffer) is refused by the page's own header walk
+    before three sees it: a message naming the file, at once."""
+    hang = tmp_path / "hang.exr"
+    shutil.copy(os.path.join(ROOT, "tests", "fuzz_corpus", "page-hang", "chlist-overrun.exr"), hang)
+    titles, took, errors = _drop(room_server, "", [hang], until=["document.title.startsWith('error')"])
+    assert "hang.exr: unreadable EXR header (the channel list's entries overrun it)" in titles[0], titles
+    assert took[0] < 20 and not errors, (took, errors)
+
+
+def test_an_environment_that_never_decodes_is_given_up(room, tmp_path):
+    """Whatever else could keep a decoder busy for ever: the page decodes in a
+    Web Worker it ends after its limit (?envseconds=; here a page whose
+    decoder is made to loop on one file name): the page names the file, and
+    the next environment dropped on it still lights the room."""
+    site = tmp_path / "site"
+    shutil.copytree(os.path.join(ROOT, "viewer"), site / "viewer")
+    env_js = site / "viewer" / "prtt_env.js"
+    text = env_js.read_text()
+    head = "export async function environmentFromBytes(bytes, name, bands) {\n"
+    assert head in text
+    env_js.write_text(text.replace(head, head + "  if (name.endsWith('.loop.hdr')) for (;;) { /* planted */ }\n"))
+    shutil.copy(room / "room.glb", tmp_path / "room.glb")
+    loop = tmp_path / "x.loop.hdr"
+    shutil.copy(room / "city.hdr", loop)
+    gen = serve(tmp_path, "room.glb")
+    server = next(gen)
+    try:
+        titles, took, errors = _drop(server, "&envseconds=2", [loop, room / "city.hdr"],
+                                     until=["document.title.startsWith('error')",
+                                            "document.getElementById('msg').textContent.includes('city.hdr')"])
+    finally:
+        next(gen, None)
+    assert "x.loop.hdr: not decoded after " in titles[0], titles          # 2 s + 1 s per MiB of the file
+    assert took[0] < 30 and not errors, (took, errors)
+    print(f"the looping decoder was given up after {took[0]:.1f} s")
 
 
 def test_a_bundled_hdri_lights_the_room_as_blender_does(room, room_server, tmp_path):

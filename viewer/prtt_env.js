@@ -72,9 +72,40 @@ function sniffLdr(b) {
 
 // --- OpenEXR ------------------------------------------------------------------------------
 
-/** The dataWindow of an EXR header, read with bounds checks (before any decoding). */
+/** Bytes three's EXRLoader reads for an attribute of each fixed-size type,
+ * whatever the size the file declares for it. */
+const EXR_FIXED = {
+  chromaticities: 32, compression: 1, box2i: 16, envmap: 1, tiledesc: 9, lineOrder: 1, float: 4, v2f: 8,
+  v3f: 12, int: 4, rational: 8, timecode: 8,
+};
+
+/** A chlist attribute at b[pos .. pos + size) as three's parseChlist walks it:
+ * entries (a name and 16 bytes) up to its last byte, a zero. */
+function checkChlist(name, b, pos, size) {
+  const end = pos + size - 1;
+  let p = pos;
+  while (p < end) {
+    let z = p;
+    while (z < end && b[z] !== 0) z++;
+    if (z >= end) throw new Error(`${name}: unreadable EXR header (a channel name runs past its list)`);
+    p = z + 1 + 16;
+  }
+  if (p !== end || b[end] !== 0) throw new Error(`${name}: unreadable EXR header (the channel list's entries overrun it)`);
+}
+
+/** The dataWindow of an EXR header, read with bounds checks (before any decoding).
+ * Each attribute is walked as three's EXRLoader walks it, and refused where the
+ * two would part: a fixed-size type declared at another size, a channel list
+ * whose entries overrun it, a multi-part or deep file (three reads more than
+ * one header). Where they part, three's header reader can run past the end of
+ * the file looking for a string's end and never return (the page fuzz found 119
+ * such files in 500,000). */
 function exrDataWindow(name, b) {
   const dv = new DataView(b.buffer, b.byteOffset, b.byteLength);
+  if (b.length < 8) throw new Error(`${name}: unreadable EXR header (truncated)`);
+  if (b[5] & (8 | 16)) {
+    throw new Error(`${name}: a multi-part or deep EXR; save the environment as a single-part scanline EXR`);
+  }
   let pos = 8;
   const cstr = () => {
     const start = pos;
@@ -93,6 +124,10 @@ function exrDataWindow(name, b) {
     const size = dv.getInt32(pos, true);
     pos += 4;
     if (size < 0 || pos + size > b.length) throw new Error(`${name}: unreadable EXR header (attribute ${attr} size ${size})`);
+    if (EXR_FIXED[type] !== undefined && size !== EXR_FIXED[type]) {
+      throw new Error(`${name}: unreadable EXR header (attribute ${attr}: a ${type} of ${size} bytes, not ${EXR_FIXED[type]})`);
+    }
+    if (type === 'chlist') checkChlist(name, b, pos, size);
     if (attr === 'dataWindow' && !win) {
       if (type !== 'box2i' || size !== 16) throw new Error(`${name}: unreadable EXR header (dataWindow is ${type})`);
       win = [0, 4, 8, 12].map((o) => dv.getInt32(pos + o, true));
