@@ -494,6 +494,9 @@ def _environment(scene, notes: list, fallback: str = "") -> tuple[dict, bytes | 
         notes.append("the World is a constant colour: the glTF's environment has no image")
         return environment_extension(color=setup.source, **common), None
     path = setup.file or (setup.source() if setup.key[0] == "builtin" else "")
+    if setup.key[0] == "panorama":
+        notes.append(f"{setup.description}: the glTF carries its SH light, not an image")
+        return environment_extension(**common), None
     if not path:
         notes.append(f"the World image {setup.image_name!r} is not an EXR/HDR file on disk (packed, generated "
                      f"or another format): the glTF's environment has no image")

@@ -16,6 +16,7 @@ import atexit
 import bpy
 from bpy.app.handlers import persistent
 
+from ..scene import world_panorama
 from ..shared import PREVIEW_MODES, redraw_viewports
 from . import colour_management as colour
 from . import drawlist
@@ -73,8 +74,9 @@ def _draw() -> None:
         return
     try:
         space = context.space_data
-        draw_view(context, context.region_data, visible=lambda ob: ob.visible_get(viewport=space),
-                  sample_display=False)
+        with world_panorama.drawing():       # a procedural World is rendered from a timer, not here
+            draw_view(context, context.region_data, visible=lambda ob: ob.visible_get(viewport=space),
+                      sample_display=False)
     except Exception as exc:       # never break Blender's draw loop; say it in the panel
         last_status["error"] = f"{type(exc).__name__}: {exc}"
 

@@ -32,6 +32,7 @@ from ...core.preview.shader_source import MAX_PREVIEW_BANDS
 from ...core.shading.shade import light_hash
 from .. import record
 from ..rna_arrays import read
+from ..scene import world_panorama
 from ..scene.job import GENERATED_UVS, apply_tile
 from ..scene.material_nodes import image_array, parse_material
 from ..scene.scene_objects import scene_geometry
@@ -337,6 +338,9 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
         sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight)
     try:
         light, status.light_description = current_light(scene, bands)
+    except world_panorama.Pending as exc:        # drawn from the next frame, once rendered
+        status.add("INFO", f"light: {exc}")
+        return None, status
     except (WorldLightError, OSError, ValueError) as exc:
         if not light_fallback:
             status.add("ERROR", f"light: {exc}")

@@ -1,11 +1,17 @@
 """The scene's World as a spherical-harmonic light.
 
-Understood node setups (anything else falls back to a clear error naming the
-node, or to the panel's studio HDRI):
+Node setups read directly (exactly, and turned live by their Mapping node):
 
     [Texture Coordinate (Generated/Object)] -> [Mapping] -> [Environment Texture]
         -> [Background] -> [World Output]
     [Background] with an unlinked colour (a constant environment)
+
+Any other World (Sky Texture, gradients, mixes, an HDRI behind other nodes, a
+Mapping node of another type) is rendered by Cycles as an equirectangular
+panorama and projected like an HDRI (world_panorama.py; the description says
+so and why). Refused in one line: no World, no connected output, a World
+image without pixels, a Light Path node (what lights the scene is not what a
+camera sees), non-finite values.
 
 * The Environment Texture's image is read from its file (EXR/HDR, through
   core.io.image_io) or, for packed/generated images, from Blender's pixels
@@ -30,6 +36,7 @@ import numpy as np
 
 from ...core.io.image_io import read_hdr_image
 from ...core.light import envmap
+from . import world_panorama
 from .material_nodes import image_array
 
 
@@ -114,10 +121,9 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
         raise WorldLightError(f"World {world.name!r} has no connected World Output")
     bg = _linked(out.inputs["Surface"])
     if bg.bl_idname != "ShaderNodeBackground":
-        raise WorldLightError(f"World {world.name!r}: {bg.name!r} ({bg.bl_label}) feeds the output; "
-                              f"PRTT understands a Background node (or choose a studio HDRI)")
+        return _panorama_setup(world, f"{bg.name!r} ({bg.bl_label}) feeds the output")
     if bg.inputs["Strength"].is_linked:
-        raise WorldLightError(f"World {world.name!r}: a linked Background strength is not supported")
+        return _panorama_setup(world, "a linked Background strength")
     strength = float(bg.inputs["Strength"].default_value)
     if not math.isfinite(strength):
         raise WorldLightError(f"World {world.name!r}: the Background strength is {strength}, not a finite number")
@@ -127,21 +133,21 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
         return WorldSetup(("color", tuple(c)), c, strength, None, f"World colour x{strength:g}")
     env = _linked(col)
     if env.bl_idname != "ShaderNodeTexEnvironment":
-        raise WorldLightError(f"World {world.name!r}: {env.name!r} ({env.bl_label}) feeds the Background; "
-                              f"PRTT understands an Environment Texture (or choose a studio HDRI)")
+        return _panorama_setup(world, f"{env.name!r} ({env.bl_label}) feeds the Background")
     img = env.image
     if img is None:
         raise WorldLightError(f"World {world.name!r}: the Environment Texture has no image")
     if env.projection != "EQUIRECTANGULAR":
-        raise WorldLightError(f"World {world.name!r}: only equirectangular environments are supported")
+        return _panorama_setup(world, f"a {env.projection.lower().replace('_', ' ')} Environment Texture")
     desc = f"World image {img.name!r} x{strength:g}"
     R = None
     vec = env.inputs["Vector"]
     if vec.is_linked:
         m = _linked(vec)
         if m.bl_idname != "ShaderNodeMapping":
-            raise WorldLightError(f"World {world.name!r}: {m.name!r} ({m.bl_label}) feeds the Environment "
-                                  f"Texture's vector; PRTT understands a Mapping node")
+            return _panorama_setup(world, f"{m.name!r} ({m.bl_label}) feeds the Environment Texture's vector")
+        if m.vector_type not in {"POINT", "TEXTURE"} or any(m.inputs[n].is_linked for n in ("Rotation", "Scale")):
+            return _panorama_setup(world, f"Mapping node {m.name!r} of type {m.vector_type} or with linked inputs")
         R = mapping_rotation(m)
         mapping = (tuple(float(a) for a in m.inputs["Rotation"].default_value), m.vector_type)
         desc += ", rotated"
@@ -150,6 +156,44 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
     key = ("image", img.name, img.filepath, img.source, tuple(img.size), bool(img.packed_file), img.is_dirty)
     return WorldSetup(key, lambda: _image_pixels(img), strength, R, desc, file=environment_file(img),
                       image_name=img.name, mapping=mapping)
+
+
+def _missing_image(tree, seen: set | None = None):
+    """The first image of ``tree`` (or a group it uses) whose file is missing, or None."""
+    import bpy
+    seen = set() if seen is None else seen
+    for n in tree.nodes:
+        img = getattr(n, "image", None)
+        if img is not None and img.source == "FILE" and not img.packed_file:
+            path = bpy.path.abspath(img.filepath, library=img.library)
+            if not (path and os.path.isfile(path)):
+                return img
+        group = getattr(n, "node_tree", None)
+        if group is not None and group.name not in seen:
+            seen.add(group.name)
+            found = _missing_image(group, seen)
+            if found is not None:
+                return found
+    return None
+
+
+def _redraw() -> None:
+    import bpy  # Blender's module: only inside Blender
+
+    from ..shared import redraw_viewports  # shared imports bpy: only when a panorama is ready
+    redraw_viewports(bpy.context)
+
+
+def _panorama_setup(world, why: str) -> WorldSetup:
+    """The World rendered by Cycles (world_panorama), for a node tree read no other way."""
+    missing = _missing_image(world.node_tree)
+    if missing is not None:
+        raise WorldLightError(f"World image {missing.name!r} has no pixels (missing file {missing.filepath!r}?)")
+    w, h = world_panorama.PANORAMA_SIZE
+    return WorldSetup(("panorama", world_panorama.world_digest(world)),
+                      lambda: world_panorama.panorama(world, WorldLightError, _redraw), 1.0, None,
+                      f"World {world.name!r} ({why}: rendered by Cycles as a {w}x{h} panorama)",
+                      image_name=world.name)
 
 
 def project_setup(setup: WorldSetup, bands: int) -> np.ndarray:
