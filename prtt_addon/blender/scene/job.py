@@ -50,7 +50,7 @@ from ..shared import UV_MAP
 from .material_nodes import image_array, parse_material
 from .scene_objects import reported_without_faces, scene_geometry
 from .uv_maps import generated_margin, needs_user_unwrap
-from .world import world_light
+from .world import unbaked_lamps, world_light
 
 #: Texels left empty on each side of an instance tile, so that bilinear lookups
 #: and dilation of one instance never reach its neighbour's texels.
@@ -528,6 +528,9 @@ def _assemble(context, parts, mats, warnings, st, with_light) -> ExportResult:
         res.light, res.light_description = world_light(context.scene, max(st.bands, 1),
                                                        source=st.light_source,
                                                        builtin=st.builtin_environment or "forest")
+    lamps = unbaked_lamps(context.scene, context.view_layer)
+    if lamps:
+        warnings.append(lamps)
     return res
 
 

@@ -105,6 +105,12 @@ def parse_material(mat, warn) -> MaterialExport:
         ex.rough_image = rtex.image
         ex.texture_uv = ex.texture_uv or _uv_of(rtex)
     if kind == "ShaderNodeBsdfPrincipled":
+        es = surf.inputs.get("Emission Strength")
+        ec = surf.inputs.get("Emission Color") or surf.inputs.get("Emission")
+        if (es is not None and ec is not None and (es.is_linked or es.default_value > 0)
+                and (ec.is_linked or max(ec.default_value[:3]) > 0)):
+            warn(f"material {name!r}: its emission lights Cycles' render but not PRTT's (emission is not "
+                 f"modelled yet): its surfaces and their surroundings look darker than in Cycles")
         spec["metallic"] = float(np.clip(surf.inputs["Metallic"].default_value, 0, 1))
         s_in = surf.inputs.get("Specular IOR Level") or surf.inputs.get("Specular")
         if s_in is not None:

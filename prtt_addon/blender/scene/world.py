@@ -210,3 +210,18 @@ def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "for
         return envmap.compose_light(project_setup(setup, bands), setup.strength, setup.rotation), setup.description
     except ValueError as exc:        # a colour or strength that makes no finite light (envmap says which)
         raise WorldLightError(f"{setup.description}: {exc}") from None
+
+
+def unbaked_lamps(scene, view_layer=None) -> str:
+    """A one-line note naming the scene's lamps that light Cycles' render but
+    not PRTT's ("" when there are none): visible Light objects with power.
+    PRTT's light is the World (or a studio HDRI) alone."""
+    layer = view_layer if view_layer is not None else scene.view_layers[0]
+    lamps = [ob for ob in layer.objects
+             if ob.type == "LIGHT" and ob.visible_get(view_layer=layer) and getattr(ob.data, "energy", 0.0) > 0]
+    if not lamps:
+        return ""
+    named = ", ".join(f"{ob.data.type.title()} {ob.name!r}" for ob in lamps[:4]) + (
+        f" and {len(lamps) - 4} more" if len(lamps) > 4 else "")
+    return (f"{len(lamps)} lamp(s) light Cycles' render but not PRTT's (lamps are not baked yet): {named}; "
+            f"PRTT is lit by the World alone")

@@ -1,0 +1,39 @@
+"""Light PRTT does not carry yet is named, not dropped without a word (issues
+48 and 49): lamps and emissive materials light Cycles' render but not the
+bake; the bake warns, the preview and `render` note the lamps, the export
+still runs (Blender's exporter carries the lamps as glTF lights)."""
+import pytest
+
+from tests import real_scenes as rs
+from tests.blender_util import addon_bpy
+from tests.test_headless_chain import run
+
+pytestmark = pytest.mark.blender
+
+
+def test_lamps_and_emission_are_named(tmp_path):
+    bpy = addon_bpy()
+    rs.floor_and_box(bpy)
+    for name, kind in (("Key", "SUN"), ("Bulb", "POINT")):
+        ob = bpy.data.objects.new(name, bpy.data.lights.new(name, kind))
+        bpy.context.scene.collection.objects.link(ob)
+    off = bpy.data.objects.new("Off", bpy.data.lights.new("Off", "AREA"))
+    off.data.energy = 0.0                               # no power: not named
+    bpy.context.scene.collection.objects.link(off)
+    mat = bpy.data.materials.new("Glow")
+    if bpy.app.version < (5, 0, 0):
+        mat.use_nodes = True
+    mat.node_tree.nodes["Principled BSDF"].inputs["Emission Strength"].default_value = 5.0
+    bpy.data.objects["Box"].data.materials.append(mat)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "tex", "--unwrap", "SMART", "--resolution", "64", "--rays", "32",
+            "--bounces", "0", cwd=tmp_path, timeout=600)
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out
+    assert "2 lamp(s) light Cycles' render but not PRTT's" in out and "Sun 'Key'" in out and "Point 'Bulb'" in out
+    assert "'Off'" not in out
+    assert "material 'Glow': its emission lights Cycles' render but not PRTT's" in out
+    r = run("render", "scene.blend", "--size", "64x36", "--out", "shot.png", cwd=tmp_path, timeout=600)
+    assert r.returncode == 0 and "2 lamp(s) light Cycles' render" in r.stdout, r.stdout + r.stderr
+    r = run("export", "scene.blend", "--out", "scene.glb", cwd=tmp_path, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
