@@ -107,6 +107,7 @@ import numpy as np
 from prtt_addon.core.base.memory import large_frees_to_os, resident_bytes
 from prtt_addon.core.io import exr_io
 large_frees_to_os()                      # as the bake worker does
+import OpenEXR  # noqa: F401,E402 - imported before the measurement, as in a bake (the writer imports it)
 kind, C, W, H, threads = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
 exr_io.WRITE_THREADS = threads
 names = exr_io.relight_channel_names(25, 9) if kind == "relight" else None

@@ -50,12 +50,18 @@ def test_seeds_are_real_files_every_reader_accepts(corpus):
         assert targets.quick_check(name, seeds[t.seeds]) >= 1
 
 
+#: exr-bands decodes each input's rows in child processes (tens of inputs a second, each a few
+#: process starts: seconds under a loaded suite): a smaller budget and a longer bound an input.
+SLOW = {"exr-bands": (300, 10)}
+
+
 @pytest.mark.parametrize("name", list(targets.TARGETS))
 def test_each_harness_runs_its_ci_budget_clean(corpus, name):
-    r, reports, _ = fuzz(corpus, name, "--runs", str(CI_RUNS))
+    runs, timeout = SLOW.get(name, (CI_RUNS, 1))
+    r, reports, _ = fuzz(corpus, name, "--runs", str(runs), "--timeout", str(timeout))
     rep = reports[0]
     assert r.returncode == 0 and not rep["findings"], r.stdout + rep.get("log", "")
-    assert rep["executions"] >= CI_RUNS and rep["peak_rss_mb"] < 2048
+    assert rep["executions"] >= runs and rep["peak_rss_mb"] < 2048
 
 
 def saved_inputs():
@@ -124,7 +130,7 @@ def test_the_pages_readers_take_their_ci_budget_clean(corpus):
     if shutil.which("node") is None:
         pytest.skip("node is not installed")
     r = page.run(ensure_seeds(str(corpus / "seeds")), CI_RUNS)
-    assert r["executions"] == CI_RUNS and not r["findings"], r["findings"][:5]
+    assert r["executions"] == CI_RUNS and not r["findings"] and not r["hangs"], (r["findings"][:5], r["hangs"][:5])
     assert r["accepted"] > CI_RUNS // 50         # the mutants reach the decoders, not only the magic checks
     assert r["slowest_ms"] < 1000
 

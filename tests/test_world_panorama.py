@@ -121,6 +121,32 @@ def test_the_panorama_is_rendered_once_per_change():
     assert np.allclose(c, 2.0 * a, rtol=1e-3, atol=1e-6)
 
 
+def test_the_panoramas_key_follows_ramps_curves_and_nothing_cosmetic():
+    """A gradient sky (Gradient Texture -> Color Ramp -> Background): the key
+    changes with a ramp stop's colour or position and with a curve point, not
+    when a node is moved or renamed in the editor."""
+    from prtt_addon.blender.scene import world_panorama
+    bpy = fresh_bpy()
+    w, nt, bg = _world(bpy, "Gradient sky")
+    grad = nt.nodes.new("ShaderNodeTexGradient")
+    ramp = nt.nodes.new("ShaderNodeValToRGB")
+    curves = nt.nodes.new("ShaderNodeRGBCurve")
+    nt.links.new(grad.outputs["Fac"], ramp.inputs["Fac"])
+    nt.links.new(ramp.outputs["Color"], curves.inputs["Color"])
+    nt.links.new(curves.outputs["Color"], bg.inputs["Color"])
+    keys = [world_panorama.world_digest(w)]
+    ramp.location = (500.0, 300.0)
+    ramp.label = "sky colours"
+    assert world_panorama.world_digest(w) == keys[0]
+    ramp.color_ramp.elements[1].color = (0.2, 0.4, 1.0, 1.0)
+    keys.append(world_panorama.world_digest(w))
+    ramp.color_ramp.elements[1].position = 0.7
+    keys.append(world_panorama.world_digest(w))
+    curves.mapping.curves[3].points[0].location = (0.0, 0.2)
+    keys.append(world_panorama.world_digest(w))
+    assert len(set(keys)) == 4, keys
+
+
 def test_a_light_path_node_and_a_missing_image_are_refused_in_one_line():
     from prtt_addon.blender.scene.world import WorldLightError, world_light
     bpy = fresh_bpy()
@@ -142,6 +168,11 @@ def test_a_light_path_node_and_a_missing_image_are_refused_in_one_line():
     nt2.links.new(inv.outputs["Color"], bg2.inputs["Color"])
     with pytest.raises(WorldLightError, match="has no pixels"):
         world_light(bpy.context.scene, 3)
+    # The same missing image in a node that feeds nothing does not refuse the World.
+    grad = nt2.nodes.new("ShaderNodeTexGradient")
+    nt2.links.new(grad.outputs["Color"], bg2.inputs["Color"])       # replaces the Invert's link
+    L, desc = world_light(bpy.context.scene, 3)
+    assert "rendered by Cycles" in desc and np.isfinite(L).all()
 
 
 def test_inside_blenders_drawing_the_panorama_waits_for_a_timer():

@@ -124,7 +124,7 @@ function exrDataWindow(name, b) {
     const size = dv.getInt32(pos, true);
     pos += 4;
     if (size < 0 || pos + size > b.length) throw new Error(`${name}: unreadable EXR header (attribute ${attr} size ${size})`);
-    if (EXR_FIXED[type] !== undefined && size !== EXR_FIXED[type]) {
+    if (Object.prototype.hasOwnProperty.call(EXR_FIXED, type) && size !== EXR_FIXED[type]) {
       throw new Error(`${name}: unreadable EXR header (attribute ${attr}: a ${type} of ${size} bytes, not ${EXR_FIXED[type]})`);
     }
     if (type === 'chlist') checkChlist(name, b, pos, size);

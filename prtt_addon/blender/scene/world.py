@@ -158,11 +158,26 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
                       image_name=img.name, mapping=mapping)
 
 
+def _feeding(tree) -> list:
+    """The nodes of ``tree`` that feed its active output (or, in a group, its Group Output)."""
+    outs = [n for n in tree.nodes if n.bl_idname in ("ShaderNodeOutputWorld", "NodeGroupOutput")
+            and getattr(n, "is_active_output", True)]
+    found, todo = {}, list(outs)
+    while todo:
+        n = todo.pop()
+        if n.name in found:
+            continue
+        found[n.name] = n
+        todo += [link.from_node for link in tree.links if link.to_node == n and not link.is_muted]
+    return list(found.values())
+
+
 def _missing_image(tree, seen: set | None = None):
-    """The first image of ``tree`` (or a group it uses) whose file is missing, or None."""
+    """The first image that feeds ``tree``'s output (in it or a group it uses)
+    whose file is missing, or None (an unconnected node's image does not count)."""
     import bpy
     seen = set() if seen is None else seen
-    for n in tree.nodes:
+    for n in _feeding(tree):
         img = getattr(n, "image", None)
         if img is not None and img.source == "FILE" and not img.packed_file:
             path = bpy.path.abspath(img.filepath, library=img.library)
@@ -214,11 +229,12 @@ def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "for
 
 def unbaked_lamps(scene, view_layer=None) -> str:
     """A one-line note naming the scene's lamps that light Cycles' render but
-    not PRTT's ("" when there are none): visible Light objects with power.
+    not PRTT's ("" when there are none): Light objects with power that render.
     PRTT's light is the World (or a studio HDRI) alone."""
     layer = view_layer if view_layer is not None else scene.view_layers[0]
+    # What renders: in the view layer (not in an excluded collection), not disabled in renders.
     lamps = [ob for ob in layer.objects
-             if ob.type == "LIGHT" and ob.visible_get(view_layer=layer) and getattr(ob.data, "energy", 0.0) > 0]
+             if ob.type == "LIGHT" and not ob.hide_render and getattr(ob.data, "energy", 0.0) > 0]
     if not lamps:
         return ""
     named = ", ".join(f"{ob.data.type.title()} {ob.name!r}" for ob in lamps[:4]) + (

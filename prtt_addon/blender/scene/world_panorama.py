@@ -59,10 +59,68 @@ def _value(v) -> str:
     if isinstance(v, float):
         return repr(round(v, 7))
     if hasattr(v, "filepath"):                     # an image (or another ID with a file)
-        return f"{v.name}|{v.filepath}|{tuple(getattr(v, 'size', ()))}|{bool(getattr(v, 'packed_file', None))}"
+        cs = getattr(getattr(v, "colorspace_settings", None), "name", "")
+        path = ""
+        try:
+            import bpy  # Blender's module: only inside Blender
+            path = bpy.path.abspath(v.filepath, library=v.library)
+            stamp = os.path.getmtime(path) if path and os.path.isfile(path) else 0.0
+        except (ImportError, OSError, AttributeError):
+            stamp = 0.0
+        return (f"{v.name}|{v.filepath}|{tuple(getattr(v, 'size', ()))}|{bool(getattr(v, 'packed_file', None))}"
+                f"|{cs}|{getattr(v, 'alpha_mode', '')}|{stamp}")
+    if hasattr(v, "matrix_world"):                 # an object (Texture Coordinate's): its placement
+        return f"ID:{v.name}|{_value([x for row in v.matrix_world for x in row])}"
     if hasattr(v, "name"):
         return f"ID:{v.name}"
     return repr(v)
+
+
+#: Node properties that do not change what a node computes (drawing, naming, layout).
+_LAYOUT = {"rna_type", "location", "location_absolute", "width", "height", "warning_propagation", "select",
+           "dimensions", "name", "label", "color", "use_custom_color", "hide", "show_options", "show_preview",
+           "show_texture", "parent", "width_hidden", "bl_idname", "bl_label", "bl_description", "bl_icon",
+           "bl_width_default", "bl_width_min", "bl_width_max", "bl_height_default", "bl_height_min",
+           "bl_height_max", "bl_static_type", "type", "inputs", "outputs", "internal_links", "interface"}
+
+
+def _struct_lines(obj, prefix: str, depth: int, seen: set, skip=frozenset()) -> list[str]:
+    """Lines of every setting of RNA struct ``obj``: values, the structs it
+    holds (a Color Ramp's elements, a curve's points, texture mapping) and
+    their collections, a few levels deep; an ID by its name (an image also by
+    its file, size and colour space; a node group walked once). ``skip``: the
+    names left out at this level."""
+    lines = []
+    for p in obj.bl_rna.properties:
+        ident = p.identifier
+        if ident in skip or ident == "rna_type":
+            continue
+        try:
+            v = getattr(obj, ident)
+        except (AttributeError, TypeError, RuntimeError):
+            continue
+        if p.type == "POINTER":
+            if v is None:
+                continue
+            if isinstance(v, _id_type()):
+                if hasattr(v, "nodes") and v.name not in seen:          # a node group
+                    seen.add(v.name)
+                    lines += _node_lines(v, seen)
+                lines.append(f"{prefix}{ident}={_value(v)}")
+            elif depth > 0:
+                lines += _struct_lines(v, f"{prefix}{ident}.", depth - 1, seen)
+        elif p.type == "COLLECTION":
+            if depth > 0:
+                for k, item in enumerate(v):
+                    lines += _struct_lines(item, f"{prefix}{ident}[{k}].", depth - 1, seen)
+        elif not p.is_readonly or ident in ("position",):
+            lines.append(f"{prefix}{ident}={_value(v)}")
+    return lines
+
+
+def _id_type():
+    import bpy  # Blender's module: only inside Blender
+    return bpy.types.ID
 
 
 def _node_lines(tree, seen: set) -> list[str]:
@@ -70,25 +128,8 @@ def _node_lines(tree, seen: set) -> list[str]:
     lines = []
     for n in sorted(tree.nodes, key=lambda x: x.name):
         lines.append(f"node {n.name} {n.bl_idname}")
-        for p in n.bl_rna.properties:
-            if p.is_readonly and p.type != "POINTER" or p.identifier in ("rna_type", "location", "location_absolute",
-                                                                        "width", "height", "warning_propagation",
-                                                                        "select", "dimensions", "name", "label",
-                                                                        "color", "use_custom_color", "hide",
-                                                                        "show_options", "show_preview",
-                                                                        "show_texture", "parent", "width_hidden"):
-                continue
-            try:
-                v = getattr(n, p.identifier)
-            except AttributeError:
-                continue
-            if p.type == "POINTER":
-                if v is None or not hasattr(v, "name"):
-                    continue
-                if hasattr(v, "nodes") and v.name not in seen:          # a node group
-                    seen.add(v.name)
-                    lines += _node_lines(v, seen)
-            lines.append(f"  {p.identifier}={_value(v)}")
+        lines += _struct_lines(n, "  ", 4, seen, _LAYOUT)      # the node's own layout only: a ramp
+                                                               # stop's colour, a curve point's location count
         for s in n.inputs:
             if not s.is_linked and hasattr(s, "default_value"):
                 lines.append(f"  in {s.identifier}={_value(s.default_value)}")
@@ -101,8 +142,10 @@ def _node_lines(tree, seen: set) -> list[str]:
 def world_digest(world) -> str:
     """A digest of everything the World's panorama depends on."""
     import bpy
+    vis = getattr(world, "cycles_visibility", None)
     lines = [f"blender {bpy.app.version}", f"size {PANORAMA_SIZE} samples {PANORAMA_SAMPLES}",
-             f"world {world.name} colour {_value(world.color)}"]
+             f"world {world.name} {world.library} colour {_value(world.color)} "
+             f"camera-visible {getattr(vis, 'camera', True)}"]
     if world.node_tree is not None:
         lines += _node_lines(world.node_tree, set())
     return hashlib.sha256("\n".join(lines).encode("utf-8", "replace")).hexdigest()
@@ -153,26 +196,30 @@ def panorama(world, error=ValueError, on_ready=None) -> np.ndarray:
     Inside :class:`drawing`, an uncached World raises :class:`Pending` and is
     rendered from a timer, which calls ``on_ready()`` once it is."""
     key = world_digest(world)
-    if key in _failed:
-        raise _failed[key]
     if key not in _cache:
         if _drawing:
-            _render_later(world.name, key, error, on_ready)
+            if key in _failed:                 # said once per change; a render outside drawing tries again
+                raise _failed[key]
+            _render_later(world, key, error, on_ready)
             raise Pending(f"World {world.name!r} is being rendered as a panorama (a few seconds)")
         _cache.clear()                                  # one World at a time: a panorama is 1.5 MB
         _cache[key] = _render(world, error)
     return _cache[key]
 
 
-def _render_later(name: str, key: str, error, on_ready) -> None:
+def _render_later(world, key: str, error, on_ready) -> None:
     import bpy
     if key in _pending:
         return
     _pending.add(key)
+    uid = getattr(world, "session_uid", None)
+    name = world.name
 
     def run():
         _pending.discard(key)
-        world = bpy.data.worlds.get(name)
+        # By its session id: a linked World and a local one may share a name.
+        world = next((w for w in bpy.data.worlds if getattr(w, "session_uid", None) == uid), None) \
+            if uid is not None else bpy.data.worlds.get(name)
         if world is not None and world_digest(world) == key and key not in _cache:
             try:
                 panorama(world, error)
@@ -192,6 +239,8 @@ _failed: dict[str, Exception] = {}
 #: The sun's measurement: a perspective view this wide (degrees) centred on the brightest
 #: pixel of a quick panorama, at this many pixels a side and samples a pixel.
 SUN_VIEW_DEGREES = 4.0
+#: Sun discs up to this diameter are measured apart (a wider one stays in the panorama).
+SUN_DISC_MAX_DEGREES = 2.0
 SUN_VIEW_PIXELS = 64
 SUN_SAMPLES = 16
 
@@ -201,7 +250,11 @@ def _sky_suns(tree, seen: set | None = None) -> list:
     seen = set() if seen is None else seen
     out = []
     for n in tree.nodes:
-        if n.bl_idname == "ShaderNodeTexSky" and getattr(n, "sun_disc", False) and not n.mute:
+        # The models that draw a disc (Nishita, and its successors in Blender 5), a small one
+        # (the narrow view measures up to 2 degrees; a wider disc is left to the panorama).
+        if (n.bl_idname == "ShaderNodeTexSky" and getattr(n, "sun_disc", False) and not n.mute
+                and n.sky_type in ("NISHITA", "SINGLE_SCATTERING", "MULTIPLE_SCATTERING")
+                and getattr(n, "sun_size", 1.0) <= math.radians(SUN_DISC_MAX_DEGREES)):
             out.append(n)
         group = getattr(n, "node_tree", None)
         if group is not None and group.name not in seen:
@@ -223,9 +276,11 @@ def _render(world, error) -> np.ndarray:
                         f"differ from what a camera sees, and PRTT reads the World as a camera sees it; "
                         f"remove it, or choose a studio HDRI as the light")
     W, H = PANORAMA_SIZE
-    suns = _sky_suns(world.node_tree) if world.node_tree is not None else []
+    # A linked World cannot be edited (its disc turned off and on): its disc stays in the panorama,
+    # as do several discs.
+    suns = _sky_suns(world.node_tree) if world.node_tree is not None and world.library is None else []
     sun = None
-    if len(suns) == 1:                 # several discs stay in the panorama as they are
+    if len(suns) == 1:
         sun = _measure_sun(world, suns[0], error)
         suns[0].sun_disc = False
     try:
@@ -339,10 +394,15 @@ def _camera_render(world, error, *, pano: bool, size, samples: int, aim=None) ->
         if hasattr(scene.cycles, "use_adaptive_sampling"):
             scene.cycles.use_adaptive_sampling = False
         scene.view_settings.view_transform = "Standard"
+        # An animated World at the frame the user is on.
+        scene.frame_current = bpy.context.scene.frame_current
         with tempfile.TemporaryDirectory(prefix="prtt-world-") as d:
             r.filepath = os.path.join(d, "world.exr")
             with bpy.context.temp_override(scene=scene):
-                bpy.ops.render.render(write_still=True, scene=scene.name)
+                done = bpy.ops.render.render(write_still=True, scene=scene.name)
+            if "FINISHED" not in done or not os.path.isfile(r.filepath):
+                raise error(f"World {world.name!r}: Cycles did not render it ({', '.join(sorted(done))}); "
+                            f"choose a studio HDRI as the light")
             return read_hdr_image(r.filepath)
     finally:
         bpy.data.objects.remove(cam)

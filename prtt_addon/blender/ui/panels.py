@@ -6,6 +6,7 @@ from bpy.app.handlers import persistent
 
 from ..preview import draw as preview_draw
 from ..preview import drawlist
+from ..scene import world_panorama
 
 
 class _PRTTPanel:
@@ -162,7 +163,8 @@ class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
             col.label(text="Bake Transfer first", icon="INFO")
             return
         try:
-            _, status = drawlist.collect(context, use_bounces=st.preview_bounces, with_meshes=False)
+            with world_panorama.drawing():   # a panel's draw may not render: a timer does
+                _, status = drawlist.collect(context, use_bounces=st.preview_bounces, with_meshes=False)
         except Exception as exc:          # a panel must draw whatever happens
             col.label(text=f"{type(exc).__name__}: {exc}", icon="ERROR")
             return

@@ -43,15 +43,27 @@ let envWorker = null;
 async function startWorker() {
   envWorker = new Worker(ENV_WORKER, { eval: true });
   await new Promise((resolve, reject) => {
-    envWorker.once('message', resolve);
+    envWorker.once('message', () => { envWorker.removeAllListeners('error'); resolve(); });
     envWorker.once('error', reject);
   });
 }
 function decodeEnv(bytes, name) {
+  // An answer, a hang (no answer in HANG_MS: the worker is ended), or the worker's death
+  // (an exception outside the reader, out of memory): a crash, reported as a finding.
   return new Promise((resolve) => {
-    const timer = setTimeout(() => { envWorker.terminate(); envWorker = null; resolve({ hang: true }); }, HANG_MS);
-    envWorker.once('message', (r) => { clearTimeout(timer); resolve(r); });
-    envWorker.postMessage({ bytes, name }, [bytes.buffer]);
+    const w = envWorker;
+    const done = (r) => {
+      clearTimeout(timer);
+      w.removeAllListeners('message');
+      w.removeAllListeners('error');
+      w.removeAllListeners('exit');
+      resolve(r);
+    };
+    const timer = setTimeout(() => { w.terminate(); envWorker = null; done({ hang: true }); }, HANG_MS);
+    w.once('message', (r) => done(r));
+    w.once('error', (e) => { envWorker = null; done({ ok: false, isError: false, type: 'crash', message: String(e) }); });
+    w.once('exit', (code) => { envWorker = null; done({ ok: false, isError: false, type: 'crash', message: `the decoder's worker exited (${code})` }); });
+    w.postMessage({ bytes, name }, [bytes.buffer]);
   });
 }
 
@@ -67,9 +79,9 @@ for (let i = 0; i < head.items.length; i++) {
   const bytes = new Uint8Array(bundle.buffer, bundle.byteOffset + pos, len).slice();
   pos += len;
   const name = `input${i}.${kind}`;
+  if (kind === 'env' && !envWorker) await startWorker();      // not timed: three is imported again
   const t0 = performance.now();
   if (kind === 'env') {
-    if (!envWorker) await startWorker();
     const r = await decodeEnv(bytes, name);
     if (r.hang) {
       hangs.push(i);

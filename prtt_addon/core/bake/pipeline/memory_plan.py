@@ -39,7 +39,8 @@ K = bands², C the relightable channels (3K + the glossy rows). Bytes:
   (3K, A) planes and exit rows instead;
 * write relight: each set's relightable texture made a band of rows at a
   time from its levels' columns (texels.dilate.DilatedRows: a float32 band
-  per level summed with its dilation rings, 2.5 B each, the file's band B and
+  per level summed with its dilation rings, 1.25 x its float32 bytes each, the
+  file's band B and
   OpenEXR's line buffers for its C channels),
   beside every set's G-buffer (SURFACE N) and, with more than one level, the
   levels' columns (4 C N/f² each; one level is read from its file);
@@ -278,7 +279,8 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 wc, hc, nc = max(1, w // f), max(1, h // f), max(1, n // (f * f))
                 kept += SURFACE * n + (4 * relight_channels * nc * levels if levels > 1 else 0)
                 b = band_bytes(relight_channels, wc, hc, half)
-                band = max(band, int((2.5 * min(levels, 2) + 1) * b) + writer_bytes(relight_channels, wc, half,
+                f32 = b * (2 if half else 1)           # the band as float32, as DilatedRows makes it
+                band = max(band, int(1.25 * f32 * min(levels, 2)) + b + writer_bytes(relight_channels, wc, half,
                                                                                      "relight"))
             out["write relight"] = base + kept + band
     return out
