@@ -37,3 +37,27 @@ def test_lamps_and_emission_are_named(tmp_path):
     assert r.returncode == 0 and "2 lamp(s) light Cycles' render" in r.stdout, r.stdout + r.stderr
     r = run("export", "scene.blend", "--out", "scene.glb", cwd=tmp_path, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_a_dim_world_is_said(tmp_path):
+    """Blender's default World (a grey of 0.05) previews near black: `render`
+    says why; the forest HDRI draws without the note."""
+    bpy = addon_bpy()
+    rs.floor_and_box(bpy)
+    sc = bpy.context.scene
+    sc.prtt.light_source = "WORLD"
+    w = bpy.data.worlds.new("Default grey")
+    if bpy.app.version < (5, 0, 0):
+        w.use_nodes = True
+    w.node_tree.nodes["Background"].inputs["Color"].default_value = (0.05, 0.05, 0.05, 1.0)
+    sc.world = w
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "tex", "--unwrap", "SMART", "--resolution", "64", "--rays", "32",
+            "--bounces", "0", cwd=tmp_path, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = run("render", "scene.blend", "--size", "64x36", "--out", "shot.png", cwd=tmp_path, timeout=600)
+    assert r.returncode == 0 and "the light is dim (mean radiance 0.05" in r.stdout, r.stdout + r.stderr
+    from prtt_addon.blender.scene.world import dim_light_note
+    from prtt_addon.core.light import envmap
+    assert dim_light_note(envmap.environment_light("forest", 3)) == ""
+    assert dim_light_note(envmap.constant_light([0.05] * 3, 3), exposure=2.0) == ""     # 0.2 once exposed

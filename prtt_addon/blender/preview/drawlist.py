@@ -36,7 +36,7 @@ from ..scene import world_panorama
 from ..scene.job import GENERATED_UVS, apply_tile
 from ..scene.material_nodes import image_array, parse_material
 from ..scene.scene_objects import scene_geometry
-from ..scene.world import WorldLightError, project_setup, unbaked_lamps, world_setup
+from ..scene.world import WorldLightError, dim_light_note, project_setup, unbaked_lamps, world_setup
 from ..shared import UV_MAP
 
 _MESHES: dict = {}          # object name -> (signature, DrawMesh)
@@ -350,6 +350,9 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
         status.light_fallback = str(exc)
         status.light_description = f"{desc} (the World's light cannot be read: {exc})"
         status.add("INFO", f"light: {status.light_description}")
+    dim = dim_light_note(light, getattr(scene.view_settings, "exposure", 0.0))
+    if dim:
+        status.add("INFO", dim)
     lamps = unbaked_lamps(scene, getattr(context, "view_layer", None))
     if lamps:
         status.add("INFO", lamps)           # a note: the export carries the lamps (glTF's own lights)

@@ -241,3 +241,20 @@ def unbaked_lamps(scene, view_layer=None) -> str:
         f" and {len(lamps) - 4} more" if len(lamps) > 4 else "")
     return (f"{len(lamps)} lamp(s) light Cycles' render but not PRTT's (lamps are not baked yet): {named}; "
             f"PRTT is lit by the World alone")
+
+
+#: A light whose mean radiance (times the view's exposure) is below this draws a dark preview
+#: (Blender's default World is a grey of 0.05).
+DIM_LIGHT = 0.1
+
+
+def dim_light_note(light: np.ndarray, exposure: float = 0.0) -> str:
+    """A one-line note when ``light`` (K, 3) SH is so dim that the preview is
+    near black ("" otherwise): its mean radiance, L_00 / sqrt(4 pi), averaged
+    over RGB and scaled by the view's exposure (2^exposure)."""
+    mean = float(np.mean(np.asarray(light, np.float64)[0])) / math.sqrt(4.0 * math.pi)
+    if not math.isfinite(mean) or mean * 2.0 ** float(exposure) >= DIM_LIGHT:
+        return ""
+    return (f"the light is dim (mean radiance {mean:.3g}; Blender's default World is a grey of 0.05): the "
+            f"preview is as dark as Cycles' render would be without lamps; give the World an HDRI or a Sky "
+            f"Texture, raise its strength, or choose a studio HDRI as the light")
