@@ -216,6 +216,8 @@ def _render_later(world, key: str, error, on_ready) -> None:
     name = world.name
 
     def run():
+        if getattr(bpy.app, "is_job_running", lambda _k: False)("RENDER"):
+            return 1.0                           # F12 is rendering: one Cycles render at a time
         _pending.discard(key)
         # By its session id: a linked World and a local one may share a name.
         world = next((w for w in bpy.data.worlds if getattr(w, "session_uid", None) == uid), None) \
@@ -396,13 +398,17 @@ def _camera_render(world, error, *, pano: bool, size, samples: int, aim=None) ->
         scene.view_settings.view_transform = "Standard"
         # An animated World at the frame the user is on.
         scene.frame_current = bpy.context.scene.frame_current
+        from ..blendfile import native_output_captured  # imports bpy: only inside Blender
         with tempfile.TemporaryDirectory(prefix="prtt-world-") as d:
             r.filepath = os.path.join(d, "world.exr")
-            with bpy.context.temp_override(scene=scene):
+            # Blender's render prints its progress ("Fra:1 Mem: ...", "Saved: ...") from C:
+            # kept out of a command's output, shown when the render fails.
+            with native_output_captured() as said, bpy.context.temp_override(scene=scene):
                 done = bpy.ops.render.render(write_still=True, scene=scene.name)
             if "FINISHED" not in done or not os.path.isfile(r.filepath):
-                raise error(f"World {world.name!r}: Cycles did not render it ({', '.join(sorted(done))}); "
-                            f"choose a studio HDRI as the light")
+                tail = " ".join("".join(said).strip().splitlines()[-2:])
+                raise error(f"World {world.name!r}: Cycles did not render it ({', '.join(sorted(done))}"
+                            f"{': ' + tail if tail else ''}); choose a studio HDRI as the light")
             return read_hdr_image(r.filepath)
     finally:
         bpy.data.objects.remove(cam)
