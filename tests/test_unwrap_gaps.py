@@ -18,9 +18,9 @@ pytestmark = pytest.mark.blender
 
 
 def test_gap_measure_against_a_drawn_layout():
-    """bench/island_gaps on squares placed by hand: 3 and 5 texels apart, a
+    """core/texels/uv_gaps on squares placed by hand: 3 and 5 texels apart, a
     touching pair (one island: shared corners), and crossing triangles."""
-    from prtt_addon.dev.bench.island_gaps import island_gaps, triangle_distances, uv_islands
+    from prtt_addon.core.texels.uv_gaps import island_gaps, triangle_distances, uv_islands
 
     def square(x0, y0, s):
         return np.array([[[x0, y0], [x0 + s, y0], [x0 + s, y0 + s]], [[x0, y0], [x0 + s, y0 + s], [x0, y0 + s]]])
@@ -56,7 +56,7 @@ def _scene(bpy, kind):
 def test_islands_are_the_padding_apart(method, kind):
     bpy = addon_bpy()
     from prtt_addon.blender.scene.uv_maps import _tri_uvs, bake_downscale, margin_texels
-    from prtt_addon.dev.bench.island_gaps import island_gaps
+    from prtt_addon.core.texels.uv_gaps import island_gaps
     for res in (512, 1024):
         objects = _scene(bpy, kind)
         st = bpy.context.scene.prtt
@@ -70,13 +70,12 @@ def test_islands_are_the_padding_apart(method, kind):
         # some charts further apart, never the twice-the-gap it left before.
         # Lightmap Pack: quads exact (their boxes on a grid of whole divisions);
         # paired triangles sit from one inset to sqrt(2) insets across their box.
-        most = {"SMART": np.inf, "XATLAS": 2 * want - 0.5,
+        # Smart UV Project: Blender's scaled margin, raised until the map holds
+        # the gap (uv_maps._smart_project; before, 2.5 texels on the cube, 3.2 on
+        # the torus), not much more (the packing stays as dense as it can).
+        most = {"SMART": 2 * want, "XATLAS": 2 * want - 0.5,
                 "LIGHTMAP": (np.sqrt(2) * want if kind == "triangles" else want) + 0.2}[method]
-        if method == "SMART":
-            # Blender's SCALED margin, kept (uv_maps.py): at least the 2 texels
-            # bilinear lookups need everywhere, and the margin on the monkey
-            assert gap.min() >= 2.0 and (kind != "monkey" or gap.min() >= want - 0.05), (kind, res, gap.min())
-            continue
+        print(method, kind, res, round(float(gap.min()), 2))
         assert want - 0.05 <= gap.min() <= most, (method, kind, res, want, gap.min())
 
 

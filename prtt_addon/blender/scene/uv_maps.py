@@ -17,6 +17,7 @@ import numpy as np
 
 from ...core.texels.raster import overlap_count
 from ...core.texels.unwrap import LoopMesh, UnwrapError, unwrap_loops
+from ...core.texels.uv_gaps import narrowest_gap
 from .. import versions
 from ..rna_arrays import read, write
 from ..shared import UV_MAP
@@ -241,7 +242,7 @@ def island_margin(padding: int, resolution: int) -> float:
     """Blender's ``FRACTION`` island margin (Pack Islands, Smart UV Project)
     for islands ``padding`` texels apart at ``resolution``: Blender keeps that
     fraction of the UV square around every island, so two islands end up
-    twice it apart (measured on the UV map, bench/island_gaps.py: 12 texels for
+    twice it apart (measured on the UV map, core/texels/uv_gaps.py: 12 texels for
     a margin of 6 texels; PRTT's repacking of overlaps passed padding /
     resolution, twice the gap asked)."""
     return padding / (2.0 * max(resolution, 1))
@@ -321,13 +322,12 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
             for group, r in zip(groups, res):
                 # Blender's SCALED margin follows the islands' scale: 7.25 texels on the
                 # demo room where 6 are asked, but 2.5 on a cube and 3.2 on a torus
-                # (bench/island_gaps.py). Its exact FRACTION margin packs much sparser
+                # (core/texels/uv_gaps.py). Its exact FRACTION margin packs much sparser
                 # (the demo: 6.6 % fewer texels; the web test's room at 256²: a 2.5x
-                # smaller export), so the default keeps it: issue 53's note.
-                margin = padding / max(r, 1)
+                # smaller export). So the scaled margin is kept and raised, measured on
+                # the map, until the islands are as far apart as asked (_smart_margin).
                 for angle in SMART_ANGLES:
-                    _run_edit_mode_op(context, group, lambda a=angle, m=margin: bpy.ops.uv.smart_project(
-                        angle_limit=math.radians(a), island_margin=m, scale_to_bounds=False))
+                    _smart_project(context, group, angle, padding, r)
                     if _overlap_of(group, r, atlas) == 0:
                         break
         elif method == "LIGHTMAP":
@@ -347,6 +347,31 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
                     _separate_and_pack(context, group, island_margin(padding, r))
         # Counted before the mode is put back: in Edit Mode the map reads as empty.
         return {ob.name: overlap_texels(ob, res_of[ob.as_pointer()]) for ob in objects}
+
+
+#: Tries of Smart UV Project's margin, each raised by what the last one left short.
+SMART_MARGIN_TRIES = 4
+
+
+def _smart_project(context, group, angle: float, padding: int, resolution: int) -> float:
+    """Smart UV Project of ``group`` at ``angle`` degrees whose islands end at
+    least ``padding`` texels of ``resolution`` apart: Blender's scaled margin
+    asked for padding / resolution, then, while the narrowest gap measured on
+    the map (core.texels.uv_gaps) is short of it, asked again for that much
+    more (at most 4x a try, SMART_MARGIN_TRIES tries). Returns the narrowest
+    gap in texels (inf: no two islands within 16 texels; 0: islands touch,
+    which a larger margin does not mend)."""
+    margin = padding / max(resolution, 1)
+    gap = 0.0
+    for _ in range(SMART_MARGIN_TRIES):
+        _run_edit_mode_op(context, group, lambda a=angle, m=margin: bpy.ops.uv.smart_project(
+            angle_limit=math.radians(a), island_margin=min(m, 1.0), scale_to_bounds=False))
+        gap = narrowest_gap(np.concatenate([_tri_uvs(ob) for ob in group]), resolution,
+                            within=max(16.0, 2.0 * padding))
+        if not (0.0 < gap < padding - 0.05) or margin >= 1.0:
+            break
+        margin *= min(4.0, 1.05 * padding / gap)
+    return gap
 
 
 def _tri_uvs(ob) -> np.ndarray:
