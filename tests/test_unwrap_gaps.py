@@ -113,3 +113,23 @@ def test_bench_scenes_keep_the_layout_they_were_measured_with():
     for p in range(0, 65):
         asked = [xatlas_padding(g) for g in halvings(chart_gap(p))]
         assert asked[:len(halvings(p))] == halvings(p) and not any(asked[len(halvings(p)):]), (p, asked)
+
+
+def test_the_measure_for_the_unwrap_stays_in_its_budget():
+    """20,000 one-triangle islands in a 64² texture (the demo room's unwrap at
+    a tiny resolution): hundreds of triangles a cell, whose pairs would take
+    gigabytes; the unwrap's measure says it cannot (None) and allocates no
+    more than its budget. A few islands are measured as usual."""
+    import tracemalloc
+
+    from prtt_addon.core.texels.uv_gaps import UNWRAP_BUDGET, narrowest_gap
+    rng = np.random.default_rng(0)
+    centres = rng.random((20000, 1, 2))
+    many = centres + rng.random((20000, 3, 2)) * 0.002
+    tracemalloc.start()
+    got = narrowest_gap(many, 64, within=7.0, budget=UNWRAP_BUDGET)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert got is None and peak < 200 * 2**20, (got, peak)
+    few = np.array([[[0.1, 0.1], [0.2, 0.1], [0.1, 0.2]], [[0.3, 0.1], [0.4, 0.1], [0.3, 0.2]]])
+    assert abs(narrowest_gap(few, 100, within=16.0, budget=UNWRAP_BUDGET) - 10.0) < 1e-9

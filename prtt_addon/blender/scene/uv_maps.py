@@ -17,7 +17,7 @@ import numpy as np
 
 from ...core.texels.raster import overlap_count
 from ...core.texels.unwrap import LoopMesh, UnwrapError, unwrap_loops
-from ...core.texels.uv_gaps import narrowest_gap
+from ...core.texels.uv_gaps import UNWRAP_BUDGET, narrowest_gap
 from .. import versions
 from ..rna_arrays import read, write
 from ..shared import UV_MAP
@@ -353,23 +353,25 @@ def unwrap_objects(context, objects, *, method: str, resolution: int, padding: i
 SMART_MARGIN_TRIES = 4
 
 
-def _smart_project(context, group, angle: float, padding: int, resolution: int) -> float:
+def _smart_project(context, group, angle: float, padding: int, resolution: int) -> float | None:
     """Smart UV Project of ``group`` at ``angle`` degrees whose islands end at
     least ``padding`` texels of ``resolution`` apart: Blender's scaled margin
     asked for padding / resolution, then, while the narrowest gap measured on
     the map (core.texels.uv_gaps) is short of it, asked again for that much
     more (at most 4x a try, SMART_MARGIN_TRIES tries). Returns the narrowest
-    gap in texels (inf: no two islands within 16 texels; 0: islands touch,
-    which a larger margin does not mend)."""
+    gap in texels (inf: no two islands within padding + 1 texels; 0: islands
+    touch, which a larger margin does not mend; None: too many triangles a
+    texel to measure within UNWRAP_BUDGET, the first try kept)."""
     margin = padding / max(resolution, 1)
     gap = 0.0
     for _ in range(SMART_MARGIN_TRIES):
         _run_edit_mode_op(context, group, lambda a=angle, m=margin: bpy.ops.uv.smart_project(
             angle_limit=math.radians(a), island_margin=min(m, 1.0), scale_to_bounds=False))
+        # Only whether a gap is under the padding matters: pairs further apart are not measured.
         gap = narrowest_gap(np.concatenate([_tri_uvs(ob) for ob in group]), resolution,
-                            within=max(16.0, 2.0 * padding))
-        if not (0.0 < gap < padding - 0.05) or margin >= 1.0:
-            break
+                            within=padding + 1.0, budget=UNWRAP_BUDGET)
+        if gap is None or not (0.0 < gap < padding - 0.05) or margin >= 1.0:
+            break                            # held; touching; or too many triangles a texel to measure
         margin *= min(4.0, 1.05 * padding / gap)
     return gap
 

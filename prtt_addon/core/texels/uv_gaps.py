@@ -72,13 +72,22 @@ def triangle_distances(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.where(inside(A[:, 0], B) | inside(B[:, 0], A), 0.0, best)
 
 
-def candidate_pairs(uv: np.ndarray, label: np.ndarray, within: float) -> np.ndarray:
+class OverBudget(Exception):
+    """The measure would take more cells or candidate pairs than it was allowed."""
+
+
+def candidate_pairs(uv: np.ndarray, label: np.ndarray, within: float, budget: int | None = None) -> np.ndarray:
     """(P, 2) triangle index pairs of different islands whose bounding boxes,
-    grown by within / 2, share a grid cell ``within`` wide (uv in texels)."""
+    grown by within / 2, share a grid cell ``within`` wide (uv in texels).
+    ``budget``: OverBudget before allocating more than that many cell entries
+    or candidate pairs (many small triangles in few cells: a pair count that
+    grows with the square of the triangles a cell holds)."""
     lo = np.floor((uv.min(axis=1) - within / 2) / within).astype(np.int64)
     hi = np.floor((uv.max(axis=1) + within / 2) / within).astype(np.int64)
     nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
     count = nx * ny
+    if budget is not None and int(count.sum()) > budget:
+        raise OverBudget(f"{int(count.sum())} cell entries")
     tri = np.repeat(np.arange(len(uv)), count)
     k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
     cx = lo[tri, 0] + k % nx[tri]
@@ -91,6 +100,9 @@ def candidate_pairs(uv: np.ndarray, label: np.ndarray, within: float) -> np.ndar
     end = np.r_[start[1:], len(cell)]
     lab = label[tri]
     mixed = lab[start] != lab[end - 1]
+    n = (end - start)[mixed].astype(np.int64)
+    if budget is not None and int((n * (n - 1) // 2).sum()) > budget:
+        raise OverBudget(f"{int((n * (n - 1) // 2).sum())} candidate pairs")
     pairs = []
     for s, e in zip(start[mixed], end[mixed]):
         t, l = tri[s:e], lab[s:e]
@@ -106,14 +118,16 @@ def candidate_pairs(uv: np.ndarray, label: np.ndarray, within: float) -> np.ndar
     return pairs[np.hypot(apart[:, 0], apart[:, 1]) < within]
 
 
-def island_gaps(tri_uv: np.ndarray, resolution: int, *, within: float = 16.0) -> np.ndarray:
+def island_gaps(tri_uv: np.ndarray, resolution: int, *, within: float = 16.0,
+                budget: int | None = None) -> np.ndarray:
     """(T,) per triangle the distance in texels to the nearest triangle of
-    another island; inf where none is within ``within`` texels."""
+    another island; inf where none is within ``within`` texels. ``budget``:
+    OverBudget (candidate_pairs) rather than more work than that."""
     uv = np.asarray(tri_uv, np.float64) * resolution
     gap = np.full(len(uv), np.inf)
     if len(uv) == 0:
         return gap
-    pairs = candidate_pairs(uv, uv_islands(tri_uv), float(within))
+    pairs = candidate_pairs(uv, uv_islands(tri_uv), float(within), budget)
     for s in range(0, len(pairs), PAIR_CHUNK):
         i, j = pairs[s:s + PAIR_CHUNK, 0], pairs[s:s + PAIR_CHUNK, 1]
         d = triangle_distances(uv[i], uv[j])
@@ -122,7 +136,16 @@ def island_gaps(tri_uv: np.ndarray, resolution: int, *, within: float = 16.0) ->
     return gap
 
 
-def narrowest_gap(tri_uv: np.ndarray, resolution: int, *, within: float = 16.0) -> float:
-    """The smallest island gap in texels (inf when no islands are within ``within``)."""
-    g = island_gaps(tri_uv, resolution, within=within)
+#: Cell entries or candidate pairs a measure for the unwrap may take (~100-200 MB of temporaries).
+UNWRAP_BUDGET = 2_000_000
+
+
+def narrowest_gap(tri_uv: np.ndarray, resolution: int, *, within: float = 16.0,
+                  budget: int | None = None) -> float | None:
+    """The smallest island gap in texels (inf when no islands are within
+    ``within``); None when it would take more than ``budget`` (see candidate_pairs)."""
+    try:
+        g = island_gaps(tri_uv, resolution, within=within, budget=budget)
+    except OverBudget:
+        return None
     return float(g.min()) if g.size else float("inf")
