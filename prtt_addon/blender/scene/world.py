@@ -158,37 +158,16 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
                       image_name=img.name, mapping=mapping)
 
 
-def _feeding(tree) -> list:
-    """The nodes of ``tree`` that feed its active output (or, in a group, its Group Output)."""
-    outs = [n for n in tree.nodes if n.bl_idname in ("ShaderNodeOutputWorld", "NodeGroupOutput")
-            and getattr(n, "is_active_output", True)]
-    found, todo = {}, list(outs)
-    while todo:
-        n = todo.pop()
-        if n.name in found:
-            continue
-        found[n.name] = n
-        todo += [link.from_node for link in tree.links if link.to_node == n and not link.is_muted]
-    return list(found.values())
-
-
-def _missing_image(tree, seen: set | None = None):
+def _missing_image(tree):
     """The first image that feeds ``tree``'s output (in it or a group it uses)
     whose file is missing, or None (an unconnected node's image does not count)."""
     import bpy
-    seen = set() if seen is None else seen
-    for n in _feeding(tree):
+    for n in world_panorama.tree_nodes(tree, feeding=True):
         img = getattr(n, "image", None)
         if img is not None and img.source == "FILE" and not img.packed_file:
             path = bpy.path.abspath(img.filepath, library=img.library)
             if not (path and os.path.isfile(path)):
                 return img
-        group = getattr(n, "node_tree", None)
-        if group is not None and group.name not in seen:
-            seen.add(group.name)
-            found = _missing_image(group, seen)
-            if found is not None:
-                return found
     return None
 
 

@@ -151,19 +151,36 @@ def world_digest(world) -> str:
     return hashlib.sha256("\n".join(lines).encode("utf-8", "replace")).hexdigest()
 
 
-def light_path_node(tree, seen: set | None = None):
-    """The first Light Path node in ``tree`` (or a group it uses), or None."""
+def _feeding(tree) -> list:
+    """The nodes of ``tree`` that feed its active output (or, in a group, its Group Output)."""
+    outs = [n for n in tree.nodes if n.bl_idname in ("ShaderNodeOutputWorld", "NodeGroupOutput")
+            and getattr(n, "is_active_output", True)]
+    found, todo = {}, list(outs)
+    while todo:
+        n = todo.pop()
+        if n.name in found:
+            continue
+        found[n.name] = n
+        todo += [link.from_node for link in tree.links if link.to_node == n and not link.is_muted]
+    return list(found.values())
+
+
+def tree_nodes(tree, *, feeding: bool = False, seen: set | None = None):
+    """Every node of ``tree`` and, after a group node, the nodes of its group
+    (each group once); with ``feeding`` only the nodes that feed the active
+    output (in a group, its Group Output)."""
     seen = set() if seen is None else seen
-    for n in tree.nodes:
-        if n.bl_idname == "ShaderNodeLightPath":
-            return n
+    for n in (_feeding(tree) if feeding else tree.nodes):
+        yield n
         group = getattr(n, "node_tree", None)
         if group is not None and group.name not in seen:
             seen.add(group.name)
-            found = light_path_node(group, seen)
-            if found is not None:
-                return found
-    return None
+            yield from tree_nodes(group, feeding=feeding, seen=seen)
+
+
+def light_path_node(tree):
+    """The first Light Path node in ``tree`` (or a group it uses), or None."""
+    return next((n for n in tree_nodes(tree) if n.bl_idname == "ShaderNodeLightPath"), None)
 
 
 class Pending(Exception):
@@ -247,22 +264,15 @@ SUN_VIEW_PIXELS = 64
 SUN_SAMPLES = 16
 
 
-def _sky_suns(tree, seen: set | None = None) -> list:
-    """Sky Texture nodes of ``tree`` (and its groups) that draw a sun disc."""
-    seen = set() if seen is None else seen
-    out = []
-    for n in tree.nodes:
-        # The models that draw a disc (Nishita, and its successors in Blender 5), a small one
-        # (the narrow view measures up to 2 degrees; a wider disc is left to the panorama).
-        if (n.bl_idname == "ShaderNodeTexSky" and getattr(n, "sun_disc", False) and not n.mute
-                and n.sky_type in ("NISHITA", "SINGLE_SCATTERING", "MULTIPLE_SCATTERING")
-                and getattr(n, "sun_size", 1.0) <= math.radians(SUN_DISC_MAX_DEGREES)):
-            out.append(n)
-        group = getattr(n, "node_tree", None)
-        if group is not None and group.name not in seen:
-            seen.add(group.name)
-            out += _sky_suns(group, seen)
-    return out
+def _sky_suns(tree) -> list:
+    """Sky Texture nodes of ``tree`` (and its groups) that draw a sun disc:
+    the models that draw one (Nishita, and its successors in Blender 5), and a
+    small one (the narrow view measures up to 2 degrees; a wider disc is left
+    to the panorama)."""
+    return [n for n in tree_nodes(tree)
+            if n.bl_idname == "ShaderNodeTexSky" and getattr(n, "sun_disc", False) and not n.mute
+            and n.sky_type in ("NISHITA", "SINGLE_SCATTERING", "MULTIPLE_SCATTERING")
+            and getattr(n, "sun_size", 1.0) <= math.radians(SUN_DISC_MAX_DEGREES)]
 
 
 def _render(world, error) -> np.ndarray:

@@ -82,6 +82,14 @@ def _bundle(path: str, items: list[tuple[str, bytes, dict | None]]) -> None:
             f.write(d)
 
 
+def _keep(found_dir: str | None, name: str, data: bytes) -> None:
+    """Save an input the page's readers answered outside their contract (or hung on)."""
+    if found_dir:
+        os.makedirs(found_dir, exist_ok=True)
+        with open(os.path.join(found_dir, name), "wb") as f:
+            f.write(data)
+
+
 def run_bundle(items: list[tuple[str, bytes, dict | None]], bundle: str,
                viewer: str = os.path.join(ROOT, "viewer")) -> tuple[dict | None, str]:
     """Run ``items`` (kind "env" or "ktx2", bytes, the KTX2's spec) through
@@ -149,20 +157,12 @@ def run(seeds: dict, runs: int, *, seed: int = 1, found_dir: str | None = None,
                 done += len(items)
                 continue
             for i, why in r["failures"]:
-                kind, data, _ = items[i]
-                name = f"page-{kind}-{len(failures):03d}"
-                if found_dir:
-                    os.makedirs(found_dir, exist_ok=True)
-                    with open(os.path.join(found_dir, name), "wb") as f:
-                        f.write(data)
+                name = f"page-{items[i][0]}-{len(failures):03d}"
+                _keep(found_dir, name, items[i][1])
                 failures.append(f"{name}: {why}")
             for i in r["hangs"]:
-                kind, data, _ = items[i]
                 name = f"page-hang-{len(hangs):03d}"
-                if found_dir:
-                    os.makedirs(found_dir, exist_ok=True)
-                    with open(os.path.join(found_dir, name), "wb") as f:
-                        f.write(data)
+                _keep(found_dir, name, items[i][1])
                 hangs.append(name)
             slowest = max(slowest, r["slowest_ms"])
             rss = max(rss, r["maxrss_kb"] // 1024)
