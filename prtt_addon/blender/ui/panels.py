@@ -119,6 +119,7 @@ class PRTT_PT_bake_quality(_PRTTPanel, bpy.types.Panel):
         sub.prop(st, "bounce_downscale")
         sub.prop(st, "bounce_mode")
         col.prop(st, "tuning")
+        col.prop(st, "guiding")
         col.prop(st, "texel_validity")
 
 

@@ -105,10 +105,11 @@ def errors(E: np.ndarray, E_ref: np.ndarray) -> dict:
 
 
 def measure(resolution: int = 256, *, rays=(256,), ref_rays: int = 8192, ref_texels: int = 3000,
-            env: str = "forest", denoisers=("none",), seed: int = 3) -> dict:
-    """Bake the room at each of ``rays`` and filter it with each of
-    ``denoisers`` (estimators.denoise: "none", "edge-aware", "oidn");
-    returns {"rows": [{rays, denoiser, mean, p99, bake_s, denoise_s}], ...}."""
+            env: str = "forest", denoisers=("none",), seed: int = 3, guiding=(True,)) -> dict:
+    """Bake the room at each of ``rays``, with and without ``guiding``
+    (estimators/guided.py), and filter it with each of ``denoisers``
+    (estimators.denoise: "none", "edge-aware", "oidn"); returns
+    {"rows": [{rays, guiding, denoiser, mean, p99, bake_s, denoise_s}], ...}."""
     from ...core.bake.estimators import denoise
     from ...core.bake.pipeline.context import BakeSettings
     from ...core.bake.pipeline.runner import bake_scene
@@ -136,10 +137,10 @@ def measure(resolution: int = 256, *, rays=(256,), ref_rays: int = 8192, ref_tex
     both = mask[:, 1:] & mask[:, :-1]
     world_step = 2.0 * float(np.median(np.linalg.norm(pos[:, 1:] - pos[:, :-1], axis=-1)[both]))
     rows = []
-    for r in rays:
+    for r, guide in [(r, g) for r in rays for g in guiding]:
         with tempfile.TemporaryDirectory(prefix="prtt-window-room-") as d:
             t = time.perf_counter()
-            bake_scene(sc, os.path.join(d, "b"), BakeSettings(rays=r, bounces=0, vertex_mode=False))
+            bake_scene(sc, os.path.join(d, "b"), BakeSettings(rays=r, bounces=0, vertex_mode=False, guiding=guide))
             bake_s = time.perf_counter() - t
             tex, _ = read_sh_exr(os.path.join(d, "b", "atlas.transfer.exr"))      # (H, W, K), row 0 at the bottom
         planes = np.ascontiguousarray(tex.transpose(2, 0, 1), np.float32)
@@ -161,7 +162,7 @@ def measure(resolution: int = 256, *, rays=(256,), ref_rays: int = 8192, ref_tex
             den_s = time.perf_counter() - t
             T = out.reshape(out.shape[0], -1)[:, gb.texel[picked]].T.astype(np.float64)
             E = (T @ light).mean(axis=1)
-            rows.append(dict(rays=r, denoiser=name, bake_s=round(bake_s, 2), denoise_s=round(den_s, 2),
+            rows.append(dict(rays=r, guiding=guide, denoiser=name, bake_s=round(bake_s, 2), denoise_s=round(den_s, 2),
                              **errors(E, E_ref)))
     return {"rows": rows, "resolution": resolution, "inner_texels": int(inner.size), "ref_rays": ref_rays,
             "ref_texels": int(picked.size), "ref_s": round(ref_s, 1), "env": env}
@@ -177,14 +178,16 @@ def main(argv=None) -> int:
     p.add_argument("--denoise", default="none,edge-aware:1,edge-aware:2,oidn",
                    help="comma-separated filters (none, edge-aware[:radius[:sigma in texels]], oidn)")
     p.add_argument("--env", default="forest")
+    p.add_argument("--guiding", default="on,off", help="comma-separated: on, off (rays aimed at the window or not)")
     a = p.parse_args(argv)
     r = measure(a.resolution, rays=[int(x) for x in a.rays.split(",")], ref_rays=a.ref_rays,
-                ref_texels=a.ref_texels, env=a.env, denoisers=a.denoise.split(","))
+                ref_texels=a.ref_texels, env=a.env, denoisers=a.denoise.split(","),
+                guiding=[{"on": True, "off": False}[g] for g in a.guiding.split(",")])
     print(f"window room, {a.resolution}² atlas ({r['inner_texels']:,} inner texels), light {a.env}; reference "
           f"{r['ref_rays']} rays at {r['ref_texels']} texels ({r['ref_s']} s)")
-    print(f"{'rays':>6} {'denoiser':>14} {'mean':>8} {'p99':>8} {'nmae':>8} {'bake s':>7} {'denoise s':>9}")
+    print(f"{'rays':>6} {'guiding':>7} {'denoiser':>14} {'mean':>8} {'p99':>8} {'nmae':>8} {'bake s':>7} {'denoise s':>9}")
     for x in r["rows"]:
-        print(f"{x['rays']:>6} {x['denoiser']:>14} {x['mean']:>8.2%} {x['p99']:>8.2%} {x['nmae']:>8.2%} "
+        print(f"{x['rays']:>6} {'on' if x['guiding'] else 'off':>7} {x['denoiser']:>14} {x['mean']:>8.2%} {x['p99']:>8.2%} {x['nmae']:>8.2%} "
               f"{x['bake_s']:>7.2f} {x['denoise_s']:>9.2f}")
     return 0
 

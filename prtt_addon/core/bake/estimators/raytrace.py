@@ -55,6 +55,8 @@ class RayScene:
         # A scene of one point (all triangles collapsed) still gets a scale.
         self.scale = 1.0 / half if half > 0 else 1.0
         self.n_triangles = int(P.shape[0])
+        #: Surface area (world units², one side): where guided rays size their cells (guided.py).
+        self.area = 0.0
         self.robust = robust
         self._scene = rtcore_scene.EmbreeScene(robust=robust)
         # Geometry g holds triangles g*BUILD_CHUNK ... (geomIDs count up from 0).
@@ -62,7 +64,10 @@ class RayScene:
         for a in range(0, self.n_triangles, BUILD_CHUNK):
             if cancel is not None and cancel.is_set():
                 raise Cancelled()
-            tri = np.ascontiguousarray(self.to_local(P[a:a + BUILD_CHUNK].reshape(-1, 3)).reshape(-1, 3, 3))
+            block = P[a:a + BUILD_CHUNK]
+            self.area += 0.5 * float(np.linalg.norm(np.cross(block[:, 1] - block[:, 0], block[:, 2] - block[:, 0]),
+                                                    axis=1).sum())
+            tri = np.ascontiguousarray(self.to_local(block.reshape(-1, 3)).reshape(-1, 3, 3))
             self._meshes.append(TriangleMesh(self._scene, tri))
         # Commit now, in one thread: embreex commits lazily on the first query,
         # which would race if two threads made the first query together.

@@ -63,6 +63,7 @@ from ...base.errors import Cancelled
 from ...base.threads import run_chunks
 from ...sh.rotation import rotate_zyz, rotation_zyz
 from ...sh.zonal import clamped_cosine_factors, zonal_to_sh
+from . import guided
 from .raytrace import RAY_EPSILON, RayScene
 from .sampling import exact_tables, hash_u32, hash_unit, pattern_bank, unoccluded_local
 
@@ -93,6 +94,7 @@ class TransferSettings:
     adaptive_tol: float = _d("adaptive_tol")    # 0 = fixed ray count
     min_rays: int = _d("min_rays")          # first adaptive round
     analytic: bool = _d("analytic")         # zero-ray path for provably clear points
+    guiding: bool = _d("guiding")           # rays aimed at openings where most rays are blocked (guided.py)
     seed: int = _d("seed")
     threads: int = _d("threads")            # 0 = all cores
     n_patterns: int = _d("n_patterns")
@@ -129,6 +131,7 @@ class Points:
     ids: np.ndarray          # (N,) int64
     analytic: np.ndarray     # (N,) bool: provably unoccluded
     frame_group: np.ndarray | None = None   # (N,) int64, >= 0: may share a frame
+    area: float | None = None   # world units²: the surface the points cover (guided.py's cells); None: the scene's
 
     @property
     def n(self) -> int:
@@ -226,8 +229,9 @@ def _stable_order(major: np.ndarray, minor: np.ndarray | None = None) -> np.ndar
     return np.argsort(major * (int(minor.max()) + 1) + minor, kind="stable")
 
 
-def chunk_plan(pts: Points, settings: TransferSettings):
+def chunk_plan(pts: Points, settings: TransferSettings, exclude: np.ndarray | None = None):
     """The bake's work split: list of :class:`Chunk`, and the pattern count G.
+    ``exclude`` (N,) bool: points traced elsewhere (guided.py), left out.
 
     Deterministic in (seed, ids, frame groups); shared by the bake and the
     benchmark (which re-traces the very same rays with bare Embree calls).
@@ -236,7 +240,7 @@ def chunk_plan(pts: Points, settings: TransferSettings):
     """
     st = settings
     analytic = pts.analytic if st.analytic else np.zeros(pts.n, bool)
-    traced = np.flatnonzero(~analytic)
+    traced = np.flatnonzero(~analytic if exclude is None else ~(analytic | exclude))
     G = pattern_count(st)
     # Patterns fit int32 (G is capped by the bank's size); indices of traced fit int32 below 2^31 points.
     idx_t = np.int32 if traced.size < 1 << 31 else np.int64
@@ -472,6 +476,19 @@ class ChunkKernel:
         return local, traced, below, int(np.count_nonzero(count < st.rays))
 
 
+def _guide(rs, pts, st, analytic, cancel):
+    """The guide of the points the transfer traces (guided.build_guide), or
+    None where no point is guided (then the bake is the one without guiding,
+    byte for byte)."""
+    traced = ~analytic
+    if not traced.any():
+        return None
+    area = rs.area if pts.area is None else pts.area
+    g = guided.build_guide(rs, pts.position, pts.normal, pts.geo_normal, pts.ids, traced, area, st.seed,
+                           st.n_threads, st.chunk_rays, cancel)
+    return g if bool((g.cell >= 0).any()) else None
+
+
 #: GIL switch interval while tracing: a thread leaving Embree waits at most
 #: this long for the other's Python glue (default 5 ms; 0.5 ms measured ~8%
 #: faster on two cores).
@@ -507,11 +524,14 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
     N = pts.n
     stats = _Stats()
     t0 = time.perf_counter()
+    analytic = pts.analytic if st.analytic else np.zeros(N, bool)
+    # The guide (its pilot rays) before the rows exist: its temporaries and the rows are never held together.
+    guide = _guide(rs, pts, st, analytic, cancel) if st.guiding else None
+    guided_pts = None if guide is None else guide.cell >= 0
     # Planned before the rows exist: the planner's temporaries and the rows are never held together.
-    chunks, G = chunk_plan(pts, st)
+    chunks, G = chunk_plan(pts, st, guided_pts)
     out = np.zeros((N, K), np.float32)
 
-    analytic = pts.analytic if st.analytic else np.zeros(N, bool)
     ia = np.flatnonzero(analytic)
     if ia.size:
         out[ia] = unoccluded_transfer(pts.normal[ia], st.bands)
@@ -519,18 +539,22 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
     done = int(ia.size)
     if progress:
         progress(done, N, 0)
+
+    def on_result(n):
+        nonlocal done
+        done += n
+        if progress:
+            progress(done, N, stats.rays_traced)
+
+    if guide is not None:
+        with stats.lock:
+            stats.rays_traced += guide.pilot_rays
     if chunks:
         def sink(chunk, res, counts, thread=None):
             out[chunk.idx] = res
             n = chunk.idx.size
             stats.add(*counts[:2], n * st.rays, n, counts[2], thread)
             return n
-
-        def on_result(n):
-            nonlocal done
-            done += n
-            if progress:
-                progress(done, N, stats.rays_traced)
 
         # Biggest chunks first, so the threads finish together.
         chunks = sorted(chunks, key=lambda c: -c.idx.size)
@@ -546,6 +570,19 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
                 return sink(chunk, res, counts)
 
             run_chunks(run_chunk, chunks, st.n_threads, on_result, cancel)
+    n_guided = 0
+    guided_threads = set()
+    if guide is not None:
+        # Guided points run on this machine's threads (with a Dask cluster too: the same rows either way).
+        def guided_sink(idx, rows, traced, thread):
+            out[idx] = rows
+            stats.add(traced, 0, idx.size * st.rays, idx.size, 0, -1)
+            guided_threads.add(thread)
+            on_result(idx.size)
+
+        n_guided = int(np.count_nonzero(guided_pts))
+        guided.bake_guided(rs, pts.position, pts.normal, pts.geo_normal, pts.ids, guide, st.rays, st.bands,
+                           st.seed, st.n_threads, st.chunk_rays, guided_sink, cancel)
     seconds = time.perf_counter() - t0
     info = {
         "points": N,
@@ -555,7 +592,10 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
         "rays_below_horizon_skipped": stats.rays_below_horizon,
         "rays_naive": N * st.rays,
         "adaptive_early_stops": stats.early_stopped,
-        "threads": len(stats.threads_used),
+        "guided_points": n_guided,
+        "pilot_rays": 0 if guide is None else guide.pilot_rays,
+        # Threads at work at once: the guided points run on a pool of their own.
+        "threads": max(len(stats.threads_used - {-1}), len(guided_threads)),
         "seconds": seconds,
         "rays_per_second": stats.rays_traced / seconds if seconds > 0 else 0.0,
     }

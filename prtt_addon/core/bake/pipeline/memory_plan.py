@@ -59,6 +59,7 @@ import math
 import numpy as np
 
 from ...io.exr_io import write_band_rows, writer_bytes
+from ..estimators.guided import guide_bytes
 
 MiB = 1 << 20
 
@@ -184,7 +185,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
-                dask: bool = False, half: bool = True) -> dict[str, int]:
+                dask: bool = False, half: bool = True, guiding: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -197,6 +198,9 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     from the start: they are compiled on a helper thread while the first set is).
     extra: bytes the process holds beyond BASE's assumption (:func:`process_extra`).
     half: the textures are written as half floats (the write's band bytes).
+    guiding: rays are guided toward openings (estimators/guided.py: its
+    tables and per-point arrays are held through the trace; its chunks hold
+    no more than the transfer's).
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -226,7 +230,9 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         # The rows are consumed into the planes as they are projected: the trace's and
         # the projection's holdings are not both whole.
         projection = base + held + int(planes) + LAYOUT * n + surface
-        out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays), projection)
+        guide = guide_bytes(n) if guiding else 0
+        out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
+                           projection)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);
         # beside them the band in the file's type and OpenEXR's copy of it.
         out["write transfer"] = max(out["write transfer"], projection + band_bytes(K, w, h, half)

@@ -1,0 +1,127 @@
+"""Guided rays (core/bake/estimators/guided.py, issue 53 item 1), against the
+exact light through an opening and against the bake without them.
+
+The scene: a closed 4 x 4 x 2.5 m room whose only opening is a 1.0 x 0.6 m
+hole in its ceiling. A floor point's transfer DC is sqrt(pi)/2 times its view
+factor to the hole, which has a closed form (a differential area to a
+parallel rectangle, summed over the four corner rectangles with signs).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from prtt_addon.core.bake.estimators import guided
+from prtt_addon.core.bake.estimators.raytrace import RayScene
+from prtt_addon.core.bake.estimators.transfer import Points, TransferSettings, bake_points
+
+H = 2.5                       # ceiling height
+HOLE = (-0.5, 0.5, -0.3, 0.3)  # x0, x1, y0, y1 of the opening
+
+
+def _quad(a, b, c, d):
+    return [[a, b, c], [a, c, d]]
+
+
+def room_triangles() -> np.ndarray:
+    X = 2.0
+    tris = []
+    tris += _quad((-X, -X, 0), (X, -X, 0), (X, X, 0), (-X, X, 0))
+    for (x0, y0), (x1, y1) in [((-X, -X), (X, -X)), ((X, -X), (X, X)), ((X, X), (-X, X)), ((-X, X), (-X, -X))]:
+        tris += _quad((x0, y0, 0), (x1, y1, 0), (x1, y1, H), (x0, y0, H))
+    hx0, hx1, hy0, hy1 = HOLE
+    # The ceiling around the hole: four rectangles.
+    for xa, xb, ya, yb in [(-X, X, -X, hy0), (-X, X, hy1, X), (-X, hx0, hy0, hy1), (hx1, X, hy0, hy1)]:
+        tris += _quad((xa, ya, H), (xb, ya, H), (xb, yb, H), (xa, yb, H))
+    return np.asarray(tris, np.float64)
+
+
+def view_factor(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """View factor from an up-facing differential area at (x, y, 0) to the hole at height H."""
+    def corner(a, b):      # odd in a and in b: the signed corner rectangle [0, a] x [0, b]
+        ra, rb = np.sqrt(H * H + a * a), np.sqrt(H * H + b * b)
+        return (a / ra * np.arctan(b / ra) + b / rb * np.arctan(a / rb)) / (2.0 * math.pi)
+    x0, x1, y0, y1 = HOLE
+    return (corner(x1 - x, y1 - y) - corner(x0 - x, y1 - y) - corner(x1 - x, y0 - y)
+            + corner(x0 - x, y0 - y))
+
+
+def floor_points(side: int = 96) -> Points:
+    g = np.linspace(-1.9, 1.9, side)
+    x, y = np.meshgrid(g, g)
+    n = x.size
+    pos = np.stack([x.ravel(), y.ravel(), np.zeros(n)], axis=-1)
+    up = np.tile([0.0, 0.0, 1.0], (n, 1))
+    return Points(pos, up, up.copy(), np.arange(n, dtype=np.int64), np.zeros(n, bool), area=3.8 * 3.8)
+
+
+@pytest.fixture(scope="module")
+def room():
+    return RayScene(room_triangles()), floor_points()
+
+
+def test_view_factor_formula_against_quadrature():
+    """The closed form against a brute-force integral over the hole (scipy-free midpoint rule)."""
+    x0, x1, y0, y1 = HOLE
+    u = np.linspace(x0, x1, 801)
+    v = np.linspace(y0, y1, 481)
+    um, vm = (u[1:] + u[:-1]) / 2, (v[1:] + v[:-1]) / 2
+    for px, py in [(0.0, 0.0), (1.3, -0.7), (-1.8, 1.9)]:
+        dx, dy = um[None, :] - px, vm[:, None] - py
+        r2 = dx * dx + dy * dy + H * H
+        f = (H * H / (math.pi * r2 * r2)).sum() * (u[1] - u[0]) * (v[1] - v[0])
+        assert view_factor(np.array(px), np.array(py)) == pytest.approx(f, rel=1e-5)
+
+
+def test_guided_is_unbiased_and_quieter_than_cosine_rays(room):
+    rs, pts = room
+    exact = math.sqrt(math.pi) / 2 * view_factor(pts.position[:, 0], pts.position[:, 1])
+    on, info = bake_points(rs, pts, TransferSettings(rays=256, guiding=True, analytic=False))
+    off, _ = bake_points(rs, pts, TransferSettings(rays=256, guiding=False, analytic=False))
+    # Every floor point sees the sky through the hole only: all are guided.
+    assert info["guided_points"] == pts.n and info["pilot_rays"] == pts.n * guided.PILOT_RAYS
+    err_on = (on[:, 0] - exact) / exact
+    err_off = (off[:, 0] - exact) / exact
+    rms_on, rms_off = np.sqrt(np.mean(err_on ** 2)), np.sqrt(np.mean(err_off ** 2))
+    # Unbiased: the mean error within 4 standard errors of zero (and small).
+    assert abs(err_on.mean()) < 4 * err_on.std() / math.sqrt(pts.n) + 1e-3, (err_on.mean(), err_on.std())
+    # Quieter: measured RMS 6.6 % against 25.8 %, mean error +0.05 % (cosine rays find the hole by chance).
+    assert rms_on < 0.35 * rms_off, (rms_on, rms_off)
+    assert rms_on < 0.1, rms_on
+
+
+def test_same_rows_for_any_threads_and_chunks(room):
+    rs, pts = room
+    a, _ = bake_points(rs, pts, TransferSettings(rays=64, threads=1, chunk_rays=1 << 19))
+    b, _ = bake_points(rs, pts, TransferSettings(rays=64, threads=2, chunk_rays=1 << 12))
+    assert np.array_equal(a, b)
+
+
+def test_open_and_closed_scenes_bake_as_without_guiding():
+    """Where no cell escapes at a rate in (0, OPEN_MAX], no point is guided and
+    the rows are the unguided bake's, bit for bit: an open floor, a closed box."""
+    rs_closed = RayScene(np.concatenate([room_triangles(), np.asarray(
+        _quad((-0.5, -0.3, H), (0.5, -0.3, H), (0.5, 0.3, H), (-0.5, 0.3, H)), np.float64)]))
+    X = 2.0
+    rs_open = RayScene(np.asarray(_quad((-X, -X, 0), (X, -X, 0), (X, X, 0), (-X, X, 0)), np.float64))
+    pts = floor_points(24)
+    for rs in (rs_closed, rs_open):
+        a, info = bake_points(rs, pts, TransferSettings(rays=64, guiding=True, analytic=False))
+        b, _ = bake_points(rs, pts, TransferSettings(rays=64, guiding=False, analytic=False))
+        assert info["guided_points"] == 0
+        assert np.array_equal(a, b)
+
+
+def test_guide_memory_is_bounded():
+    """Cells are capped (the voxel edge doubles), so the tables stay within
+    guide_bytes whatever the point count."""
+    rng = np.random.default_rng(1)
+    n = 200_000
+    pos = rng.uniform(-1, 1, (n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    cell, keys = guided.cell_ids(pos, nrm, np.arange(n), area=1e-6)     # a tiny area asks for tiny cells
+    assert keys.size <= guided.MAX_CELLS and cell.max() + 1 == keys.size
+    assert guided.guide_bytes(n) < 64 << 20
