@@ -46,7 +46,7 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
     if not files:
         raise BakeError("nothing was baked: no texture set has covered texels")
     totals = {"rays_traced": 0, "rays_naive": 0, "texels": 0, "analytic_texels": 0,
-              "rays_below_horizon_skipped": 0}
+              "rays_below_horizon_skipped": 0, "guided_texels": 0}
     for r in set_reports:
         for k in totals:
             totals[k] += r.get(k, 0)

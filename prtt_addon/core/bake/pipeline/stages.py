@@ -152,8 +152,11 @@ def build_geometry(ctx: BakeContext) -> Geometry:
     st = ctx.settings
     ctx.emit(type="progress", stage="bvh", fraction=0.0)
     t = time.perf_counter()
-    # With a cluster every ray is traced on the workers: the client needs no BVH.
-    rs = RayScene(ctx.scene.positions, cancel=ctx.cancel) if ctx.remote is None else None
+    # With a cluster the workers trace the transfer's and the bounce's rays; the
+    # client needs a BVH only for the guided texels' pilot and rays (guided.py),
+    # which it traces on its own threads (the local bake's bits either way).
+    rs = (RayScene(ctx.scene.positions, cancel=ctx.cancel) if ctx.remote is None or st.guiding
+          else None)
     ctx.seconds["bvh"] = time.perf_counter() - t
     t = time.perf_counter()
     if st.analytic:
@@ -460,6 +463,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
                rays_traced=info["rays_traced"], rays_naive=info["rays_naive"],
                rays_below_horizon_skipped=info["rays_below_horizon_skipped"],
                adaptive_early_stops=info["adaptive_early_stops"],
+               guided_texels=info["guided_points"], pilot_rays=info["pilot_rays"],
                threads=info["threads"], trace_seconds=info["seconds"])
     res = SetResult(gb.set_index, name, rep, written.files)
     if keep_for_bounce:
