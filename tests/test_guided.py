@@ -125,3 +125,24 @@ def test_guide_memory_is_bounded():
     cell, keys = guided.cell_ids(pos, nrm, np.arange(n), area=1e-6)     # a tiny area asks for tiny cells
     assert keys.size <= guided.MAX_CELLS and cell.max() + 1 == keys.size
     assert guided.guide_bytes(n) < 64 << 20
+
+
+def test_texels_not_guided_keep_their_rows():
+    """The demo room (128²): guiding changes the guided texels' rows only; the
+    others, shared frames included, are the unguided bake's, bit for bit."""
+    from prtt_addon.core.bake.pipeline.stages import bake_points_input, scene_face_data
+    from prtt_addon.core.texels.gbuffer import build_gbuffer
+    from prtt_addon.dev.bench.scene_library import room_scene
+
+    sc = room_scene(128, atlas=True, materials=True)
+    fn, grp, clear, _ = scene_face_data(sc)
+    pts = bake_points_input(sc, 0, build_gbuffer(sc, 0), fn, clear, grp)
+    rs = RayScene(sc.positions)
+    on, info = bake_points(rs, pts, TransferSettings(rays=64, guiding=True))
+    off, _ = bake_points(rs, pts, TransferSettings(rays=64, guiding=False))
+    guide = guided.build_guide(rs, pts.position, pts.normal, pts.geo_normal, pts.ids, ~pts.analytic, pts.area,
+                               0, 2, 1 << 19)
+    hit = guide.cell >= 0
+    assert 0 < info["guided_points"] == hit.sum() < pts.n // 4
+    assert np.array_equal(on[~hit], off[~hit])
+    assert not np.array_equal(on[hit], off[hit])

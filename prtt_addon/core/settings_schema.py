@@ -205,8 +205,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("analytic", "transfer", "bool", True, "zero-ray path for texels that provably see no geometry",
             flags=("--analytic", "--no-analytic"), off_help="trace provably unoccluded texels too"),
     Setting("guiding", "transfer", "bool", True, "aim three in four of a texel's rays at the openings its "
-            "neighbourhood sees the sky through (learned from 16 pilot rays a texel), where at most half of its "
-            "rays would escape: a room lit through a window without blotches; texels of open or closed "
+            "neighbourhood sees the sky through (learned from 16 pilot rays a texel), where at most one in ten of "
+            "its rays would escape: a room lit through a window without blotches; texels of open or closed "
             "neighbourhoods are baked as without it", flags=("--guiding", "--no-guiding"),
             off_help="every texel's rays cosine-distributed (the bakes before guiding, byte for byte)",
             ui=Ui("guiding", "Guide Rays to Openings")),

@@ -165,15 +165,17 @@ class ChunkFrames:
 
 
 def chunk_frames(rs: RayScene, pts: Points, idx: np.ndarray, seed: int,
-                 shared: bool = False) -> ChunkFrames:
+                 shared: bool = False, anchor: tuple | None = None) -> ChunkFrames:
     if shared:
         # One frame: the first point's normal, an azimuth hashed from the
-        # chunk's smallest id (deterministic whatever the traversal order).
+        # chunk's smallest id (deterministic whatever the traversal order);
+        # ``anchor``: (first point, smallest id) of the chunk before guided points left it.
         # The points share their geometric normal too (one flat face group).
-        ng0 = pts.geo_normal[idx[0]]
+        first, low = (int(idx[0]), int(pts.ids[idx].min())) if anchor is None else anchor
+        ng0 = pts.geo_normal[first]
         org = rs.to_local(pts.position[idx]) + (RAY_EPSILON * ng0).astype(np.float32)
-        a, b, _ = _frame_angles(pts.normal[idx[:1]], pts.ids[idx[:1]], seed)
-        gam = 2.0 * math.pi * hash_unit(seed, int(pts.ids[idx].min()), 0x5A4D)
+        a, b, _ = _frame_angles(pts.normal[first:first + 1], pts.ids[first:first + 1], seed)
+        gam = 2.0 * math.pi * hash_unit(seed, low, 0x5A4D)
         n = idx.size
         alpha, beta, gamma = np.full(n, a[0]), np.full(n, b[0]), np.full(n, float(gam))
         R = np.broadcast_to(rotation_zyz(a[0], b[0], gam).astype(np.float32), (n, 3, 3))
@@ -211,6 +213,10 @@ class Chunk:
     g: int                   # pattern
     idx: np.ndarray          # point indices
     shared: bool             # one frame for all points
+    # A shared chunk some of whose points are traced elsewhere (guided.py): the
+    # (point index, smallest id) its frame is made from, those of the whole
+    # chunk, so the points it keeps get the rows they had with it whole.
+    anchor: tuple | None = None
 
 
 def _stable_order(major: np.ndarray, minor: np.ndarray | None = None) -> np.ndarray:
@@ -240,7 +246,7 @@ def chunk_plan(pts: Points, settings: TransferSettings, exclude: np.ndarray | No
     """
     st = settings
     analytic = pts.analytic if st.analytic else np.zeros(pts.n, bool)
-    traced = np.flatnonzero(~analytic if exclude is None else ~(analytic | exclude))
+    traced = np.flatnonzero(~analytic)
     G = pattern_count(st)
     # Patterns fit int32 (G is capped by the bank's size); indices of traced fit int32 below 2^31 points.
     idx_t = np.int32 if traced.size < 1 << 31 else np.int64
@@ -266,10 +272,21 @@ def chunk_plan(pts: Points, settings: TransferSettings, exclude: np.ndarray | No
                     continue
                 for c in range(a, b, big):
                     sel = cand_s[c:min(c + big, b)]
-                    chunks.append(Chunk(int(pattern[sel[0]]), traced[sel], True))
                     solo[sel] = False
+                    members = traced[sel]
+                    if exclude is None or not exclude[members].any():
+                        chunks.append(Chunk(int(pattern[sel[0]]), members, True))
+                        continue
+                    # Planned as without guided points (the same frames), traced without them.
+                    anchor = (int(members[0]), int(pts.ids[members].min()))
+                    keep = members[~exclude[members]]
+                    if keep.size:
+                        chunks.append(Chunk(int(pattern[sel[0]]), keep, True, anchor))
             cand_s = None
         grp = cand = None
+    if exclude is not None:
+        # Points with frames of their own: their rows do not depend on their chunk's company.
+        solo &= ~exclude[traced]
     rest = np.flatnonzero(solo).astype(idx_t)
     del solo
     p_rest = pattern[rest]
@@ -411,7 +428,7 @@ class ChunkKernel:
         """World transfer (n, K) float32 of the chunk's points, and (rays
         traced, rays below horizon, points stopped early)."""
         st, g, idx = self.st, chunk.g, chunk.idx
-        fr = chunk_frames(self.rs, self.pts, idx, st.seed, shared=chunk.shared)
+        fr = chunk_frames(self.rs, self.pts, idx, st.seed, shared=chunk.shared, anchor=chunk.anchor)
         n = idx.size
         if not self.adaptive:
             O, traced, below = self._trace_round(fr.R, fr.origins, fr.geo_normal, fr.horizon,
