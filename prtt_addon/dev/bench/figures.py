@@ -139,7 +139,9 @@ def bake_block() -> str:
         f"`{r['command']}`, {r['date']}, on {machine_text(r['machine'])}. Room-class scene, "
         f"{_si(sc['triangles'])} triangles, {'one' if sc['sets'] == 1 else sc['sets']} {sc['resolution']}² atlas ({r['texels']:,} texels), "
         f"{st['bands']} bands, {st['rays']} rays per texel, transfer only (bounces = {st['bounces']}; "
-        f"`bench bounce` times the bounce), {r['threads']} threads, every other setting at its default:",
+        f"`bench bounce` times the bounce), {r['threads']} threads, "
+        f"{'without guided rays (the default bake, guided, is the last row), ' if st.get('guiding') is False else ''}"
+        f"every other setting at its default:",
         "",
         "| | measured |",
         "|---|---|",
@@ -157,6 +159,11 @@ def bake_block() -> str:
         f"| rays skipped (analytic texels, below-horizon rays) | {skipped:.1f} % |",
         f"| transfer texture on disk (half, ZIP) | {r['output_bytes'] / 1e6:.1f} MB |",
     ]
+    if r.get("guided"):
+        gd = r["guided"]
+        lines.append(f"| the default bake, with guided rays (`--guiding`) | **{gd['total_s']:.1f} s** (fastest of "
+                     f"{len(gd['pairs_s'])}; {gd['guided_texels']:,} texels guided), {gd['total_s'] / s['total']:.2f} × "
+                     f"the bake without |")
     if r.get("scaling_triangles"):
         lines += ["", "| triangles (same atlas + occluder-only bunnies) | BVH s | trace s | total s |",
                   "|---|---|---|---|"]

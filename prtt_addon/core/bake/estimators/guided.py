@@ -76,6 +76,7 @@ GUIDED_SHARE = 0.75
 #: way (same normal side): more escapes to learn from where openings are
 #: seen in few pilot rays.
 POOL = 1
+WIDEN = np.float32(1.0)
 _SALT_PILOT, _SALT_COS, _SALT_GUIDE = 0x9170, 0xC057, 0x6E1D
 
 
@@ -294,9 +295,9 @@ def _tables(counts: np.ndarray):
     density per steradian (c, BINS)), float32."""
     c = counts.shape[0]
     pad = np.pad(counts.astype(np.float32), ((0, 0), (1, 1), (0, 0)))
-    rows = pad[:, :-2] + pad[:, 1:-1] + pad[:, 2:]
-    wide = rows + np.roll(rows, 1, axis=2)
-    wide += np.roll(rows, -1, axis=2)
+    rows = WIDEN * pad[:, :-2] + pad[:, 1:-1] + WIDEN * pad[:, 2:]
+    wide = rows + WIDEN * np.roll(rows, 1, axis=2)
+    wide += WIDEN * np.roll(rows, -1, axis=2)
     total = wide.sum(axis=(1, 2), dtype=np.float64)[:, None, None]
     p = np.divide(wide, total, out=np.zeros_like(wide), where=total > 0)
     mass = p.sum(axis=2, dtype=np.float64)
