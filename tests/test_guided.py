@@ -81,13 +81,15 @@ def test_guided_is_unbiased_and_quieter_than_cosine_rays(room):
     on, info = bake_points(rs, pts, TransferSettings(rays=256, guiding=True, analytic=False))
     off, _ = bake_points(rs, pts, TransferSettings(rays=256, guiding=False, analytic=False))
     # Every floor point sees the sky through the hole only: all are guided.
-    assert info["guided_points"] == pts.n and info["pilot_rays"] == pts.n * guided.PILOT_RAYS
+    # One point in PILOT_EVERY sends the pilot rays.
+    assert info["guided_points"] == pts.n
+    assert info["pilot_rays"] == pytest.approx(pts.n * guided.PILOT_RAYS / guided.PILOT_EVERY, rel=0.05)
     err_on = (on[:, 0] - exact) / exact
     err_off = (off[:, 0] - exact) / exact
     rms_on, rms_off = np.sqrt(np.mean(err_on ** 2)), np.sqrt(np.mean(err_off ** 2))
     # Unbiased: the mean error within 4 standard errors of zero (and small).
     assert abs(err_on.mean()) < 4 * err_on.std() / math.sqrt(pts.n) + 1e-3, (err_on.mean(), err_on.std())
-    # Quieter: measured RMS 6.6 % against 25.8 %, mean error +0.05 % (cosine rays find the hole by chance).
+    # Quieter: measured RMS 6.2 % against 25.8 %, mean error -0.007 % (cosine rays find the hole by chance).
     assert rms_on < 0.35 * rms_off, (rms_on, rms_off)
     assert rms_on < 0.1, rms_on
 

@@ -204,10 +204,10 @@ SETTINGS: tuple[Setting, ...] = (
             "doubles the total, up to the rays", unit="rays", lo=1, hi=1 << 16, option="--min-rays", metavar="N"),
     Setting("analytic", "transfer", "bool", True, "zero-ray path for texels that provably see no geometry",
             flags=("--analytic", "--no-analytic"), off_help="trace provably unoccluded texels too"),
-    Setting("guiding", "transfer", "bool", True, "aim three in four of a texel's rays at the openings its "
-            "neighbourhood sees the sky through (learned from 16 pilot rays a texel), where at most one in ten of "
-            "its rays would escape: a room lit through a window without blotches; texels of open or closed "
-            "neighbourhoods are baked as without it", flags=("--guiding", "--no-guiding"),
+    Setting("guiding", "transfer", "bool", True, "aim seven in eight of a texel's rays at the openings its "
+            "neighbourhood sees the sky through (learned from 16 pilot rays of one texel in four), where at most "
+            "one in ten of its rays would escape: a room lit through a window without blotches; texels of open or "
+            "closed neighbourhoods are baked as without it", flags=("--guiding", "--no-guiding"),
             off_help="every texel's rays cosine-distributed (the bakes before guiding, byte for byte)",
             ui=Ui("guiding", "Guide Rays to Openings")),
     Setting("seed", "transfer", "int", 0, "all randomness derives from it", lo=0, hi=(1 << 32) - 1,
