@@ -320,15 +320,20 @@ def _invert(cdf: np.ndarray, group: np.ndarray, u: np.ndarray):
     """Continuous inversion of piecewise-constant distributions: ``cdf`` (G, B)
     (last column 1), ``group`` (n,) which row each sample uses, ``u`` (n,) in
     [0, 1). Returns (bin (n,) int64, position in the bin (n,) in [0, 1)).
-    One search over the rows laid end to end (row g + its CDF increases)."""
+
+    One search over the rows laid end to end, in integers (a row's index in
+    the high bits, its CDF in 2^-32 steps below): exact, so a sample's bin
+    does not depend on which rows share the search (a chunk's cells), as a
+    float sum row + cdf would through its rounding."""
     G, B = cdf.shape
-    flat = (np.arange(G, dtype=np.float64)[:, None] + cdf.astype(np.float64)).ravel()
-    key = group + u
+    c = cdf.astype(np.float64)
+    flat = ((np.arange(G, dtype=np.int64)[:, None] << 33) + np.round(c * 2.0 ** 32).astype(np.int64)).ravel()
+    key = (group.astype(np.int64) << 33) + np.floor(u * 2.0 ** 32).astype(np.int64)
     pos = np.minimum(np.searchsorted(flat, key, side="right"), group * B + B - 1)
     b = pos - group * B
-    lower = np.where(b > 0, flat[np.maximum(pos - 1, 0)], group.astype(np.float64))
-    width = flat[pos] - lower
-    frac = np.divide(key - lower, width, out=np.zeros_like(key), where=width > 0)
+    lower = np.where(b > 0, c.ravel()[np.maximum(pos - 1, 0)], 0.0)
+    width = c.ravel()[pos] - lower
+    frac = np.divide(u - lower, width, out=np.zeros_like(u), where=width > 0)
     return b, np.clip(frac, 0.0, np.nextafter(1.0, 0.0))
 
 
