@@ -9,11 +9,13 @@ texels). Rays aimed at the opening see it every time. This is path guiding
 deep and learned before the bake:
 
 1. Pilot: one traced point in :data:`PILOT_EVERY` sends :data:`PILOT_RAYS`
-   cosine-distributed rays about its shading normal. The directions that escape are counted per cell
-   (a voxel of the scene holding about :data:`CELL_POINTS` points) in an
+   cosine-distributed rays about its shading normal. The directions that
+   escape are counted per cell (a voxel of the scene holding about
+   :data:`CELL_POINTS` points, split by the normal's nearest axis) in an
    equal-area histogram of world directions (:data:`BINS_Z` bands of z times
-   :data:`BINS_PHI` of azimuth, each 4 pi / 512 sr), widened by one bin each
-   way so that an opening a few pilot rays found is covered whole.
+   :data:`BINS_PHI` of azimuth, each 4 pi / 512 sr), pooled with the
+   neighbouring cells (:data:`POOL`) and widened by one bin each way so that
+   an opening a few pilot rays found is covered whole.
 2. Selection: the points of a cell whose pilot rays escaped at a rate in
    (0, :data:`OPEN_MAX`] are guided. The rest keep the transfer's estimator,
    which is exact where nothing or everything is blocked.
@@ -37,8 +39,8 @@ chunks by their order alone and every chunk writes its own rows. Results are
 the same for any thread count.
 
 Memory: at most :data:`MAX_CELLS` cells (the cell size grows until the scene
-fits), so the histograms and their tables stay under
-:func:`guide_bytes` (~50 MB) whatever the resolution.
+fits), so the histograms and their tables stay under ~42 MB whatever the
+resolution, beside 4 B a point for its cell (:func:`guide_bytes`).
 """
 from __future__ import annotations
 
@@ -80,7 +82,6 @@ GUIDED_SHARE = 0.875
 #: way (same normal side): more escapes to learn from where openings are
 #: seen in few pilot rays.
 POOL = 1
-WIDEN = np.float32(1.0)
 _SALT_PILOT, _SALT_COS, _SALT_GUIDE = 0x9170, 0xC057, 0x6E1D
 
 
@@ -302,9 +303,9 @@ def _tables(counts: np.ndarray):
     density per steradian (c, BINS)), float32."""
     c = counts.shape[0]
     pad = np.pad(counts.astype(np.float32), ((0, 0), (1, 1), (0, 0)))
-    rows = WIDEN * pad[:, :-2] + pad[:, 1:-1] + WIDEN * pad[:, 2:]
-    wide = rows + WIDEN * np.roll(rows, 1, axis=2)
-    wide += WIDEN * np.roll(rows, -1, axis=2)
+    rows = pad[:, :-2] + pad[:, 1:-1] + pad[:, 2:]
+    wide = rows + np.roll(rows, 1, axis=2)
+    wide += np.roll(rows, -1, axis=2)
     total = wide.sum(axis=(1, 2), dtype=np.float64)[:, None, None]
     p = np.divide(wide, total, out=np.zeros_like(wide), where=total > 0)
     mass = p.sum(axis=2, dtype=np.float64)
