@@ -10,9 +10,10 @@ case for a fixed ray count (docs/benchmarks.md, "A window-lit room").
 
 Error: the irradiance of the environment's light (its dot product with the
 transfer, mean over RGB) at each texel of the room's inner surfaces, against
-the same texel's transfer traced with ``ref_rays`` rays (the bake's own
-estimator at the bake's sample point: what is measured is the noise and
-what a denoiser adds, not the estimator's bias), over ``ref_texels`` texels
+the same texel's transfer traced with ``ref_rays`` rays (the cosine
+estimator, without guided rays, so that the guided bake is not measured
+against itself; at the bake's sample point: what is measured is the noise
+and what a denoiser adds), over ``ref_texels`` texels
 drawn at random from the inner surfaces: mean and 99th percentile of the
 relative error |E - E_ref| / E_ref over the texels the window lights
 (E_ref at least LIT of the room's mean), and over every picked texel the mean
@@ -85,7 +86,7 @@ def reference(sc, gb, picked: np.ndarray, light: np.ndarray, ref_rays: int) -> n
     pts = Points(gb.position[picked], gb.normal[picked], gb.geo_normal[picked],
                  np.arange(picked.size, dtype=np.int64), np.zeros(picked.size, bool))
     T, _ = bake_points(RayScene(np.asarray(sc.positions, np.float64)), pts,
-                       TransferSettings(bands=5, rays=ref_rays, seed=7, analytic=False))
+                       TransferSettings(bands=5, rays=ref_rays, seed=7, analytic=False, guiding=False))
     return (T.astype(np.float64) @ light).mean(axis=1)
 
 

@@ -85,6 +85,13 @@ POOL = 1
 _SALT_PILOT, _SALT_COS, _SALT_GUIDE = 0x9170, 0xC057, 0x6E1D
 
 
+#: Bytes of SH coefficients a guided chunk projects at a time (whole points; a
+#: point's rays may exceed it: at most rays x 8 K bytes).
+PROJECT_BYTES = 4 << 20
+#: Bytes a traced point costs while the cells are found (its row, voxel key,
+#: np.unique's sort and inverse, the int32 cell ids), before the transfer's rows exist.
+BUILD_POINT_BYTES = 64
+
 #: Bytes a cell's bins take at most while the guide is built: the pilot's
 #: counts (int32) and a chunk's count of them (int64), the pooled counts and
 #: a copy of them, the CDFs and the density.
@@ -92,6 +99,13 @@ CELL_BIN_BYTES = 32
 #: Cells whose tables are made at a time, and the bytes of their temporaries.
 TABLE_BLOCK = 256
 TABLE_BLOCK_BYTES = TABLE_BLOCK * BINS * 64
+
+
+def guide_build_bytes(points: int) -> int:
+    """Upper bound of what building the guide holds (bytes) for ``points``
+    traced points, before the transfer's rows exist: the cells' search and
+    the tables (:func:`guide_bytes`)."""
+    return BUILD_POINT_BYTES * points + guide_bytes(points)
 
 
 def guide_bytes(points: int) -> int:
@@ -413,10 +427,23 @@ def guided_transfer(rs: RayScene, position, normal, geo_normal, ids, idx: np.nda
     p_g = guide.density[cell[i], b]
     del b
     weight = cv / (np.float32(n_c / math.pi) * cv + np.float32(n_g) * p_g)
-    contrib = basis_unchecked(dv, bands, np.float32)                  # (nv, K)
-    contrib *= weight[:, None]
-    start = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
-    out[i[start]] = np.add.reduceat(contrib, start, axis=0)
+    del cv, p_g
+    # The rays' coefficients (8 K bytes a ray with the basis's transposed copy)
+    # a group of whole points at a time, at most ~PROJECT_BYTES: a chunk's
+    # other arrays are counted per ray, these would grow with the bands. A
+    # point's sum is one reduceat over its own rays whatever the grouping.
+    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    ends = np.r_[starts[1:], i.size]
+    step = max(1, PROJECT_BYTES // (8 * K))
+    a = 0
+    while a < starts.size:
+        lo = starts[a]
+        b = max(a + 1, int(np.searchsorted(ends, lo + step, side="right")))
+        hi = ends[b - 1]
+        contrib = basis_unchecked(dv[lo:hi], bands, np.float32)       # (rays, K)
+        contrib *= weight[lo:hi, None]
+        out[i[starts[a:b]]] = np.add.reduceat(contrib, starts[a:b] - lo, axis=0)
+        a = b
     return out, traced
 
 

@@ -59,7 +59,7 @@ import math
 import numpy as np
 
 from ...io.exr_io import write_band_rows, writer_bytes
-from ..estimators.guided import guide_bytes
+from ..estimators.guided import guide_build_bytes, guide_bytes
 
 MiB = 1 << 20
 
@@ -198,9 +198,11 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     from the start: they are compiled on a helper thread while the first set is).
     extra: bytes the process holds beyond BASE's assumption (:func:`process_extra`).
     half: the textures are written as half floats (the write's band bytes).
-    guiding: rays are guided toward openings (estimators/guided.py: its
-    tables and per-point arrays are held through the trace; its chunks hold
-    no more than the transfer's).
+    guiding: rays are guided toward openings (estimators/guided.py: building
+    the guide holds ~64 B a traced point before the rows exist, its tables and
+    cells are held through the trace; its chunks hold ~45 B a ray at 5 bands,
+    within the transfer's RAY_BYTES, and project their coefficients a few MB
+    at a time).
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -231,8 +233,10 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         # the projection's holdings are not both whole.
         projection = base + held + int(planes) + LAYOUT * n + surface
         guide = guide_bytes(n) if guiding else 0
+        # The guide is built before the rows exist (its cells' search), then held through the trace.
+        build = base + held + SURFACE * n + guide_build_bytes(n) if guiding else 0
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
-                           projection)
+                           projection, build)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);
         # beside them the band in the file's type and OpenEXR's copy of it.
         out["write transfer"] = max(out["write transfer"], projection + band_bytes(K, w, h, half)

@@ -101,9 +101,13 @@ def bake_points_input(sc: Scene, set_index: int, gb: GBuffer, fn: np.ndarray, cl
     analytic = clear[gb.tri] & (cos >= FLAT_COS) & ~gb.normal_mapped & same_side
     flat = (cos >= 1.0 - SAME_NORMAL) & ~gb.normal_mapped & same_side
     group = np.where(flat, normal_group[gb.tri], -1)
-    # The set's own surface: a set of one small object in a large scene sizes its guide's cells by it.
-    tri = sc.positions[np.unique(gb.tri)]
-    area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+    # The set's own surface: a set of one small object in a large scene sizes its guide's
+    # cells by it (summed 2^18 triangles at a time: no copy of every triangle it covers).
+    tris = np.unique(gb.tri)
+    area = 0.0
+    for a in range(0, tris.size, 1 << 18):
+        tri = sc.positions[tris[a:a + (1 << 18)]].astype(np.float64)
+        area += 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
     return Points(gb.position, gb.normal, gb.geo_normal,
                   gb.texel + (np.int64(set_index) << 40), analytic, group, area)
 
