@@ -53,8 +53,8 @@ import numpy as np
 from ...base.errors import Cancelled
 from ...base.threads import run_chunks
 from ...sh.basis import basis_unchecked
-from .raytrace import RAY_EPSILON, RayScene
-from .sampling import hash_u32, hash_unit, sobol2
+from .raytrace import SAME_NORMAL, RayScene
+from .sampling import hash_u32, hash_unit, sobol2, tangent_frames, to_hemisphere
 
 #: Pilot rays a point (cosine-distributed).
 PILOT_RAYS = 16
@@ -151,34 +151,16 @@ def direction_bins(d: np.ndarray) -> np.ndarray:
     return iz * BINS_PHI + ip
 
 
-def frames(n: np.ndarray):
-    """Tangent and bitangent (n, 3) completing unit normals n (Duff et al. 2017, branch-free)."""
-    s = np.where(n[:, 2] >= 0.0, 1.0, -1.0)
-    a = -1.0 / (s + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1.0 + s * n[:, 0] ** 2 * a, s * b, -s * n[:, 0]], axis=-1)
-    bt = np.stack([b, s + n[:, 1] ** 2 * a, -n[:, 1]], axis=-1)
-    return t, bt
-
-
-def local_cosine(rays: int, seed: int, salt: int) -> np.ndarray:
-    """(rays, 3) float32 cosine-distributed directions about +Z: one Owen-scrambled Sobol' pattern."""
-    u = sobol2(rays, int(hash_u32(seed, salt)))
-    r = np.sqrt(u[:, 0])
-    phi = 2.0 * math.pi * u[:, 1]
-    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1.0 - u[:, 0]))],
-                    axis=-1).astype(np.float32)
-
-
 def cosine_directions(normal: np.ndarray, ids: np.ndarray, rays: int, seed: int, salt: int) -> np.ndarray:
     """(m, rays, 3) float32 cosine-distributed directions about each unit
-    normal: one pattern (:func:`local_cosine`) turned about each normal by an
+    normal: one Owen-scrambled Sobol' pattern turned about each normal by an
     angle hashed from the point's id, so neighbours' noise is independent."""
-    t, bt = frames(normal)
+    t, bt = tangent_frames(normal)
     gam = 2.0 * math.pi * hash_unit(seed, ids, salt)
     c, s = np.cos(gam)[:, None], np.sin(gam)[:, None]
     basis = np.stack([c * t + s * bt, c * bt - s * t, normal], axis=1).astype(np.float32)   # (m, 3, 3) rows
-    return np.matmul(local_cosine(rays, seed, salt)[None], basis)
+    local = to_hemisphere(sobol2(rays, int(hash_u32(seed, salt))), "cosine")[0].astype(np.float32)
+    return np.matmul(local[None], basis)
 
 
 def cell_ids(position: np.ndarray, normal: np.ndarray, rows: np.ndarray, area: float) -> tuple:
@@ -234,10 +216,6 @@ def neighbour_sums(keys: np.ndarray, values: np.ndarray, radius: int) -> np.ndar
     return out
 
 
-def _origins(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray) -> np.ndarray:
-    return rs.to_local(position) + (RAY_EPSILON * geo_normal).astype(np.float32)
-
-
 def _escaped(rs: RayScene, org: np.ndarray, d: np.ndarray, trace: np.ndarray) -> np.ndarray:
     """(m, r) bool: which rays (origins (m, 3) float32, directions (m, r, 3)
     float32) escape; rays not ``trace``d count as blocked and go to Embree
@@ -277,7 +255,7 @@ def build_guide(rs: RayScene, position, normal, geo_normal, ids, traced: np.ndar
         n, g = normal[idx], geo_normal[idx]
         d = cosine_directions(n, ids[idx], PILOT_RAYS, seed, _SALT_PILOT)
         above = np.einsum("mrc,mc->mr", d, g) > 0.0
-        esc = _escaped(rs, _origins(rs, position[idx], g), d, above)
+        esc = _escaped(rs, rs.origins(position[idx], g), d, above)
         i, j = np.nonzero(esc)
         return cell[idx][i].astype(np.int64) * BINS + direction_bins(d[i, j]), np.bincount(cell[idx], minlength=C)
 
@@ -403,11 +381,11 @@ def guided_transfer(rs: RayScene, position, normal, geo_normal, ids, idx: np.nda
     n32, g32 = n.astype(np.float32), g.astype(np.float32)
     cos_n = np.matmul(d, n32[:, :, None])[..., 0]
     trace = cos_n > 0.0
-    horizon = np.einsum("mc,mc->m", n, g) < 1.0 - 1e-6
+    horizon = np.einsum("mc,mc->m", n, g) < 1.0 - SAME_NORMAL
     if horizon.any():
         trace &= (np.matmul(d, g32[:, :, None])[..., 0] > 0.0) | ~horizon[:, None]
     traced = int(np.count_nonzero(trace))
-    vis = _escaped(rs, _origins(rs, position[idx], g), d, trace)
+    vis = _escaped(rs, rs.origins(position[idx], g), d, trace)
     del trace
     i, j = np.nonzero(vis)
     del vis

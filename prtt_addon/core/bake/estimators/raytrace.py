@@ -24,15 +24,31 @@ holds the GIL for long and a signal's watchdog (worker.py) can always run.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ...base.errors import Cancelled
 
 #: Ray origin offset along the geometric normal, in normalised scene units.
 RAY_EPSILON = 2e-6
+#: Shading and geometric normals closer than this (1 - cos) need no horizon test.
+SAME_NORMAL = 1e-6
 #: Triangles per Embree geometry: ~0.2 s of embreex's GIL-holding copy loop.
 #: Embree builds one BVH over all of a scene's geometries, so this costs no speed.
 BUILD_CHUNK = 1 << 18
+
+
+def surface_area(positions: np.ndarray, rows: np.ndarray | None = None) -> float:
+    """One-sided area (world units²) of triangles (T, 3, 3), or of those
+    ``rows``, summed BUILD_CHUNK triangles at a time (no float64 copy of them all)."""
+    n = positions.shape[0] if rows is None else rows.size
+    area = 0.0
+    for a in range(0, n, BUILD_CHUNK):
+        t = np.asarray(positions[a:a + BUILD_CHUNK] if rows is None else positions[rows[a:a + BUILD_CHUNK]],
+                       np.float64)
+        area += 0.5 * float(np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
+    return area
 
 
 class RayScene:
@@ -55,8 +71,7 @@ class RayScene:
         # A scene of one point (all triangles collapsed) still gets a scale.
         self.scale = 1.0 / half if half > 0 else 1.0
         self.n_triangles = int(P.shape[0])
-        #: Surface area (world units², one side): where guided rays size their cells (guided.py).
-        self.area = 0.0
+        self._positions = positions             # for :attr:`area`, only if asked (no copy kept)
         self.robust = robust
         self._scene = rtcore_scene.EmbreeScene(robust=robust)
         # Geometry g holds triangles g*BUILD_CHUNK ... (geomIDs count up from 0).
@@ -64,15 +79,24 @@ class RayScene:
         for a in range(0, self.n_triangles, BUILD_CHUNK):
             if cancel is not None and cancel.is_set():
                 raise Cancelled()
-            block = P[a:a + BUILD_CHUNK]
-            self.area += 0.5 * float(np.linalg.norm(np.cross(block[:, 1] - block[:, 0], block[:, 2] - block[:, 0]),
-                                                    axis=1).sum())
-            tri = np.ascontiguousarray(self.to_local(block.reshape(-1, 3)).reshape(-1, 3, 3))
+            tri = np.ascontiguousarray(self.to_local(P[a:a + BUILD_CHUNK].reshape(-1, 3)).reshape(-1, 3, 3))
             self._meshes.append(TriangleMesh(self._scene, tri))
         # Commit now, in one thread: embreex commits lazily on the first query,
         # which would race if two threads made the first query together.
         self._scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32),
                         query="OCCLUDED")
+
+    @functools.cached_property
+    def area(self) -> float:
+        """Surface area (world units², one side): what guided rays size their
+        cells by when the points do not say theirs (guided.py). Computed on
+        first use, not with the BVH: a bake's sets give their own."""
+        return surface_area(self._positions)
+
+    def origins(self, points: np.ndarray, geo_normal: np.ndarray) -> np.ndarray:
+        """Ray origins (N, 3) float32: world points (N, 3) normalised and moved
+        RAY_EPSILON along their unit geometric normals ((N, 3), or one (3,))."""
+        return self.to_local(points) + (RAY_EPSILON * np.asarray(geo_normal)).astype(np.float32)
 
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """World (N, 3) float64 -> normalised (N, 3) float32."""

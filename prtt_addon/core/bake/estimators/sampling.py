@@ -158,6 +158,18 @@ def to_hemisphere(u: np.ndarray, distribution: str) -> tuple[np.ndarray, np.ndar
     return d, pdf
 
 
+def tangent_frames(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tangent and bitangent (N, 3) completing unit normals n (N, 3) to
+    right-handed orthonormal frames (Frisvad 2012 in Duff et al.'s 2017
+    branch-free form)."""
+    s = np.where(n[:, 2] >= 0.0, 1.0, -1.0)
+    a = -1.0 / (s + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.stack([1.0 + s * n[:, 0] ** 2 * a, s * b, -s * n[:, 0]], axis=-1)
+    bt = np.stack([b, s + n[:, 1] ** 2 * a, -n[:, 1]], axis=-1)
+    return t, bt
+
+
 def unoccluded_local(bands: int) -> np.ndarray:
     """(K,) exact projection of max(0, cos theta) about +Z (zonal)."""
     l = np.arange(bands)

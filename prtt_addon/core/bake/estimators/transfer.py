@@ -64,11 +64,8 @@ from ...base.threads import run_chunks
 from ...sh.rotation import rotate_zyz, rotation_zyz
 from ...sh.zonal import clamped_cosine_factors, zonal_to_sh
 from . import guided
-from .raytrace import RAY_EPSILON, RayScene
+from .raytrace import SAME_NORMAL, RayScene
 from .sampling import exact_tables, hash_u32, hash_unit, pattern_bank, unoccluded_local
-
-#: Shading and geometric normals closer than this (1 - cos) need no horizon test.
-SAME_NORMAL = 1e-6
 
 #: Integer settings: (lowest, highest, why the bound), derived from the one
 #: declaration of every setting (settings_schema.SETTINGS); validate() checks
@@ -173,7 +170,7 @@ def chunk_frames(rs: RayScene, pts: Points, idx: np.ndarray, seed: int,
         # The points share their geometric normal too (one flat face group).
         first, low = (int(idx[0]), int(pts.ids[idx].min())) if anchor is None else anchor
         ng0 = pts.geo_normal[first]
-        org = rs.to_local(pts.position[idx]) + (RAY_EPSILON * ng0).astype(np.float32)
+        org = rs.origins(pts.position[idx], ng0)
         a, b, _ = _frame_angles(pts.normal[first:first + 1], pts.ids[first:first + 1], seed)
         gam = 2.0 * math.pi * hash_unit(seed, low, 0x5A4D)
         n = idx.size
@@ -182,7 +179,7 @@ def chunk_frames(rs: RayScene, pts: Points, idx: np.ndarray, seed: int,
         return ChunkFrames(alpha, beta, gamma, R, org, np.broadcast_to(ng0.astype(np.float32), (n, 3)),
                            np.zeros(n, bool), shared=True)
     ng = pts.geo_normal[idx]
-    org = rs.to_local(pts.position[idx]) + (RAY_EPSILON * ng).astype(np.float32)
+    org = rs.origins(pts.position[idx], ng)
     alpha, beta, gamma = _frame_angles(pts.normal[idx], pts.ids[idx], seed)
     R = rotation_zyz(alpha, beta, gamma).astype(np.float32)
     hz = np.einsum("nc,nc->n", pts.normal[idx], ng) < 1.0 - SAME_NORMAL

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .raytrace import RAY_EPSILON
+from .sampling import tangent_frames
 
 #: Rays per texel, and the share of them that must hit back faces. 16 rays
 #: mark the same texels as 32 on the contact scene (tests/test_contact_profile.py:
@@ -57,16 +57,11 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
         r, phi = np.sqrt(u1), 2.0 * np.pi * u2
         local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - u1)], axis=-1)
         nrm = geo_normal[a:b]
-        # An orthonormal frame about each normal (Frisvad's, branch-free form).
-        sign = np.where(nrm[:, 2] >= 0, 1.0, -1.0)
-        k = -1.0 / (sign + nrm[:, 2])
-        c = nrm[:, 0] * nrm[:, 1] * k
-        t1 = np.stack([1.0 + sign * nrm[:, 0] ** 2 * k, sign * c, -sign * nrm[:, 0]], axis=1)
-        t2 = np.stack([c, sign + nrm[:, 1] ** 2 * k, -nrm[:, 1]], axis=1)
+        t1, t2 = tangent_frames(nrm)
         d = (local[..., :1] * t1[:, None] + local[..., 1:2] * t2[:, None] + local[..., 2:] * nrm[:, None])
         d = d.reshape(-1, 3)
-        # Off the surface along its normal, as the transfer's rays start (raytrace.RAY_EPSILON).
-        o = np.repeat(rays.to_local(position[a:b]) + (nrm * RAY_EPSILON).astype(np.float32), RAYS, axis=0)
+        # Off the surface along its normal, as the transfer's rays start.
+        o = np.repeat(rays.origins(position[a:b], nrm), RAYS, axis=0)
         prim = rays.intersect(o.astype(np.float32), d.astype(np.float32))[0]
         hit = prim >= 0
         back = np.zeros(len(d), bool)

@@ -49,7 +49,7 @@ from ..estimators.bounce import (
     surface_texels,
 )
 from ..estimators.hemisphere_clear import FLAT_COS, clear_triangles
-from ..estimators.raytrace import RayScene
+from ..estimators.raytrace import RayScene, surface_area
 from ..estimators.transfer import SAME_NORMAL, Points, bake_points, warm_tables
 from .context import BakeContext
 from .plan import BakePlan
@@ -102,12 +102,10 @@ def bake_points_input(sc: Scene, set_index: int, gb: GBuffer, fn: np.ndarray, cl
     flat = (cos >= 1.0 - SAME_NORMAL) & ~gb.normal_mapped & same_side
     group = np.where(flat, normal_group[gb.tri], -1)
     # The set's own surface: a set of one small object in a large scene sizes its guide's
-    # cells by it (summed 2^18 triangles at a time: no copy of every triangle it covers).
-    tris = np.unique(gb.tri)
-    area = 0.0
-    for a in range(0, tris.size, 1 << 18):
-        tri = sc.positions[tris[a:a + (1 << 18)]].astype(np.float64)
-        area += 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+    # cells by it. Its triangles by a mask, not np.unique's sort of every texel (1.6 s at 4096²).
+    covered = np.zeros(sc.n_triangles, bool)
+    covered[gb.tri] = True
+    area = surface_area(sc.positions, np.flatnonzero(covered))
     return Points(gb.position, gb.normal, gb.geo_normal,
                   gb.texel + (np.int64(set_index) << 40), analytic, group, area)
 
