@@ -179,3 +179,20 @@ def test_texels_not_guided_keep_their_rows():
     assert 0 < info["guided_points"] == hit.sum() < pts.n // 4
     assert np.array_equal(on[~hit], off[~hit])
     assert not np.array_equal(on[hit], off[hit])
+
+
+def test_many_rays_at_many_bands_project_in_pieces(room, monkeypatch):
+    """A point whose visible rays outgrow a projection group is summed in
+    pieces (bounded memory at 16 bands and many rays): the same transfer as
+    in one piece, to float32 rounding."""
+    rs, pts = room
+    st = TransferSettings(rays=512, bands=6, guiding=True, analytic=False, threads=1)
+    whole, _ = bake_points(rs, pts, st)
+    monkeypatch.setattr(guided, "PROJECT_BYTES", 8 * 36 * 40)     # 40 rays a piece at 36 coefficients
+    sizes = []
+    basis = guided.basis_unchecked
+    monkeypatch.setattr(guided, "basis_unchecked", lambda d, *a, **k: sizes.append(len(d)) or basis(d, *a, **k))
+    pieces, _ = bake_points(rs, pts, st)
+    # Every projection held at most 40 rays, and points were split: more pieces than points.
+    assert max(sizes) <= 40 and len(sizes) > pts.n
+    np.testing.assert_allclose(pieces, whole, rtol=0, atol=2e-6 * float(np.abs(whole).max()))

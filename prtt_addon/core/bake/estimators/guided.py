@@ -86,7 +86,7 @@ _SALT_PILOT, _SALT_COS, _SALT_GUIDE = 0x9170, 0xC057, 0x6E1D
 
 
 #: Bytes of SH coefficients a guided chunk projects at a time (whole points; a
-#: point's rays may exceed it: at most rays x 8 K bytes).
+#: point with more visible rays than that is summed in pieces).
 PROJECT_BYTES = 4 << 20
 #: Bytes a traced point costs while the cells are found (its row, voxel key,
 #: np.unique's sort and inverse, the int32 cell ids), before the transfer's rows exist.
@@ -416,7 +416,18 @@ def guided_transfer(rs: RayScene, position, normal, geo_normal, ids, idx: np.nda
     a = 0
     while a < starts.size:
         lo = starts[a]
-        b = max(a + 1, int(np.searchsorted(ends, lo + step, side="right")))
+        b = int(np.searchsorted(ends, lo + step, side="right"))
+        if b <= a:
+            # One point with more visible rays than a group holds (many rays at many
+            # bands): its sum in pieces of ``step`` rays from its own first ray, in order.
+            row = i[lo]
+            for c in range(lo, ends[a], step):
+                e = min(c + step, ends[a])
+                contrib = basis_unchecked(dv[c:e], bands, np.float32)
+                contrib *= weight[c:e, None]
+                out[row] += contrib.sum(axis=0)
+            a += 1
+            continue
         hi = ends[b - 1]
         contrib = basis_unchecked(dv[lo:hi], bands, np.float32)       # (rays, K)
         contrib *= weight[lo:hi, None]
