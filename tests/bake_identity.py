@@ -21,10 +21,12 @@ if ROOT not in sys.path:
 
 RECORD = os.path.join(ROOT, "tests", "data", "bake_identity.json")
 
-#: guiding=False: the record predates guided rays (issue 53), which change the
-#: transfer of texels that see the sky through openings; without them every
-#: byte must stay as recorded (tests/test_guided.py checks what they change).
-_COMMON = dict(rays=32, bounce_rays=16, seed=3, threads=2, guiding=False)
+#: guiding=False, texel_validity=False: the record predates guided rays and
+#: texel validity (issue 53), which change the transfer of texels that see the
+#: sky through openings and of texels inside geometry; without them every byte
+#: must stay as recorded (tests/test_guided.py and tests/test_contact_profile.py
+#: check what they change).
+_COMMON = dict(rays=32, bounce_rays=16, seed=3, threads=2, guiding=False, texel_validity=False)
 
 #: name -> (scene resolution, one atlas or one set per object, settings); small
 #: enough for CI, large enough that every set is traced in several chunks.

@@ -120,6 +120,9 @@ class PRTT_PT_bake_quality(_PRTTPanel, bpy.types.Panel):
         sub.prop(st, "bounce_mode")
         col.prop(st, "tuning")
         col.prop(st, "guiding")
+        sub = col.column()
+        sub.active = st.guiding
+        sub.prop(st, "guided_filter")
         col.prop(st, "texel_validity")
 
 

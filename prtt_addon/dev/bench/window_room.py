@@ -106,7 +106,8 @@ def errors(E: np.ndarray, E_ref: np.ndarray) -> dict:
 
 
 def measure(resolution: int = 256, *, rays=(256,), ref_rays: int = 8192, ref_texels: int = 3000,
-            env: str = "forest", denoisers=("none",), seed: int = 3, guiding=(True,)) -> dict:
+            env: str = "forest", denoisers=("none",), seed: int = 3, guiding=(True,),
+            settings: dict | None = None) -> dict:
     """Bake the room at each of ``rays``, with and without ``guiding``
     (estimators/guided.py), and filter it with each of ``denoisers``
     (estimators.denoise: "none", "edge-aware", "oidn"); returns
@@ -141,7 +142,8 @@ def measure(resolution: int = 256, *, rays=(256,), ref_rays: int = 8192, ref_tex
     for r, guide in [(r, g) for r in rays for g in guiding]:
         with tempfile.TemporaryDirectory(prefix="prtt-window-room-") as d:
             t = time.perf_counter()
-            bake_scene(sc, os.path.join(d, "b"), BakeSettings(rays=r, bounces=0, vertex_mode=False, guiding=guide))
+            bake_scene(sc, os.path.join(d, "b"), BakeSettings(rays=r, bounces=0, vertex_mode=False, guiding=guide,
+                                                              **(settings or {})))
             bake_s = time.perf_counter() - t
             tex, _ = read_sh_exr(os.path.join(d, "b", "atlas.transfer.exr"))      # (H, W, K), row 0 at the bottom
         planes = np.ascontiguousarray(tex.transpose(2, 0, 1), np.float32)

@@ -607,6 +607,8 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
         "rays_naive": N * st.rays,
         "adaptive_early_stops": stats.early_stopped,
         "guided_points": n_guided,
+        # (G,) int64: which points were guided (ascending; empty without guiding), for guided_filter.
+        "guided_index": np.flatnonzero(guided_pts) if guided_pts is not None else np.zeros(0, np.int64),
         "pilot_rays": 0 if guide is None else guide.pilot_rays,
         # Threads at work at once: the guided points run on a pool of their own.
         "threads": max(len(stats.threads_used - {-1}), len(guided_threads)),

@@ -76,6 +76,7 @@ class BakeSettings(TransferSettings):
     half: bool = _d("half")                 # float16 EXR (auto float32 on overflow)
     mips: bool = _d("mips")                 # write coverage-weighted mip levels
     texel_validity: bool = _d("texel_validity")   # fill texels inside geometry from their neighbours
+    guided_filter: bool = _d("guided_filter")     # smooth the guided texels' transfer (estimators/guided_filter.py)
     normal_maps: bool = _d("normal_maps")
     vertex_mode: bool = _d("vertex_mode")   # also bake per-vertex transfer
     textures: bool = _d("textures")         # bake texture sets (False: vertex mode only)
@@ -125,6 +126,8 @@ class BakeSettings(TransferSettings):
             d["storage_bits"] = self.storage_bits()     # absent under fixed: its keys are as before
         if not self.texel_validity:
             d.pop("texel_validity")                     # off: the keys of the bakes before it
+        if not (self.guided_filter and self.guiding):
+            d.pop("guided_filter")                      # no texel filtered: the keys of the bakes before it
         return d
 
 

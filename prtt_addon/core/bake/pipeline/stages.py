@@ -39,7 +39,7 @@ from ...model.scene import Scene
 from ...texels.dilate import dilate, mip_chain
 from ...texels.gbuffer import GBuffer, build_gbuffer, face_normals
 from ...texels.texsample import planes_from_rows
-from ..estimators import validity
+from ..estimators import guided_filter, validity
 from ..estimators.bounce import (
     HALF_OPEN_TOLERANCE,
     OPEN_TOLERANCE,
@@ -419,9 +419,18 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
             ctx.validity_scene = (geo.rays if geo.rays is not None else RayScene(ctx.scene.positions),
                                   validity.winding_normals(ctx.scene.positions))
         inside = validity.inside_texels(*ctx.validity_scene, gb.position, gb.geo_normal,
+                                        contact=validity.contact_distance(gb.texel, gb.position, gb.width),
                                         seed=ctx.settings.seed, executor=ctx.helpers)
         rep["inside_texels"] = int(inside.sum())
     traced = trace_set(ctx, geo, gb, position=position)
+    guided_index = traced.info.pop("guided_index", None)
+    if ctx.settings.guided_filter and guided_index is not None and guided_index.size:
+        t = time.perf_counter()
+        valid = np.ones(gb.n, bool) if inside is None else ~inside
+        rep["filtered_texels"] = guided_filter.smooth_guided(
+            traced.rows, gb.texel, gb.width, gb.height, gb.position, gb.normal,
+            guided_index[valid[guided_index]], valid, validity.texel_step(gb.texel, gb.position, gb.width))
+        ctx.seconds["trace"] += time.perf_counter() - t
     grid = ctx.bounce_grids.get(gb.set_index) if keep_for_bounce else None
     fine = analytic = None
     if grid is not None and grid.downscale > 1:
