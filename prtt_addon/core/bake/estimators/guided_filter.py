@@ -40,8 +40,8 @@ RADIUS = 2
 SIGMA_TEXELS = 1.0
 SIGMA_STEPS = 2.0
 NORMAL_POWER = 16
-#: Texture rows a band of targets spans (at least RADIUS).
-BAND_ROWS = 64
+#: Texture rows a band of targets spans (at least RADIUS; ~50 MB of temporaries at 4096 texels wide).
+BAND_ROWS = 16
 #: Targets whose neighbours' rows are gathered at a time.
 SUB = 4096
 

@@ -60,6 +60,7 @@ import numpy as np
 
 from ...io.exr_io import write_band_rows, writer_bytes
 from ..estimators.guided import guide_build_bytes, guide_bytes
+from ..estimators.guided_filter import filter_bytes
 
 MiB = 1 << 20
 
@@ -202,7 +203,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     the guide holds ~64 B a traced point before the rows exist, its tables and
     cells are held through the trace; its chunks hold ~45 B a ray at 5 bands,
     within the transfer's RAY_BYTES, and project their coefficients a few MB
-    at a time).
+    at a time; the guided texels' filter then holds two bands of rows, guided_filter.filter_bytes).
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -235,8 +236,10 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         guide = guide_bytes(n) if guiding else 0
         # The guide is built before the rows exist (its cells' search), then held through the trace.
         build = base + held + SURFACE * n + guide_build_bytes(n) if guiding else 0
+        # The guided texels' filter runs on the rows once they are traced (estimators/guided_filter.py).
+        smooth = base + held + SURFACE * n + 4 * K * n + guide + filter_bytes(w, K) if guiding else 0
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
-                           projection, build)
+                           projection, build, smooth)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);
         # beside them the band in the file's type and OpenEXR's copy of it.
         out["write transfer"] = max(out["write transfer"], projection + band_bytes(K, w, h, half)
