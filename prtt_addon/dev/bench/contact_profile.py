@@ -91,10 +91,14 @@ def main(argv=None) -> int:
     p.add_argument("--resolution", type=int, default=112, help="the floor's texels a side (112: 1.8 cm texels)")
     p.add_argument("--rays", type=int, default=256)
     p.add_argument("--ref-rays", type=int, default=4096)
+    p.add_argument("--texel-validity", action=argparse.BooleanOptionalAction, default=True,
+                   help="bake with texel validity (the default) or without (the crease it removes)")
     args = p.parse_args(argv)
-    r = profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays)
-    print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m); baked / traced irradiance "
-          f"by distance from the box, in texels:")
+    from ...core.bake.pipeline.context import BakeSettings
+    r = profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays,
+                settings=BakeSettings(rays=args.rays, bounces=0, texel_validity=args.texel_validity))
+    print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m), texel validity "
+          f"{'on' if args.texel_validity else 'off'}; baked / traced irradiance by distance from the box, in texels:")
     for c, v in zip(r["bins"], r["ratio"]):
         print(f"  {c:5.3f}  {v:.3f}")
     return 0
