@@ -8,7 +8,8 @@ quarter-texel bins at 1.8 cm texels). Such a texel is found by what its rays
 hit: ``RAYS`` cosine-distributed rays about its geometric normal, and the
 texel is inside when at least ``INSIDE_FRACTION`` of them are *blocked at
 once*: they hit the back of a triangle (its winding normal facing along the
-ray), or any triangle closer than ``contact`` (half a texel: :func:`contact_distance`).
+ray), or any triangle closer than ``contact`` (the bake passes CONTACT_TEXELS of
+the set's :func:`texel_step`: half a texel).
 The bake then drops it and the dilation fills it from its valid neighbours
 (stages.mip_and_dilate).
 
@@ -74,11 +75,6 @@ def texel_step(texel: np.ndarray, position: np.ndarray, width: int) -> float:
     return float(np.median(np.linalg.norm(position[adj + 1] - position[adj], axis=1)))
 
 
-def contact_distance(texel: np.ndarray, position: np.ndarray, width: int) -> float:
-    """The ``contact`` distance of :func:`inside_texels` for a set: CONTACT_TEXELS of its texel step."""
-    return CONTACT_TEXELS * texel_step(texel, position, width)
-
-
 def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np.ndarray, *,
                   contact: float = 0.0, seed: int = 0, executor=None) -> np.ndarray:
     """(N,) bool: sample points (N, 3) world, with geometric normals (N, 3)
@@ -95,8 +91,9 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
     near = np.float32(contact * rays.scale)            # intersect's t is in the normalised frame
 
     def blocked(o, d, nr):
-        """(M, nr) bool: rays o, d (M * nr, 3) float64 hit a back face or anything nearer than contact."""
-        prim, _, _, t = rays.intersect(o.astype(np.float32), d.astype(np.float32))
+        """(M, nr) bool: rays from o (M * nr, 3) float32, normalised, along d (M * nr, 3) float64
+        hit a back face or anything nearer than contact."""
+        prim, _, _, t = rays.intersect(o, d.astype(np.float32))
         hit = prim >= 0
         bad = np.zeros(len(d), bool)
         bad[hit] = np.einsum("ij,ij->i", d[hit], winding[prim[hit]]) > 0
@@ -114,7 +111,7 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
         t1, t2 = tangent_frames(nrm)
         d = (local[..., :1] * t1[:, None] + local[..., 1:2] * t2[:, None] + local[..., 2:] * nrm[:, None])
         # Off the surface along its normal, as the transfer's rays start.
-        o = rays.origins(position[a:b], nrm).astype(np.float64)
+        o = rays.origins(position[a:b], nrm)
         f = FIRST_RAYS
         head = blocked(np.repeat(o, f, axis=0), d[:, :f].reshape(-1, 3), f).sum(axis=1)
         rest = np.flatnonzero(head >= first_needed)

@@ -412,6 +412,9 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     if rep.get("skipped"):
         return SetResult(gb.set_index, name, rep, [])
     inside = None
+    # The set's texel footprint: validity's contact distance and the guided texels' filter read it.
+    step = validity.texel_step(gb.texel, gb.position, gb.width) if (
+        ctx.settings.texel_validity or ctx.settings.guided_filter) else 0.0
     if ctx.settings.texel_validity:
         if ctx.validity_scene is None:
             # Once per bake, not per set: the winding normals, and under Dask (no
@@ -419,7 +422,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
             ctx.validity_scene = (geo.rays if geo.rays is not None else RayScene(ctx.scene.positions),
                                   validity.winding_normals(ctx.scene.positions))
         inside = validity.inside_texels(*ctx.validity_scene, gb.position, gb.geo_normal,
-                                        contact=validity.contact_distance(gb.texel, gb.position, gb.width),
+                                        contact=validity.CONTACT_TEXELS * step,
                                         seed=ctx.settings.seed, executor=ctx.helpers)
         rep["inside_texels"] = int(inside.sum())
     traced = trace_set(ctx, geo, gb, position=position)
@@ -429,7 +432,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
         valid = np.ones(gb.n, bool) if inside is None else ~inside
         rep["filtered_texels"] = guided_filter.smooth_guided(
             traced.rows, gb.texel, gb.width, gb.height, gb.position, gb.normal,
-            guided_index[valid[guided_index]], valid, validity.texel_step(gb.texel, gb.position, gb.width))
+            guided_index[valid[guided_index]], valid, step)
         ctx.seconds["trace"] += time.perf_counter() - t
     grid = ctx.bounce_grids.get(gb.set_index) if keep_for_bounce else None
     fine = analytic = None
