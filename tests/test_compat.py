@@ -97,7 +97,15 @@ def test_textures_are_the_same_numbers_in_every_version(compat):
     within a numpy line (4.2-5.0: numpy 1.26, numba 0.61; 5.1+: numpy 2.5,
     numba 0.68). Across the lines the transfer's values are equal as numbers
     (some zeros differ in sign); the bounce's, shaded by two numba versions
-    that order the 25-term sums differently, within float32 rounding."""
+    that order the 25-term sums differently, within float32 rounding: stored
+    in half at the 6 mantissa bits tuning auto keeps, that rounding moves a
+    few values one step (1 in 1,000 at most), never more.
+
+    Before the balanced weights' Newton iteration ran to convergence
+    (sampling.balance_weights), a pattern whose iteration stalled near
+    BALANCE_TOLERANCE could be balanced under one numpy and uniform under the
+    other: on an AMD EPYC, Plane.relight.exr differed in 17,241 values, by up
+    to 0.0083 of 0.049."""
     _, rec = compat
     res = rec["results"]
     assert len({r["uv"] for r in res.values()}) == 1
@@ -107,6 +115,7 @@ def test_textures_are_the_same_numbers_in_every_version(compat):
         for v, d in per.items():
             assert isinstance(d, dict), (name, v, d)
             if ".relight." in name:
-                assert d["max_abs_difference"] <= 1e-5 * d["largest_value"], (name, v, d)
+                assert d["max_steps"] <= 1, (name, v, d)
+                assert d["values_differing_in_bits"] <= 1e-3 * d["values"], (name, v, d)
             else:
                 assert d["max_abs_difference"] == 0.0, (name, v, d)

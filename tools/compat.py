@@ -186,12 +186,34 @@ def _decoded(path: str) -> dict:
         return {k: c.pixels.copy() for k, c in f.channels().items()}
 
 
+def _step_ulps(path: str) -> int:
+    """Ulps of the file's storage in one step of its precision: 2^(10 - m)
+    half ulps where the bake kept m of half's 10 mantissa bits (tuning auto,
+    the header's prtt_mantissa_bits), else 1."""
+    import OpenEXR
+    with OpenEXR.File(path) as f:
+        bits = f.header().get("prtt_mantissa_bits")
+    return 1 << (10 - int(bits)) if bits is not None else 1
+
+
+def _ordered(a: np.ndarray) -> np.ndarray:
+    """A float array's bit patterns as int64 in the order of their values, so
+    that the difference of two is their distance in steps of the stored
+    precision (ulps; +0 and -0 the same)."""
+    bits = a.view(f"i{a.itemsize}").astype(np.int64)
+    magnitude = bits & ((1 << (8 * a.itemsize - 1)) - 1)
+    return np.where(bits < 0, -magnitude, magnitude)
+
+
 def compare_textures(results: dict, work: str) -> dict | None:
     """The second bake's textures (xatlas UVs: the same in every Blender)
     compared across the versions that made them: by their bytes, and where
     those differ, by their decoded values (``max_abs_difference`` 0 when
     every value is the same number: the only difference is the sign of some
-    zeros; ``largest_value``: the file's largest magnitude, to judge the rest)."""
+    zeros; ``largest_value``: the file's largest magnitude, to judge the rest;
+    ``max_steps``: the largest difference in steps of the precision the file
+    keeps (half or float ulps, or the mantissa bits tuning auto keeps), and
+    ``values``: how many values the file holds)."""
     hashed = {v: {k: h for k, h in r.get("files", {}).items() if h} for v, r in results.items() if r.get("files")}
     if len(hashed) < 2:
         return None
@@ -211,8 +233,11 @@ def compare_textures(results: dict, work: str) -> dict | None:
             worst = max(float(np.nanmax(np.abs(a[k].astype(np.float64) - b[k].astype(np.float64)), initial=0.0))
                         for k in a)
             largest = max(float(np.nanmax(np.abs(a[k].astype(np.float64)), initial=0.0)) for k in a)
+            ulps = max(int(np.abs(_ordered(a[k]) - _ordered(b[k])).max(initial=0)) for k in a)
+            steps = ulps / _step_ulps(os.path.join(work, first, "textures", name))
             out["files"].setdefault(name, {})[v] = {"values_differing_in_bits": bits, "max_abs_difference": worst,
-                                                    "largest_value": largest}
+                                                    "largest_value": largest, "max_steps": steps,
+                                                    "values": sum(int(a[k].size) for k in a)}
     if not out["files"]:
         out["summary"] = f"{len(names)} files, byte-identical across {', '.join(hashed)}"
     else:
@@ -222,7 +247,8 @@ def compare_textures(results: dict, work: str) -> dict | None:
                 parts.append(f"{name} {first} vs {v}: " + (d if isinstance(d, str) else
                              (f"{d['values_differing_in_bits']} values differ only in the sign of zero"
                               if d["max_abs_difference"] == 0 else
-                              f"{d['values_differing_in_bits']} values differ, at most {d['max_abs_difference']:.3g}")))
+                              f"{d['values_differing_in_bits']} values differ, at most {d['max_abs_difference']:.3g} "
+                              f"({d['max_steps']:g} steps of its precision)")))
         same = [n for n in names if n not in out["files"]]
         out["summary"] = (f"{len(names)} files; byte-identical: {', '.join(same) or 'none'}; " + "; ".join(parts))
     return out
