@@ -232,14 +232,14 @@ SETTINGS: tuple[Setting, ...] = (
             "exceed 65504)", flags=("--half", "--float"), off_help="float32 EXR textures"),
     Setting("mips", "bake", "bool", False, "also write coverage-weighted mip levels", flags=("--mips", "--no-mips"),
             off_help="no mip levels"),
-    Setting("texel_validity", "bake", "bool", False, "drop the texels whose sample point lies inside "
+    Setting("texel_validity", "bake", "bool", True, "drop the texels whose sample point lies inside "
             "geometry or on another surface (nine in ten of 16 rays hit back faces or anything within half a "
             "texel: a floor under a box resting on it, a wall's foot on the floor's plane) and fill them from "
             "their valid neighbours by the dilation, so no dark crease shows where objects touch (the bounce "
             "textures keep them as traced)", flags=("--texel-validity", "--no-texel-validity"),
             off_help="keep every texel as traced (the bakes before it, byte for byte, with --no-guided-filter)",
             ui=Ui("texel_validity", "Fill Texels Inside Geometry")),
-    Setting("guided_filter", "bake", "bool", False, "smooth the transfer of the texels that guided rays "
+    Setting("guided_filter", "bake", "bool", True, "smooth the transfer of the texels that guided rays "
             "baked (a room lit through a window) with a 5 x 5 joint bilateral filter on the same surface, "
             "guided by world position and normal; other texels keep their rows",
             flags=("--guided-filter", "--no-guided-filter"),
