@@ -85,6 +85,80 @@ def profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, sam
             "resolution": resolution}
 
 
+#: The shed of zero-thickness walls (leak_profile): a 1 m cube of single
+#: planes (four walls and a roof) standing on the floor, which runs on under
+#: its walls; light gets in only through a door, a slot SHED_DOOR wide and as
+#: tall as the front (+x) wall. Turned and placed as the box.
+SHED_SIZE = 1.0
+SHED_DOOR = 0.2
+
+
+def build_shed(resolution: int):
+    """The core scene: floor (own UVs over [0, 1]) and the shed (xatlas, 128²)."""
+    from ...core.model.scene import validate
+    from .scene_library import _wall
+    h = SHED_SIZE / 2
+    parts = [_wall((-h, 0.0, h), (SHED_SIZE, SHED_SIZE), facing=(1, 0, 0)),
+             _wall((0.0, -h, h), (SHED_SIZE, SHED_SIZE), facing=(0, 1, 0)),
+             _wall((0.0, h, h), (SHED_SIZE, SHED_SIZE), facing=(0, -1, 0)),
+             mg.plane(SHED_SIZE).transformed(translate=(0.0, 0.0, SHED_SIZE))]
+    side = (SHED_SIZE - SHED_DOOR) / 2
+    for sy in (-1.0, 1.0):
+        parts.append(_wall((h, sy * (SHED_DOOR / 2 + side / 2), h), (side, SHED_SIZE), facing=(-1, 0, 0)))
+    shed = mg.merge(parts).transformed(rotate_z=BOX_TURN, translate=(*BOX_CENTRE, 0.0))
+    floor = mg.plane(2.0, 2.0, subdiv=1)
+    floor.uvs = ((floor.vertices[:, :2] + 1.0) / 2.0)[floor.faces]
+    sc = mg.assemble([("floor", floor), ("shed", shed)], resolution=resolution, keep_uvs=True,
+                     resolutions={"shed": 128})
+    sc.materials = [dict(name="grey", base_color=[0.7, 0.7, 0.7], roughness=0.6)]
+    sc.material_id = np.zeros_like(sc.object_id)
+    validate(sc)
+    return sc
+
+
+def leak_profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, samples: int = 300,
+                 env: str = "forest", bins: int = 8, settings=None) -> dict:
+    """Light leaking under a zero-thickness wall (issue 53, item 2): the
+    floor's baked / traced irradiance in quarter-texel bins from the shed's
+    back wall, inside (dark: lit only through the door) and outside
+    (in the open), along its middle 60 %. {"bins", "inside", "outside" (the
+    ratios per bin), "texel_m", "resolution"}."""
+    from ...core.bake.estimators.raytrace import RayScene
+    from ...core.bake.estimators.transfer import Points, TransferSettings, bake_points
+    from ...core.bake.pipeline.context import BakeSettings
+    from ...core.bake.pipeline.runner import bake_scene
+    from ...core.io.exr_io import read_sh_exr
+    from ...core.light.envmap import environment_light
+    from ...core.texels.texsample import bilinear
+
+    sc = build_shed(resolution)
+    light = environment_light(env, 5)
+    texel = 2.0 / resolution
+    centres = (np.arange(bins) + 0.5) / 4.0
+    along = np.linspace(-0.3, 0.3, samples) * SHED_SIZE
+    c, s_ = np.cos(BOX_TURN), np.sin(BOX_TURN)
+    with tempfile.TemporaryDirectory(prefix="prtt-leak-profile-") as d:
+        bake_scene(sc, os.path.join(d, "b"), settings or BakeSettings(rays=rays, bounces=0))
+        tex, _ = read_sh_exr(os.path.join(d, "b", "floor.transfer.exr"))
+    H, W, K = tex.shape
+    rs = RayScene(np.asarray(sc.positions, np.float64))
+    out = {"bins": centres, "texel_m": texel, "resolution": resolution}
+    for side, sign in (("inside", 1.0), ("outside", -1.0)):
+        x = -SHED_SIZE / 2 + sign * centres[:, None] * texel * np.ones_like(along)[None, :]
+        local = np.stack([x.ravel(), np.repeat(along[None, :], bins, 0).ravel()], axis=1)
+        xy = local @ np.array([[c, s_], [-s_, c]]) + np.asarray(BOX_CENTRE)
+        P = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+        up = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+        baked = bilinear(np.ascontiguousarray(tex.reshape(H * W, K), np.float32), W, H,
+                         (P[:, :2] + 1.0) / 2.0).astype(np.float64)
+        pts = Points(P, up, up, np.arange(len(P), dtype=np.int64), np.zeros(len(P), bool))
+        traced, _ = bake_points(rs, pts, TransferSettings(bands=5, rays=ref_rays, seed=11))
+        e_baked = (baked @ light).mean(axis=1).reshape(bins, samples)
+        e_traced = (traced.astype(np.float64) @ light).mean(axis=1).reshape(bins, samples)
+        out[side] = e_baked.mean(axis=1) / e_traced.mean(axis=1)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m prtt_addon.dev.bench contact-profile", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)

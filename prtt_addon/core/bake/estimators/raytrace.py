@@ -117,9 +117,10 @@ class RayScene:
         embreex allocates and fills no interval array per call)."""
         return self._scene.run(origins, dirs, dists=tfar, query="OCCLUDED")
 
-    def intersect(self, origins: np.ndarray, dirs: np.ndarray):
-        """Closest hits: (prim (N,) int32, -1 = miss; u, v barycentrics; t distance)."""
-        r = self._scene.run(origins, dirs, output=1)
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray, tfar: np.ndarray | None = None):
+        """Closest hits: (prim (N,) int32, -1 = miss; u, v barycentrics; t distance);
+        ``tfar`` (N,) float32 limits the rays (normalised units)."""
+        r = self._scene.run(origins, dirs, dists=tfar, output=1)
         prim, geom = r["primID"], r["geomID"]
         if len(self._meshes) > 1:
             prim = np.where(geom >= 0, geom * BUILD_CHUNK + prim, -1).astype(np.int32)

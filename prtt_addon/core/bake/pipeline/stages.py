@@ -421,10 +421,20 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
             # local BVH in geo) the BVH the pass traces.
             ctx.validity_scene = (geo.rays if geo.rays is not None else RayScene(ctx.scene.positions),
                                   validity.winding_normals(ctx.scene.positions))
+        t = time.perf_counter()
         inside = validity.inside_texels(*ctx.validity_scene, gb.position, gb.geo_normal,
                                         contact=validity.CONTACT_TEXELS * step,
                                         seed=ctx.settings.seed, executor=ctx.helpers)
         rep["inside_texels"] = int(inside.sum())
+        # Texels beside a wall standing on their surface take its darker side's
+        # light (no bright leak into a room under a single-plane wall).
+        moved, where = validity.across_walls(*ctx.validity_scene, gb.position, gb.geo_normal, step, gb.texel,
+                                             gb.width, gb.height, inside=inside, seed=ctx.settings.seed,
+                                             executor=ctx.helpers)
+        if moved.size:
+            gb.position[moved] = where
+        rep["moved_texels"] = int(moved.size)
+        ctx.seconds["trace"] += time.perf_counter() - t         # with the trace, as the guided filter
     traced = trace_set(ctx, geo, gb, position=position)
     guided_index = traced.info.pop("guided_index", None)
     if ctx.settings.guided_filter and guided_index is not None and guided_index.size:
