@@ -132,11 +132,15 @@ def main(argv=None) -> int:
     args.repeat = 5 if args.repeat is None else args.repeat
     # Transfer only: bounces (on by default) are bench bounce's, and their rays
     # are not the transfer rays that the ratio to raw Embree counts. Without
-    # guided rays: the ratio is the cosine kernel's against raw Embree on its
-    # own rays (guided texels trace other rays, with numpy work per ray); the
-    # default bake, guided, is timed beside each pair.
-    st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads, bounces=0, guiding=False)
-    st_default = dataclasses.replace(st, guiding=True)
+    # guided rays or texel validity: the ratio is the cosine kernel's against
+    # raw Embree on its own rays (guided texels trace other rays, with numpy
+    # work per ray; validity traces rays of its own); the default bake (guided
+    # rays, their filter, texel validity) is timed beside each pair.
+    st = BakeSettings(rays=args.rays, bands=args.bands, threads=args.threads, bounces=0, guiding=False,
+                      texel_validity=False)
+    d = BakeSettings()
+    st_default = dataclasses.replace(st, guiding=d.guiding, texel_validity=d.texel_validity,
+                                     guided_filter=d.guided_filter)
     cores = st.n_threads
     print("settings: " + figures.settings_line(st, BakeSettings()))
 
@@ -150,8 +154,9 @@ def main(argv=None) -> int:
     n_raw = sum(b[0].shape[0] for b in batches)
     raw_1 = raw_embree_rays_per_s(rs_raw, batches, 1)
     runs, raws, guided_runs = [], [], []
-    print(f"\n{args.repeat} interleaved pair(s) of a bake (--no-guiding) and raw embreex OCCLUDED on {n_raw:,} of "
-          f"its rays ({cores} threads), each followed by the default bake (guided rays):")
+    print(f"\n{args.repeat} interleaved pair(s) of a bake (--no-guiding --no-texel-validity) and raw embreex OCCLUDED "
+          f"on {n_raw:,} of its rays ({cores} threads), each followed by the default bake (guided rays, their "
+          f"filter, texel validity):")
     for i in range(max(1, args.repeat)):
         m = run_bake(sc, st)
         raw = raw_embree_rays_per_s(rs_raw, batches, cores)
@@ -161,7 +166,7 @@ def main(argv=None) -> int:
         guided_runs.append(g)
         print(f"  pair {i + 1}: bake {m['seconds']['total']:6.2f} s, {m['rays_per_second_end_to_end'] / 1e6:6.2f} "
               f"Mrays/s end to end; raw {raw / 1e6:6.2f} Mrays/s; ratio {m['rays_per_second_end_to_end'] / raw:.3f}; "
-              f"default (guided) bake {g['seconds']['total']:6.2f} s",
+              f"default bake {g['seconds']['total']:6.2f} s",
               flush=True)
     m = min(runs, key=lambda r: r["seconds"]["total"])
     raw = max(raws)
@@ -186,8 +191,11 @@ def main(argv=None) -> int:
           f"target >= 0.8)")
     g = min(guided_runs, key=lambda r: r["seconds"]["total"])
     guided_texels = int(g["totals"].get("guided_texels", 0))
-    print(f"default bake (guided rays): {g['seconds']['total']:.2f} s (fastest of {len(guided_runs)}), "
-          f"{guided_texels:,} texels guided, {g['seconds']['total'] / sec['total']:.2f} x the bake without")
+    per_set = {k: sum(int(r.get(k, 0)) for r in g["sets"]) for k in ("inside_texels", "filtered_texels", "moved_texels")}
+    print(f"default bake (guided rays, their filter, texel validity): {g['seconds']['total']:.2f} s (fastest of "
+          f"{len(guided_runs)}), {guided_texels:,} texels guided ({per_set['filtered_texels']:,} smoothed), "
+          f"{per_set['inside_texels']:,} inside geometry, {per_set['moved_texels']:,} moved across walls; "
+          f"{g['seconds']['total'] / sec['total']:.2f} x the bake without")
     print(f"texture bytes: {m['output_bytes']:,} on disk (half, ZIP); "
           f"{args.bands ** 2 * 2} B/texel in memory as half, {args.bands ** 2 * 4} B as float")
     record = {"scene": {"triangles": int(sc.n_triangles), "sets": int(sc.n_sets), "resolution": args.resolution},
@@ -201,7 +209,7 @@ def main(argv=None) -> int:
               "ratio": e2e / raw, "ratio_pairs": pair, "ratio_trace": m["rays_per_second_trace"] / raw,
               "texel_samples_per_s_per_core": texel_samples / sec["total"] / cores,
               "output_bytes": int(m["output_bytes"]),
-              "guided": {"total_s": float(g["seconds"]["total"]), "guided_texels": guided_texels,
+              "guided": {"total_s": float(g["seconds"]["total"]), "guided_texels": guided_texels, **per_set,
                          "pairs_s": [float(r["seconds"]["total"]) for r in guided_runs]},
               "pairs": [{"total_s": float(r["seconds"]["total"]),
                          "ratio": r["rays_per_second_end_to_end"] / w} for r, w in zip(runs, raws)]}

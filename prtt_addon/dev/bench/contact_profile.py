@@ -167,10 +167,22 @@ def main(argv=None) -> int:
     p.add_argument("--ref-rays", type=int, default=4096)
     p.add_argument("--texel-validity", action=argparse.BooleanOptionalAction, default=True,
                    help="bake with texel validity (the default) or without (the crease it removes)")
+    p.add_argument("--leak", action="store_true",
+                   help="the shed of zero-thickness walls instead of the box: the floor inside and outside its "
+                        "back wall (leak_profile)")
     args = p.parse_args(argv)
     from ...core.bake.pipeline.context import BakeSettings
-    r = profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays,
-                settings=BakeSettings(rays=args.rays, bounces=0, texel_validity=args.texel_validity))
+    settings = BakeSettings(rays=args.rays, bounces=0, texel_validity=args.texel_validity)
+    if args.leak:
+        r = leak_profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays, settings=settings)
+        print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m), texel validity "
+              f"{'on' if args.texel_validity else 'off'}; baked / traced irradiance by distance from the shed's "
+              f"back wall (single planes), in texels:")
+        print("  texels  inside  outside")
+        for c, a, b in zip(r["bins"], r["inside"], r["outside"]):
+            print(f"  {c:5.3f}  {a:6.3f}  {b:7.3f}")
+        return 0
+    r = profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays, settings=settings)
     print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m), texel validity "
           f"{'on' if args.texel_validity else 'off'}; baked / traced irradiance by distance from the box, in texels:")
     for c, v in zip(r["bins"], r["ratio"]):

@@ -182,12 +182,18 @@ def main(argv=None) -> int:
                    help="comma-separated filters (none, edge-aware[:radius[:sigma in texels]], oidn)")
     p.add_argument("--env", default="forest")
     p.add_argument("--guiding", default="on,off", help="comma-separated: on, off (rays aimed at the window or not)")
+    p.add_argument("--texel-validity", action=argparse.BooleanOptionalAction, default=True,
+                   help="bake with texel validity (the default) or without")
+    p.add_argument("--guided-filter", action=argparse.BooleanOptionalAction, default=True,
+                   help="smooth the guided texels (the default) or not")
     a = p.parse_args(argv)
     r = measure(a.resolution, rays=[int(x) for x in a.rays.split(",")], ref_rays=a.ref_rays,
                 ref_texels=a.ref_texels, env=a.env, denoisers=a.denoise.split(","),
-                guiding=[{"on": True, "off": False}[g] for g in a.guiding.split(",")])
+                guiding=[{"on": True, "off": False}[g] for g in a.guiding.split(",")],
+                settings=dict(texel_validity=a.texel_validity, guided_filter=a.guided_filter))
     print(f"window room, {a.resolution}² atlas ({r['inner_texels']:,} inner texels), light {a.env}; reference "
-          f"{r['ref_rays']} rays at {r['ref_texels']} texels ({r['ref_s']} s)")
+          f"{r['ref_rays']} rays at {r['ref_texels']} texels ({r['ref_s']} s); texel validity "
+          f"{'on' if a.texel_validity else 'off'}, guided filter {'on' if a.guided_filter else 'off'}")
     print(f"{'rays':>6} {'guiding':>7} {'denoiser':>14} {'mean':>8} {'p99':>8} {'nmae':>8} {'bake s':>7} {'denoise s':>9}")
     for x in r["rows"]:
         print(f"{x['rays']:>6} {'on' if x['guiding'] else 'off':>7} {x['denoiser']:>14} {x['mean']:>8.2%} {x['p99']:>8.2%} {x['nmae']:>8.2%} "
