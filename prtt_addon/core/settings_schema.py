@@ -236,7 +236,9 @@ SETTINGS: tuple[Setting, ...] = (
             "geometry or on another surface (nine in ten of 16 rays hit back faces or anything within half a "
             "texel: a floor under a box resting on it, a wall's foot on the floor's plane) and fill them from "
             "their valid neighbours by the dilation, so no dark crease shows where objects touch (the bounce "
-            "textures keep them as traced)", flags=("--texel-validity", "--no-texel-validity"),
+            "textures keep them as traced); beside a wall of a single plane standing on a surface, that "
+            "surface's texels take the wall's darker side's light (no bright leak into a room)",
+            flags=("--texel-validity", "--no-texel-validity"),
             off_help="keep every texel as traced (the bakes before it, byte for byte, with --no-guided-filter)",
             ui=Ui("texel_validity", "Fill Texels Inside Geometry")),
     Setting("guided_filter", "bake", "bool", True, "smooth the transfer of the texels that guided rays "
