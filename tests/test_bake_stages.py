@@ -44,7 +44,11 @@ def island_scene(res=24):
 
 def test_geometry_gbuffer_trace_projection_give_the_written_texture(tmp_path, context):
     sc = island_scene(24)
-    st = BakeSettings(rays=32, half=False, mips=True, threads=2).validate()
+    # The stages below transfer_set: texel validity and the guided texels'
+    # filter are transfer_set's own steps (tests/test_contact_profile.py,
+    # tests/test_guided_filter.py).
+    st = BakeSettings(rays=32, half=False, mips=True, threads=2, texel_validity=False,
+                      guided_filter=False).validate()
     m = bake_scene(sc, tmp_path / "full", st)
     ctx = context(sc, check_out_dir(tmp_path / "alone"), st)
     geo = stages.build_geometry(ctx)
