@@ -94,3 +94,34 @@ def test_noise_falls_by_what_the_weights_predict():
     expect = np.sqrt((w ** 2).sum()) / w.sum()
     inner = ((texel // W) >= r) & ((texel // W) < H - r) & ((texel % W) >= r) & ((texel % W) < W - r)
     assert rows[inner].std() == pytest.approx(expect, rel=0.05)
+
+
+def test_the_compiled_band_gives_the_numpy_paths_values():
+    """With numba (guided_filter_jit) the same values as the numpy path to
+    float32 rounding, on a curved, holed surface with invalid texels, island
+    borders in the atlas (a second surface beside the first) and float32
+    normals as the G-buffer has them."""
+    from prtt_addon.core.base import jit
+    if jit.load(gf._JIT) is None:
+        pytest.skip("numba is not installed")
+    H, W = 48, 64
+    rng = np.random.default_rng(3)
+    texel = np.sort(rng.choice(H * W, size=int(0.8 * H * W), replace=False))
+    y, x = texel // W, texel % W
+    second = x >= W // 2                       # another island: far away in the world, turned
+    pos = np.stack([x * 0.01, y * 0.01, 0.05 * np.sin(x * 0.2)], axis=1)
+    pos[second] += [3.0, 0.0, 1.0]
+    nrm = np.stack([-0.01 * np.cos(x * 0.2), np.zeros(x.size), np.ones(x.size)], axis=1)
+    nrm[second] = nrm[second][:, [0, 2, 1]]
+    nrm = (nrm / np.linalg.norm(nrm, axis=1, keepdims=True)).astype(np.float32)
+    rows = rng.normal(1.0, 0.3, (texel.size, 25)).astype(np.float32)
+    valid = rng.random(texel.size) > 0.1
+    targets = np.flatnonzero(valid & (rng.random(texel.size) > 0.3))
+    a, b = rows.copy(), rows.copy()
+    assert gf.smooth_guided(a, texel, W, H, pos, nrm, targets, valid, 0.01) == targets.size
+    gf.smooth_guided(b, texel, W, H, pos, nrm, targets, valid, 0.01, compiled=False)
+    assert not np.array_equal(a[targets], rows[targets])          # it filtered
+    np.testing.assert_allclose(a, b, rtol=2e-6, atol=1e-7)
+    others = np.setdiff1d(np.arange(texel.size), targets)
+    assert np.array_equal(a[others], rows[others])
+    print("bit-identical rows:", np.mean(np.all(a[targets] == b[targets], axis=1)))

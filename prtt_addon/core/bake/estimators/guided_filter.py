@@ -25,13 +25,17 @@ reads only the unfiltered rows: the answer does not depend on the order of
 texels or on how they are split (bands of texture rows, each written once
 the next band is computed; two bands' outputs are held at once). The sums
 are float32 einsum loops in a fixed order: the same bits on any machine and
-thread count.
+thread count. With numba (core/base/jit.py) a compiled loop does a band
+(guided_filter_jit): the same neighbours and weights, the same values to
+float32 rounding (not the same bits), in a fraction of the time.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+
+from ...base import jit
 
 #: Window half-width in texels, the texel-distance sigma, the world-distance sigma in texel
 #: steps and the normals' power. The window room (512², 256 rays, the prototype of this filter on
@@ -56,13 +60,24 @@ def filter_bytes(width: int, coeffs: int) -> int:
     return texels * (2 * 4 * coeffs + per_offset + 64) + SUB * (2 * RADIUS + 1) ** 2 * 4 * coeffs
 
 
+_JIT = "prtt_addon.core.bake.estimators.guided_filter_jit"
+
+
+def _compiled():
+    """The compiled band loop (guided_filter_jit), or None: numba off or missing."""
+    return jit.load(_JIT)
+
+
 def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, position: np.ndarray,
-                  normal: np.ndarray, targets: np.ndarray, valid: np.ndarray, step: float) -> int:
+                  normal: np.ndarray, targets: np.ndarray, valid: np.ndarray, step: float, *,
+                  compiled: bool = True) -> int:
     """Filter ``rows`` (N, K) float32 in place at the rows ``targets`` (M,)
     int (ascending), texels of a set ``width`` x ``height``: ``texel`` (N,)
     flat indices ascending (the G-buffer's), ``position``/``normal`` (N, 3)
     world, unit; ``valid`` (N,) bool: texels that may be neighbours; ``step``
-    the set's texel step (world units, > 0). Returns the texels filtered."""
+    the set's texel step (world units, > 0); ``compiled``: False takes the numpy
+    path even where numba is there (the tests compare the two). Returns the
+    texels filtered."""
     targets = np.asarray(targets, np.int64)
     if targets.size == 0 or step <= 0:
         return 0
@@ -76,8 +91,22 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     cuts = np.flatnonzero(np.diff(band_of)) + 1
     bands = np.split(np.arange(targets.size), cuts)
     pending = None                    # (rows of the band before, their filtered values)
+    fast = _compiled() if compiled else None
     for members in bands:
         tg = targets[members]
+        if fast is not None:
+            out = np.empty((tg.size, rows.shape[1]), np.float32)
+            try:
+                fast.smooth_band(rows, texel, width, height, position, normal, valid, tg,
+                                 np.asarray(spatial, np.float64), r, inv_world, NORMAL_POWER, out)
+            except Exception as exc:    # noqa: BLE001 - a numba that imports but cannot compile it
+                jit.broken(_JIT, exc)
+                fast = None
+            else:
+                if pending is not None:
+                    rows[pending[0]] = pending[1]
+                pending = (tg, out)
+                continue
         flat = texel[tg]
         y, x = flat // width, flat % width
         p0, n0 = position[tg], normal[tg]
