@@ -14,7 +14,10 @@ BENCHMARKS = {
     "cycles": ("prtt_addon.dev.bench.cycles_compare", "diffuse PRTT against Cycles under a band-limited environment"),
     "contact": ("prtt_addon.dev.bench.contact", "the paper's contact-shadow figure, measured against ray tracing"),
     "contact-profile": ("prtt_addon.dev.bench.contact_profile", "the floor's baked light beside a box against the "
-                        "traced light, in quarter-texel bins (dark creases at contacts)"),
+                        "traced light, in quarter-texel bins (dark creases at contacts; --leak: a shed of "
+                        "single-plane walls)"),
+    "quality": ("prtt_addon.dev.bench.quality", "issue 53's lightmap artefacts (contact creases, leaks under "
+                "single-plane walls, a window-lit room's noise and time, seams) before their fixes and now"),
     "window-room": ("prtt_addon.dev.bench.window_room", "a room lit only through a window: the transfer's "
                     "noise against its converged value, raw and denoised"),
     "web": ("prtt_addon.dev.bench.web_bench", "glTF export vs bake (time, bytes) and the web viewer's page load and "
