@@ -96,15 +96,15 @@ SHED_DOOR = 0.2
 def build_shed(resolution: int):
     """The core scene: floor (own UVs over [0, 1]) and the shed (xatlas, 128²)."""
     from ...core.model.scene import validate
-    from .scene_library import _wall
+    from .scene_library import wall
     h = SHED_SIZE / 2
-    parts = [_wall((-h, 0.0, h), (SHED_SIZE, SHED_SIZE), facing=(1, 0, 0)),
-             _wall((0.0, -h, h), (SHED_SIZE, SHED_SIZE), facing=(0, 1, 0)),
-             _wall((0.0, h, h), (SHED_SIZE, SHED_SIZE), facing=(0, -1, 0)),
+    parts = [wall((-h, 0.0, h), (SHED_SIZE, SHED_SIZE), facing=(1, 0, 0)),
+             wall((0.0, -h, h), (SHED_SIZE, SHED_SIZE), facing=(0, 1, 0)),
+             wall((0.0, h, h), (SHED_SIZE, SHED_SIZE), facing=(0, -1, 0)),
              mg.plane(SHED_SIZE).transformed(translate=(0.0, 0.0, SHED_SIZE))]
     side = (SHED_SIZE - SHED_DOOR) / 2
     for sy in (-1.0, 1.0):
-        parts.append(_wall((h, sy * (SHED_DOOR / 2 + side / 2), h), (side, SHED_SIZE), facing=(-1, 0, 0)))
+        parts.append(wall((h, sy * (SHED_DOOR / 2 + side / 2), h), (side, SHED_SIZE), facing=(-1, 0, 0)))
     shed = mg.merge(parts).transformed(rotate_z=BOX_TURN, translate=(*BOX_CENTRE, 0.0))
     floor = mg.plane(2.0, 2.0, subdiv=1)
     floor.uvs = ((floor.vertices[:, :2] + 1.0) / 2.0)[floor.faces]

@@ -27,9 +27,9 @@ CACHE = os.path.join(ROOT, ".cache", "bench")
 def room_objects() -> list[tuple[str, mg.Mesh]]:
     objs = [
         ("floor", mg.plane(6.0)),
-        ("wall_back", _wall((0, 3.0, 1.5), (6.0, 3.0), facing=(0, -1, 0))),
-        ("wall_left", _wall((-3.0, 0, 1.5), (6.0, 3.0), facing=(1, 0, 0))),
-        ("wall_right", _wall((3.0, 0, 1.5), (6.0, 3.0), facing=(-1, 0, 0))),
+        ("wall_back", wall((0, 3.0, 1.5), (6.0, 3.0), facing=(0, -1, 0))),
+        ("wall_left", wall((-3.0, 0, 1.5), (6.0, 3.0), facing=(1, 0, 0))),
+        ("wall_right", wall((3.0, 0, 1.5), (6.0, 3.0), facing=(-1, 0, 0))),
         ("rug", mg.box((2.4, 1.6, 0.01), (0.0, -0.2, 0.005))),
     ]
     table = [mg.box((1.6, 0.9, 0.05), (0, 0, 0.745))]
@@ -66,7 +66,7 @@ def room_objects() -> list[tuple[str, mg.Mesh]]:
     return objs
 
 
-def _wall(center, size, facing) -> mg.Mesh:
+def wall(center, size, facing) -> mg.Mesh:
     """A 2-triangle wall of (width, height) centred at ``center`` facing ``facing``."""
     p = mg.plane(size[0], size[1])
     f = np.asarray(facing, float)
@@ -282,7 +282,7 @@ def plants_objects(seed: int = 11) -> list[tuple[str, mg.Mesh]]:
     """Plants-class (~18K triangles): four potted plants of thin curved leaves
     on a 2-triangle floor in front of a 2-triangle wall."""
     rng = np.random.default_rng(seed)
-    objs = [("floor", mg.plane(5.0)), ("wall", _wall((0, 1.6, 1.25), (5.0, 2.5), facing=(0, -1, 0)))]
+    objs = [("floor", mg.plane(5.0)), ("wall", wall((0, 1.6, 1.25), (5.0, 2.5), facing=(0, -1, 0)))]
     pot_profile = np.array([[0.001, 0.0], [0.16, 0.0], [0.2, 0.32], [0.22, 0.34], [0.19, 0.34],
                             [0.16, 0.05], [0.001, 0.05]])
     for k, (x, y) in enumerate(((-1.4, 0.4), (-0.45, -0.2), (0.5, 0.35), (1.45, -0.25))):
