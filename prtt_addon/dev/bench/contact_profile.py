@@ -93,18 +93,21 @@ SHED_SIZE = 1.0
 SHED_DOOR = 0.2
 
 
-def build_shed(resolution: int):
-    """The core scene: floor (own UVs over [0, 1]) and the shed (xatlas, 128²)."""
+def build_shed(resolution: int, walls: str = "in"):
+    """The core scene: floor (own UVs over [0, 1]) and the shed (xatlas, 128²),
+    its walls facing ``walls``: "in" (into the shed) or "out" (as Blender's
+    cube with its bottom face deleted); the roof faces up either way."""
     from ...core.model.scene import validate
     from .scene_library import wall
     h = SHED_SIZE / 2
-    parts = [wall((-h, 0.0, h), (SHED_SIZE, SHED_SIZE), facing=(1, 0, 0)),
-             wall((0.0, -h, h), (SHED_SIZE, SHED_SIZE), facing=(0, 1, 0)),
-             wall((0.0, h, h), (SHED_SIZE, SHED_SIZE), facing=(0, -1, 0)),
+    f = {"in": 1.0, "out": -1.0}[walls]
+    parts = [wall((-h, 0.0, h), (SHED_SIZE, SHED_SIZE), facing=(f, 0, 0)),
+             wall((0.0, -h, h), (SHED_SIZE, SHED_SIZE), facing=(0, f, 0)),
+             wall((0.0, h, h), (SHED_SIZE, SHED_SIZE), facing=(0, -f, 0)),
              mg.plane(SHED_SIZE).transformed(translate=(0.0, 0.0, SHED_SIZE))]
     side = (SHED_SIZE - SHED_DOOR) / 2
     for sy in (-1.0, 1.0):
-        parts.append(wall((h, sy * (SHED_DOOR / 2 + side / 2), h), (side, SHED_SIZE), facing=(-1, 0, 0)))
+        parts.append(wall((h, sy * (SHED_DOOR / 2 + side / 2), h), (side, SHED_SIZE), facing=(-f, 0, 0)))
     shed = mg.merge(parts).transformed(rotate_z=BOX_TURN, translate=(*BOX_CENTRE, 0.0))
     floor = mg.plane(2.0, 2.0, subdiv=1)
     floor.uvs = ((floor.vertices[:, :2] + 1.0) / 2.0)[floor.faces]
@@ -117,12 +120,12 @@ def build_shed(resolution: int):
 
 
 def leak_profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, samples: int = 300,
-                 env: str = "forest", bins: int = 8, settings=None) -> dict:
+                 env: str = "forest", bins: int = 8, settings=None, walls: str = "in") -> dict:
     """Light leaking under a zero-thickness wall (issue 53, item 2): the
     floor's baked / traced irradiance in quarter-texel bins from the shed's
     back wall, inside (dark: lit only through the door) and outside
-    (in the open), along its middle 60 %. {"bins", "inside", "outside" (the
-    ratios per bin), "texel_m", "resolution"}."""
+    (in the open), along its middle 60 %; ``walls`` as build_shed. {"bins",
+    "inside", "outside" (the ratios per bin), "texel_m", "resolution"}."""
     from ...core.bake.estimators.raytrace import RayScene
     from ...core.bake.estimators.transfer import Points, TransferSettings, bake_points
     from ...core.bake.pipeline.context import BakeSettings
@@ -131,7 +134,7 @@ def leak_profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096
     from ...core.light.envmap import environment_light
     from ...core.texels.texsample import bilinear
 
-    sc = build_shed(resolution)
+    sc = build_shed(resolution, walls)
     light = environment_light(env, 5)
     texel = 2.0 / resolution
     centres = (np.arange(bins) + 0.5) / 4.0
@@ -170,14 +173,17 @@ def main(argv=None) -> int:
     p.add_argument("--leak", action="store_true",
                    help="the shed of zero-thickness walls instead of the box: the floor inside and outside its "
                         "back wall (leak_profile)")
+    p.add_argument("--walls", choices=("in", "out"), default="in",
+                   help="with --leak: the shed's walls face into it (the default) or out (Blender's cube with its "
+                        "bottom deleted)")
     args = p.parse_args(argv)
     from ...core.bake.pipeline.context import BakeSettings
     settings = BakeSettings(rays=args.rays, bounces=0, texel_validity=args.texel_validity)
     if args.leak:
-        r = leak_profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays, settings=settings)
+        r = leak_profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays, settings=settings, walls=args.walls)
         print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m), texel validity "
               f"{'on' if args.texel_validity else 'off'}; baked / traced irradiance by distance from the shed's "
-              f"back wall (single planes), in texels:")
+              f"back wall (single planes facing {args.walls}), in texels:")
         print("  texels  inside  outside")
         for c, a, b in zip(r["bins"], r["inside"], r["outside"]):
             print(f"  {c:5.3f}  {a:6.3f}  {b:7.3f}")

@@ -41,6 +41,7 @@ import math
 
 import numpy as np
 
+from ...texels.islands import island_labels
 from .raytrace import RAY_EPSILON
 from .sampling import tangent_frames
 
@@ -97,6 +98,37 @@ def texel_step(texel: np.ndarray, position: np.ndarray, width: int) -> float:
     return float(np.median(np.linalg.norm(position[adj + 1] - position[adj], axis=1)))
 
 
+#: Rays that look for the sky from a point judged inside (inside_texels) or
+#: beyond a wall (across_walls): a solid's inside sees none, a room whose
+#: walls face out sees its door or window (a 0.2 m door 1 m away: ~3 % of a
+#: texel's cosine rays). Inside texels are judged by region (ROOM_SKY_SHARE):
+#: 16 rays a texel find the door of a room thousands of texels large; a
+#: point beyond a wall is judged alone, by 128 (under 1 % miss that door).
+ESCAPE_RAYS = 16
+SKY_RAYS = 128
+#: A region of inside texels is a room's when this share of them see the sky
+#: (the shed whose walls face out: 38 % at 16 rays; the floor around a torus
+#: resting on it, or beside a sphere, where some texels near the contact see
+#: past it: 0.6-7 %).
+ROOM_SKY_SHARE = 0.2
+
+
+def _sees_sky(rays, points: np.ndarray, normals: np.ndarray, n_rays: int, seed) -> np.ndarray:
+    """(M,) bool: at least one of ``n_rays`` cosine rays about ``normals``
+    (M, 3) from ``points`` (M, 3) world escapes the scene; ``seed`` seeds
+    numpy's generator (a list of ints)."""
+    if len(points) == 0:
+        return np.zeros(0, bool)
+    rng = np.random.default_rng(seed)
+    u1, u2 = rng.random((2, len(points), n_rays))
+    t1, t2 = tangent_frames(normals)
+    r, phi = np.sqrt(u1), 2.0 * np.pi * u2
+    d = ((r * np.cos(phi))[..., None] * t1[:, None] + (r * np.sin(phi))[..., None] * t2[:, None]
+         + np.sqrt(1.0 - u1)[..., None] * normals[:, None])
+    o = np.repeat(rays.origins(points, normals), n_rays, axis=0)
+    return (~rays.occluded(o, d.reshape(-1, 3).astype(np.float32))).reshape(-1, n_rays).any(axis=1)
+
+
 #: How far past a front face a back face in (nearly) its plane is looked for (normalised units).
 COPLANAR_GAP = 4.0 * RAY_EPSILON
 
@@ -123,16 +155,21 @@ def _hidden_back(rays, winding, o, d, prim, t, front) -> np.ndarray:
 
 
 def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np.ndarray, *,
-                  contact: float = 0.0, seed: int = 0, executor=None) -> np.ndarray:
+                  contact: float = 0.0, seed: int = 0, executor=None, grid=None) -> np.ndarray:
     """(N,) bool: sample points (N, 3) world, with geometric normals (N, 3)
     unit, that lie inside geometry or on another surface. ``rays``: the
     scene's RayScene; ``winding``: winding_normals of its triangles;
     ``contact``: world distance under which any hit counts as blocked
     (0: back faces only); ``executor``: a thread pool the chunks run on
-    (Embree releases the GIL). Deterministic for a seed: a chunk's
+    (Embree releases the GIL); ``grid``: (texel (N,) flat indices
+    ascending, width, height) of the points' texture: a region of texels
+    judged inside (8-connected in the texture) of which ROOM_SKY_SHARE see
+    the sky is a room whose walls face out, not a solid, and is kept;
+    without it each point must see no sky itself. Deterministic for a seed: a chunk's
     directions depend on its first texel only."""
     n = len(position)
     out = np.zeros(n, bool)
+    sky_seen = np.zeros(n, bool)
     needed = int(math.ceil(INSIDE_FRACTION * RAYS - 1e-9))
     first_needed = max(0, FIRST_RAYS - (RAYS - needed))
     near = np.float32(contact * rays.scale)            # intersect's t is in the normalised frame
@@ -179,7 +216,11 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
             return
         tail = blocked(np.repeat(o[rest], RAYS - f, axis=0), directions(rest, f, RAYS).reshape(-1, 3), RAYS - f,
                        True).sum(axis=1)
-        out[a + rest] = head[rest] + tail >= needed
+        marked = rest[head[rest] + tail >= needed]
+        # Back faces all round are a solid's inside, or a room whose walls face
+        # out (Blender's cube with faces deleted): the room sees its door.
+        out[a + marked] = True
+        sky_seen[a + marked] = _sees_sky(rays, position[a + marked], nrm[marked], ESCAPE_RAYS, [seed, a, 0xE5])
 
     starts = range(0, n, CHUNK_TEXELS)
     if executor is not None and len(starts) > 1:
@@ -187,6 +228,19 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
     else:
         for a in starts:
             chunk(a)
+    if not sky_seen.any():
+        return out
+    if grid is None:
+        return out & ~sky_seen
+    texel, width, height = grid
+    mask = np.zeros(height * width, bool)
+    mask[texel[out]] = True
+    labels = island_labels(mask.reshape(height, width)).reshape(-1)[texel]       # (N,), -1 where not inside
+    members = np.bincount(labels[out], minlength=height * width)
+    seeing = np.bincount(labels[out & sky_seen], minlength=height * width)
+    room = seeing >= ROOM_SKY_SHARE * np.maximum(members, 1)
+    room &= seeing > 0
+    out[out & room[np.maximum(labels, 0)]] = False
     return out
 
 
@@ -246,9 +300,11 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
     the centre mirrored across it (t beyond it, less where something nearer
     stops the way on); it is taken when the texel's surface goes on there (a
     ray back along the normal meets a surface facing the same way within a
-    few ray offsets), the way on beyond the wall is clear for ENCLOSED_STEPS
-    and ends at no back face (the far side of a solid wall), under
-    OPEN_FRACTION of its SIDE_RAYS cosine rays meet back faces, and they escape at most DARKER as often as the centre's do (the same
+    few ray offsets), the way on beyond the wall is clear for ENCLOSED_STEPS,
+    it is not in a solid (where the way on ends at a back face, the far side
+    of a solid wall, or OPEN_FRACTION of its SIDE_RAYS cosine rays meet back
+    faces, one of SKY_RAYS must escape: a room whose walls face out sees its
+    door), and its SIDE_RAYS cosine rays escape at most DARKER as often as the centre's do (the same
     directions).
     And the texel nearest the candidate beyond the wall, among the set's
     covered texels within RADIUS texels in the texture (``texel`` (N,) flat
@@ -332,18 +388,20 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
         on[on] &= np.einsum("ij,ij->i", unit[pb[on]], nw[on]) >= 1.0 - WALL_STEEP / 10.0
         sky_here, _ = sides(position[a + who])
         sky_there, back_there = sides(moved)
-        # Beyond the wall the way on is clear for a while and ends at no back face:
-        # a single plane has nothing behind it, a solid wall its far side (the
-        # window room's 20 cm walls, a shelf's 3 cm board overlapping another,
-        # where the inside test's rays meet hidden or shared faces). Single
-        # planes facing out (a room's walls with their normals outside) read as
-        # solid too: those keep their leak.
+        # Beyond the wall the way on is clear for a while, and the point is not in
+        # a solid: a solid wall shows its far side's back face (the window room's
+        # 20 cm walls, a shelf's 3 cm board overlapping another, where the inside
+        # test's rays meet hidden or shared faces), or most rays meet back faces,
+        # and it sees no sky. A room whose walls face out shows back faces too,
+        # but sees its door.
         hit_on = p2 >= 0
         back_on = np.zeros(len(p2), bool)
         back_on[hit_on] = np.einsum("ij,ij->i", dirs[hit_on], winding[p2[hit_on]]) > 0
-        roomy = ~hit_on | ((t2b > np.float32(ENCLOSED_STEPS * step * rays.scale)) & ~back_on)
-        take = (on & roomy & (back_there < OPEN_FRACTION * SIDE_RAYS) & (sky_there <= DARKER * sky_here)
-                & (sky_here > 0))
+        roomy = ~hit_on | (t2b > np.float32(ENCLOSED_STEPS * step * rays.scale))
+        take = on & roomy & (sky_there <= DARKER * sky_here) & (sky_here > 0)
+        doubt = np.flatnonzero(take & (back_on | (back_there >= OPEN_FRACTION * SIDE_RAYS)))
+        if doubt.size:
+            take[doubt] = _sees_sky(rays, moved[doubt], nw[doubt], SKY_RAYS, [seed, a, 0x5B])
         if take.any():
             wall_at = position[a + who] + dirs * (tw / rays.scale)[:, None]
             take[take] &= _open_texel_at(moved[take], texel[a + who[take]], texel, width, height, position,

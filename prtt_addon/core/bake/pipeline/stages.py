@@ -424,7 +424,8 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
         t = time.perf_counter()
         inside = validity.inside_texels(*ctx.validity_scene, gb.position, gb.geo_normal,
                                         contact=validity.CONTACT_TEXELS * step,
-                                        seed=ctx.settings.seed, executor=ctx.helpers)
+                                        seed=ctx.settings.seed, executor=ctx.helpers,
+                                        grid=(gb.texel, gb.width, gb.height))
         rep["inside_texels"] = int(inside.sum())
         # Texels beside a wall standing on their surface take its darker side's
         # light (no bright leak into a room under a single-plane wall).
