@@ -235,13 +235,27 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
     texel, width, height = grid
     mask = np.zeros(height * width, bool)
     mask[texel[out]] = True
-    labels = island_labels(mask.reshape(height, width)).reshape(-1)[texel]       # (N,), -1 where not inside
-    members = np.bincount(labels[out], minlength=height * width)
-    seeing = np.bincount(labels[out & sky_seen], minlength=height * width)
-    room = seeing >= ROOM_SKY_SHARE * np.maximum(members, 1)
-    room &= seeing > 0
-    out[out & room[np.maximum(labels, 0)]] = False
+    labels = island_labels(mask.reshape(height, width)).reshape(-1)[texel[out]]   # the inside texels' regions
+    mask = None
+    region, of = np.unique(labels, return_inverse=True)
+    members = np.bincount(of, minlength=region.size)
+    seeing = np.bincount(of[sky_seen[out]], minlength=region.size)
+    room = (seeing > 0) & (seeing >= ROOM_SKY_SHARE * members)
+    at = np.flatnonzero(out)
+    out[at[room[of]]] = False
     return out
+
+
+def validity_bytes(width: int, height: int, texels: int, threads: int = 1) -> int:
+    """Upper bound of inside_texels' and across_walls' temporaries (bytes) for
+    a set ``width`` x ``height`` with ``texels`` covered texels traced on
+    ``threads``: each thread's chunk of rays and directions (up to
+    CHUNK_TEXELS texels of RAYS rays, ~80 B a ray: 84 MB), the per-texel
+    flags, and the regions' labels (the mask, the union-find's parents and
+    the labels: 17 B a texture texel)."""
+    per_chunk = min(texels, CHUNK_TEXELS) * RAYS * 80
+    running = min(max(1, threads), -(-texels // CHUNK_TEXELS) if texels else 1)
+    return running * per_chunk + 4 * texels + 17 * width * height
 
 
 #: How far in the texture (texels) the texel under a moved point is looked for.

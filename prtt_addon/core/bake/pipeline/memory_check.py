@@ -35,7 +35,8 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
                        downscale=(downscales if downscales is not None
                                   else asked_downscale(st.bounces, st.tuning, st.bounce_downscale)),
                        relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg,
-                       compiling=compiling, extra=extra, dask=dask, half=st.half, guiding=st.guiding)
+                       compiling=compiling, extra=extra, dask=dask, half=st.half, guiding=st.guiding,
+                       validity=st.texel_validity)
 
 
 def job_array_bytes(scene) -> int:

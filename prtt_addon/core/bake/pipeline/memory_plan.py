@@ -61,6 +61,7 @@ import numpy as np
 from ...io.exr_io import write_band_rows, writer_bytes
 from ..estimators.guided import guide_build_bytes, guide_bytes
 from ..estimators.guided_filter import filter_bytes
+from ..estimators.validity import validity_bytes
 
 MiB = 1 << 20
 
@@ -186,7 +187,8 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 chunk_rays: int = 1 << 19, rays: int = 256, bounce_rays: int = 64, mips: bool = False, bounces: int = 0,
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
-                dask: bool = False, half: bool = True, guiding: bool = False) -> dict[str, int]:
+                dask: bool = False, half: bool = True, guiding: bool = False,
+                validity: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -204,6 +206,8 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     cells are held through the trace; its chunks hold ~45 B a ray at 5 bands,
     within the transfer's RAY_BYTES, and project their coefficients a few MB
     at a time; the guided texels' filter then holds two bands of rows, guided_filter.filter_bytes).
+    validity: texel validity runs before each set's trace (estimators/validity.py: its chunks of
+    rays and the inside regions' labels, validity.validity_bytes).
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -238,8 +242,10 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         build = base + held + SURFACE * n + guide_build_bytes(n) if guiding else 0
         # The guided texels' filter runs on the rows once they are traced (estimators/guided_filter.py).
         smooth = base + held + SURFACE * n + 4 * K * n + guide + filter_bytes(w, K) if guiding else 0
+        # Texel validity runs before the trace, beside the G-buffer's surface (estimators/validity.py).
+        valid_pass = base + held + SURFACE * n + validity_bytes(w, h, n, threads) if validity else 0
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
-                           projection, build, smooth)
+                           projection, build, smooth, valid_pass)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);
         # beside them the band in the file's type and OpenEXR's copy of it.
         out["write transfer"] = max(out["write transfer"], projection + band_bytes(K, w, h, half)
