@@ -249,11 +249,13 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
 def validity_bytes(width: int, height: int, texels: int, threads: int = 1) -> int:
     """Upper bound of inside_texels' and across_walls' temporaries (bytes) for
     a set ``width`` x ``height`` with ``texels`` covered texels traced on
-    ``threads``: each thread's chunk of rays and directions (up to
-    CHUNK_TEXELS texels of RAYS rays, ~80 B a ray: 84 MB), the per-texel
-    flags, and the regions' labels (the mask, the union-find's parents and
-    the labels: 17 B a texture texel)."""
-    per_chunk = min(texels, CHUNK_TEXELS) * RAYS * 80
+    ``threads``: each thread's chunk (up to CHUNK_TEXELS texels: their 16
+    rays' random numbers, 256 B a texel, and the first 4 rays' directions,
+    origins and hits, ~52 B a ray; the rest's only for the few texels that
+    trace them: 40 B a ray of 16 with a margin, 42 MB), the per-texel flags,
+    and the regions' labels (the mask, the union-find's parents and the
+    labels: 17 B a texture texel)."""
+    per_chunk = min(texels, CHUNK_TEXELS) * RAYS * 40
     running = min(max(1, threads), -(-texels // CHUNK_TEXELS) if texels else 1)
     return running * per_chunk + 4 * texels + 17 * width * height
 
