@@ -33,18 +33,60 @@ BOX_CENTRE = (0.1234, 0.0567)
 BOX_TURN = 0.05
 
 
-def build(resolution: int):
-    """The core scene: floor (own UVs over [0, 1]) and box (xatlas, 128²)."""
+def _on_floor(name: str, mesh, resolution: int):
+    """The core scene: the 2 m floor (own UVs over [0, 1], ``resolution``²)
+    and ``mesh`` (xatlas, 128²) standing on it, one grey material."""
     from ...core.model.scene import validate
     floor = mg.plane(2.0, 2.0, subdiv=1)
     floor.uvs = ((floor.vertices[:, :2] + 1.0) / 2.0)[floor.faces]
-    box = mg.box((BOX_SIZE,) * 3).transformed(rotate_z=BOX_TURN, translate=(*BOX_CENTRE, BOX_SIZE / 2))
-    sc = mg.assemble([("floor", floor), ("box", box)], resolution=resolution, keep_uvs=True,
-                     resolutions={"box": 128})
+    sc = mg.assemble([("floor", floor), (name, mesh)], resolution=resolution, keep_uvs=True,
+                     resolutions={name: 128})
     sc.materials = [dict(name="grey", base_color=[0.7, 0.7, 0.7], roughness=0.6)]
     sc.material_id = np.zeros_like(sc.object_id)
     validate(sc)
     return sc
+
+
+def build(resolution: int):
+    """The core scene: floor (own UVs over [0, 1]) and box (xatlas, 128²)."""
+    box = mg.box((BOX_SIZE,) * 3).transformed(rotate_z=BOX_TURN, translate=(*BOX_CENTRE, BOX_SIZE / 2))
+    return _on_floor("box", box, resolution)
+
+
+def _baked_floor(sc, settings, rays: int):
+    """The floor's transfer texture (H, W, K) as the bake writes it, with
+    ``settings`` (default: ``rays`` rays, no bounce)."""
+    from ...core.bake.pipeline.context import BakeSettings
+    from ...core.bake.pipeline.runner import bake_scene
+    from ...core.io.exr_io import read_sh_exr
+    with tempfile.TemporaryDirectory(prefix="prtt-contact-profile-") as d:
+        bake_scene(sc, os.path.join(d, "b"), settings or BakeSettings(rays=rays, bounces=0))
+        tex, _ = read_sh_exr(os.path.join(d, "b", "floor.transfer.exr"))
+    return tex
+
+
+def _ratio(rs, tex, x: np.ndarray, along: np.ndarray, light, ref_rays: int) -> np.ndarray:
+    """(bins,) the mean baked / traced irradiance of floor points per bin:
+    ``x`` (bins, samples) and ``along`` (samples,) coordinates in the box's
+    frame (turned by BOX_TURN about BOX_CENTRE); the baked value sampled
+    from ``tex`` as the preview samples it (texsample.bilinear), the traced
+    one from ``ref_rays`` rays at the point itself (``rs`` the RayScene)."""
+    from ...core.bake.estimators.transfer import Points, TransferSettings, bake_points
+    from ...core.texels.texsample import bilinear
+    bins = x.shape[0]
+    local = np.stack([x.ravel(), np.repeat(along[None, :], bins, 0).ravel()], axis=1)
+    c, s_ = np.cos(BOX_TURN), np.sin(BOX_TURN)
+    xy = local @ np.array([[c, s_], [-s_, c]]) + np.asarray(BOX_CENTRE)
+    P = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+    up = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+    H, W, K = tex.shape
+    baked = bilinear(np.ascontiguousarray(tex.reshape(H * W, K), np.float32), W, H,
+                     (P[:, :2] + 1.0) / 2.0).astype(np.float64)
+    pts = Points(P, up, up, np.arange(len(P), dtype=np.int64), np.zeros(len(P), bool))
+    traced, _ = bake_points(rs, pts, TransferSettings(bands=5, rays=ref_rays, seed=11))
+    e_baked = (baked @ light).mean(axis=1).reshape(bins, -1)
+    e_traced = (traced.astype(np.float64) @ light).mean(axis=1).reshape(bins, -1)
+    return e_baked.mean(axis=1) / e_traced.mean(axis=1)
 
 
 def profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, samples: int = 300,
@@ -52,12 +94,7 @@ def profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, sam
     """{"bins": bin centres in texels, "ratio": baked / traced irradiance per
     bin, "texel_m": the floor's texel in metres}."""
     from ...core.bake.estimators.raytrace import RayScene
-    from ...core.bake.estimators.transfer import Points, TransferSettings, bake_points
-    from ...core.bake.pipeline.context import BakeSettings
-    from ...core.bake.pipeline.runner import bake_scene
-    from ...core.io.exr_io import read_sh_exr
     from ...core.light.envmap import environment_light
-    from ...core.texels.texsample import bilinear
 
     sc = build(resolution)
     light = environment_light(env, 5)
@@ -66,23 +103,9 @@ def profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, sam
     # In the box's frame: x out of its -x side by the bin's distance, y along the side.
     along = np.linspace(-0.3, 0.3, samples) * BOX_SIZE
     out = -(BOX_SIZE / 2 + centres[:, None] * texel) * np.ones_like(along)[None, :]
-    local = np.stack([out.ravel(), np.repeat(along[None, :], bins, 0).ravel()], axis=1)
-    c, s_ = np.cos(BOX_TURN), np.sin(BOX_TURN)
-    xy = local @ np.array([[c, s_], [-s_, c]]) + np.asarray(BOX_CENTRE)
-    P = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
-    up = np.tile([0.0, 0.0, 1.0], (len(P), 1))
-    with tempfile.TemporaryDirectory(prefix="prtt-contact-profile-") as d:
-        bake_scene(sc, os.path.join(d, "b"), settings or BakeSettings(rays=rays, bounces=0))
-        tex, _ = read_sh_exr(os.path.join(d, "b", "floor.transfer.exr"))
-    H, W, K = tex.shape
-    uv = (P[:, :2] + 1.0) / 2.0
-    baked = bilinear(np.ascontiguousarray(tex.reshape(H * W, K), np.float32), W, H, uv).astype(np.float64)
-    pts = Points(P, up, up, np.arange(len(P), dtype=np.int64), np.zeros(len(P), bool))
-    traced, _ = bake_points(RayScene(np.asarray(sc.positions, np.float64)), pts, TransferSettings(bands=5, rays=ref_rays, seed=11))
-    e_baked = (baked @ light).mean(axis=1).reshape(bins, samples)
-    e_traced = (traced.astype(np.float64) @ light).mean(axis=1).reshape(bins, samples)
-    return {"bins": centres, "ratio": e_baked.mean(axis=1) / e_traced.mean(axis=1), "texel_m": texel,
-            "resolution": resolution}
+    tex = _baked_floor(sc, settings, rays)
+    ratio = _ratio(RayScene(np.asarray(sc.positions, np.float64)), tex, out, along, light, ref_rays)
+    return {"bins": centres, "ratio": ratio, "texel_m": texel, "resolution": resolution}
 
 
 #: The shed of zero-thickness walls (leak_profile): a 1 m cube of single
@@ -97,7 +120,6 @@ def build_shed(resolution: int, walls: str = "in"):
     """The core scene: floor (own UVs over [0, 1]) and the shed (xatlas, 128²),
     its walls facing ``walls``: "in" (into the shed) or "out" (as Blender's
     cube with its bottom face deleted); the roof faces up either way."""
-    from ...core.model.scene import validate
     from .scene_library import wall
     h = SHED_SIZE / 2
     f = {"in": 1.0, "out": -1.0}[walls]
@@ -109,14 +131,7 @@ def build_shed(resolution: int, walls: str = "in"):
     for sy in (-1.0, 1.0):
         parts.append(wall((h, sy * (SHED_DOOR / 2 + side / 2), h), (side, SHED_SIZE), facing=(-f, 0, 0)))
     shed = mg.merge(parts).transformed(rotate_z=BOX_TURN, translate=(*BOX_CENTRE, 0.0))
-    floor = mg.plane(2.0, 2.0, subdiv=1)
-    floor.uvs = ((floor.vertices[:, :2] + 1.0) / 2.0)[floor.faces]
-    sc = mg.assemble([("floor", floor), ("shed", shed)], resolution=resolution, keep_uvs=True,
-                     resolutions={"shed": 128})
-    sc.materials = [dict(name="grey", base_color=[0.7, 0.7, 0.7], roughness=0.6)]
-    sc.material_id = np.zeros_like(sc.object_id)
-    validate(sc)
-    return sc
+    return _on_floor("shed", shed, resolution)
 
 
 def leak_profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, samples: int = 300,
@@ -127,38 +142,19 @@ def leak_profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096
     (in the open), along its middle 60 %; ``walls`` as build_shed. {"bins",
     "inside", "outside" (the ratios per bin), "texel_m", "resolution"}."""
     from ...core.bake.estimators.raytrace import RayScene
-    from ...core.bake.estimators.transfer import Points, TransferSettings, bake_points
-    from ...core.bake.pipeline.context import BakeSettings
-    from ...core.bake.pipeline.runner import bake_scene
-    from ...core.io.exr_io import read_sh_exr
     from ...core.light.envmap import environment_light
-    from ...core.texels.texsample import bilinear
 
     sc = build_shed(resolution, walls)
     light = environment_light(env, 5)
     texel = 2.0 / resolution
     centres = (np.arange(bins) + 0.5) / 4.0
     along = np.linspace(-0.3, 0.3, samples) * SHED_SIZE
-    c, s_ = np.cos(BOX_TURN), np.sin(BOX_TURN)
-    with tempfile.TemporaryDirectory(prefix="prtt-leak-profile-") as d:
-        bake_scene(sc, os.path.join(d, "b"), settings or BakeSettings(rays=rays, bounces=0))
-        tex, _ = read_sh_exr(os.path.join(d, "b", "floor.transfer.exr"))
-    H, W, K = tex.shape
+    tex = _baked_floor(sc, settings, rays)
     rs = RayScene(np.asarray(sc.positions, np.float64))
     out = {"bins": centres, "texel_m": texel, "resolution": resolution}
     for side, sign in (("inside", 1.0), ("outside", -1.0)):
         x = -SHED_SIZE / 2 + sign * centres[:, None] * texel * np.ones_like(along)[None, :]
-        local = np.stack([x.ravel(), np.repeat(along[None, :], bins, 0).ravel()], axis=1)
-        xy = local @ np.array([[c, s_], [-s_, c]]) + np.asarray(BOX_CENTRE)
-        P = np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
-        up = np.tile([0.0, 0.0, 1.0], (len(P), 1))
-        baked = bilinear(np.ascontiguousarray(tex.reshape(H * W, K), np.float32), W, H,
-                         (P[:, :2] + 1.0) / 2.0).astype(np.float64)
-        pts = Points(P, up, up, np.arange(len(P), dtype=np.int64), np.zeros(len(P), bool))
-        traced, _ = bake_points(rs, pts, TransferSettings(bands=5, rays=ref_rays, seed=11))
-        e_baked = (baked @ light).mean(axis=1).reshape(bins, samples)
-        e_traced = (traced.astype(np.float64) @ light).mean(axis=1).reshape(bins, samples)
-        out[side] = e_baked.mean(axis=1) / e_traced.mean(axis=1)
+        out[side] = _ratio(rs, tex, x, along, light, ref_rays)
     return out
 
 
