@@ -70,9 +70,10 @@ SIDE_RAYS = 32
 #: the sky its own side sees (dark inside, bright outside; a fence in the open
 #: with the sky on both sides stays where it is).
 DARKER = 0.5
-#: ... and only where under this share of its rays meet back faces (the
-#: inside test's measure; beside a wall the near hits are expected): in the
-#: shed's room of single planes, whose roof faces out, up to 72 % do.
+#: ... and where this share of its rays or more meet back faces (the inside
+#: test's measure; beside a wall the near hits are expected), only if it
+#: sees the sky (SKY_RAYS): a solid, or a room whose walls face out (the
+#: shed's roof faces out: up to 72 % of the rays beside its back wall).
 OPEN_FRACTION = 0.9
 #: ... and only into space: beyond the wall the way on must stay clear for
 #: this many texel steps (not into a rug 1 cm thick lying on the floor, whose
@@ -98,6 +99,15 @@ def texel_step(texel: np.ndarray, position: np.ndarray, width: int) -> float:
     return float(np.median(np.linalg.norm(position[adj + 1] - position[adj], axis=1)))
 
 
+def _cosine(u1: np.ndarray, u2: np.ndarray, t1: np.ndarray, t2: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(M, R, 3) float64 cosine-distributed directions from uniform numbers
+    ``u1``, ``u2`` (M, R) about unit normals ``n`` (M, 3) with tangents
+    ``t1``, ``t2`` (M, 3): r = sqrt(u1), phi = 2 pi u2, z = sqrt(1 - u1)."""
+    r, phi = np.sqrt(u1), 2.0 * np.pi * u2
+    return ((r * np.cos(phi))[..., None] * t1[:, None] + (r * np.sin(phi))[..., None] * t2[:, None]
+            + np.sqrt(1.0 - u1)[..., None] * n[:, None])
+
+
 #: Rays that look for the sky from a point judged inside (inside_texels) or
 #: beyond a wall (across_walls): a solid's inside sees none, a room whose
 #: walls face out sees its door or window (a 0.2 m door 1 m away: ~3 % of a
@@ -121,10 +131,7 @@ def _sees_sky(rays, points: np.ndarray, normals: np.ndarray, n_rays: int, seed) 
         return np.zeros(0, bool)
     rng = np.random.default_rng(seed)
     u1, u2 = rng.random((2, len(points), n_rays))
-    t1, t2 = tangent_frames(normals)
-    r, phi = np.sqrt(u1), 2.0 * np.pi * u2
-    d = ((r * np.cos(phi))[..., None] * t1[:, None] + (r * np.sin(phi))[..., None] * t2[:, None]
-         + np.sqrt(1.0 - u1)[..., None] * normals[:, None])
+    d = _cosine(u1, u2, *tangent_frames(normals), normals)
     o = np.repeat(rays.origins(points, normals), n_rays, axis=0)
     return (~rays.occluded(o, d.reshape(-1, 3).astype(np.float32))).reshape(-1, n_rays).any(axis=1)
 
@@ -199,10 +206,7 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
         def directions(sel, lo, hi):
             """(m, hi - lo, 3) float64: rays lo..hi of texels ``sel`` (only those are
             made: the head's 4 of every texel, the rest's 12 of a few)."""
-            v1, v2 = u1[sel, lo:hi], u2[sel, lo:hi]
-            r, phi = np.sqrt(v1), 2.0 * np.pi * v2
-            return ((r * np.cos(phi))[..., None] * t1[sel, None] + (r * np.sin(phi))[..., None] * t2[sel, None]
-                    + np.sqrt(1.0 - v1)[..., None] * nrm[sel, None])
+            return _cosine(u1[sel, lo:hi], u2[sel, lo:hi], t1[sel], t2[sel], nrm[sel])
 
         # Off the surface along its normal, as the transfer's rays start.
         o = rays.origins(position[a:b], nrm)
@@ -370,19 +374,15 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
         dirs = d[who, cols[first]]
         tw = t[first].astype(np.float64)                          # normalised distance to the wall
         # Mirrored across the wall, unless something stops the way on first.
-        beyond = rays.origins(position[a + who], nrm[who]) + (dirs * (tw[:, None] * (1.0 + 1e-3))).astype(np.float32)
+        beyond = o[who] + (dirs * (tw[:, None] * (1.0 + 1e-3))).astype(np.float32)
         p2, _, _, t2b = rays.intersect(beyond.astype(np.float32), dirs.astype(np.float32))
         further = np.where(p2 >= 0, np.minimum(t2b.astype(np.float64) * 0.5, tw), tw)
         moved = position[a + who] + dirs * ((tw * (1.0 + 1e-3) + further) / rays.scale)[:, None]
         # Both sides' sky, by the same cosine rays about the normal.
         rng = np.random.default_rng([seed, a, 0x5A])
         u1, u2 = rng.random((2, who.size, SIDE_RAYS))
-        r, phi = np.sqrt(u1), 2.0 * np.pi * u2
-        local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - u1)], axis=-1)
         nw = nrm[who]
-        s1, s2 = t1[who], t2[who]
-        rd = (local[..., :1] * s1[:, None] + local[..., 1:2] * s2[:, None] + local[..., 2:] * nw[:, None])
-        rd = rd.reshape(-1, 3)
+        rd = _cosine(u1, u2, t1[who], t2[who], nw).reshape(-1, 3)
 
         def sides(points):
             og = np.repeat(rays.origins(points, nw), SIDE_RAYS, axis=0)
