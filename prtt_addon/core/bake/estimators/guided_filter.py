@@ -68,6 +68,42 @@ def _compiled():
     return jit.load(_JIT)
 
 
+def _band(rows, texel, width, height, position, normal, valid, tg, offsets, spatial, inv_world) -> np.ndarray:
+    """(M, K) float32: the filtered rows of one band's targets ``tg`` (M,),
+    numpy: each target's neighbours (index, weight; weight 0 where there is
+    none), then the weighted sum of their rows, SUB targets at a time (C
+    loops of einsum: the same sums whatever the machine; ~10 MB of gathered
+    rows). Reads ``rows`` only."""
+    N = texel.size
+    flat = texel[tg]
+    y, x = flat // width, flat % width
+    p0, n0 = position[tg], normal[tg]
+    nb = np.zeros((tg.size, len(offsets)), np.int64)
+    wt = np.zeros((tg.size, len(offsets)), np.float64)
+    for o, ((dy, dx), ws) in enumerate(zip(offsets, spatial)):
+        yq, xq = y + dy, x + dx
+        ok = (yq >= 0) & (yq < height) & (xq >= 0) & (xq < width)
+        q = yq * width + xq
+        j = np.minimum(np.searchsorted(texel, q), N - 1)
+        ok &= texel[j] == q
+        ok &= valid[j]
+        i, j = np.flatnonzero(ok), j[ok]
+        dw = np.sum((position[j] - p0[i]) ** 2, axis=1)
+        cos = np.clip(np.sum(normal[j] * n0[i], axis=1), 0.0, 1.0)
+        nb[i, o] = j
+        wt[i, o] = ws * np.exp(-dw * inv_world) * cos ** NORMAL_POWER
+    wsum = wt.sum(axis=1)
+    good = wsum > 0
+    wt[good] /= wsum[good, None]
+    wt = wt.astype(np.float32)
+    out = rows[tg]
+    for a in range(0, tg.size, SUB):
+        b = min(a + SUB, tg.size)
+        g = np.flatnonzero(good[a:b]) + a
+        out[g] = np.einsum("mo,mok->mk", wt[g], rows[nb[g]])
+    return out
+
+
 def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, position: np.ndarray,
                   normal: np.ndarray, targets: np.ndarray, valid: np.ndarray, step: float, *,
                   compiled: bool = True) -> int:
@@ -81,7 +117,6 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     targets = np.asarray(targets, np.int64)
     if targets.size == 0 or step <= 0:
         return 0
-    N = texel.size
     r = RADIUS
     offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
     spatial = [math.exp(-(dy * dy + dx * dx) / (2.0 * SIGMA_TEXELS ** 2)) for dy, dx in offsets]
@@ -92,50 +127,20 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     bands = np.split(np.arange(targets.size), cuts)
     pending = None                    # (rows of the band before, their filtered values)
     fast = _compiled() if compiled else None
+    spatial_f64 = np.asarray(spatial, np.float64)
     for members in bands:
         tg = targets[members]
+        out = None
         if fast is not None:
             out = np.empty((tg.size, rows.shape[1]), np.float32)
             try:
-                fast.smooth_band(rows, texel, width, height, position, normal, valid, tg,
-                                 np.asarray(spatial, np.float64), r, inv_world, NORMAL_POWER, out)
+                fast.smooth_band(rows, texel, width, height, position, normal, valid, tg, spatial_f64, r,
+                                 inv_world, NORMAL_POWER, out)
             except Exception as exc:    # noqa: BLE001 - a numba that imports but cannot compile it
                 jit.broken(_JIT, exc)
-                fast = None
-            else:
-                if pending is not None:
-                    rows[pending[0]] = pending[1]
-                pending = (tg, out)
-                continue
-        flat = texel[tg]
-        y, x = flat // width, flat % width
-        p0, n0 = position[tg], normal[tg]
-        # Each target's neighbours (index, weight; weight 0 where there is none), then the
-        # weighted sum of their rows, SUB targets at a time (C loops of einsum: the same
-        # sums whatever the machine; ~10 MB of gathered rows).
-        nb = np.zeros((tg.size, len(offsets)), np.int64)
-        wt = np.zeros((tg.size, len(offsets)), np.float64)
-        for o, ((dy, dx), ws) in enumerate(zip(offsets, spatial)):
-            yq, xq = y + dy, x + dx
-            ok = (yq >= 0) & (yq < height) & (xq >= 0) & (xq < width)
-            q = yq * width + xq
-            j = np.minimum(np.searchsorted(texel, q), N - 1)
-            ok &= texel[j] == q
-            ok &= valid[j]
-            i, j = np.flatnonzero(ok), j[ok]
-            dw = np.sum((position[j] - p0[i]) ** 2, axis=1)
-            cos = np.clip(np.sum(normal[j] * n0[i], axis=1), 0.0, 1.0)
-            nb[i, o] = j
-            wt[i, o] = ws * np.exp(-dw * inv_world) * cos ** NORMAL_POWER
-        wsum = wt.sum(axis=1)
-        good = wsum > 0
-        wt[good] /= wsum[good, None]
-        wt = wt.astype(np.float32)
-        out = rows[tg]
-        for a in range(0, tg.size, SUB):
-            b = min(a + SUB, tg.size)
-            g = np.flatnonzero(good[a:b]) + a
-            out[g] = np.einsum("mo,mok->mk", wt[g], rows[nb[g]])
+                fast = out = None
+        if out is None:
+            out = _band(rows, texel, width, height, position, normal, valid, tg, offsets, spatial, inv_world)
         # The band before reads no row of this one's neighbours any more: write it now.
         if pending is not None:
             rows[pending[0]] = pending[1]
