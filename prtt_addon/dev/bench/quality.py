@@ -44,10 +44,9 @@ def window(resolution: int, repeat: int) -> dict:
     from ...core.bake.pipeline.context import BakeSettings
     from ...core.bake.pipeline.runner import bake_scene
     from . import window_room as wr
-    off = dict(guided_filter=False, texel_validity=False)
-    before = wr.measure(resolution, rays=(256,), ref_rays=65536, ref_texels=2000, guiding=(False,),
-                        settings=off)["rows"][0]
-    now = wr.measure(resolution, rays=(256,), ref_rays=65536, ref_texels=2000, guiding=(True,))["rows"][0]
+    # Before (no guided rays, no filter, no validity) and now, against one reference.
+    before, now = wr.measure(resolution, rays=(256,), ref_rays=65536, ref_texels=2000,
+                             variants=(dict(guiding=False, guided_filter=False, texel_validity=False), {}))["rows"]
     sc = wr.build(resolution)
     runs = {"unguided": dict(guiding=False, texel_validity=False), "now": {}}
     best = dict.fromkeys(runs, float("inf"))

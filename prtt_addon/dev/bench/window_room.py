@@ -107,11 +107,14 @@ def errors(E: np.ndarray, E_ref: np.ndarray) -> dict:
 
 def measure(resolution: int = 256, *, rays=(256,), ref_rays: int = 8192, ref_texels: int = 3000,
             env: str = "forest", denoisers=("none",), seed: int = 3, guiding=(True,),
-            settings: dict | None = None) -> dict:
+            settings: dict | None = None, variants=None) -> dict:
     """Bake the room at each of ``rays``, with and without ``guiding``
-    (estimators/guided.py), and filter it with each of ``denoisers``
-    (estimators.denoise: "none", "edge-aware", "oidn"); returns
-    {"rows": [{rays, guiding, denoiser, mean, p99, bake_s, denoise_s}], ...}."""
+    (estimators/guided.py), each with ``settings`` (BakeSettings fields), or
+    instead with each of ``variants`` (dicts of BakeSettings fields, guiding
+    included: bakes that differ in more than guiding against one reference),
+    and filter it with each of ``denoisers`` (estimators.denoise: "none",
+    "edge-aware", "oidn"); returns {"rows": [{rays, guiding, denoiser, mean,
+    p99, bake_s, denoise_s}], ...}."""
     from ...core.bake.estimators import denoise
     from ...core.bake.pipeline.context import BakeSettings
     from ...core.bake.pipeline.runner import bake_scene
@@ -139,11 +142,13 @@ def measure(resolution: int = 256, *, rays=(256,), ref_rays: int = 8192, ref_tex
     both = mask[:, 1:] & mask[:, :-1]
     world_step = 2.0 * float(np.median(np.linalg.norm(pos[:, 1:] - pos[:, :-1], axis=-1)[both]))
     rows = []
-    for r, guide in [(r, g) for r in rays for g in guiding]:
+    if variants is None:
+        variants = [dict(settings or {}, guiding=g) for g in guiding]
+    for r, kw in [(r, v) for r in rays for v in variants]:
+        guide = kw.get("guiding", BakeSettings().guiding)
         with tempfile.TemporaryDirectory(prefix="prtt-window-room-") as d:
             t = time.perf_counter()
-            bake_scene(sc, os.path.join(d, "b"), BakeSettings(rays=r, bounces=0, vertex_mode=False, guiding=guide,
-                                                              **(settings or {})))
+            bake_scene(sc, os.path.join(d, "b"), BakeSettings(rays=r, bounces=0, vertex_mode=False, **kw))
             bake_s = time.perf_counter() - t
             tex, _ = read_sh_exr(os.path.join(d, "b", "atlas.transfer.exr"))      # (H, W, K), row 0 at the bottom
         planes = np.ascontiguousarray(tex.transpose(2, 0, 1), np.float32)
