@@ -161,6 +161,21 @@ def _hidden_back(rays, winding, o, d, prim, t, front) -> np.ndarray:
     return out
 
 
+def _back_faces(rays, winding, o: np.ndarray, d: np.ndarray, peel: bool):
+    """Closest hits of rays from ``o`` (R, 3) float32, normalised, along ``d``
+    (R, 3) float64: (hit (R,) bool, back (R,) bool: the hit is a back face,
+    or with ``peel`` a front face with a back face just behind it, t (R,)
+    float32 normalised distance)."""
+    df = d.astype(np.float32)
+    prim, _, _, t = rays.intersect(o, df)
+    hit = prim >= 0
+    back = np.zeros(len(d), bool)
+    back[hit] = np.einsum("ij,ij->i", d[hit], winding[prim[hit]]) > 0
+    if peel:
+        back |= _hidden_back(rays, winding, o, df, prim, t, hit & ~back)
+    return hit, back, t
+
+
 def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np.ndarray, *,
                   contact: float = 0.0, seed: int = 0, executor=None, grid=None) -> np.ndarray:
     """(N,) bool: sample points (N, 3) world, with geometric normals (N, 3)
@@ -185,15 +200,9 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
         """(M, nr) bool: rays from o (M * nr, 3) float32, normalised, along d (M * nr, 3) float64
         hit a back face or anything nearer than contact; with ``peel`` also a
         front face with a back face just behind it (_hidden_back)."""
-        df = d.astype(np.float32)
-        prim, _, _, t = rays.intersect(o, df)
-        hit = prim >= 0
-        bad = np.zeros(len(d), bool)
-        bad[hit] = np.einsum("ij,ij->i", d[hit], winding[prim[hit]]) > 0
+        hit, bad, t = _back_faces(rays, winding, o, d, peel)
         if contact > 0:
             bad |= hit & (t < near)
-        if peel:
-            bad |= _hidden_back(rays, winding, o, df, prim, t, hit & ~bad)
         return bad.reshape(-1, nr)
 
     def chunk(a: int) -> None:
@@ -386,12 +395,7 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
 
         def sides(points):
             og = np.repeat(rays.origins(points, nw), SIDE_RAYS, axis=0)
-            rdf = rd.astype(np.float32)
-            pr, _, _, tt = rays.intersect(og, rdf)
-            h = pr >= 0
-            back = np.zeros(len(rd), bool)
-            back[h] = np.einsum("ij,ij->i", rd[h], winding[pr[h]]) > 0
-            back |= _hidden_back(rays, winding, og, rdf, pr, tt, h & ~back)
+            h, back, _ = _back_faces(rays, winding, og, rd, True)
             return (~h).reshape(-1, SIDE_RAYS).sum(axis=1), back.reshape(-1, SIDE_RAYS).sum(axis=1)
 
         # The texel's surface must go on under the wall to the mirrored point (a
