@@ -14,10 +14,15 @@ in one table, each measured before its fix and at today's defaults.
   interleaved runs);
 * seams (bench seam_error, a torus unwrapped in Blender by Lightmap Pack and
   Smart UV Project): the p99 error of the pixels within a texel of an island
-  border, TPFL against a traced truth (needs bpy; ``--no-seams`` skips it).
+  border, TPFL against a traced truth (needs bpy; ``--no-seams`` skips it);
+* the crease and the leak again against Cycles (bench/contact_cycles.py: the
+  same scenes in Blender under a band-limited World, the floor's irradiance
+  from an orthographic Cycles render; needs bpy, ``--no-cycles`` skips it),
+  with the traced reference's own distance from Cycles beside them.
 
 Every reference is traced, not baked: the traced transfer at the points
-themselves (contacts, leak), cosine rays without guiding (the window room).
+themselves (contacts, leak), cosine rays without guiding (the window room);
+Cycles confirms the first two.
 """
 from __future__ import annotations
 
@@ -25,6 +30,8 @@ import argparse
 import os
 import tempfile
 import time
+
+import numpy as np
 
 
 def contacts(resolution: int = 112) -> dict:
@@ -61,6 +68,21 @@ def window(resolution: int, repeat: int) -> dict:
     return {"before": before, "now": now, "seconds": best}
 
 
+def cycles(resolution: int = 112, samples: int = 256) -> dict:
+    """The crease and the leak's profiles against Cycles, before and now."""
+    from ...core.bake.pipeline.context import BakeSettings
+    from .contact_cycles import cycles_profile
+    variants = {k: BakeSettings(rays=256, bounces=0, texel_validity=k == "now") for k in ("before", "now")}
+    box = cycles_profile("box", resolution, samples=samples, variants=variants)
+    shed = cycles_profile("shed", resolution, samples=samples, variants=variants)
+    out = {k: {"crease": float(box["baked"][k]["out"][:3].min()),
+               "leak_inside": float(shed["baked"][k]["inside"].max()),
+               "leak_outside": float(shed["baked"][k]["outside"].min())} for k in variants}
+    out["traced_off"] = float(max(np.abs(box["traced"]["out"] - 1).max(),
+                                  *(np.abs(v - 1).max() for v in shed["traced"].values())))
+    return out
+
+
 def seams() -> dict:
     import bpy
 
@@ -77,7 +99,18 @@ def main(argv=None) -> int:
     p.add_argument("--resolution", type=int, default=512, help="the window room's atlas")
     p.add_argument("--repeat", type=int, default=4, help="interleaved runs of the timed window-room bakes")
     p.add_argument("--no-seams", action="store_true", help="skip the seam row (it needs bpy)")
+    p.add_argument("--no-cycles", action="store_true", help="skip the rows against Cycles (they need bpy)")
+    p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel for those rows")
+    p.add_argument("--figures", action="store_true",
+                   help="also draw docs/images/quality_window.png and quality_contact.png (bench/quality_figures.py)")
+    p.add_argument("--only-figures", action="store_true", help="draw the pictures and measure nothing")
     a = p.parse_args(argv)
+    if a.figures or a.only_figures:
+        from . import quality_figures as qf
+        for path in qf.save(qf.window_images(), qf.contact_images()):
+            print(f"wrote {os.path.relpath(path, qf.scene_library.ROOT)}", flush=True)
+        if a.only_figures:
+            return 0
     c = contacts()
     w = window(a.resolution, a.repeat)
     ratio = w["seconds"]["now"] / w["seconds"]["unguided"]
@@ -94,6 +127,18 @@ def main(argv=None) -> int:
         (f"window room: bake time x the bake before guiding (fastest of {a.repeat})",
          "1.00", f"{ratio:.2f} ({w['seconds']['now']:.2f} s / {w['seconds']['unguided']:.2f} s)", "<= 1.5"),
     ]
+    if not a.no_cycles:
+        y = cycles(samples=a.samples)
+        rows += [
+            ("crease against Cycles (lowest of the first 3 bins)", f"{y['before']['crease']:.3f}",
+             f"{y['now']['crease']:.3f}", ">= 0.9"),
+            ("leak against Cycles, inside (highest bin)", f"{y['before']['leak_inside']:.2f}x",
+             f"{y['now']['leak_inside']:.2f}x", "no bright leak"),
+            ("  ... outside (lowest bin)", f"{y['before']['leak_outside']:.3f}", f"{y['now']['leak_outside']:.3f}",
+             ""),
+            (f"  (the traced reference's largest distance from Cycles, {a.samples} samples a pixel)", "",
+             f"{y['traced_off']:.1%}", ""),
+        ]
     if not a.no_seams:
         s = seams()
         rows.append(("seam p99, torus 512²: Lightmap Pack (Smart UV Project beside it)",
