@@ -16,6 +16,8 @@ BENCHMARKS = {
     "contact-profile": ("prtt_addon.dev.bench.contact_profile", "the floor's baked light beside a box against the "
                         "traced light, in quarter-texel bins (dark creases at contacts; --leak: a shed of "
                         "single-plane walls)"),
+    "contact-cycles": ("prtt_addon.dev.bench.contact_cycles", "the contact-profile's bins against a Cycles render "
+                       "of the floor (--leak: across the shed's single-plane wall), the traced light beside it"),
     "quality": ("prtt_addon.dev.bench.quality", "issue 53's lightmap artefacts (contact creases, leaks under "
                 "single-plane walls, a window-lit room's noise and time, seams) before their fixes and now"),
     "window-room": ("prtt_addon.dev.bench.window_room", "a room lit only through a window: the transfer's "

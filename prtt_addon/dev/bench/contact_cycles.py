@@ -24,6 +24,7 @@ traced / Cycles are the mean over the bin's pixels.
 """
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import tempfile
@@ -114,7 +115,7 @@ def cycles_profile(kind: str = "box", resolution: int = 112, *, ref_rays: int = 
     try:
         env = os.path.join(d, "band_limited_city.exr")
         light = band_limited_environment(env)
-        texs = {k: cp._baked_floor(sc, st, 0) for k, st in variants.items()}
+        texs = {k: cp.baked_floor(sc, st, 0) for k, st in variants.items()}
         E, x, y = render_strip(bpy, sc, kind, env, os.path.join(d, f"{kind}.exr"), texel=texel, bins=bins,
                                samples=samples)
     finally:
@@ -154,3 +155,33 @@ def cycles_profile(kind: str = "box", resolution: int = 112, *, ref_rays: int = 
             out["baked"][k][name] = np.array([ratio(e_baked[k], m) for m in in_bin])
         out["traced"][name] = np.array([ratio(e_traced, m & sub) for m in in_bin])
     return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m prtt_addon.dev.bench contact-cycles", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--resolution", type=int, default=112, help="the floor's texels a side (112: 1.8 cm texels)")
+    p.add_argument("--rays", type=int, default=256)
+    p.add_argument("--ref-rays", type=int, default=2048, help="the traced transfer's rays a point")
+    p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel")
+    p.add_argument("--leak", action="store_true", help="the shed of single-plane walls instead of the box")
+    p.add_argument("--texel-validity", action=argparse.BooleanOptionalAction, default=True,
+                   help="bake with texel validity (the default) or without")
+    a = p.parse_args(argv)
+    from ...core.bake.pipeline.context import BakeSettings
+    st = BakeSettings(rays=a.rays, bounces=0, texel_validity=a.texel_validity)
+    r = cycles_profile("shed" if a.leak else "box", a.resolution, ref_rays=a.ref_rays, samples=a.samples,
+                       variants={"baked": st})
+    print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m), texel validity "
+          f"{'on' if a.texel_validity else 'off'}; irradiance / Cycles' ({a.samples} samples a pixel) by "
+          f"distance from the {'shed' if a.leak else 'box'}, in texels:")
+    sides = list(r["traced"])
+    print("  texels" + "".join(f"  {s + ' baked':>14}  {s + ' traced':>14}" for s in sides))
+    for b, c in enumerate(r["bins"]):
+        print(f"  {c:5.3f} " + "".join(f"  {r['baked']['baked'][s][b]:14.3f}  {r['traced'][s][b]:14.3f}"
+                                      for s in sides))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -53,7 +53,7 @@ def build(resolution: int):
     return _on_floor("box", box, resolution)
 
 
-def _baked_floor(sc, settings, rays: int):
+def baked_floor(sc, settings, rays: int):
     """The floor's transfer texture (H, W, K) as the bake writes it, with
     ``settings`` (default: ``rays`` rays, no bounce)."""
     from ...core.bake.pipeline.context import BakeSettings
@@ -103,7 +103,7 @@ def profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096, sam
     # In the box's frame: x out of its -x side by the bin's distance, y along the side.
     along = np.linspace(-0.3, 0.3, samples) * BOX_SIZE
     out = -(BOX_SIZE / 2 + centres[:, None] * texel) * np.ones_like(along)[None, :]
-    tex = _baked_floor(sc, settings, rays)
+    tex = baked_floor(sc, settings, rays)
     ratio = _ratio(RayScene(np.asarray(sc.positions, np.float64)), tex, out, along, light, ref_rays)
     return {"bins": centres, "ratio": ratio, "texel_m": texel, "resolution": resolution}
 
@@ -149,7 +149,7 @@ def leak_profile(resolution: int = 112, *, rays: int = 256, ref_rays: int = 4096
     texel = 2.0 / resolution
     centres = (np.arange(bins) + 0.5) / 4.0
     along = np.linspace(-0.3, 0.3, samples) * SHED_SIZE
-    tex = _baked_floor(sc, settings, rays)
+    tex = baked_floor(sc, settings, rays)
     rs = RayScene(np.asarray(sc.positions, np.float64))
     out = {"bins": centres, "texel_m": texel, "resolution": resolution}
     for side, sign in (("inside", 1.0), ("outside", -1.0)):
@@ -172,25 +172,9 @@ def main(argv=None) -> int:
     p.add_argument("--walls", choices=("in", "out"), default="in",
                    help="with --leak: the shed's walls face into it (the default) or out (Blender's cube with its "
                         "bottom deleted)")
-    p.add_argument("--cycles", type=int, metavar="SAMPLES", default=0,
-                   help="against Cycles instead (bench/contact_cycles.py: a band-limited World, an orthographic "
-                        "render of the floor with SAMPLES a pixel; needs bpy), the traced reference beside it")
     args = p.parse_args(argv)
     from ...core.bake.pipeline.context import BakeSettings
     settings = BakeSettings(rays=args.rays, bounces=0, texel_validity=args.texel_validity)
-    if args.cycles:
-        from .contact_cycles import cycles_profile
-        r = cycles_profile("shed" if args.leak else "box", args.resolution, ref_rays=args.ref_rays,
-                           samples=args.cycles, variants={"baked": settings})
-        print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m), texel validity "
-              f"{'on' if args.texel_validity else 'off'}; irradiance / Cycles' ({args.cycles} samples a pixel) by "
-              f"distance from the {'shed' if args.leak else 'box'}, in texels:")
-        sides = list(r["traced"])
-        print("  texels" + "".join(f"  {s + ' baked':>14}  {s + ' traced':>14}" for s in sides))
-        for b, c in enumerate(r["bins"]):
-            print(f"  {c:5.3f} " + "".join(f"  {r['baked']['baked'][s][b]:14.3f}  {r['traced'][s][b]:14.3f}"
-                                          for s in sides))
-        return 0
     if args.leak:
         r = leak_profile(args.resolution, rays=args.rays, ref_rays=args.ref_rays, settings=settings, walls=args.walls)
         print(f"floor texel {r['texel_m'] * 100:.2f} cm ({r['resolution']}² over 2 m), texel validity "
