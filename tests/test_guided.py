@@ -201,3 +201,25 @@ def test_many_rays_at_many_bands_project_in_pieces(room, monkeypatch):
     # Every projection held at most 40 rays, and points were split: more pieces than points.
     assert max(sizes) <= 40 and len(sizes) > pts.n
     np.testing.assert_allclose(pieces, whole, rtol=0, atol=2e-6 * float(np.abs(whole).max()))
+
+
+def test_inversion_matches_a_per_sample_search():
+    """guided._invert (one integer search over every row) against each sample
+    inverted alone in its own row: the same bin, the same place in it."""
+    from prtt_addon.core.bake.estimators.guided import _invert
+    rng = np.random.default_rng(4)
+    p = rng.random((7, 32)) * (rng.random((7, 32)) < 0.3)
+    p[:, 5] += 0.01
+    cdf = np.cumsum(p / p.sum(axis=1, keepdims=True), axis=1).astype(np.float32)
+    cdf[:, -1] = 1.0
+    group = rng.integers(0, 7, 5000)
+    u = rng.random(5000)
+    u[:10] = 0.0
+    b, f = _invert(cdf, group, u)
+    for k in range(u.size):
+        row = np.round(cdf[group[k]].astype(np.float64) * 2.0 ** 32)
+        bk = min(int(np.searchsorted(row, np.floor(u[k] * 2.0 ** 32), side="right")), 31)
+        lo = float(cdf[group[k], bk - 1]) if bk else 0.0
+        width = float(cdf[group[k], bk]) - lo
+        assert b[k] == bk
+        assert f[k] == (min(max((u[k] - lo) / width, 0.0), np.nextafter(1.0, 0.0)) if width > 0 else 0.0)

@@ -319,15 +319,23 @@ def _invert(cdf: np.ndarray, group: np.ndarray, u: np.ndarray):
     does not depend on which rows share the search (a chunk's cells), as a
     float sum row + cdf would through its rounding."""
     G, B = cdf.shape
-    c = cdf.astype(np.float64)
-    flat = ((np.arange(G, dtype=np.int64)[:, None] << 33) + np.round(c * 2.0 ** 32).astype(np.int64)).ravel()
-    key = (group.astype(np.int64) << 33) + np.floor(u * 2.0 ** 32).astype(np.int64)
-    pos = np.minimum(np.searchsorted(flat, key, side="right"), group * B + B - 1)
+    c = cdf.astype(np.float64).ravel()
+    flat = ((np.arange(G, dtype=np.int64)[:, None] << 33) + np.round(c * 2.0 ** 32).astype(np.int64).reshape(G, B)).ravel()
+    # u >= 0: truncation is the floor.
+    key = (u * 2.0 ** 32).astype(np.int64)
+    g33 = group.astype(np.int64) << 33
+    key += g33
+    pos = np.searchsorted(flat, key, side="right")
+    last = group * B + (B - 1)
+    np.minimum(pos, last, out=pos)
     b = pos - group * B
-    lower = np.where(b > 0, c.ravel()[np.maximum(pos - 1, 0)], 0.0)
-    width = c.ravel()[pos] - lower
-    frac = np.divide(u - lower, width, out=np.zeros_like(u), where=width > 0)
-    return b, np.clip(frac, 0.0, np.nextafter(1.0, 0.0))
+    lower = c[np.maximum(pos - 1, 0)]
+    lower[b == 0] = 0.0
+    width = c[pos] - lower
+    frac = u - lower
+    np.divide(frac, width, out=frac, where=width > 0)
+    frac[~(width > 0)] = 0.0
+    return b, np.clip(frac, 0.0, np.nextafter(1.0, 0.0), out=frac)
 
 
 def guide_directions(guide: Guide, cell: np.ndarray, ids: np.ndarray, rays: int, seed: int):
@@ -349,16 +357,22 @@ def guide_directions(guide: Guide, cell: np.ndarray, ids: np.ndarray, rays: int,
     local = local.ravel()
     u = sobol2(rays, int(hash_u32(seed, _SALT_GUIDE)))
     shift = np.stack([hash_unit(seed, pc, pp, _SALT_GUIDE, 1), hash_unit(seed, pc, pp, _SALT_GUIDE, 2)], axis=-1)
-    w = ((u[None, :, :] + shift[:, None, :]) % 1.0).reshape(-1, 2)
+    # (u + shift) mod 1 for both in [0, 1): a sum in [1, 2) less 1 is exact (Sterbenz).
+    w = (u[None, :, :] + shift[:, None, :]).reshape(-1, 2)
+    w[w >= 1.0] -= 1.0
     grp = local.repeat(rays)
     iz, fz = _invert(guide.row_cdf[cells], grp, w[:, 0])
     ip, fp = _invert(guide.col_cdf[cells].reshape(-1, BINS_PHI), grp * BINS_Z + iz, w[:, 1])
     z = -1.0 + (iz + fz) * (2.0 / BINS_Z)
     phi = -math.pi + (ip + fp) * (2.0 * math.pi / BINS_PHI)
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    d = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1).astype(np.float32).reshape(pairs.size, rays, 3)
-    b = (iz * BINS_PHI + ip).astype(np.int32).reshape(pairs.size, rays)
-    return d[which], b[which]
+    # Each product rounded once to float32, as a float64 array's astype would.
+    d = np.empty((z.size, 3), np.float32)
+    np.multiply(r, np.cos(phi), out=d[:, 0], casting="same_kind")
+    np.multiply(r, np.sin(phi), out=d[:, 1], casting="same_kind")
+    d[:, 2] = z
+    b = (iz * BINS_PHI + ip).astype(np.int32)
+    return d.reshape(pairs.size, rays, 3)[which], b.reshape(pairs.size, rays)[which]
 
 
 def guided_transfer(rs: RayScene, position, normal, geo_normal, ids, idx: np.ndarray, guide: Guide,
