@@ -106,6 +106,14 @@ def job_light(extra: dict, override=None):
     return coeffs
 
 
+def job_sun(extra: dict):
+    """The job's sun (core.light.sun.Sun) from extra["sun"], or None; ValueError
+    (SunError) naming what is wrong with it (a job file is untrusted input)."""
+    from .core.light.sun import Sun  # deferred (start-up)
+    spec = extra.get("sun")
+    return None if spec is None else Sun.from_dict(spec)
+
+
 def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
     """Refuse (MemoryLimitError) a job whose arrays plus the least any bake of
     it holds (memory_plan.floor_bytes: its largest set's float32 planes) do
@@ -159,6 +167,7 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
             settings.update(overrides or {})
             st = BakeSettings.from_dict(settings).validate()
             light = job_light(job.extra, light_override)
+            sun = job_sun(job.extra)
             check_job_memory(job, st, resolution=resolution,
                              bouncing=light is not None and st.bounces > 0 and st.textures)
             emit({"type": "progress", "stage": "load", "fraction": 0.0})
@@ -175,7 +184,7 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
               "light": None if light is None else (extra.get("light") or {}).get("description", "given")})
         source = extra.get("blend") if isinstance(extra.get("blend"), str) and extra.get("blend") else None
         bake_scene(sc, out_dir, st, light=light, progress=emit, cancel=cancel, skip_if_unchanged=not force,
-                   job=os.path.abspath(job_path), source=source, dask=dask)
+                   job=os.path.abspath(job_path), source=source, dask=dask, sun=sun)
     except Cancelled:
         emit({"type": "cancelled"})
         return EXIT_CANCELLED

@@ -82,3 +82,33 @@ vec3 shade_point(vec4 T4[SH_K4], vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec
   return outgoing(dc, glossy, albedo, spec);
 #endif
 }
+
+#ifdef PRTT_SUN
+/* The sun's direct light at a point (core.shading.shade.sun_direct): the
+ * uniform block `sun` holds direction (xyz unit towards the sun, w = angle² / 16,
+ * the disc's widening of a Phong lobe) and irradiance (rgb, W/m² facing it);
+ * sunTex (r) the visible fraction of its disc, baked per texel at PRTT UV uv.
+ * B = mask max(0, n.l) E (albedo / pi + spec (s' + 1) / (2 pi) max(0, r.l)^s'),
+ * s' = 1 / (1 / s + w); the diffuse mode leaves the lobe out. */
+vec3 sun_light(vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
+{
+  vec3 l = sun.direction.xyz;
+  float c = max(dot(n, l), 0.0) * textureLod(sunTex, uv, 0.0).r;
+  if (!(c > 0.0)) {
+    return vec3(0.0);
+  }
+  vec3 b = albedo / PRTT_PI;
+#  ifndef PRTT_DIFFUSE
+  if (any(greaterThan(spec, vec3(0.0)))) {
+    vec3 r = 2.0 * dot(n, v) * n - v;
+    float rl2 = dot(r, r);
+    r = (rl2 > 0.0) ? r * inversesqrt(rl2) : n;
+    float s = (exponent > 0.0) ? 1.0 / (1.0 / exponent + sun.direction.w) : 0.0;
+    float rl = max(dot(r, l), 0.0);
+    float lobe = (s > 0.0) ? pow(rl, s) : 1.0;
+    b += spec * ((s + 1.0) / (2.0 * PRTT_PI) * lobe);
+  }
+#  endif
+  return b * sun.irradiance.rgb * c;
+}
+#endif

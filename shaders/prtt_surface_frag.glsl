@@ -22,6 +22,9 @@ void main()
     T4[q] = textureLod(transferTex, vec3(prtt_uv, float(q)), 0.0);
   }
   vec3 color = shade_point(T4, prtt_uv, n, v, albedo, spec, exponent);
+#ifdef PRTT_SUN
+  color += sun_light(prtt_uv, n, v, albedo, spec, exponent);
+#endif
   FragColor = vec4(color * view.params.x, 1.0);
 #ifdef PRTT_DISPLAY
   /* The scene's view transform; the colour buffer encodes sRGB (prtt_display.glsl). */

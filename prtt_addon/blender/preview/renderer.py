@@ -34,7 +34,7 @@ import numpy as np
 from gpu_extras.batch import batch_for_shader
 
 from ...core.base.memory import GiB, MemoryLimitError, check_fits
-from ...core.io.exr_io import TextureError
+from ...core.io.exr_io import TextureError, texture_header
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import FRAGMENT_MODES, GAUNT_WIDTH, MODES, VERTEX_MODES
 from ..versions import layer_slot
@@ -171,7 +171,8 @@ class Renderer:
         H, W, _ = rgba_bottom_first.shape
         return gpu.types.GPUTexture((W, H), format="RGBA32F", data=_buffer(rgba_bottom_first))
 
-    def set_needs(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int, light) -> tuple:
+    def set_needs(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int, light,
+                  want_sun: bool = False) -> tuple:
         """(GPU bytes, staging bytes) of the set's textures that are not on the
         GPU yet, from the files' headers (pack's ``plan``): what uploading them
         adds to memory (on a software GPU such as llvmpipe the textures are
@@ -200,6 +201,8 @@ class Renderer:
             add(("bounce", s.key), lambda: pp.bounce_level_layers(s.bounces, K).plan())
         if want_vertex and s.vertex:
             add(("vertex", s.key), lambda: (2 * _npz_bytes(s.vertex),) * 2)
+        if want_sun and s.sun:
+            add(("sun", s.key), lambda: (lambda H, W: (2 * H * W, 6 * H * W))(*texture_header(s.sun)[2:4]))
         return total, staging
 
     def planned_bytes(self, ps: pp.PreviewScene, mode: str) -> tuple:
@@ -214,7 +217,8 @@ class Renderer:
             if s is None or s.name in seen or (vertex_mode and not s.vertex):
                 continue
             seen.add(s.name)
-            t, st = self.set_needs(s, ps.use_bounces, vertex_mode, ps.bands, ps.light)
+            t, st = self.set_needs(s, ps.use_bounces, vertex_mode, ps.bands, ps.light,
+                                   ps.sun is not None and not vertex_mode)
             total, staging = total + t, max(staging, st)
         for i, img in enumerate(ps.images):
             key = ps.image_keys[i] if i < len(ps.image_keys) else None
@@ -223,14 +227,15 @@ class Renderer:
                 total, staging = total + 16 * texels, max(staging, 16 * texels)
         return total, staging
 
-    def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int, light):
-        """The set's (transfer, bounce, vertex) textures, each (GPUTexture, bytes) or
+    def _set_textures(self, s: pp.PreviewSet, want_bounce: bool, want_vertex: bool, bands: int, light,
+                      want_sun: bool = False):
+        """The set's (transfer, bounce, vertex, sun) textures, each (GPUTexture, bytes) or
         None; loaded, checked against the bake's band count and uploaded once
         (relightable bounces once per ``light``, (K, 3): :meth:`_relit_bounce`).
         TextureUploadError before anything is read when they would not fit in
         the memory available (:meth:`set_needs`)."""
         key, K = s.key, bands * bands
-        need, stage = self.set_needs(s, want_bounce, want_vertex, bands, light)
+        need, stage = self.set_needs(s, want_bounce, want_vertex, bands, light, want_sun)
         if need:        # every frame asks; only a set with something to upload reads the memory available
             try:
                 check_fits(need + stage, f"{s.transfer}: uploading its set's textures ({need / GiB:.2f} GiB on the "
@@ -265,9 +270,17 @@ class Renderer:
             _check_coeffs(data, 2, K, s.vertex)
             return self._array_texture(pp.pack_vertex_transfer(data), s.vertex)
 
+        def sun():
+            mask = np.ascontiguousarray(_load(s.load_sun, s.sun), np.float32)      # (H, W), row 0 at the bottom
+            H, W = mask.shape
+            _check_limits(s.sun, W, H, 1)
+            # Half holds a mask of R <= 2048 rays exactly (multiples of 1 / R).
+            return gpu.types.GPUTexture((W, H), format="R16F", data=_buffer(mask)), 2 * H * W
+
         return (self._get(("transfer", key), transfer),
                 self._get(("bounce", s.bounce_key(light)), bounce) if want_bounce and s.has_bounce else None,
-                self._get(("vertex", key), vertex) if want_vertex and s.vertex else None)
+                self._get(("vertex", key), vertex) if want_vertex and s.vertex else None,
+                self._get(("sun", key), sun) if want_sun and s.sun else None)
 
     def _relit_bounce(self, s: pp.PreviewSet, light, bands: int):
         """The bounce texture of relightable set ``s`` under ``light`` (K, 3), made
@@ -379,7 +392,8 @@ class Renderer:
                 skipped[m.name] = STALE_VERTEX_TRANSFER
                 continue
             try:
-                tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands, ps.light)
+                tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands, ps.light,
+                                         ps.sun is not None and not vertex_mode)
             except TextureUploadError as exc:
                 skipped[m.name] = f"cannot use its texture {exc}"
                 continue
@@ -432,8 +446,11 @@ class Renderer:
             else:
                 gpu.state.depth_mask_set(True)
             lut = self._display_lut(display) if display is not None else None
-            for m, (transfer, bounce, vertex) in todo:
-                self._draw_mesh(ps, m, mode, light, transfer, bounce, vertex, lut)
+            sun_ubo = (self._get(("sun-block", ps.sun), lambda: gpu.types.GPUUniformBuf(_buffer(ps.sun.block())))
+                       if ps.sun is not None else None)
+            for m, (transfer, bounce, vertex, sun) in todo:
+                self._draw_mesh(ps, m, mode, light, transfer, bounce, vertex, lut,
+                                (sun[0], sun_ubo) if sun is not None else None)
                 stats.drawn.append(m.name)
                 stats.triangles += m.triangles
         finally:
@@ -450,9 +467,12 @@ class Renderer:
         return self._get(("display", display.lut_digest), lambda: gpu.types.GPUTexture(
             (n, n, n), format="RGBA16F", data=_buffer(display.block())))
 
-    def _draw_mesh(self, ps, m, mode, light, transfer, bounce, vertex, lut=None):
-        sh = gpu_shaders.surface_shader(mode, ps.bands, bounce is not None, lut is not None)
+    def _draw_mesh(self, ps, m, mode, light, transfer, bounce, vertex, lut=None, sun=None):
+        sh = gpu_shaders.surface_shader(mode, ps.bands, bounce is not None, lut is not None, sun is not None)
         sh.bind()
+        if sun is not None:
+            sh.uniform_sampler("sunTex", sun[0])
+            sh.uniform_block("sun", sun[1])
         if lut is not None:
             sh.uniform_sampler("displayLut", lut)
         sh.uniform_block("view", self._view_ubo)

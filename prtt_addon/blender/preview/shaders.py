@@ -63,8 +63,8 @@ def build(v: Variant):
     return sh
 
 
-def surface_shader(mode: str, bands: int, bounce: bool, display: bool = False):
-    return build(variant(mode, bands, bounce=bounce, display=display))
+def surface_shader(mode: str, bands: int, bounce: bool, display: bool = False, sun: bool = False):
+    return build(variant(mode, bands, bounce=bounce, display=display, sun=sun))
 
 
 def depth_shader():

@@ -622,3 +622,30 @@ def read_sh_exr(path) -> tuple[np.ndarray, dict]:
     if rgb:
         data = data.reshape(H, W, 3, K)
     return data, attrs
+
+
+#: The channel of a sun mask texture (kind "sun_mask", core/bake/estimators/sun_mask.py).
+SUN_MASK_CHANNEL = "sun"
+
+
+def write_mask_exr(path, mask: np.ndarray, *, attrs: dict | None = None, atomic: bool = True) -> str:
+    """Write a sun mask, (H, W) float32 in [0, 1], row 0 at the bottom, as one
+    half channel ``sun`` (kind "sun_mask", prtt_bands 1). A mask of R rays is
+    made of multiples of 1 / R, which half stores exactly for R <= 2048."""
+    m = np.asarray(mask, np.float32)
+    if m.ndim != 2:
+        raise ValueError(f"a sun mask is (H, W), got {m.shape}")
+    return write_sh_planes(path, m[None], kind="sun_mask", half=True, attrs=attrs, atomic=atomic,
+                           names=[SUN_MASK_CHANNEL], bands=1, full_bits=[True])
+
+
+def read_mask_exr(path) -> tuple[np.ndarray, dict]:
+    """(mask (H, W) float32, row 0 at the bottom, attrs) of a sun mask texture;
+    TextureError for any other file."""
+    chans, attrs = _read_channels(path)
+    if attrs.get("kind") != "sun_mask":
+        raise TextureError(f"{path}: a {shown(attrs.get('kind'))} texture, not a sun mask")
+    data = _stack(path, chans, [SUN_MASK_CHANNEL])[..., 0]
+    if not np.isfinite(data).all() or data.min() < 0.0 or data.max() > 1.0:
+        raise TextureError(f"{path}: sun mask values outside [0, 1]")
+    return data, attrs

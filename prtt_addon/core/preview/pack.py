@@ -32,6 +32,7 @@ from ..io.exr_io import (
     bands_of_header,
     channel_names,
     glossy_tint,
+    read_mask_exr,
     read_relight_exr,
     read_sh_exr,
     relight_channel_names,
@@ -227,6 +228,7 @@ class PreviewSet:
     bounces: tuple = ()
     vertex: str | None = None
     relight: str | None = None
+    sun: str | None = None        # <set>.sun.exr: the visible fraction of the sun's disc per texel
 
     @property
     def has_bounce(self) -> bool:
@@ -242,7 +244,7 @@ class PreviewSet:
     @property
     def key(self) -> str:
         parts = []
-        for p in (self.transfer, *self.bounces, self.vertex, self.relight):
+        for p in (self.transfer, *self.bounces, self.vertex, self.relight, self.sun):
             if p:
                 try:
                     st = os.stat(p)
@@ -292,6 +294,10 @@ class PreviewSet:
         L[:given.shape[0]] = given
         return apply_light(dc, glossy, L, bands)
 
+    def load_sun(self) -> np.ndarray | None:
+        """(H, W) float32 sun mask, row 0 at the bottom, or None."""
+        return read_mask_exr(self.sun)[0] if self.sun else None
+
     def load_vertex(self) -> np.ndarray | None:
         """(V, K) float32 per-vertex transfer, or None."""
         if not self.vertex:
@@ -322,6 +328,27 @@ class PreviewScene:
     normal_maps: bool = True
     material_names: list = dataclasses.field(default_factory=list)
     image_names: list = dataclasses.field(default_factory=list)
+    sun: "PreviewSun | None" = None      # drawn where a set has its mask (PreviewSet.sun)
+
+
+@dataclasses.dataclass(frozen=True)
+class PreviewSun:
+    """A sun as the preview draws it (core.light.sun.Sun's conventions):
+    direction (3,) unit towards it, irradiance (3,) W/m² facing it (its colour
+    times strength, live), angle its disc's full angle (radians)."""
+
+    direction: tuple
+    irradiance: tuple
+    angle: float
+
+    @classmethod
+    def of(cls, sun) -> "PreviewSun":
+        """From a core.light.sun.Sun."""
+        return cls(tuple(sun.direction), tuple(float(v) for v in sun.irradiance), float(sun.angle))
+
+    def block(self) -> np.ndarray:
+        """The PRTTSun uniform block: direction and angle² / 16, irradiance; flat float32."""
+        return np.array([*self.direction, self.angle * self.angle / 16.0, *self.irradiance, 0.0], np.float32)
 
 
 # --- packing for the GPU ------------------------------------------------------------
@@ -768,9 +795,11 @@ def view_block(view_projection: np.ndarray, camera: np.ndarray, exposure: float,
 
 # --- a PreviewScene straight from a core Scene and its bake (benchmarks, tests) ------------
 
-def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_bounces: bool = True) -> PreviewScene:
+def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_bounces: bool = True,
+                    sun=None) -> PreviewScene:
     """Every baked object of ``sc`` as a DrawMesh (world space, identity
-    matrix), with the textures the bake wrote to ``out_dir``.
+    matrix), with the textures the bake wrote to ``out_dir``; ``sun`` (a
+    core.light.sun.Sun) drawn with the sets' masks.
 
     Materials come from ``sc.materials`` (default grey where none), material
     textures from ``sc.textures``; normal maps are not carried over (the
@@ -789,9 +818,11 @@ def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_boun
                         if f.startswith(f"{set_name}.bounce") and f.endswith(".exr"))
         vfile = f"{set_name}.vertex.npz"
         rfile = f"{set_name}.relight.exr"
+        sfile = f"{set_name}.sun.exr"
         sets[set_name] = PreviewSet(set_name, os.path.join(out_dir, transfer), bounces,
                                     os.path.join(out_dir, vfile) if vfile in files else None,
-                                    os.path.join(out_dir, rfile) if rfile in files else None)
+                                    os.path.join(out_dir, rfile) if rfile in files else None,
+                                    os.path.join(out_dir, sfile) if sfile in files and sun is not None else None)
         set_tris = sc.triangles_of_set(s)
         corner_vertex = None
         if vfile in files:
@@ -809,4 +840,5 @@ def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_boun
             meshes.append(build_mesh(names[o], set_name, corners, mid, key=f"{out_dir}|{set_name}|{o}"))
     return PreviewScene(bands=bands, meshes=meshes, materials=mats, sets=sets, light=np.asarray(light)[:bands * bands],
                         images=list(sc.textures), image_keys=[f"{out_dir}|tex{i}" for i in range(len(sc.textures))],
-                        use_bounces=use_bounces, normal_maps=False)
+                        use_bounces=use_bounces, normal_maps=False,
+                        sun=PreviewSun.of(sun) if sun is not None else None)

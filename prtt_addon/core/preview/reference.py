@@ -27,7 +27,7 @@ import numpy as np
 from ..bake.estimators.raytrace import RayScene
 from ..bake.estimators.transfer import Points, TransferSettings, bake_points
 from ..shading.materials import ShadingParams, derive_from_f0
-from ..shading.shade import shade
+from ..shading.shade import shade, sun_direct
 from ..texels.gbuffer import perturb_normals
 from ..texels.texsample import bilinear, bilinear_repeat
 from . import pack as pp
@@ -162,7 +162,7 @@ def reference_image(ps: pp.PreviewScene, mode: str, view_projection, camera, wid
             color = _vertex_colors(ps, m, s, method, cam, bounce)[m.indices[tri]]     # (n, 3, 3)
             rgb = np.einsum("nk,nkc->nc", bary, color)
         else:
-            rgb = _fragment_colors(ps, m, method, cam, transfer, bounce, tri, bary)
+            rgb = _fragment_colors(ps, m, method, cam, transfer, bounce, tri, bary, s)
         flat = img.reshape(-1, 4)
         flat[sel, :3] = rgb * exposure
         flat[sel, 3] = 1.0
@@ -177,7 +177,7 @@ def _view_vectors(cam, P):
     return np.broadcast_to(cam[:3], P.shape).copy()
 
 
-def _fragment_colors(ps, m, method, cam, transfer, bounce, tri, bary):
+def _fragment_colors(ps, m, method, cam, transfer, bounce, tri, bary, s=None):
     P = _interp(m.world_corners("positions"), tri, bary)
     v = _view_vectors(cam, P)
     n = _shading_normals(ps, m, tri, bary, v)
@@ -191,7 +191,14 @@ def _fragment_colors(ps, m, method, cam, transfer, bounce, tri, bary):
         Hb, Wb = bounce.shape[:2]           # the bounce grid may be coarser than the transfer's
         B = bilinear(_texture_pm(bounce), Wb, Hb, uv).astype(np.float64).reshape(-1, 3, K)
         bounces = [B]
-    return shade(T, n, v, ps.light, params, bounces=bounces, method=method)
+    rgb = shade(T, n, v, ps.light, params, bounces=bounces, method=method)
+    if ps.sun is not None and s is not None and s.sun:
+        # The sun's direct light with its baked mask, as the fragment shader adds it (PRTT_SUN).
+        mask = s.load_sun()
+        Hm, Wm = mask.shape
+        vis = bilinear(np.ascontiguousarray(mask.reshape(-1, 1), np.float32), Wm, Hm, uv)[:, 0]
+        rgb = rgb + sun_direct(n, v, params, vis, ps.sun.direction, ps.sun.irradiance, ps.sun.angle, method=method)
+    return rgb
 
 
 def _shading_normals(ps, m, tri, bary, v):

@@ -33,6 +33,11 @@ Uniform blocks (std140, only vec4/mat4 members so there is no padding):
   ``(c K + i) K4 + q``, four coefficients per vec4) and ``coeffs[K]`` (light
   L_k, rgb), K = bands², K4 = ceil(K / 4).
 
+* ``PRTTSun sun`` (variants with the sun only): ``direction`` (xyz unit
+  towards the sun, w = angle² / 16: the disc's widening of a Phong lobe,
+  shading.shade.sun_exponent) and ``irradiance`` (rgb W/m² facing it); with
+  the sampler ``sunTex`` (r: the baked visible fraction of its disc).
+
 Push constants: ``ModelMatrix`` and ``NormalMatrix`` (mat4 each, 128 bytes:
 the guaranteed minimum); NormalMatrix[3][3] is the sign of det(ModelMatrix).
 """
@@ -120,11 +125,13 @@ def gaunt_nnz(bands: int) -> int:
     return sparse_gaunt(bands).nnz
 
 
-def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = False) -> Variant:
+def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = False, sun: bool = False) -> Variant:
     """The shader for a preview ``mode`` at ``bands`` SH bands, with or without
     bounce textures; ``display``: ending in the scene's view transform
     (prtt_display.glsl, the sampler displayLut) for a colour buffer that
-    encodes sRGB, instead of linear radiance."""
+    encodes sRGB, instead of linear radiance; ``sun``: adding a sun's direct
+    light with its baked mask (define PRTT_SUN: the sampler sunTex, the
+    uniform block PRTTSun sun; fragment modes only)."""
     if mode not in MODES:
         raise ValueError(f"unknown preview mode {mode!r}; use one of {', '.join(MODES)}")
     if not (isinstance(bands, int) and 1 <= bands <= MAX_PREVIEW_BANDS):
@@ -139,6 +146,10 @@ def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = Fals
         defines.append(("PRTT_DIFFUSE", "1"))
     if bounce:
         defines.append(("PRTT_BOUNCE", "1"))
+    if sun and mode not in FRAGMENT_MODES:
+        raise ValueError(f"the sun is drawn in the fragment modes ({', '.join(FRAGMENT_MODES)}), not {mode!r}")
+    if sun:
+        defines.append(("PRTT_SUN", "1"))
     if display:
         defines += [("PRTT_DISPLAY", "1"), ("PRTT_SHAPER_LO", f"{SHAPER_LO:.1f}"),
                     ("PRTT_SHAPER_HI", f"{SHAPER_HI:.1f}")]
@@ -163,14 +174,18 @@ def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = Fals
         interface = (("smooth", "VEC3", "vcolor"),)
         vfiles = lib + ("prtt_vertex_vert.glsl",)
         ffiles = ("prtt_vertex_frag.glsl",)
+    if sun:
+        samplers.append((8, "FLOAT_2D", "sunTex"))
     if display:
         samplers.append((7, "FLOAT_3D", "displayLut"))
         ffiles = ffiles[:-1] + ("prtt_display.glsl",) + ffiles[-1:]
     return Variant(
-        name=f"prtt_{mode.replace('-', '_')}_b{bands}{'_bounce' if bounce else ''}{'_display' if display else ''}",
-        defines=tuple(defines), typedefs=TYPEDEFS % {"tpfl": 3 * k * k4, "k": k},
+        name=(f"prtt_{mode.replace('-', '_')}_b{bands}{'_bounce' if bounce else ''}{'_display' if display else ''}"
+              f"{'_sun' if sun else ''}"),
+        defines=tuple(defines), typedefs=TYPEDEFS % {"tpfl": 3 * k * k4, "k": k} + (SUN_TYPEDEFS if sun else ""),
         vertex_in=vertex_in, interface=interface, samplers=tuple(sorted(samplers)),
-        uniform_bufs=((0, "PRTTView", "view"), (1, "PRTTMaterial", "material"), (2, "PRTTLight", "light")),
+        uniform_bufs=((0, "PRTTView", "view"), (1, "PRTTMaterial", "material"), (2, "PRTTLight", "light"))
+        + (((3, "PRTTSun", "sun"),) if sun else ()),
         push_constants=(("MAT4", "ModelMatrix"), ("MAT4", "NormalMatrix")),
         vertex_files=vfiles, fragment_files=ffiles)
 
@@ -189,6 +204,13 @@ def light_block_bytes(bands: int) -> int:
     k, k4 = sh_sizes(bands)
     return 16 * (3 * k * k4 + k)
 
+
+SUN_TYPEDEFS = """
+struct PRTTSun {
+  vec4 direction;
+  vec4 irradiance;
+};
+"""
 
 RELIGHT_TYPEDEFS = """
 struct PRTTRelight {

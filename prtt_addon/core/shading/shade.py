@@ -136,6 +136,43 @@ def shade(T, normal, view, light, params: ShadingParams, *, bounces=(), method: 
     return outgoing(Lp, normal, view, params, clamp=clamp)
 
 
+def sun_exponent(exponent, angle: float) -> np.ndarray:
+    """The Phong exponent of a lobe of exponent ``exponent`` seen through a sun
+    disc of full angle ``angle`` (radians): the lobe near its axis is a
+    Gaussian of per-axis variance 1 / s, the uniform disc of radius a / 2 adds
+    (a / 2)² / 4, so s' = 1 / (1 / s + a² / 16) (an exponent of 0 stays 0). A
+    mirror's highlight of the sun is then the disc's width, not a point."""
+    s = np.asarray(exponent, np.float64)
+    widen = angle * angle / 16.0
+    return np.where(s > 0.0, 1.0 / (1.0 / np.maximum(s, 1e-300) + widen), 0.0)
+
+
+def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance, angle: float, *,
+               method: str = "tpfl") -> np.ndarray:
+    """(N, 3) radiance towards ``view`` from a sun (core.light.sun.Sun):
+    unit ``direction`` (3,) towards it, ``irradiance`` (3,) W/m² on a surface
+    facing it, disc of full ``angle``; ``mask`` (N,) the visible fraction of
+    its disc (the bake's sun mask). With the preview's material model, the
+    sun as one direction (its Lp is E V max(0, n.l) delta(w - l)):
+
+        B = mask max(0, n.l) E (rho_d / pi + k_s (s' + 1) / (2 pi) max(0, r.l)^s')
+
+    s' the material's exponent widened by the disc (:func:`sun_exponent`);
+    ``method`` "diffuse" leaves the lobe out, as the diffuse mode does."""
+    n = np.asarray(normal, np.float64)
+    l = np.asarray(direction, np.float64).reshape(3)
+    E = np.asarray(irradiance, np.float64).reshape(1, 3)
+    cos = np.maximum(n @ l, 0.0) * np.asarray(mask, np.float64).reshape(-1)
+    out = params.albedo / math.pi * E
+    if method != "diffuse" and np.any(params.spec):
+        r = reflect(np.asarray(view, np.float64), n)
+        r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-300)
+        s = sun_exponent(params.exponent, angle).reshape(-1)
+        lobe = (s + 1.0) / (2.0 * math.pi) * np.maximum(r @ l, 0.0) ** s
+        out = out + params.spec * E * lobe[:, None]
+    return out * cos[:, None]
+
+
 def light_hash(light) -> str:
     """sha256 of the light coefficients a bounce texture was baked with."""
     import hashlib

@@ -12,6 +12,7 @@ from ....version import __version__
 from ...base import atomic
 from ...base.atomic import atomic_write
 from ...base.errors import BakeError
+from ...light.sun import SUN_RAYS
 from .bounce_stage import BounceResult
 from .context import BAKE_FORMAT_VERSION, MANIFEST, BakeContext
 from .plan import BakePlan, manifest_dicts, plain_names
@@ -68,6 +69,9 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
                    "estimate_mb": ctx.memory.estimate_mb,
                    **({"dask_workers": ctx.memory.dask_workers} if ctx.memory.dask_workers else {})},
         "warnings": ctx.warnings, "skipped": False,
+        # Only with a sun: a bake without one writes the manifest it wrote before suns.
+        **({"sun": {**ctx.sun.as_dict(), "rays": SUN_RAYS, "key": plan.sun_key,
+                    "files": [f for f in transfer_files if f.endswith(".sun.exr")]}} if ctx.sun is not None else {}),
     }
 
 
@@ -81,7 +85,7 @@ def commit_bake(ctx: BakeContext, plan: BakePlan, manifest: dict) -> dict:
     files = manifest["files"]
     old_files = old.get("files", [])
     stale = [f for f in (old_files if plain_names(old_files) else [])
-             if f not in files and (".bounce" in f or f.endswith(".relight.exr"))]
+             if f not in files and (".bounce" in f or f.endswith((".relight.exr", ".sun.exr")))]
     ctx.check_cancel()
     new_info = ctx.staging.seal()
     # The reused transfer's entries were verified by plan.reusable.

@@ -217,6 +217,7 @@ class BakeContext:
     warnings: list[str] = dataclasses.field(init=False)         # every warning emitted, in order
     tables: cf.Future | None = dataclasses.field(init=False)    # warm_tables on a helper (stages.start_tables)
     dask: object | None = None                  # distributed.DaskSpec: trace on a Dask cluster (runner opens it)
+    sun: object | None = None                   # core.light.sun.Sun: its mask is baked per set (sun_stage)
     remote: object | None = dataclasses.field(init=False)       # the open executors.dask_cluster.DaskBake, else None
     memory: StagePeaks = dataclasses.field(init=False)          # peak RSS per stage (the manifest's "memory")
     bounce_grids: dict = dataclasses.field(init=False)          # set index -> bounce_stage.BounceGrid, chosen
@@ -238,13 +239,14 @@ class BakeContext:
     @classmethod
     def create(cls, scene: Scene, out_dir: str, settings: BakeSettings, *, light=None,
                progress: Callable[[dict], None] | None = None, cancel: threading.Event | None = None,
-               sets: list[str] | None = None, dask=None) -> "BakeContext":
+               sets: list[str] | None = None, dask=None, sun=None) -> "BakeContext":
         """The context of one bake of ``scene`` into ``out_dir``.
 
         light : (K', 3) RGB SH, K' >= bands² (truncated to bands²), or None.
         sets : names of the texture sets to bake (default: all, in scene order);
                BakeError for a name the scene does not have.
         dask : a distributed.DaskSpec: the ray chunks run on that Dask cluster.
+        sun : a core.light.sun.Sun, or None: each set's sun mask is baked.
         """
         set_ids = list(range(scene.n_sets))
         if sets is not None:
@@ -257,7 +259,7 @@ class BakeContext:
         # helper that then waits for its row bands on this same pool.
         helpers = cf.ThreadPoolExecutor(max_workers=max(2, settings.n_threads) + 1)
         return cls(scene=scene, out_dir=out_dir, settings=settings, light=prepared, progress=progress,
-                   cancel=cancel, set_ids=set_ids, helpers=helpers, dask=dask)
+                   cancel=cancel, set_ids=set_ids, helpers=helpers, dask=dask, sun=sun)
 
     @property
     def n_coeffs(self) -> int:

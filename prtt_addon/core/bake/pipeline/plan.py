@@ -23,6 +23,7 @@ from ...shading.materials import materials_hash
 from ...shading.shade import light_hash
 from ..estimators import denoise
 from .context import MANIFEST, BakeContext, BakeSettings
+from .sun_stage import sun_key
 
 
 def settings_hash(settings: BakeSettings) -> str:
@@ -93,6 +94,7 @@ class BakePlan:
     old_manifest: dict | None    # the folder's manifest before this bake (read_manifest)
     transfer_reused: bool        # the transfer outputs on disk are this bake's: read, not traced
     bounce_reused: bool          # the bounce outputs on disk are this bake's (or none are wanted nor there)
+    sun_key: str | None = None   # sun_stage.sun_key: the sun masks' key; None without a sun
 
     @property
     def skipped(self) -> bool:
@@ -131,21 +133,26 @@ def plan_bake(ctx: BakeContext, *, skip_if_unchanged: bool = True) -> BakePlan:
     m_hash = materials_hash(sc)
     b_key = bounce_key(in_hash, set_hash, ctx.light, m_hash, st) if bouncing else None
     old = read_manifest(ctx.out_dir)
+    s_key = sun_key(ctx.sun, in_hash)
     transfer_ok, bounce_ok = reusable(ctx, old, in_hash, set_hash, b_key, bouncing=bouncing,
-                                      skip_if_unchanged=skip_if_unchanged)
+                                      skip_if_unchanged=skip_if_unchanged, sun=s_key)
     return BakePlan(input_hash=in_hash, settings_hash=set_hash, light_hash=l_hash, materials_hash=m_hash,
                     bouncing=bouncing, bounce_key=b_key, old_manifest=old,
-                    transfer_reused=transfer_ok, bounce_reused=bounce_ok)
+                    transfer_reused=transfer_ok, bounce_reused=bounce_ok, sun_key=s_key)
 
 
 def reusable(ctx: BakeContext, old: dict | None, in_hash: str, set_hash: str, b_key: str | None, *,
-             bouncing: bool, skip_if_unchanged: bool) -> tuple[bool, bool]:
+             bouncing: bool, skip_if_unchanged: bool, sun: str | None = None) -> tuple[bool, bool]:
     """(transfer outputs reusable, bounce outputs reusable) per the old manifest,
     with every file checked against its recorded size and sha256. A mismatch is
-    reported as a warning and that part is re-baked."""
+    reported as a warning and that part is re-baked. ``sun``: the sun masks'
+    key (sun_stage.sun_key), which the old manifest's "sun" must match: the
+    masks are transfer outputs."""
     if not (skip_if_unchanged and old):
         return False, False
-    same_inputs = old.get("input_hash") == in_hash and old.get("settings_hash") == set_hash
+    old_sun = old.get("sun") if isinstance(old.get("sun"), dict) else {}
+    same_inputs = (old.get("input_hash") == in_hash and old.get("settings_hash") == set_hash
+                   and old_sun.get("key") == sun)
     transfer_ok = False
     if same_inputs:
         why = outputs_changed(old, ctx.out_dir, old.get("transfer_files", old.get("files", [])))

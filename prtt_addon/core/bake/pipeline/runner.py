@@ -109,7 +109,8 @@ def lock_out_dir(out_dir, job=None, source=None) -> FolderLock:
 def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, light=None,
                progress=None, cancel: threading.Event | None = None,
                skip_if_unchanged: bool = True, sets: list[str] | None = None,
-               job: str | None = None, source: str | None = None, dask: str | None = None) -> dict:
+               job: str | None = None, source: str | None = None, dask: str | None = None,
+               sun=None) -> dict:
     """Bake every texture set of ``sc`` into ``out_dir``.
 
     light : (K', 3) RGB SH of the environment in world coordinates, K' >= bands^2;
@@ -120,6 +121,8 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
     dask : run the ray chunks on a Dask cluster: "local[:N]", a scheduler
           address (tcp://HOST:PORT) or "env" ($DASK_SCHEDULER_ADDRESS);
           the outputs are the local bake's, bit for bit (executors/dask_cluster.py).
+    sun : a core.light.sun.Sun: each set also gets ``<set>.sun.exr``, the
+          visible fraction of the sun's disc per texel (pipeline/sun_stage.py).
     Returns the manifest dict (``manifest["skipped"]`` is True when an identical
     bake was already there). Raises BakeError (also when another bake holds the
     folder) / SceneError / MemoryLimitError for bad input and transfer.Cancelled
@@ -136,7 +139,7 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
                                                    f"(pid {lock.taken_over.get('pid')})")
         removed = atomic.remove_stale_temporaries(out_dir)
         ctx = BakeContext.create(sc, out_dir, st, light=light, progress=progress, cancel=cancel, sets=sets,
-                                 dask=spec)
+                                 dask=spec, sun=sun)
         if removed:
             ctx.warn(f"removed {len(removed)} temporary file(s) left by an interrupted bake")
         failed = True

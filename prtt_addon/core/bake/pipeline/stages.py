@@ -53,6 +53,7 @@ from ..estimators.raytrace import RayScene, surface_area
 from ..estimators.transfer import SAME_NORMAL, Points, bake_points, warm_tables
 from .context import BakeContext
 from .plan import BakePlan
+from .sun_stage import sun_set
 
 # --- per-face data and the kernel's input ------------------------------------------------
 
@@ -437,6 +438,12 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
         rep["moved_texels"] = int(moved.size)
         ctx.seconds["trace"] += time.perf_counter() - t         # with the trace, as the guided filter
     traced = trace_set(ctx, geo, gb, position=position)
+    sun_files = []
+    if ctx.sun is not None:
+        # Before the texture's write may release the G-buffer's points (moved by validity).
+        fname, sun_rep = sun_set(ctx, geo.rays, gb, inside, plan.sun_key)
+        sun_files.append(fname)
+        rep.update(sun_rep)
     guided_index = traced.info.pop("guided_index", None)
     if ctx.settings.guided_filter and guided_index is not None and guided_index.size:
         t = time.perf_counter()
@@ -490,7 +497,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
                adaptive_early_stops=info["adaptive_early_stops"],
                guided_texels=info["guided_points"], pilot_rays=info["pilot_rays"],
                threads=info["threads"], trace_seconds=info["seconds"])
-    res = SetResult(gb.set_index, name, rep, written.files)
+    res = SetResult(gb.set_index, name, rep, written.files + sun_files)
     if keep_for_bounce:
         res.bounce = BounceSource(gb.set_index, name, gb, traced.points, is_open, incident, fine, analytic)
     return res

@@ -1,0 +1,110 @@
+"""The sun's mask (issue 48): the visible fraction of the sun's disc per texel
+(core/bake/estimators/sun_mask.py, pipeline/sun_stage.py), against the
+analytic penumbra of a straight edge, and as the bake writes, reuses and
+drops it."""
+import math
+import os
+
+import numpy as np
+import pytest
+
+from prtt_addon.core.bake.estimators.raytrace import RayScene
+from prtt_addon.core.bake.estimators.sun_mask import disc_directions, disc_pattern, sun_mask
+from prtt_addon.core.light.sun import Sun, SunError
+
+
+def _segment_visible(offset, radius):
+    """Visible fraction of a disc of angular radius ``radius`` whose part beyond
+    ``offset`` (signed, along one axis, small angles) is hidden."""
+    d = np.clip(offset / radius, -1.0, 1.0)
+    hidden = (np.arccos(d) - d * np.sqrt(1.0 - d * d)) / math.pi     # the segment beyond d
+    return 1.0 - hidden
+
+
+def _roof(h=0.5, size=50.0):
+    """A horizontal plane at height h over x < 0 (two triangles)."""
+    return np.array([[[-size, -size, h], [0.0, -size, h], [0.0, size, h]],
+                     [[-size, -size, h], [0.0, size, h], [-size, size, h]]], np.float64)
+
+
+def test_disc_directions_fill_the_cone_uniformly():
+    sun = Sun(direction=(0.3, -0.2, 0.9), angle=math.radians(8.0))
+    d = disc_directions(sun.direction, sun.angle, disc_pattern(4096, 3), np.zeros((1, 2)))[0]
+    cos = d @ np.asarray(sun.direction)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert cos.min() >= sun.cos_half_angle - 1e-12
+    # Uniform in solid angle: cos theta uniform on [cos(a/2), 1].
+    u = (1.0 - cos) / (1.0 - sun.cos_half_angle)
+    assert abs(u.mean() - 0.5) < 0.01 and abs(np.median(u) - 0.5) < 0.02
+
+
+@pytest.mark.parametrize("angle_deg", [0.5, 5.0])
+def test_penumbra_of_a_straight_edge_is_the_discs_segment(angle_deg):
+    """Sun at the zenith, a roof's edge 0.5 m above a floor: the visible
+    fraction across the penumbra is the circular segment's (small angles)."""
+    h, alpha = 0.5, math.radians(angle_deg) / 2
+    x = np.linspace(-1.5, 1.5, 61) * h * math.tan(alpha)
+    P = np.stack([x, np.zeros_like(x), np.zeros_like(x)], 1)
+    up = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+    rs = RayScene(_roof(h))
+    got = sun_mask(rs, P, up, np.arange(len(P)), (0.0, 0.0, 1.0), 2 * alpha, rays=4096, seed=1)
+    # The edge is seen at angle atan(x / h) from the zenith: the part of the disc beyond it is hidden.
+    want = _segment_visible(np.arctan(x / h), alpha)
+    assert np.abs(got - want).max() < 0.01, np.abs(got - want).max()
+    assert got[0] == 0.0 and got[-1] == 1.0
+
+
+def test_points_facing_away_see_no_sun_and_threads_do_not_change_the_mask():
+    rs = RayScene(_roof())
+    rng = np.random.default_rng(2)
+    P = rng.uniform(-1, 1, (3000, 3)) * [1, 1, 0]
+    n = rng.normal(size=(3000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    args = (rs, P, n, np.arange(3000), (0.0, 0.6, 0.8), math.radians(2.0))
+    one = sun_mask(*args, rays=64, seed=5, threads=1, chunk_rays=4096)
+    two = sun_mask(*args, rays=64, seed=5, threads=2, chunk_rays=1 << 14)
+    assert np.array_equal(one, two)
+    assert (one[n @ np.array([0.0, 0.6, 0.8]) < -0.02] == 0).all()
+    assert set(np.unique(np.round(one * 64) / 64)) == set(np.unique(one))   # steps of 1 / 64
+
+
+def test_sun_from_untrusted_json_is_checked():
+    ok = Sun.from_dict({"direction": [0, 0, 2], "angle": 0.01, "color": [1, 0.9, 0.8], "strength": 3})
+    assert ok.direction == (0.0, 0.0, 1.0)
+    for bad, word in [({"angle": 0.01}, "direction"), ({"direction": [0, 0, 0], "angle": 0.01}, "length"),
+                      ({"direction": [0, 0, 1], "angle": 1.0}, "angle"),
+                      ({"direction": [0, 0, 1], "angle": 0.01, "strength": -1}, "strength"),
+                      ({"direction": [0, 0, 1], "angle": 0.01, "color": [1, 1]}, "colour"),
+                      ({"direction": [0, 0, 1], "angle": 0.01, "power": 1}, "unknown"), ([1, 2], "object")]:
+        with pytest.raises(SunError, match=word):
+            Sun.from_dict(bad)
+    assert ok.moved_from(ok) is None
+    turned = Sun(direction=(0.0, 0.05, 1.0), angle=0.01)
+    assert "turned 2.86 degrees" in turned.moved_from(ok)
+
+
+def test_the_bake_writes_reuses_and_drops_the_masks(tmp_path):
+    """With a sun each set gets <set>.sun.exr and the manifest a "sun"; the same
+    sun again is skipped, a turned sun bakes again; without a sun the transfer
+    is byte-identical to the bake with one, and the masks are gone."""
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.runner import bake_scene
+    from prtt_addon.core.io.exr_io import read_mask_exr, read_sh_exr
+    from prtt_addon.dev.bench import contact_profile as cp
+    sc = cp.build(48)
+    st = BakeSettings(rays=32, bounces=0, vertex_mode=False)
+    sun = Sun(direction=(0.5, 0.1, 0.8), angle=math.radians(3.0))
+    out = str(tmp_path / "b")
+    m = bake_scene(sc, out, st, sun=sun)
+    assert m["sun"]["files"] == ["floor.sun.exr", "box.sun.exr"] and m["sun"]["rays"] == 64
+    mask, attrs = read_mask_exr(os.path.join(out, "floor.sun.exr"))
+    assert mask.shape == (48, 48) and 0.0 < mask.mean() < 1.0 and attrs["sun_key"] == m["sun"]["key"]
+    t_sun, _ = read_sh_exr(os.path.join(out, "floor.transfer.exr"))
+    assert bake_scene(sc, out, st, sun=sun)["skipped"]
+    m2 = bake_scene(sc, out, st, sun=Sun(direction=(0.4, 0.1, 0.8), angle=math.radians(3.0)))
+    assert not m2["skipped"] and m2["sun"]["key"] != m["sun"]["key"]
+    m3 = bake_scene(sc, out, st)
+    assert "sun" not in m3 and not any(f.endswith(".sun.exr") for f in m3["files"])
+    assert not os.path.exists(os.path.join(out, "floor.sun.exr"))
+    t_plain, _ = read_sh_exr(os.path.join(out, "floor.transfer.exr"))
+    assert t_plain.tobytes() == t_sun.tobytes()
