@@ -30,7 +30,8 @@ def addon_bpy():
     """bpy with PRTT registered (once per process) and an empty factory scene."""
     global _REGISTERED
     bpy = fresh_bpy()
-    if not _REGISTERED:
+    # A benchmark run in this process (bench/cycles_compare, sun_cycles) may have registered it.
+    if not _REGISTERED and not hasattr(bpy.types.Scene, "prtt"):
         import prtt_addon
         prtt_addon.register()
         _REGISTERED = True

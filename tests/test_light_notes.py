@@ -1,7 +1,8 @@
 """Light PRTT does not carry yet is named, not dropped without a word (issues
-48 and 49): lamps and emissive materials light Cycles' render but not the
-bake; the bake warns, the preview and `render` note the lamps, the export
-still runs (Blender's exporter carries the lamps as glTF lights)."""
+48 and 49): point, spot and area lamps and emissive materials light Cycles'
+render but not the bake; the bake warns, the preview and `render` note the
+lamps, the export still runs (Blender's exporter carries the lamps as glTF
+lights). A Sun lamp is baked (its mask: tests/test_sun_blender.py)."""
 import pytest
 
 from tests import real_scenes as rs
@@ -30,11 +31,14 @@ def test_lamps_and_emission_are_named(tmp_path):
             "--bounces", "0", cwd=tmp_path, timeout=600)
     out = r.stdout + r.stderr
     assert r.returncode == 0, out
-    assert "2 lamp(s) light Cycles' render but not PRTT's" in out and "Sun 'Key'" in out and "Point 'Bulb'" in out
+    assert "1 lamp(s) light Cycles' render but not PRTT's" in out and "Point 'Bulb'" in out
+    assert "Sun 'Key'" not in out                       # the sun is baked
+    import json
+    assert json.load(open(tmp_path / "tex" / "manifest.json"))["sun"]["name"] == "Key"
     assert "'Off'" not in out
     assert "material 'Glow': its emission lights Cycles' render but not PRTT's" in out
     r = run("render", "scene.blend", "--size", "64x36", "--out", "shot.png", cwd=tmp_path, timeout=600)
-    assert r.returncode == 0 and "2 lamp(s) light Cycles' render" in r.stdout, r.stdout + r.stderr
+    assert r.returncode == 0 and "1 lamp(s) light Cycles' render" in r.stdout, r.stdout + r.stderr
     r = run("export", "scene.blend", "--out", "scene.glb", cwd=tmp_path, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
 

@@ -90,6 +90,8 @@ def prepare(context, overrides: dict | None = None) -> Prepared:
     extra = {"settings": settings, "blend": bpy.data.filepath, "set_objects": exp.set_objects}
     if exp.light is not None:
         extra["light"] = {"coeffs": exp.light.tolist(), "description": exp.light_description}
+    if exp.sun is not None:
+        extra["sun"] = exp.sun.as_dict()
     job = job_path(out_dir)
     save_scene(exp.scene, job, extra=extra)
     return Prepared(job, out_dir, exp, settings, materials_signature(scene), scene.prtt.output_dir or "//prtt/")
@@ -137,6 +139,7 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
                "bounce": None if not m.get("bounce") else {k: m["bounce"][k] for k in
                                                           ("levels", "light_hash", "materials_hash", "files")},
                "light": prepared.export.light_description, "seconds": m["seconds"].get("total"),
+               **({"sun": m["sun"]} if m.get("sun") else {}),
                "warnings": m.get("warnings", []) + prepared.export.warnings,
                "objects": prepared.export.objects,
                "materials_signature": prepared.materials_signature,

@@ -27,6 +27,7 @@ import numpy as np
 
 from ...core.io.sidecars import read_corner_vertex
 from ...core.light.envmap import compose_light
+from ...core.light.sun import Sun, SunError
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import MAX_PREVIEW_BANDS
 from ...core.shading.shade import light_hash
@@ -34,9 +35,10 @@ from .. import record
 from ..rna_arrays import read
 from ..scene import world_panorama
 from ..scene.job import GENERATED_UVS, apply_tile
+from ..scene.lamps import scene_sun, unbaked_lamps
 from ..scene.material_nodes import image_array, parse_material
 from ..scene.scene_objects import scene_geometry
-from ..scene.world import WorldLightError, dim_light_note, project_setup, unbaked_lamps, world_setup
+from ..scene.world import WorldLightError, dim_light_note, project_setup, world_setup
 from ..shared import UV_MAP
 
 _MESHES: dict = {}          # object name -> (signature, DrawMesh)
@@ -76,6 +78,8 @@ class PreviewStatus:
     light_description: str = ""
     #: Why the World's light could not be read when a fallback light was used instead ("" otherwise).
     light_fallback: str = ""
+    #: Why the sun's masks no longer match the scene's Sun lamp ("" when they do or there is none).
+    sun_stale: str = ""
 
     def add(self, level: str, text: str) -> None:
         self.messages.append((level, text))
@@ -335,7 +339,10 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
         rfile = f"{set_name}.relight.exr"
         relight = os.path.join(out_dir, rfile) if rfile in bounce_files and os.path.isfile(
             os.path.join(out_dir, rfile)) else None
-        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight)
+        sfile = f"{set_name}.sun.exr"
+        sun_mask = os.path.join(out_dir, sfile) if sfile in files and os.path.isfile(
+            os.path.join(out_dir, sfile)) else None
+        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight, sun_mask)
     try:
         light, status.light_description = current_light(scene, bands)
     except world_panorama.Pending as exc:        # drawn from the next frame, once rendered
@@ -356,6 +363,7 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
     lamps = unbaked_lamps(scene, getattr(context, "view_layer", None))
     if lamps:
         status.add("INFO", lamps)           # a note: the export carries the lamps (glTF's own lights)
+    sun = preview_sun(scene, getattr(context, "view_layer", None), info, status)
     normal_maps = bool(info["settings"].get("normal_maps", True))
     table = _MaterialTable(normal_maps)
     depsgraph = context.evaluated_depsgraph_get()
@@ -400,5 +408,34 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
                        + "): Bake again to update them")
     ps = pp.PreviewScene(bands=bands, meshes=meshes, materials=table.materials, sets=sets, light=light,
                          images=table.images, image_keys=table.image_keys, use_bounces=use_bounces,
-                         normal_maps=normal_maps, material_names=table.names, image_names=table.image_names)
+                         normal_maps=normal_maps, material_names=table.names, image_names=table.image_names,
+                         sun=sun)
     return ps, status
+
+
+def preview_sun(scene, view_layer, info: dict, status) -> "pp.PreviewSun | None":
+    """The sun the preview draws: the baked sun's direction and disc (its
+    masks hold their shadows) with the scene's Sun lamp's colour and strength
+    now (they change live); a turned or resized lamp makes the masks stale
+    (a warning: drawn as baked until the next bake), a Sun lamp the bake did
+    not take is said, and a baked sun whose lamp is gone is not drawn."""
+    live = scene_sun(scene, view_layer)[0]
+    baked_spec = info.get("sun")
+    if not baked_spec:
+        if live is not None:
+            status.add("INFO", f"the Sun {live.name!r} is not in the bake: Bake again to add its light and shadows")
+        return None
+    try:
+        baked = Sun.from_dict({k: v for k, v in baked_spec.items() if k in ("name", "direction", "angle",
+                                                                             "color", "strength")})
+    except SunError as exc:
+        status.add("ERROR", f"the bake's sun: {exc}; bake again")
+        return None
+    if live is None:
+        status.add("INFO", f"the baked sun {baked.name!r} is gone from the scene (or hidden): drawn without it")
+        return None
+    why = live.moved_from(baked)
+    if why:
+        status.sun_stale = why
+        status.add("WARNING", f"the sun's shadows are stale ({why}): drawn as baked; Bake again to update them")
+    return pp.PreviewSun(baked.direction, tuple(float(v) for v in live.irradiance), baked.angle)

@@ -47,10 +47,11 @@ from ...core.texels.raster import overlap_count
 from ...core.texels.unwrap import UnwrapError, unwrap
 from ..rna_arrays import read
 from ..shared import UV_MAP
+from .lamps import scene_sun, unbaked_lamps
 from .material_nodes import image_array, parse_material
 from .scene_objects import reported_without_faces, scene_geometry
 from .uv_maps import generated_margin, needs_user_unwrap
-from .world import unbaked_lamps, world_light
+from .world import world_light
 
 #: Texels left empty on each side of an instance tile, so that bilinear lookups
 #: and dilation of one instance never reach its neighbour's texels.
@@ -85,6 +86,7 @@ class ExportResult:
     occluders: int               # triangles that only cast shadows
     light: np.ndarray | None = None
     light_description: str = ""
+    sun: object | None = None    # core.light.sun.Sun: the scene's Sun lamp, its mask baked (lamps.scene_sun)
     objects: dict = dataclasses.field(default_factory=dict)   # part name -> record (see _records)
     generated_uvs: dict = dataclasses.field(default_factory=dict)  # uv group -> (T, 3, 2) float32
 
@@ -528,6 +530,7 @@ def _assemble(context, parts, mats, warnings, st, with_light) -> ExportResult:
         res.light, res.light_description = world_light(context.scene, max(st.bands, 1),
                                                        source=st.light_source,
                                                        builtin=st.builtin_environment or "forest")
+    res.sun = scene_sun(context.scene, context.view_layer)[0]
     lamps = unbaked_lamps(context.scene, context.view_layer)
     if lamps:
         warnings.append(lamps)

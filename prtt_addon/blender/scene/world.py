@@ -206,22 +206,6 @@ def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "for
         raise WorldLightError(f"{setup.description}: {exc}") from None
 
 
-def unbaked_lamps(scene, view_layer=None) -> str:
-    """A one-line note naming the scene's lamps that light Cycles' render but
-    not PRTT's ("" when there are none): Light objects with power that render.
-    PRTT's light is the World (or a studio HDRI) alone."""
-    layer = view_layer if view_layer is not None else scene.view_layers[0]
-    # What renders: in the view layer (not in an excluded collection), not disabled in renders.
-    lamps = [ob for ob in layer.objects
-             if ob.type == "LIGHT" and not ob.hide_render and getattr(ob.data, "energy", 0.0) > 0]
-    if not lamps:
-        return ""
-    named = ", ".join(f"{ob.data.type.title()} {ob.name!r}" for ob in lamps[:4]) + (
-        f" and {len(lamps) - 4} more" if len(lamps) > 4 else "")
-    return (f"{len(lamps)} lamp(s) light Cycles' render but not PRTT's (lamps are not baked yet): {named}; "
-            f"PRTT is lit by the World alone")
-
-
 #: A light whose mean radiance (times the view's exposure) is below this draws a dark preview
 #: (Blender's default World is a grey of 0.05).
 DIM_LIGHT = 0.1

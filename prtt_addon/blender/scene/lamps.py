@@ -1,0 +1,86 @@
+"""The scene's lamps as PRTT takes them (issue 48): a Sun lamp becomes the
+bake's sun (core.light.sun.Sun: its mask baked, its light drawn live); every
+lamp PRTT does not take is named in one line.
+
+What renders is what counts: Light objects in the view layer, not disabled in
+renders, with power. One sun is baked, the brightest (strength times the
+colour's mean); other suns, and point, spot and area lamps (not baked yet),
+are named. A Sun's light is ``energy`` (W/m²) times ``2^exposure`` (Blender
+4.5 on) times its colour (its temperature's colour where ``use_temperature``,
+Blender 5 on), as Cycles lights with it.
+"""
+from __future__ import annotations
+
+import math
+
+from ...core.light.sun import MAX_ANGLE, Sun, SunError
+
+
+def rendered_lamps(scene, view_layer=None) -> list:
+    """Light objects that light the render: in the view layer, not disabled in
+    renders, with power."""
+    layer = view_layer if view_layer is not None else scene.view_layers[0]
+    return [ob for ob in layer.objects
+            if ob.type == "LIGHT" and not ob.hide_render and getattr(ob.data, "energy", 0.0) > 0]
+
+
+def lamp_colour(light) -> tuple:
+    """The lamp's linear RGB as Cycles lights with it (its temperature's colour when it uses one)."""
+    c = tuple(float(v) for v in light.color)
+    if getattr(light, "use_temperature", False):
+        t = tuple(float(v) for v in light.temperature_color)
+        c = tuple(a * b for a, b in zip(c, t))
+    return c
+
+
+def sun_of(ob) -> Sun:
+    """A Sun lamp object as a core Sun (SunError when its disc is too wide to be a sun)."""
+    light = ob.data
+    z = ob.matrix_world.to_3x3().col[2]          # a Sun shines along its local -Z
+    strength = float(light.energy) * 2.0 ** float(getattr(light, "exposure", 0.0))
+    return Sun(direction=(z.x, z.y, z.z), angle=float(light.angle), color=lamp_colour(light),
+               strength=strength, name=ob.name)
+
+
+def scene_sun(scene, view_layer=None) -> tuple:
+    """(Sun or None, the lamp object it is, notes (list of one-line strings)):
+    the brightest rendering Sun lamp as the bake's sun."""
+    suns = [ob for ob in rendered_lamps(scene, view_layer) if ob.data.type == "SUN"]
+    notes = []
+    taken = []
+    for ob in suns:
+        try:
+            taken.append((sun_of(ob), ob))
+        except SunError as exc:
+            if float(ob.data.angle) > MAX_ANGLE:
+                notes.append(f"Sun {ob.name!r}: its angle of {math.degrees(ob.data.angle):.0f} degrees is wider than "
+                             f"a sun PRTT bakes ({math.degrees(MAX_ANGLE):.0f} at most): not baked")
+            else:
+                notes.append(f"Sun {ob.name!r}: {exc}; not baked")
+    if not taken:
+        return None, None, notes
+    taken.sort(key=lambda so: -so[0].strength * sum(so[0].color) / 3.0)
+    sun, ob = taken[0]
+    if len(taken) > 1:
+        others = ", ".join(repr(o.name) for _, o in taken[1:4])
+        notes.append(f"PRTT bakes one sun, {ob.name!r} (the brightest); not {others}"
+                     + (f" and {len(taken) - 4} more" if len(taken) > 4 else ""))
+    if not getattr(ob.data, "use_shadow", True):
+        notes.append(f"Sun {ob.name!r} casts no shadow in Blender; PRTT bakes its shadows")
+    return sun, ob, notes
+
+
+def unbaked_lamps(scene, view_layer=None) -> str:
+    """A one-line note naming the scene's lamps that light Cycles' render but
+    not PRTT's ("" when there are none): every rendering lamp but the sun PRTT
+    takes (scene_sun); with scene_sun's own notes."""
+    _, _, notes = scene_sun(scene, view_layer)
+    # Suns PRTT does not take are in the notes already.
+    lamps = [ob for ob in rendered_lamps(scene, view_layer) if ob.data.type != "SUN"]
+    parts = list(notes)
+    if lamps:
+        named = ", ".join(f"{ob.data.type.title()} {ob.name!r}" for ob in lamps[:4]) + (
+            f" and {len(lamps) - 4} more" if len(lamps) > 4 else "")
+        parts.append(f"{len(lamps)} lamp(s) light Cycles' render but not PRTT's (point, spot and area lamps are "
+                     f"not baked yet): {named}")
+    return "; ".join(parts)

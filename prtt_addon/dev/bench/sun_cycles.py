@@ -1,0 +1,235 @@
+"""``python -m prtt_addon.dev.bench sun``: a Sun lamp's light and shadows in
+PRTT's preview against Cycles (issue 48, item 2).
+
+A scene built with bpy: a 4 m floor (two triangles), a 0.5 m box on it and a
+1.2 m plank held 0.4 m over the floor, Diffuse BSDF (or, ``glossy``, a
+Principled floor of roughness 0.3), under one Sun lamp of
+strength 3 W/m² at 50 degrees from the zenith, of angle ``angle`` (0.5 and 5
+degrees: Blender's default and a soft sun) and a dim band-limited sky (the
+"city" HDRI in 5 bands, exact for the transfer). The add-on unwraps and bakes it
+(its sun mask, SUN_RAYS rays a texel); its preview renders the camera's view
+offscreen (diffuse mode), Cycles the same view with direct light only (no
+bounce, 0.01 px pixel filter, ``samples``, two seeds for its own noise).
+
+Measured over the pixels more than a pixel from a triangle edge: relative
+RMSE of the image and of the shadowed floor (Cycles below half the lit
+floor's value: the umbra and most of the penumbra). And the penumbrae: an
+orthographic view 2 cm over the floor across the plank's shadow, the sky
+off, rendered by both (strip_profiles), gives the visible fraction of the
+sun along a line; the 10 %-90 % widths of its two edges, in mm, beside the
+floor's texel.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import tempfile
+import time
+
+import numpy as np
+
+from . import meshgen as mg
+
+SUN_ELEVATION = 40.0          # degrees above the horizon (50 from the zenith)
+SUN_AZIMUTH = 30.0            # degrees from +x towards +y
+SUN_STRENGTH = 3.0
+#: The floor's base colour: diffuse (False) and glossy (True, a Principled BSDF of roughness 0.3).
+FLOOR_ALBEDO = {False: 0.7, True: 0.6}
+#: The World: Blender's "city" HDRI band-limited to 5 bands (cycles_compare.band_limited_environment)
+#: at this strength, so that the sky lights the shadows at about a fifth of the sun.
+SKY_STRENGTH = 0.1
+FLOOR = 4.0
+PLANK = ((1.2, 0.15, 0.03), (0.0, 0.55, 0.4))        # size, centre
+BOX = ((0.5, 0.5, 0.5), (-0.7, -0.3, 0.25))
+
+
+def sun_direction() -> np.ndarray:
+    e, a = math.radians(SUN_ELEVATION), math.radians(SUN_AZIMUTH)
+    return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+
+
+def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 256, glossy: bool = False):
+    """The scene in the current (empty) file, unwrapped and baked with the add-on; returns the manifest."""
+    import mathutils
+
+    from . import scene_build as sb
+    from .cycles_compare import band_limited_environment
+    grey = sb.principled("grey", base_color=(FLOOR_ALBEDO[False],) * 3, diffuse=True)
+    floor_mat = (sb.principled("floor", base_color=(FLOOR_ALBEDO[True],) * 3, roughness=0.3) if glossy else grey)
+    sb.mesh_object("floor", mg.plane(FLOOR, FLOOR, subdiv=1), material=floor_mat)
+    sb.mesh_object("box", mg.box(*BOX), material=grey)
+    sb.mesh_object("plank", mg.box(*PLANK), material=grey)
+    scene = bpy.context.scene
+    # A band-limited sky (its light exact in 5 bands), dim beside the sun: what lights the shadows.
+    env = os.path.join(out_dir, "band_limited_city.exr")
+    os.makedirs(out_dir, exist_ok=True)
+    band_limited_environment(env)
+    scene.world = sb.environment_world("BandLimited", env, strength=SKY_STRENGTH)
+    light = bpy.data.lights.new("Sun", "SUN")
+    light.energy, light.angle = SUN_STRENGTH, math.radians(angle_deg)
+    ob = bpy.data.objects.new("Sun", light)
+    ob.rotation_euler = mathutils.Vector(tuple(sun_direction())).to_track_quat("Z", "Y").to_euler()
+    scene.collection.objects.link(ob)
+    scene.camera = sb.camera_object("Camera", (1.6, -2.6, 2.2), (-0.1, 0.2, 0.0), fov_y_deg=50.0)
+    scene.view_settings.view_transform = "Standard"
+    bpy.context.view_layer.update()
+    st = scene.prtt
+    st.output_dir, st.resolution, st.rays, st.bounces = out_dir, resolution, rays, 0
+    st.texture_sets, st.unwrap_method, st.light_source = "ATLAS", "SMART", "WORLD"
+    for o in bpy.context.view_layer.objects:
+        o.select_set(o.type == "MESH")
+    if bpy.ops.prtt.unwrap() != {"FINISHED"}:
+        raise RuntimeError("unwrap failed")
+    from ...blender.bake.run import bake_blocking
+    outcome = bake_blocking(bpy.context, force=True)
+    if outcome.status != "done":
+        raise RuntimeError(outcome.message)
+    return outcome.manifest
+
+
+def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = False) -> dict:
+    """The visible fraction of the sun across the plank's shadow on the floor,
+    from above (an orthographic camera 2 cm over the floor, under the plank,
+    the World switched off for it): PRTT's preview and Cycles', each divided
+    by the unshadowed sun's radiance; rows along y (across the shadow's long
+    edges), averaged over the columns. Returns {"y" (rows,), "prtt", "cycles",
+    "texel_m": the floor's texel in metres}."""
+    from ...blender.blendfile import blender_log_muted
+    from ...blender.preview.offscreen import render_scene
+    from ...blender.shared import UV_MAP
+    from .cycles_compare import render_cycles
+    scene = bpy.context.scene
+    l = sun_direction()
+    t = (PLANK[1][2] - PLANK[0][2] / 2) / l[2]
+    y_mid = PLANK[1][1] - t * l[1]                  # the shadow's centre line on the floor
+    x_mid = PLANK[1][0] - t * l[0]
+    span = 0.3                                      # metres across (y), 0.03 along (x)
+    cam = bpy.data.cameras.new("Strip")
+    cam.type, cam.ortho_scale, cam.sensor_fit = "ORTHO", span, "AUTO"
+    cam.clip_start, cam.clip_end = 0.001, 1.0
+    ob = bpy.data.objects.new("Strip", cam)
+    ob.location = (x_mid, y_mid, 0.02)
+    scene.collection.objects.link(ob)
+    bg = scene.world.node_tree.nodes["Background"].inputs["Strength"]
+    keep_strength, keep_cam = bg.default_value, scene.camera
+    bg.default_value = 0.0
+    scene.camera = ob
+    bpy.context.view_layer.update()
+    w, h = size
+    try:
+        prtt, _, _, _ = render_scene(bpy.context, mode="diffuse", size=(w, h), bounces=False)
+        with blender_log_muted():
+            cyc = render_cycles(bpy, os.path.join(d, "strip.exr"), (w, h), samples, 0, 3)
+    finally:
+        bg.default_value, scene.camera = keep_strength, keep_cam
+        bpy.data.objects.remove(ob)
+    # The floor's albedo times the unshadowed sun on it (facing up); the strip is drawn in diffuse mode.
+    unlit = FLOOR_ALBEDO[bool(glossy)] / math.pi * SUN_STRENGTH * l[2]
+    floor = bpy.data.objects["floor"].data
+    uv = np.array([d.uv[:] for d in floor.uv_layers[UV_MAP].data])
+    res = scene.prtt.resolution
+    texel = FLOOR / (np.ptp(uv[:, 0]) * res)
+    return {"y": y_mid + (np.arange(h) + 0.5 - h / 2) * span / h,
+            "prtt": prtt[..., :3].mean(axis=(1, 2)) / unlit, "cycles": cyc[..., :3].mean(axis=(1, 2)) / unlit,
+            "texel_m": float(texel)}
+
+
+def penumbrae(y: np.ndarray, f: np.ndarray) -> list:
+    """The widths (metres) of the 10 %-90 % ramps of a profile ``f`` along
+    ``y`` that goes lit - shadow - lit: the first ramp down and the last up,
+    by linear interpolation of the crossings."""
+    def cross(level, idx):
+        i = idx
+        return y[i] + (level - f[i]) * (y[i + 1] - y[i]) / (f[i + 1] - f[i])
+    down = [i for i in range(len(f) - 1) if f[i] >= 0.9 > f[i + 1]], [i for i in range(len(f) - 1)
+                                                                    if f[i] >= 0.1 > f[i + 1]]
+    up = [i for i in range(len(f) - 1) if f[i] <= 0.1 < f[i + 1]], [i for i in range(len(f) - 1)
+                                                                  if f[i] <= 0.9 < f[i + 1]]
+    if not (all(down) and all(up)):
+        return [float("nan"), float("nan")]
+    return [abs(cross(0.1, down[1][0]) - cross(0.9, down[0][0])), abs(cross(0.9, up[1][-1]) - cross(0.1, up[0][-1]))]
+
+
+def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, resolution: int = 512,
+            glossy: bool = False, work_dir: str | None = None) -> dict:
+    import bpy
+
+    from ... import register
+    from ...blender.blendfile import blender_log_muted
+    from ...blender.preview.drawlist import collect
+    from ...blender.preview.offscreen import camera_view, render_scene
+    from ...core.preview.reference import trace_pixels
+    from .cycles_compare import render_cycles
+    tmp = tempfile.TemporaryDirectory(prefix="prtt-sun-") if work_dir is None else None
+    d = work_dir or tmp.name
+    try:
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        if not hasattr(bpy.types.Scene, "prtt"):
+            register()
+        t = time.perf_counter()
+        manifest = build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution,
+                         glossy=glossy)
+        t_bake = time.perf_counter() - t
+        mode = "tpfl" if glossy else "diffuse"
+        prtt, _, status, _ = render_scene(bpy.context, mode=mode, size=size, bounces=False)
+        with blender_log_muted():
+            cyc = [render_cycles(bpy, os.path.join(d, f"cycles{s}.exr"), size, samples, 0, s) for s in (1, 2)]
+        ps, _ = collect(bpy.context, use_bounces=False)
+        vp, _ = camera_view(bpy.context.scene.camera, bpy.context.evaluated_depsgraph_get(), *size,
+                            bpy.context.scene)
+        hits = trace_pixels(ps, vp, *size)
+        strip = strip_profiles(bpy, d, samples=samples, glossy=glossy)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    mask = hits.hit & (hits.edge_px > 1.0) & (prtt[..., 3] > 0.5) & (cyc[0][..., 3] > 0.99)
+    ref = 0.5 * (cyc[0] + cyc[1])
+    a, b = prtt[..., :3].astype(np.float64), ref[..., :3].astype(np.float64)
+    yb = b.mean(axis=2)
+    floor_k = [m.name for m in ps.meshes].index("floor")
+    on_floor = mask & (hits.mesh == floor_k)
+    lit = float(np.quantile(yb[on_floor], 0.9))
+    shadow = on_floor & (yb < 0.5 * lit)
+    noise = float(np.sqrt(np.mean((cyc[0][..., :3][mask] - cyc[1][..., :3][mask]) ** 2) / 2.0) / np.mean(b[mask]))
+    pen = {k: penumbrae(strip["y"], strip[k]) for k in ("prtt", "cycles")}
+
+    def rel(m):
+        return float(np.sqrt(np.mean((a[m] - b[m]) ** 2)) / np.mean(b[m]))
+
+    return {"angle_deg": angle_deg, "size": list(size), "samples": samples, "resolution": resolution,
+            "glossy": glossy, "pixels": int(mask.sum()), "shadow_pixels": int(shadow.sum()),
+            "rel_rmse": rel(mask), "rel_rmse_shadow": rel(shadow) if shadow.sum() >= 20 else float("nan"),
+            "mean_ratio_minus_1": float(a[mask].mean() / b[mask].mean() - 1.0),
+            "cycles_noise": noise / math.sqrt(2.0), "bake_s": t_bake,
+            "sun_seconds": sum(s.get("sun_seconds", 0.0) for s in manifest["sets"]),
+            "notes": [t for _, t in status.messages], "texel_m": strip["texel_m"],
+            "penumbra_m": pen, "strip": strip,
+            "images": {"prtt": prtt, "cycles": ref, "mask": mask, "shadow": shadow}}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m prtt_addon.dev.bench sun", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--angles", default="0.5,5", help="the Sun's angles, degrees, comma-separated")
+    p.add_argument("--size", default="320x180")
+    p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel")
+    p.add_argument("--resolution", type=int, default=512, help="the atlas")
+    p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, roughness 0.3), TPFL")
+    a = p.parse_args(argv)
+    w, h = (int(v) for v in a.size.split("x"))
+    print(f"Sun lamp over a box and a plank, {w}x{h}, Cycles {a.samples} samples, atlas {a.resolution}², "
+          f"{'glossy floor, TPFL' if a.glossy else 'diffuse, diffuse mode'}:")
+    print(f"  {'angle':>6}  {'image RMSE':>10}  {'shadow RMSE':>11}  {'mean':>7}  {'Cycles noise':>12}  "
+          f"{'sun mask s':>10}  penumbrae PRTT / Cycles (mm; texel)")
+    for ang in (float(x) for x in a.angles.split(",")):
+        r = compare(ang, (w, h), samples=a.samples, resolution=a.resolution, glossy=a.glossy)
+        print(f"  {ang:6.2f}  {r['rel_rmse']:10.2%}  {r['rel_rmse_shadow']:11.2%}  {r['mean_ratio_minus_1']:+7.2%}  "
+              f"{r['cycles_noise']:12.2%}  {r['sun_seconds']:10.2f}  "
+              + " ".join(f"{1e3 * p:.1f}/{1e3 * c:.1f}" for p, c in zip(*r["penumbra_m"].values()))
+              + f" ({1e3 * r['texel_m']:.1f})", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
