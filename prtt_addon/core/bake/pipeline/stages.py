@@ -36,7 +36,7 @@ from ...base.errors import BakeError, Cancelled
 from ...base.memory import release_free_memory
 from ...io import exr_io
 from ...model.scene import Scene
-from ...texels.dilate import dilate, mip_chain
+from ...texels.dilate import dilate, grown_mask, mip_chain
 from ...texels.gbuffer import GBuffer, build_gbuffer, face_normals
 from ...texels.texsample import planes_from_rows
 from ..estimators import guided_filter, validity
@@ -483,11 +483,18 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     # What the bounce reads of the texture, taken band by band as the write consumes them.
     incident = None
     if keep_for_bounce:
-        # The fine albedo's texels are the texture's valid ones (both the covered texels
-        # grown by the dilation): one array of them, not two (100 MB at 4096², #35).
-        same = (fine is not None and int(np.count_nonzero(sp.grown)) == fine.valid.size
-                and bool(sp.grown.reshape(-1)[fine.valid].all()))
-        incident = IncidentSet.empty(sp.grown, ctx.n_coeffs, valid=fine.valid if same else None)
+        # The bounce reads the texture at the covered texels grown by the dilation
+        # (surface_texels' valid texels, the fine albedo's): one array of them, not
+        # two (100 MB at 4096², #35). Texel validity can leave some of them empty (a
+        # region inside geometry wider than the rings): rows there too, zeros, as
+        # IncidentSet.at would give, so that the bounce takes these rows as they are
+        # instead of a copy at its texels (0.4 GB at 2048²).
+        valid = fine.valid if fine is not None else (
+            np.flatnonzero(grown_mask(gb.mask(), ctx.settings.dilate).reshape(-1)) if inside is not None else None)
+        grown = sp.grown.reshape(-1)
+        if valid is not None and int(np.count_nonzero(grown)) != int(np.count_nonzero(grown[valid])):
+            valid = None               # a grown texel the surface does not have: rows of its own
+        incident = IncidentSet.empty(sp.grown, ctx.n_coeffs, valid=valid)
     written = write_set(ctx, plan, gb, sp, info, visit=incident.take_band if incident is not None else None)
     sp = None
     rep.update(file=written.files[0], storage="half" if written.half else "float",
