@@ -178,9 +178,9 @@ def test_the_bounce_takes_the_texture_rows_without_a_copy_when_validity_empties_
     from prtt_addon.core.bake.estimators import bounce
     from prtt_addon.core.bake.pipeline.context import BakeSettings
     from prtt_addon.core.bake.pipeline.runner import bake_scene
-    from prtt_addon.dev.bench.contact_profile import build
     from prtt_addon.core.texels.dilate import grown_mask
     from prtt_addon.core.texels.gbuffer import build_gbuffer
+    from prtt_addon.dev.bench.contact_profile import build
     sc = build(56)
     surface = {int(np.count_nonzero(grown_mask(build_gbuffer(sc, s).mask(), 3))) for s in range(sc.n_sets)}
     copies, at = [], bounce.IncidentSet.at
