@@ -52,6 +52,9 @@ def test_a_sun_turned_after_the_bake_is_stale_until_baked_again(tmp_path):
     from prtt_addon.core.io.image_write import read_exr_rgba
     a = read_exr_rgba(str(tmp_path / "a.exr"))
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "scene.blend"))   # as the bake saved it
+    from prtt_addon.blender.preview import drawlist
+    _, status = drawlist.collect(bpy.context, with_meshes=False)        # what the N-panel shows
+    assert status.sun_description.startswith("'Key', 0.53 degree disc, 2 W/m²"), status.sun_description
     bpy.data.objects["Key"].data.energy = 6.0                       # live: no bake
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
     r = run("render", "scene.blend", "--size", "64x36", "--out", "b.exr", cwd=tmp_path, timeout=600)

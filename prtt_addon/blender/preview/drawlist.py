@@ -19,6 +19,7 @@ any material changed since they were baked).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import zipfile
 
@@ -80,6 +81,8 @@ class PreviewStatus:
     light_fallback: str = ""
     #: Why the sun's masks no longer match the scene's Sun lamp ("" when they do or there is none).
     sun_stale: str = ""
+    #: The sun the preview draws, in words ("" when none): the panel's "Sun:" line.
+    sun_description: str = ""
 
     def add(self, level: str, text: str) -> None:
         self.messages.append((level, text))
@@ -438,4 +441,6 @@ def preview_sun(scene, view_layer, info: dict, status) -> "pp.PreviewSun | None"
     if why:
         status.sun_stale = why
         status.add("WARNING", f"the sun's shadows are stale ({why}): drawn as baked; Bake again to update them")
+    status.sun_description = (f"{live.name!r}, {math.degrees(baked.angle):.2g} degree disc, {live.strength:.3g} W/m², "
+                              f"shadows baked{' (stale)' if why else ''}")
     return pp.PreviewSun(baked.direction, tuple(float(v) for v in live.irradiance), baked.angle)

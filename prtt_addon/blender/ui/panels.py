@@ -174,6 +174,8 @@ class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
             return
         if status.light_description:
             col.label(text=f"Light: {status.light_description}", icon="WORLD")
+        if status.sun_description:
+            col.label(text=f"Sun: {status.sun_description}", icon="LIGHT_SUN")
         for level, text in status.messages:
             col.label(text=text, icon={"ERROR": "ERROR", "WARNING": "ERROR"}.get(level, "INFO"))
         if st.preview:
