@@ -108,3 +108,24 @@ def test_the_bake_writes_reuses_and_drops_the_masks(tmp_path):
     assert not os.path.exists(os.path.join(out, "floor.sun.exr"))
     t_plain, _ = read_sh_exr(os.path.join(out, "floor.transfer.exr"))
     assert t_plain.tobytes() == t_sun.tobytes()
+
+
+def test_the_mask_pass_stays_within_its_memory_bound():
+    """tracemalloc's peak of a mask pass (numpy's arrays) within
+    sun_mask.mask_bytes less its plane (the stage's), at two chunk sizes."""
+    import tracemalloc
+
+    from prtt_addon.core.bake.estimators.sun_mask import mask_bytes
+    rs = RayScene(_roof())
+    rng = np.random.default_rng(3)
+    n = 20000
+    P = rng.uniform(-1, 1, (n, 3)) * [1, 1, 0]
+    up = np.tile([0.0, 0.0, 1.0], (n, 1))
+    for chunk in (1 << 14, 1 << 17):
+        tracemalloc.start()
+        sun_mask(rs, P, up, np.arange(n), (0.3, 0.2, 0.9), math.radians(1.0), rays=64, seed=1, threads=2,
+                 chunk_rays=chunk)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        bound = mask_bytes(1, 1, n, 2, chunk, 64)
+        assert 0.3 * bound < peak <= bound, (peak, bound)

@@ -29,8 +29,18 @@ from .sampling import hash_unit, sobol2, tangent_frames
 
 #: The salt of the mask's random numbers (apart from the transfer's).
 _SALT = 0x5C41
-#: Bytes of the temporaries a ray holds in a chunk (directions, origins, flags).
-RAY_BYTES = 40
+#: Bytes of the temporaries a ray holds in a chunk: the disc's float64
+#: coordinates and directions with their products (~112 B at the peak, in
+#: disc_directions), then float32 directions, origins, tfar and flags.
+RAY_BYTES = 128
+
+
+def mask_bytes(width: int, height: int, texels: int, threads: int, chunk_rays: int, rays: int) -> int:
+    """Upper bound of a set's mask pass (bytes): each thread's chunk
+    (RAY_BYTES a ray), the texels' mask and the plane it is dilated in."""
+    per = max(1, chunk_rays // max(rays, 1)) * rays
+    chunks = max(1, threads) * min(per, max(1, texels) * rays) * RAY_BYTES
+    return chunks + 4 * texels + 5 * width * height + 16 * texels
 
 
 def disc_pattern(rays: int, seed: int) -> np.ndarray:

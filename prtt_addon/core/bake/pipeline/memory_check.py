@@ -17,14 +17,15 @@ from .plan import BakePlan
 
 def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool,
                      downscales: list[int] | None = None, compiling: bool = False,
-                     extra: int = 0, dask: bool = False) -> dict[str, int]:
+                     extra: int = 0, dask: bool = False, sun: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake (memory_plan.stage_bytes).
     ``set_sizes``: (width, height, covered texels) per set baked, in order
     (covered: memory_plan.covered_texels of the set's UV area); ``downscales``:
     each set's bounce grid once chosen (default: the grid the settings ask for);
     ``compiling``: the bounce's kernels are compiled in this process (:func:`kernels_compile`);
     ``extra``: what the process holds beyond a bare worker (memory_plan.process_extra);
-    ``dask``: the rays are traced on a Dask cluster (this process is its client)."""
+    ``dask``: the rays are traced on a Dask cluster (this process is its client);
+    ``sun``: each set's sun mask is baked too."""
     K = st.bands ** 2
     kg = min(GLOSSY_BANDS, st.bands) ** 2
     colours = 1 if relight_shared_colour(st) else 3
@@ -36,7 +37,7 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
                                   else asked_downscale(st.bounces, st.tuning, st.bounce_downscale)),
                        relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg,
                        compiling=compiling, extra=extra, dask=dask, half=st.half, guiding=st.guiding,
-                       validity=st.texel_validity)
+                       validity=st.texel_validity, sun=sun)
 
 
 def job_array_bytes(scene) -> int:
@@ -89,7 +90,7 @@ def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None 
     sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
     stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing,
                               downscales=downscales, compiling=compiling, extra=ctx.memory.held_extra,
-                              dask=ctx.dask is not None)
+                              dask=ctx.dask is not None, sun=ctx.sun is not None)
     stage, need = peak_stage(stages)
     ctx.memory.estimate_mb = round(need / 2 ** 20, 1)
     biggest = max(sizes, key=lambda s: s[0] * s[1], default=None)

@@ -59,8 +59,10 @@ import math
 import numpy as np
 
 from ...io.exr_io import write_band_rows, writer_bytes
+from ...light.sun import SUN_RAYS
 from ..estimators.guided import guide_build_bytes, guide_bytes
 from ..estimators.guided_filter import filter_bytes
+from ..estimators.sun_mask import mask_bytes
 from ..estimators.validity import validity_bytes
 
 MiB = 1 << 20
@@ -188,7 +190,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
                 dask: bool = False, half: bool = True, guiding: bool = False,
-                validity: bool = False) -> dict[str, int]:
+                validity: bool = False, sun: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -208,6 +210,8 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     at a time; the guided texels' filter then holds two bands of rows, guided_filter.filter_bytes).
     validity: texel validity runs before each set's trace (estimators/validity.py: its chunks of
     rays and the inside regions' labels, validity.validity_bytes).
+    sun: each set's sun mask is traced after its transfer, beside its rows (pipeline/sun_stage.py,
+    sun_mask.mask_bytes).
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -244,8 +248,11 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         smooth = base + held + SURFACE * n + 4 * K * n + guide + filter_bytes(w, K) if guiding else 0
         # Texel validity runs before the trace, beside the G-buffer's surface (estimators/validity.py).
         valid_pass = base + held + SURFACE * n + validity_bytes(w, h, n, threads) if validity else 0
+        # The sun's mask is traced once the rows are, beside them (pipeline/sun_stage.py).
+        sun_pass = (base + held + SURFACE * n + 4 * K * n + guide
+                    + mask_bytes(w, h, n, threads, chunk_rays, SUN_RAYS)) if sun else 0
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
-                           projection, build, smooth, valid_pass)
+                           projection, build, smooth, valid_pass, sun_pass)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);
         # beside them the band in the file's type and OpenEXR's copy of it.
         out["write transfer"] = max(out["write transfer"], projection + band_bytes(K, w, h, half)
