@@ -44,7 +44,7 @@ def test_every_claimed_blender_runs_the_users_chain(compat):
     assert all(" PASS " in ln for ln in lines), r.stdout
     for v, res in rec["results"].items():
         assert set(res["steps"]) == {"install", "unwrap", "bake", "draw_handler", "render", "bake_again",
-                                     "render_vertex", "export", "page"}, (v, res["steps"])
+                                     "render_vertex", "render_sun", "export", "page"}, (v, res["steps"])
         # numba comes with the zip (issue 46, item 4), one per numpy line, and shades the bounce
         assert res["numba"] == ("0.61.2" if v < "5.1" else "0.68.1"), (v, res["numba"])
         assert res["hit_shading"] == ["compiled"], (v, res["hit_shading"])
@@ -73,6 +73,21 @@ def test_the_preview_agrees_across_versions(compat):
             got = r["preview"][mode]
             want = want * hdri if v == "4.2.23" else want
             assert got == pytest.approx(want, rel=1e-3 if v == "4.2.23" else 2e-4), (v, mode, got, want)
+
+
+def test_every_version_bakes_and_draws_the_sun(compat):
+    """The second bake has a Sun lamp: every Blender bakes its masks (the same
+    numbers: test_textures_are_the_same_numbers_in_every_version), names it in
+    the panel and draws its light, the same share of the picture in each
+    (the sun is the same in every version, unlike 4.2's forest.exr)."""
+    _, rec = compat
+    res = rec["results"]
+    ref = res["4.5.15"]["sun"]
+    for v, r in res.items():
+        sun = r["sun"]
+        assert sun["drawn"] and sun["panel"].startswith("'Sun', 0.53 degree disc, 2 W/m²"), (v, sun)
+        assert sun["share"] > 0.05 and sun["share"] == pytest.approx(ref["share"], rel=2e-4), (v, sun, ref)
+        assert any(f.endswith(".sun.exr") for f in r["files"]), (v, r["files"])
 
 
 def test_every_version_draws_its_own_agx(compat):

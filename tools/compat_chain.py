@@ -15,8 +15,10 @@ camera; then
 * the viewport draw handler's draw (``draw.draw_view`` into an offscreen
   buffer) and Render Preview Image in the texture modes (TPFL, TP, Diffuse);
 * bake again as a user changing settings does: Unwrap with xatlas (the pinned
-  wheel, so the UVs are the same in every Blender), 128², 64 rays, Vertex
-  Transfer on; Render Preview Image in the vertex modes; Export glTF.
+  wheel, so the UVs are the same in every Blender), a Sun lamp added, 128²,
+  64 rays, Vertex Transfer on; Render Preview Image in the vertex modes, and
+  in TPFL with the sun and with it hidden (the sun's share of the picture);
+  Export glTF.
 
 Prints one JSON object on the last line of stdout (``COMPAT {...}``): each
 step's outcome ("ok" or the error's last line), seconds, the preview's
@@ -33,7 +35,8 @@ import traceback
 
 import bpy
 
-STEPS = ("install", "unwrap", "bake", "draw_handler", "render", "bake_again", "render_vertex", "export")
+STEPS = ("install", "unwrap", "bake", "draw_handler", "render", "bake_again", "render_vertex", "render_sun",
+         "export")
 
 
 def _uv_sha256():
@@ -237,21 +240,23 @@ def main(zip_path, work):
 
     step("draw_handler", draw_handler)
 
-    def render(modes=("TPFL", "TP", "DIFFUSE")):
+    def picture(mode):
         import numpy as np
-        st = bpy.context.scene.prtt
+        bpy.context.scene.prtt.preview_mode = mode
+        ok(bpy.ops.prtt.render_preview(), f"render_preview in mode {mode}")
+        img = bpy.data.images["PRTT Preview"]
+        px = np.empty(len(img.pixels), np.float32)
+        img.pixels.foreach_get(px)
+        px = px.reshape(-1, 4)
+        if not np.isfinite(px).all():
+            raise RuntimeError(f"mode {mode}: non-finite pixels")
+        if px[:, 3].max() < 1.0:
+            raise RuntimeError(f"mode {mode}: nothing drawn")
+        return float(px[:, :3].mean())
+
+    def render(modes=("TPFL", "TP", "DIFFUSE")):
         for mode in modes:
-            st.preview_mode = mode
-            ok(bpy.ops.prtt.render_preview(), f"render_preview in mode {mode}")
-            img = bpy.data.images["PRTT Preview"]
-            px = np.empty(len(img.pixels), np.float32)
-            img.pixels.foreach_get(px)
-            px = px.reshape(-1, 4)
-            if not np.isfinite(px).all():
-                raise RuntimeError(f"mode {mode}: non-finite pixels")
-            result["preview"][mode] = round(float(px[:, :3].mean()), 6)
-            if px[:, 3].max() < 1.0:
-                raise RuntimeError(f"mode {mode}: nothing drawn")
+            result["preview"][mode] = round(picture(mode), 6)
 
     step("render", render)
 
@@ -259,12 +264,29 @@ def main(zip_path, work):
         st = bpy.context.scene.prtt
         st.unwrap_method, st.resolution, st.rays, st.vertex_transfer = "XATLAS", 128, 64, True
         ok(bpy.ops.prtt.unwrap(), "unwrap (xatlas)")
+        bpy.ops.object.light_add(type="SUN", rotation=(0.7, 0.2, 0.5))      # its shadows baked as a mask
+        bpy.context.active_object.data.energy = 2.0
         ok(bpy.ops.prtt.bake_transfer(), "bake_transfer (again)")
         result["uv"] = _uv_sha256()
         result["files"] = _hash_outputs(out_dir)
 
     step("bake_again", bake_again)
     step("render_vertex", lambda: render(("VERTEX_TPFL", "VERTEX_TP")))
+
+    def render_sun():
+        from bl_ext.user_default.prtt_addon.blender.preview import drawlist
+        sun = next(o for o in bpy.context.scene.objects if o.type == "LIGHT")
+        ps, status = drawlist.collect(bpy.context)
+        lit = picture("TPFL")
+        sun.hide_render = True
+        try:
+            unlit = picture("TPFL")
+        finally:
+            sun.hide_render = False
+        result["sun"] = {"drawn": ps.sun is not None, "panel": status.sun_description,
+                         "share": round(lit - unlit, 6)}
+
+    step("render_sun", render_sun)
 
     def export():
         glb = os.path.join(work, "scene.glb")
