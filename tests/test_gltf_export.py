@@ -186,6 +186,7 @@ def test_export_writes_blenders_gltf_with_prtts_textures(baked, tmp_path):
     assert len(payload) < 65 ** 3 * 6 / 2
     assert "view transform" not in r.stdout, r.stdout
     assert "bounce" not in r.stdout
+    assert "sun" not in ext and not any("sun" in s for s in ext["sets"])    # no Sun lamp: no sun
     assert ext["sh"]["bands"] == 5 and ext["sh"]["gltfToBakeFrame"] == [list(r) for r in GLTF_TO_BAKE_FRAME]
     assert np.asarray(ext["light"]["rgb"]).shape == (25, 3)
     names = [s["name"] for s in ext["sets"]]

@@ -158,3 +158,25 @@ def test_rgba8_files_are_ktx_parses_too(tmp_path, rng, scheme):
     assert (tmp_path / "again.ktx2").read_bytes() == path.read_bytes()
     back, _ = read_ktx2(path)
     assert back[0].dtype == np.uint8 and np.array_equal(back[0], levels[0])
+
+
+@pytest.mark.parametrize("layers, h, w, n, scheme", [(1, 5, 7, 1, "none"), (1, 64, 48, 1, "zstd"), (2, 9, 6, 3, "none")])
+def test_one_channel_r8_masks_round_trip_through_ktx_parse(tmp_path, rng, layers, h, w, n, scheme):
+    """R8 UNORM (a sun mask's format in the glTF, issue 48): ktx-parse reads
+    the format, one 8-bit sample, the sizes, and writes the same bytes."""
+    levels = [rng.integers(0, 256, (layers, max(1, h >> i), max(1, w >> i), 1), dtype=np.uint8) for i in range(n)]
+    path = tmp_path / "m.ktx2"
+    info = write_ktx2(path, levels, supercompression=scheme)
+    data = path.read_bytes()
+    c = json.loads(node("ktx_info.mjs", path))
+    assert (c["vkFormat"], c["typeSize"], c["pixelWidth"], c["pixelHeight"], c["layerCount"]) == (9, 1, w, h, layers)
+    (dfd,) = c["dfd"]
+    assert dfd["bytesPlane"][0] == 1
+    assert [(s["bitOffset"], s["bitLength"], s["channelType"]) for s in dfd["samples"]] == [(0, 7, 0)]
+    for lv, mine, (stored, raw) in zip(c["levels"], levels, info["level_bytes"]):
+        assert lv["uncompressed"] == raw == mine.nbytes and lv["bytes"] == stored
+    node("ktx_rewrite.mjs", path, tmp_path / "again.ktx2")
+    assert (tmp_path / "again.ktx2").read_bytes() == data
+    back, _ = read_ktx2(path)
+    for a, b in zip(back, levels):
+        assert a.dtype == np.uint8 and np.array_equal(a, b)

@@ -30,13 +30,13 @@ def as_lists(t):
 
 
 def test_surface_variants_are_blenders():
-    cases = [(mode, bands, bounce, display) for mode in ss.FRAGMENT_MODES for bands in (1, 3, 5, 8)
-             for bounce in (False, True) for display in (False, True)]
-    got = js(f"out({json.dumps(cases)}.map(([m, b, bo, d]) => S.surfaceVariant(m, b, "
-             f"{{bounce: bo, display: d, gauntNnz: m === 'tp' ? {{1: {ss.gaunt_nnz(1)}, 3: {ss.gaunt_nnz(3)}, "
+    cases = [(mode, bands, bounce, display, sun) for mode in ss.FRAGMENT_MODES for bands in (1, 3, 5, 8)
+             for bounce in (False, True) for display in (False, True) for sun in (False, True)]
+    got = js(f"out({json.dumps(cases)}.map(([m, b, bo, d, s]) => S.surfaceVariant(m, b, "
+             f"{{bounce: bo, display: d, sun: s, gauntNnz: m === 'tp' ? {{1: {ss.gaunt_nnz(1)}, 3: {ss.gaunt_nnz(3)}, "
              f"5: {ss.gaunt_nnz(5)}, 8: {ss.gaunt_nnz(8)}}}[b] : 0}})));")
-    for (mode, bands, bounce, display), v in zip(cases, got):
-        ref = ss.variant(mode, bands, bounce=bounce, display=display)
+    for (mode, bands, bounce, display, sun), v in zip(cases, got):
+        ref = ss.variant(mode, bands, bounce=bounce, display=display, sun=sun)
         assert v["name"] == ref.name
         assert v["defines"] == as_lists(ref.defines), (mode, bands, bounce)
         assert v["typedefs"].split() == ref.typedefs.split()

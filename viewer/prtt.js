@@ -4,7 +4,8 @@
 // compiles), per pixel: TPFL (the paper's glossy PRT), TP (the full triple
 // product) or diffuse, with the bounce textures: a baked bounce as it is, a
 // relightable bounce relit on the GPU by the same relight pass as Blender's
-// (shaders/prtt_relight_frag.glsl) whenever the light changes.
+// (shaders/prtt_relight_frag.glsl) whenever the light changes; a Sun lamp's
+// direct light with its baked shadow masks, its colour and strength live.
 //
 //   const loader = new GLTFLoader();
 //   loader.register((parser) => new PRTTLoaderPlugin(parser, { renderer }));
@@ -23,7 +24,7 @@ import {
 import { gauntTable, lightBlock, relightBlock, turnLightZ } from './prtt_sh.js';
 import {
   MAX_SCENE_BYTES, PRTTError, arrayTexture, concatLayers, declaredBytes, displayTable, dummy2D, expandSharedGlossy,
-  gpuLimits, keepLayers,
+  gpuLimits, keepLayers, maskTexture,
 } from './prtt_textures.js';
 
 export const NAME = 'PRTT_radiance_transfer';
@@ -43,6 +44,24 @@ function materialBlock(source, ext, textures) {
 }
 
 const UV_NAMES = ['uv', 'uv1', 'uv2', 'uv3'];
+
+/** The largest sun disc PRTT bakes (core/light/sun.py MAX_ANGLE: 30 degrees). */
+const MAX_SUN_ANGLE = Math.PI / 6;
+
+/** The root's sun, checked (the file is untrusted): {name, direction, angle, color, strength}. */
+function checkSun(sun) {
+  const v3 = (a) => Array.isArray(a) && a.length === 3 && a.every(Number.isFinite);
+  const n = v3(sun.direction) ? Math.hypot(...sun.direction) : 0;
+  if (!(n > 0.999 && n < 1.001)) throw new PRTTError(`${NAME}: the sun's direction must be a unit vector`);
+  if (!(Number.isFinite(sun.angle) && sun.angle >= 0 && sun.angle <= MAX_SUN_ANGLE + 1e-9)) {
+    throw new PRTTError(`${NAME}: the sun's angle ${sun.angle} is not 0 to ${MAX_SUN_ANGLE.toFixed(4)} radians`);
+  }
+  if (!(v3(sun.color) && sun.color.every((c) => c >= 0) && Number.isFinite(sun.strength) && sun.strength >= 0)) {
+    throw new PRTTError(`${NAME}: the sun's colour and strength must be finite and not negative`);
+  }
+  return { name: String(sun.name || 'Sun'), direction: sun.direction.map((x) => x / n), angle: sun.angle,
+    color: sun.color.slice(), strength: sun.strength };
+}
 
 /** A PRTT scene: its sets, light, mode and materials; draws with `render`. */
 class PRTTScene {
@@ -71,6 +90,12 @@ class PRTTScene {
     this.lightData = lightBlock(this.light, this.bands);
     this.lightGroup.add(new THREE.Uniform(this.lightData));
     this.relightDirty = true;
+    this.sun = null;                // the root's sun, checked (drawn on the sets with a mask)
+    this.sunOn = true;
+    this.sunData = new Float32Array(8);
+    this.sunGroup = new THREE.UniformsGroup();
+    this.sunGroup.setName(blockName('PRTTSun'));
+    this.sunGroup.add(new THREE.Uniform(this.sunData));
     this.dummy = dummy2D();
     this.gaunt = null;
     this.materials = new Map();
@@ -94,6 +119,31 @@ class PRTTScene {
     this.relightDirty = true;
   }
 
+  /**
+   * The sun's colour (linear RGB) and strength (W/m²) live, as a Sun lamp's
+   * in Blender (its shadows stay the baked masks); ``on`` false leaves it out.
+   */
+  setSun({ color, strength, on } = {}) {
+    if (!this.sun) throw new PRTTError('this file has no sun: its bake had no Sun lamp');
+    if (color !== undefined) {
+      if (!(Array.isArray(color) && color.length === 3 && color.every((c) => Number.isFinite(c) && c >= 0))) {
+        throw new PRTTError('the sun\'s colour must be 3 finite numbers, not negative');
+      }
+      this.sun.color = color.slice();
+    }
+    if (strength !== undefined) {
+      if (!(Number.isFinite(strength) && strength >= 0)) throw new PRTTError('the sun\'s strength must be finite, not negative');
+      this.sun.strength = strength;
+    }
+    const d = this.sun.direction, a = this.sun.angle, e = this.sun.strength;
+    this.sunData.set([d[0], d[1], d[2], a * a / 16, e * this.sun.color[0], e * this.sun.color[1],
+      e * this.sun.color[2], 0]);
+    if (on !== undefined && Boolean(on) !== this.sunOn) {
+      this.sunOn = Boolean(on);
+      this.setMode(this.mode);
+    }
+  }
+
   /** Switch the shading: 'tpfl' | 'tp' | 'diffuse', with or without the bounce. */
   setMode(mode, { bounces = this.bounces } = {}) {
     if (!MODES.includes(mode)) throw new PRTTError(`unknown mode ${mode}; use one of ${MODES.join(', ')}`);
@@ -107,6 +157,7 @@ class PRTTScene {
     for (const s of this.sets) {
       s.transfer.dispose();
       if (s.bounce) s.bounce.dispose();
+      if (s.sun) s.sun.dispose();
       if (s.relight) {
         s.relight.target.dispose();
         s.relight.operator.dispose();
@@ -117,7 +168,7 @@ class PRTTScene {
     if (this.depth) this.depth.dispose();
     if (this.gaunt) this.gaunt.tex.dispose();
     this.dummy.dispose();
-    for (const g of [this.viewGroup, this.lightGroup]) g.dispose();
+    for (const g of [this.viewGroup, this.lightGroup, this.sunGroup]) g.dispose();
   }
 
   /** The depth pre-pass material: Blender's (shaders/prtt_depth_*.glsl), the same clip positions. */
@@ -154,10 +205,11 @@ class PRTTScene {
     const s = this.sets[m.set];
     const bounce = this.bounceTexture(s);
     const triple = this.mode === 'tp';
-    const key = `${this.mode}|${m.set}|${!!bounce}|${m.matKey}`;
+    const sun = Boolean(this.sunOn && this.sun && s.sun);
+    const key = `${this.mode}|${m.set}|${!!bounce}|${sun}|${m.matKey}`;
     const cached = this.materials.get(key);
     if (cached) return cached;
-    const v = surfaceVariant(this.mode, this.bands, { bounce: !!bounce, display: !!this.display,
+    const v = surfaceVariant(this.mode, this.bands, { bounce: !!bounce, display: !!this.display, sun,
       gauntNnz: triple ? this.gauntTexture().nnz : 0 });
     const units = v.samplers.length;
     if (units > this.limits.maxTextureUnits) {
@@ -174,6 +226,7 @@ class PRTTScene {
     if (bounce) uniforms.bounceTex = { value: bounce };
     if (triple) uniforms.gauntTex = { value: this.gauntTexture().tex };
     if (this.display) uniforms.displayLut = { value: this.display.texture };
+    if (sun) uniforms.sunTex = { value: s.sun };
     const mat = new THREE.RawShaderMaterial({
       glslVersion: THREE.GLSL3, vertexShader, fragmentShader, uniforms,
       defines: { PRTT_ROUGHNESS_CHANNEL: 'g' },      // glTF packs roughness in G
@@ -182,7 +235,7 @@ class PRTTScene {
     const matGroup = new THREE.UniformsGroup();
     matGroup.setName(blockName('PRTTMaterial'));
     matGroup.add(new THREE.Uniform(m.block));
-    mat.uniformsGroups = [this.viewGroup, matGroup, this.lightGroup];
+    mat.uniformsGroups = [this.viewGroup, matGroup, this.lightGroup, ...(sun ? [this.sunGroup] : [])];
     this.materials.set(key, mat);
     return mat;
   }
@@ -324,12 +377,13 @@ function tiledUvs(uv, tile, name) {
 
 /** GLTFLoader plugin: gltf.userData.prtt becomes a PRTTScene (or null without the extension). */
 export class PRTTLoaderPlugin {
-  constructor(parser, { renderer, mode = 'tpfl', bounces = true, shaderBase } = {}) {
+  constructor(parser, { renderer, mode = 'tpfl', bounces = true, sun = true, shaderBase } = {}) {
     this.name = NAME;
     this.parser = parser;
     this.renderer = renderer;
     this.mode = mode;
     this.bounces = bounces;
+    this.sunOn = sun;
     this.shaderBase = shaderBase;
   }
 
@@ -372,6 +426,7 @@ export class PRTTLoaderPlugin {
       ...relightVariant(bands, 1).fragmentFiles, ...depthVariant().vertexFiles, ...depthVariant().fragmentFiles])];
     const read = await fetchSources(files, this.shaderBase);
     const prtt = new PRTTScene(ext, limits, read);
+    if (ext.sun) prtt.sun = checkSun(ext.sun);
     const planned = declaredBytes(ext.sets);
     if (planned > MAX_SCENE_BYTES) {
       throw new PRTTError(`the file's textures unpack to ${Math.round(planned / 2 ** 20)} MiB, over the viewer's `
@@ -393,6 +448,15 @@ export class PRTTLoaderPlugin {
     for (const s of ext.sets) {
       const transfer = await payload(s.transfer, `set ${s.name} transfer`, fileK4);
       const entry = { name: s.name, transfer: keepLayers(transfer, 1, fileK4, K4) };
+      if (s.sun && prtt.sun) {
+        const m = s.sun;
+        if (!m || !Number.isInteger(m.bufferView) || !Number.isInteger(m.width) || !Number.isInteger(m.height)
+            || m.width < 1 || m.height < 1) {
+          throw new PRTTError(`set ${s.name} sun mask: the extension does not say where and how large it is`);
+        }
+        const buf = await parser.getDependency('bufferView', m.bufferView);
+        entry.sun = maskTexture(new Uint8Array(buf), zstd, `set ${s.name} sun mask`, m, limits);
+      }
       if (s.bounce) {
         entry.bounce = keepLayers(await payload(s.bounce, `set ${s.name} bounce`, 3 * fileK4), 3, fileK4, K4);
       } else if (s.relightDC) {
@@ -510,6 +574,10 @@ export class PRTTLoaderPlugin {
         matKey: `${matIndex}|${m.uuid}` });
       m.onBeforeRender = (renderer, _scene, camera) => prtt.beforeDraw(renderer, camera);
     }
+    if (prtt.sun) {
+      prtt.sunOn = this.sunOn;
+      prtt.setSun();                 // the block from the file's colour and strength
+    }
     prtt.setMode(this.mode, { bounces: this.bounces });
     gltf.userData.prtt = prtt;
   }
@@ -573,10 +641,11 @@ export function checkGlb(buffer, name = 'the file') {
  * The title-bar contract of the page (index.html) builds on this.
  * `url`: an address (fetched, onProgress(received, total) as it comes) or an ArrayBuffer.
  */
-export async function loadPRTT(url, renderer, { turn = 0, mode = 'tpfl', bounces = true, onProgress = null } = {}) {
+export async function loadPRTT(url, renderer, { turn = 0, mode = 'tpfl', bounces = true, sun = true,
+  onProgress = null } = {}) {
   const { GLTFLoader } = await import('three/addons/loaders/GLTFLoader.js');
   const loader = new GLTFLoader();
-  loader.register((parser) => new PRTTLoaderPlugin(parser, { renderer, mode, bounces }));
+  loader.register((parser) => new PRTTLoaderPlugin(parser, { renderer, mode, bounces, sun }));
   const bytes = url instanceof ArrayBuffer ? checkGlb(url) : await fetchGlb(url, onProgress);
   const here = typeof location !== 'undefined' ? location.href : undefined;
   const base = url instanceof ArrayBuffer ? '' : new URL('.', new URL(url, here)).href;

@@ -12,6 +12,8 @@ const VK_FORMAT_R16G16B16A16_SFLOAT = 97;
 
 const VK_FORMAT_R8G8B8A8_UNORM = 37;
 
+const VK_FORMAT_R8_UNORM = 9;
+
 const KTX2_ZSTD = 2;
 
 /** The most one texture may unpack to in the page (a 4096^2 band-5 transfer is 896 MiB). */
@@ -32,6 +34,8 @@ export function declaredBytes(sets) {
       const copies = key === 'relightGlossy' && p.glossyColour === 'shared' ? 3 : 1;
       total += copies * p.layers * p.width * p.height * 8;
     }
+    const m = s && s.sun;
+    if (m && [m.width, m.height].every((v) => Number.isInteger(v) && v > 0)) total += m.width * m.height;
   }
   return total;
 }
@@ -113,6 +117,57 @@ export function arrayTexture(bytes, zstd, what, { layers, width, height, encodin
   if (u8) return halfArrayTexture(decodeU8(data, width * height, layers, scale, offset), width, height, layers);
   const half = new Uint16Array(data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength));
   return halfArrayTexture(half, width, height, layers);
+}
+
+/**
+ * A set's sun mask (docs/gltf.md): a one-layer R8 KTX2, q / 255 the visible
+ * fraction of the sun's disc per texel, rows top first; checked against the
+ * extension's size and the browser's limits, as an 8-bit 2D texture the GPU
+ * filters bilinearly (the shader reads .r in 0 .. 1).
+ */
+export function maskTexture(bytes, zstd, what, { width, height }, limits) {
+  let c;
+  try {
+    c = readKTX2(bytes);
+  } catch (e) {
+    throw new PRTTError(`${what}: not a readable KTX2 file (${e.message})`);
+  }
+  if (c.vkFormat !== VK_FORMAT_R8_UNORM || c.levels.length < 1) {
+    throw new PRTTError(`${what}: not an R8 texture (vkFormat ${c.vkFormat})`);
+  }
+  if (c.layerCount !== 1 || c.pixelWidth !== width || c.pixelHeight !== height) {
+    throw new PRTTError(`${what}: ${c.pixelWidth}x${c.pixelHeight} in ${c.layerCount} layers, the extension says `
+      + `${width}x${height} in 1 (a damaged file)`);
+  }
+  if (limits && (width > limits.maxTextureSize || height > limits.maxTextureSize)) {
+    throw new PRTTError(`${what}: ${width}x${height} texels exceeds this browser's MAX_TEXTURE_SIZE `
+      + `(${limits.maxTextureSize}); export a smaller bake`);
+  }
+  const want = width * height;
+  const level = c.levels[0];
+  let data = level.levelData;
+  if (c.supercompressionScheme === KTX2_ZSTD) {
+    if (level.uncompressedByteLength !== want) {
+      throw new PRTTError(`${what}: declares ${level.uncompressedByteLength} bytes, ${want} expected`);
+    }
+    try {
+      data = zstd.decode(data, want);
+    } catch (e) {
+      throw new PRTTError(`${what}: damaged Zstandard data (${e.message || e})`);
+    }
+  } else if (c.supercompressionScheme !== 0) {
+    throw new PRTTError(`${what}: supercompression scheme ${c.supercompressionScheme} is not PRTT's`);
+  }
+  if (data.byteLength !== want) throw new PRTTError(`${what}: ${data.byteLength} bytes, ${want} expected`);
+  const tex = new THREE.DataTexture(new Uint8Array(data), width, height, THREE.RedFormat, THREE.UnsignedByteType);
+  tex.minFilter = tex.magFilter = THREE.LinearFilter;
+  tex.wrapS = tex.wrapT = THREE.ClampToEdgeWrapping;
+  tex.generateMipmaps = false;
+  tex.flipY = false;                 // the KTX2's first row is glTF's v = 0
+  tex.unpackAlignment = 1;
+  tex.colorSpace = THREE.NoColorSpace;
+  tex.needsUpdate = true;
+  return tex;
 }
 
 /**

@@ -47,6 +47,7 @@ import numpy as np
 
 from ...core.base.atomic import atomic_write
 from ...core.base.memory import MemoryLimitError, check_fits
+from ...core.io.exr_io import read_mask_exr
 from ...core.io.gltf_prtt import (
     ENCODINGS,
     NAME,
@@ -58,6 +59,8 @@ from ...core.io.gltf_prtt import (
     read_glb_json,
     root_extension,
     set_payload_bytes,
+    sun_extension,
+    sun_payload,
 )
 from ...core.io.image_write import png_bytes, srgb8
 from ...core.preview import pack as pp
@@ -70,6 +73,7 @@ from ..preview.offscreen import RenderError, check_out
 from ..record import bake_folder, generated_uvs, last_bake, materials_signature
 from ..rna_arrays import RnaArrayError, read, write
 from ..scene.job import GENERATED_UVS
+from ..scene.lamps import scene_sun
 from ..scene.scene_objects import GEOMETRY_TYPES, render_enabled
 from ..scene.world import world_setup
 from ..shared import UV_MAP
@@ -416,13 +420,15 @@ def _check_exportable(context, info: dict):
 
 def _set_files(ps: pp.PreviewScene, folder: str, info: dict) -> list:
     """Per texture set, in export order: (set name, its objects, transfer
-    file, relightable file or None, baked bounce level files)."""
+    file, relightable file or None, baked bounce level files, sun mask file
+    or None: only where the preview draws the sun)."""
     out = []
     for set_name, objects in sorted(info["set_objects"].items()):
         pset = ps.sets.get(set_name)
         relight = pset.relight if pset is not None and pset.relight else None
         bounces = list(pset.bounces) if pset is not None and not relight and pset.bounces else []
-        out.append((set_name, objects, os.path.join(folder, f"{set_name}.transfer.exr"), relight, bounces))
+        sun = pset.sun if pset is not None and pset.sun and ps.sun is not None else None
+        out.append((set_name, objects, os.path.join(folder, f"{set_name}.transfer.exr"), relight, bounces, sun))
     return out
 
 
@@ -449,7 +455,7 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
     K = ps.bands * ps.bands
     sets, blobs, set_index = [], [], {}
     held = 0
-    for i, (set_name, objects, transfer, relight, bounces) in enumerate(_set_files(ps, folder, info)):
+    for i, (set_name, objects, transfer, relight, bounces, sun) in enumerate(_set_files(ps, folder, info)):
         _fits(set_payload_bytes(transfer, relight, bounces, K, encoding),
               f"exporting texture set {set_name!r} (beside the {held / 2 ** 20:.0f} MiB of sets made before it)")
         made = file_payloads(transfer, encoding)
@@ -464,6 +470,8 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
                              f"the bake {K}: left out of the glTF (bake again)")
             else:
                 made["bounce"] = b
+        if sun:
+            made["sun"] = sun_payload(read_mask_exr(sun)[0][::-1])     # rows top first, as every payload
         for key, (blob, meta) in made.items():
             entry[key] = meta
             blobs.append((("sets", i, key), blob))
@@ -511,6 +519,16 @@ def _environment(scene, notes: list, fallback: str = "") -> tuple[dict, bytes | 
     image = {"name": setup.image_name or os.path.basename(path),
              "mimeType": _ENVIRONMENT_MIME[os.path.splitext(path)[1].lower()], "bytes": len(blob)}
     return environment_extension(image=image, **common), blob
+
+
+def _sun(context, ps: pp.PreviewScene, sets: list) -> dict | None:
+    """The root's ``sun``: the sun the preview draws (the baked direction and
+    disc, the lamp's colour and strength now), or None when no set carries a mask."""
+    if ps.sun is None or not any("sun" in s for s in sets):
+        return None
+    live = scene_sun(context.scene, getattr(context, "view_layer", None))[0]
+    return sun_extension(name=live.name, direction=ps.sun.direction, angle=ps.sun.angle, color=live.color,
+                         strength=live.strength)
 
 
 def _material_block(m: pp.PreviewMaterial, normal: int) -> dict:
@@ -577,7 +595,8 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
                                 device=scene.display_settings.display_device, table=table)
     root = root_extension(bands=bands, light=ps.light, light_description=status.light_description, sets=sets,
                           display=display, environment=environment,
-                          default_material=_material_block(pp.PreviewMaterial(), normal=-1))
+                          default_material=_material_block(pp.PreviewMaterial(), normal=-1),
+                          sun=_sun(context, ps, sets))
     materials, images = _material_params(ps)
     parts = _parts(info, {s["name"]: i for i, s in enumerate(sets)})
     generated = generated_uvs(folder) if any(p.uv == "generated" for p in parts) else {}

@@ -342,6 +342,44 @@ def bounce_files_payload(paths: list, K: int, encoding: str = "half",
     return _bounce_payload(total, 3, K, len(levels), supercompression, encoding)
 
 
+#: The sun mask's payload format: R8 UNORM, q / 255 the visible fraction of
+#: the disc (the mask's own steps are 1 / SUN_RAYS = 1/64: 8 bits hold them
+#: with at most 1/510 of rounding; a filtered edge texel rounds as any other).
+SUN_MASK_FORMAT = "R8"
+
+
+def sun_payload(mask: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+    """A set's sun mask (H, W) in [0, 1], rows top first, as a one-layer R8
+    KTX2 (q = round(255 mask)) and its JSON: width, height, format, bytes and
+    ``maxError``, the largest |q / 255 - mask| (at most 1/510)."""
+    m = np.asarray(mask, np.float32)
+    if m.ndim != 2:
+        raise ValueError(f"a sun mask is (H, W), got {m.shape}")
+    if not (np.isfinite(m).all() and m.min(initial=0.0) >= 0.0 and m.max(initial=0.0) <= 1.0):
+        raise ValueError("a sun mask holds fractions in [0, 1]")
+    q = np.rint(m * 255.0).astype(np.uint8)
+    err = float(np.abs(q.astype(np.float64) / 255.0 - m).max(initial=0.0))
+    H, W = m.shape
+    blob, level_bytes = ktx2_bytes([q[None, :, :, None]], supercompression=supercompression,
+                                   zstd_level=ZSTD_LEVEL, keys={"PRTTkind": "sun_mask"})
+    return blob, {"layers": 1, "width": int(W), "height": int(H), "format": SUN_MASK_FORMAT,
+                  "supercompression": supercompression, "bytes": len(blob),
+                  "uncompressedBytes": int(level_bytes[0][1]), "maxError": err}
+
+
+def sun_extension(*, name: str, direction, angle: float, color, strength: float) -> dict:
+    """The root's ``sun`` (core.light.sun.Sun's conventions, the bake frame):
+    ``direction`` unit towards the sun (its mask was baked for it), ``angle``
+    the disc's full angle (radians), linear ``color`` and ``strength`` (W/m²),
+    ``irradiance`` = strength * color (facing the sun). A set's ``sun``
+    payload is its shadow: the visible fraction of the disc per texel."""
+    d = np.asarray(direction, np.float64)
+    c = np.asarray(color, np.float64)
+    return {"name": str(name), "direction": d.round(12).tolist(), "angle": float(angle),
+            "color": c.round(9).tolist(), "strength": float(strength),
+            "irradiance": (float(strength) * c).round(9).tolist()}
+
+
 def set_payload_bytes(transfer, relight, bounces: list, K: int, encoding: str = "half") -> int:
     """Bytes one texture set's payloads hold at most while they are made
     (:func:`file_payloads` of ``transfer`` and ``relight``, or
@@ -409,7 +447,7 @@ def environment_extension(*, description: str, strength: float, rotation=(0.0, 0
 
 def root_extension(*, bands: int, light: np.ndarray, light_description: str, sets: list,
                    display: dict | None = None, environment: dict | None = None,
-                   default_material: dict | None = None) -> dict:
+                   default_material: dict | None = None, sun: dict | None = None) -> dict:
     """The root extension's JSON, ``sets`` each {"name", "resolution",
     "transfer": {..., "bufferView": <filled by the writer>}}. ``light``:
     (K, 3) RGB SH of the environment in the bake frame (Blender's World at
@@ -417,7 +455,8 @@ def root_extension(*, bands: int, light: np.ndarray, light_description: str, set
     (:func:`display_extension`) and ``environment``
     (:func:`environment_extension`) when given; ``default_material``
     (:func:`material_extension`): what the preview shades a primitive without
-    a material with (glTF's own default is metallic, which would draw it black)."""
+    a material with (glTF's own default is metallic, which would draw it black);
+    ``sun`` (:func:`sun_extension`) when the bake has a sun's masks."""
     L = np.asarray(light, np.float64)
     if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] != bands * bands:
         raise ValueError(f"light: expected ({bands * bands}, 3) SH coefficients, got {L.shape}")
@@ -431,4 +470,5 @@ def root_extension(*, bands: int, light: np.ndarray, light_description: str, set
         **({"display": display} if display is not None else {}),
         **({"environment": environment} if environment is not None else {}),
         **({"defaultMaterial": default_material} if default_material is not None else {}),
+        **({"sun": sun} if sun is not None else {}),
     }

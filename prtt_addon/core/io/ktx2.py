@@ -1,10 +1,11 @@
 """KTX 2.0 files of float 2D array textures: PRTT's SH planes for glTF and the web.
 
-PyPI has no writer of float KTX2 arrays, so this is a small one: two formats,
+PyPI has no writer of float KTX2 arrays, so this is a small one: three formats,
 ``VK_FORMAT_R16G16B16A16_SFLOAT`` (RGBA16F, 8 bytes a texel: the SH values
-themselves) and ``VK_FORMAT_R8G8B8A8_UNORM`` (RGBA8, 4 bytes: the glTF
+themselves), ``VK_FORMAT_R8G8B8A8_UNORM`` (RGBA8, 4 bytes: the glTF
 export's 8-bit encoding, each plane with its own scale and offset kept
-beside the file, core/io/gltf_prtt.py), a 2D array
+beside the file, core/io/gltf_prtt.py) and ``VK_FORMAT_R8_UNORM`` (R8, one
+byte: a sun mask, the visible fraction of the disc in 0 .. 1), a 2D array
 texture of ``layers`` layers (four SH coefficients per layer: coefficient
 k = 4 * layer + channel, k = l² + l + m), one or more mip levels, no
 supercompression or Zstandard per level (scheme 2). Layout as the KTX 2.0
@@ -19,10 +20,12 @@ independent parser.
 :func:`read_ktx2` reads back what :func:`write_ktx2` writes, for tests and the
 export's checks; it bounds every size before allocating (files from outside
 are untrusted) and refuses any other format with :class:`KTX2Error`.
-Levels are float16 arrays for RGBA16F and uint8 arrays for RGBA8.
+Levels are float16 arrays for RGBA16F and uint8 arrays for RGBA8 and R8
+(channels last: 4, or 1 for R8).
 """
 from __future__ import annotations
 
+import math
 import struct
 
 import numpy as np
@@ -33,9 +36,11 @@ from ..base.memory import MemoryLimitError, check_fits
 IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
 VK_FORMAT_R16G16B16A16_SFLOAT = 97
 VK_FORMAT_R8G8B8A8_UNORM = 37
-#: dtype -> (vkFormat, typeSize, bytes a texel, name)
-FORMATS = {np.dtype(np.float16): (VK_FORMAT_R16G16B16A16_SFLOAT, 2, 8, "RGBA16F"),
-           np.dtype(np.uint8): (VK_FORMAT_R8G8B8A8_UNORM, 1, 4, "RGBA8")}
+VK_FORMAT_R8_UNORM = 9
+#: (dtype, channels) -> (vkFormat, typeSize, bytes a texel, name)
+FORMATS = {(np.dtype(np.float16), 4): (VK_FORMAT_R16G16B16A16_SFLOAT, 2, 8, "RGBA16F"),
+           (np.dtype(np.uint8), 4): (VK_FORMAT_R8G8B8A8_UNORM, 1, 4, "RGBA8"),
+           (np.dtype(np.uint8), 1): (VK_FORMAT_R8_UNORM, 1, 1, "R8")}
 SUPERCOMPRESSION = {"none": 0, "zstd": 2}
 #: Largest side and layer count accepted (a 16384² array of 16 layers of
 #: RGBA16F is 32 GiB: beyond what a browser or a GPU takes).
@@ -53,14 +58,15 @@ class KTX2Error(ValueError):
     """A KTX2 file this module cannot write or read; the message says why."""
 
 
-def _dfd(dtype) -> bytes:
-    """The Data Format Descriptor of linear RGBA16F (float16) or RGBA8 UNORM
-    (uint8): its total size, then one basic descriptor block (24 bytes) with
-    four 16-byte samples."""
+def _dfd(dtype, channels: int = 4) -> bytes:
+    """The Data Format Descriptor of linear RGBA16F (float16), RGBA8 UNORM
+    (uint8) or R8 UNORM (uint8, one channel): its total size, then one basic
+    descriptor block (24 bytes) with a 16-byte sample per channel."""
     half = np.dtype(dtype) == np.float16
-    bits, texel = (16, 8) if half else (8, 4)
+    bits = 16 if half else 8
+    texel = bits // 8 * channels
     samples = b""
-    for i, channel in enumerate((0, 1, 2, 15)):             # KHR_DF_CHANNEL_RGBSDA_R, G, B, ALPHA
+    for i, channel in enumerate((0, 1, 2, 15)[:channels]):  # KHR_DF_CHANNEL_RGBSDA_R, G, B, ALPHA
         if half:
             qualifiers = 0x80 | 0x40                        # FLOAT | SIGNED (a float's sign bit)
             lower, upper = 0xBF800000, 0x3F800000           # sampleLower -1.0f, sampleUpper 1.0f
@@ -86,27 +92,28 @@ def _kvd(entries: dict) -> bytes:
 
 
 def _check_levels(levels) -> list:
-    """Levels as C-contiguous float16 (layers, H, W, 4) arrays, each half the
-    one before (rounded down, at least 1)."""
+    """Levels as C-contiguous (layers, H, W, 4) float16 or uint8 arrays (or
+    (layers, H, W, 1) uint8: R8), each half the one before (rounded down, at
+    least 1)."""
     if not levels or len(levels) > MAX_LEVELS:
         raise KTX2Error(f"a KTX2 file needs 1..{MAX_LEVELS} mip levels, got {len(levels)}")
     out = []
     for i, lv in enumerate(levels):
         a = np.asarray(lv)
-        if a.ndim != 4 or a.shape[3] != 4:
-            raise KTX2Error(f"level {i}: expected (layers, height, width, 4), got {a.shape}")
-        if a.dtype not in FORMATS:
+        if a.ndim != 4 or a.shape[3] not in (1, 4) or (a.shape[3] == 1 and a.dtype != np.uint8):
+            raise KTX2Error(f"level {i}: expected (layers, height, width, 4), or (..., 1) of uint8, got {a.shape}")
+        if (a.dtype, a.shape[3]) not in FORMATS:
             if not np.issubdtype(a.dtype, np.floating):
                 raise KTX2Error(f"level {i}: expected floats or uint8, got {a.dtype}")
             a = a.astype(np.float16)
         if i and a.dtype != out[0].dtype:
             raise KTX2Error(f"level {i}: {a.dtype}, level 0 is {out[0].dtype}")
         out.append(np.ascontiguousarray(a))
-    L, H, W = out[0].shape[:3]
+    L, H, W, C = out[0].shape
     if not (1 <= L <= MAX_LAYERS and 1 <= H <= MAX_SIDE and 1 <= W <= MAX_SIDE):
         raise KTX2Error(f"{L} layers of {W}x{H}: at most {MAX_LAYERS} layers and {MAX_SIDE} texels a side")
     for i, a in enumerate(out[1:], 1):
-        want = (L, max(1, H >> i), max(1, W >> i), 4)
+        want = (L, max(1, H >> i), max(1, W >> i), C)
         if a.shape != want:
             raise KTX2Error(f"level {i}: expected shape {want}, got {a.shape}")
     return out
@@ -125,7 +132,8 @@ def write_ktx2(path, levels, **kw) -> dict:
 def ktx2_bytes(levels, *, supercompression: str = "none", keys: dict | None = None,
                zstd_level: int = 10) -> tuple[bytes, list]:
     """Mip ``levels`` (level 0 first, each (layers, H, W, 4): float16 (or
-    floats, converted) for RGBA16F, uint8 for RGBA8) as the bytes of a KTX2
+    floats, converted) for RGBA16F, uint8 for RGBA8; (layers, H, W, 1)
+    uint8 for R8) as the bytes of a KTX2
     2D array texture, and
     [(stored, uncompressed) bytes per level]. ``supercompression``: "none" or
     "zstd" (each level on its own, as KTX2 requires). ``keys``: extra
@@ -143,8 +151,9 @@ def ktx2_bytes(levels, *, supercompression: str = "none", keys: dict | None = No
         stored = [cctx.compress(b) for b in raw]
     else:
         stored = raw
-    vk, type_size = FORMATS[levels[0].dtype][:2]
-    dfd = _dfd(levels[0].dtype)
+    fmt = (levels[0].dtype, levels[0].shape[3])
+    vk, type_size = FORMATS[fmt][:2]
+    dfd = _dfd(*fmt)
     kvd = _kvd({"KTXorientation": "rd", "KTXwriter": "PRTT (prtt_addon.core.io.ktx2)", **(keys or {})})
     n = len(levels)
     level_index_at = _HEADER.size + _INDEX.size
@@ -152,7 +161,7 @@ def ktx2_bytes(levels, *, supercompression: str = "none", keys: dict | None = No
     kvd_at = dfd_at + len(dfd)
     data_at = kvd_at + len(kvd)
     # Levels in the file smallest first; uncompressed ones aligned to lcm(texel bytes, 4).
-    align = FORMATS[levels[0].dtype][2] if supercompression == "none" else 1
+    align = math.lcm(FORMATS[fmt][2], 4) if supercompression == "none" else 1
     offsets, pos, body = [0] * n, data_at, []
     for i in reversed(range(n)):
         pad = -pos % align
@@ -170,8 +179,8 @@ def ktx2_bytes(levels, *, supercompression: str = "none", keys: dict | None = No
 
 
 def read_ktx2(path, *, max_bytes: int | None = None) -> tuple[list, dict]:
-    """(levels [(layers, H, W, 4) float16], key/value dict) of a KTX2 file in
-    the one format :func:`write_ktx2` writes. Every size is checked against
+    """(levels [(layers, H, W, 4) float16 or uint8, or (layers, H, W, 1)
+    uint8], key/value dict) of a KTX2 file in a format :func:`write_ktx2` writes. Every size is checked against
     the file's own length and the limits above before anything is allocated;
     anything else is a KTX2Error naming the file."""
     with open(path, "rb") as f:
@@ -192,9 +201,10 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
     _, vk, type_size, W, H, depth, L, faces, n, scheme = _HEADER.unpack_from(data)
     fmt = next((d for d, f in FORMATS.items() if f[:2] == (vk, type_size)), None)
     if fmt is None:
-        fail(f"vkFormat {vk} (typeSize {type_size}); only RGBA16F ({VK_FORMAT_R16G16B16A16_SFLOAT}) and "
-             f"RGBA8 ({VK_FORMAT_R8G8B8A8_UNORM}) are read")
-    _, _, texel, fmt_name = FORMATS[fmt]
+        fail(f"vkFormat {vk} (typeSize {type_size}); only RGBA16F ({VK_FORMAT_R16G16B16A16_SFLOAT}), "
+             f"RGBA8 ({VK_FORMAT_R8G8B8A8_UNORM}) and R8 ({VK_FORMAT_R8_UNORM}) are read")
+    dtype, channels = fmt
+    fmt_name = FORMATS[fmt][3]
     if depth != 0 or faces != 1 or not (1 <= L <= MAX_LAYERS) or not (1 <= W <= MAX_SIDE and 1 <= H <= MAX_SIDE):
         fail(f"{W}x{H}x{depth}, {L} layers, {faces} faces: not a 2D array within the limits")
     if not 1 <= n <= MAX_LEVELS or n > 1 + max(W, H).bit_length():
@@ -207,7 +217,7 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
     for what, at, ln in (("DFD", dfd_at, dfd_len), ("key/value data", kvd_at, kvd_len)):
         if ln > MAX_KVD_BYTES or at + ln > len(data):
             fail(f"{what} of {ln} bytes at {at} runs past the file")
-    if data[dfd_at:dfd_at + dfd_len] != _dfd(fmt):
+    if data[dfd_at:dfd_at + dfd_len] != _dfd(*fmt):
         fail(f"its Data Format Descriptor is not linear {fmt_name}")
     keys, p, end = {}, kvd_at, kvd_at + kvd_len
     while p + 4 <= end:
@@ -227,8 +237,8 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
     index = []
     for i in range(n):
         off, ln, raw_len = _LEVEL.unpack_from(data, level_index_at + i * _LEVEL.size)
-        shape = (L, max(1, H >> i), max(1, W >> i), 4)
-        want = int(np.prod(shape)) * texel // 4
+        shape = (L, max(1, H >> i), max(1, W >> i), channels)
+        want = int(np.prod(shape)) * type_size
         if raw_len != want or off + ln > len(data) or (scheme == 0 and ln != want):
             fail(f"level {i}: {ln} bytes at {off} ({raw_len} uncompressed) for {shape} {fmt_name}")
         index.append((off, ln, shape, want))
@@ -251,7 +261,7 @@ def parse_ktx2(data: bytes, path: str = "<bytes>") -> tuple[list, dict]:
                 fail(f"level {i}: its Zstandard data is corrupt ({type(exc).__name__}: {exc})")
             if len(chunk) != want:
                 fail(f"level {i}: {len(chunk)} bytes after Zstandard, {want} expected")
-        levels.append(np.frombuffer(chunk, fmt).reshape(shape).copy())
+        levels.append(np.frombuffer(chunk, dtype).reshape(shape).copy())
     return levels, keys
 
 
