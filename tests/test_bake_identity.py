@@ -46,8 +46,17 @@ def _members(folder, files) -> str:
 
 
 def _cpu() -> str:
+    """The CPU's name and the SIMD paths the bytes depend on (OpenBLAS's kernels: one EPYC ran
+    SkylakeX's, another Haswell's, and their bounces differ)."""
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as f:
-            return next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), "?")
+            name = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), "?")
     except OSError:
-        return "?"
+        name = "?"
+    try:
+        from threadpoolctl import threadpool_info
+        blas = ", ".join(f"{i['internal_api']} {i.get('architecture', '?')}" for i in threadpool_info()
+                         if i.get("user_api") == "blas")
+    except ImportError:              # threadpoolctl is a dependency; without it the name alone
+        blas = ""
+    return f"{name}{', ' + blas if blas else ''}"
