@@ -63,9 +63,16 @@ def test_a_sky_texture_lights_a_plane_as_cycles_does(tmp_path):
         sky.sun_elevation = np.radians(30.0)
     nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
     bg.inputs["Strength"].default_value = 0.2
+    from prtt_addon.blender.scene import lamps, world_panorama
+    from prtt_addon.core.light.envmap import project_equirect
     light, desc = world_light(sc, 5)
-    assert "Sky Texture" in desc, desc
-    E = float((unoccluded_transfer(np.array([[0.0, 0.0, 1.0]]), 5) @ light).mean())
+    assert "Sky Texture" in desc and "its sun disc is the sun" in desc, desc
+    up = unoccluded_transfer(np.array([[0.0, 0.0, 1.0]]), 5)
+    # the sky's SH without its disc, and its disc as the bake's sun (direct light on the plane)
+    sun = lamps.scene_sun(sc)[0]
+    E = float((up @ light).mean() + sun.irradiance.mean() * max(sun.direction[2], 0.0))
+    # the old way (Sky Sun off): the disc's energy in the SH
+    E_sh = float((up @ project_equirect(world_panorama.panorama(w, disc=True), 5)).mean())
     # Cycles: a white (0.8) diffuse plane seen from straight above.
     bpy.ops.mesh.primitive_plane_add(size=2.0)
     mat = bpy.data.materials.new("White")
@@ -93,9 +100,11 @@ def test_a_sky_texture_lights_a_plane_as_cycles_does(tmp_path):
     sc.render.filepath = str(tmp_path / "plane.exr")
     bpy.ops.render.render(write_still=True)
     got = float(read_hdr_image(str(tmp_path / "plane.exr")).mean())
-    want = 0.8 * E / np.pi
-    print(f"Cycles {got:.5f}, PRTT's light {want:.5f}: {want / got - 1:+.2%}")
+    want, want_sh = 0.8 * E / np.pi, 0.8 * E_sh / np.pi
+    print(f"Cycles {got:.5f}, PRTT's light {want:.5f}: {want / got - 1:+.2%} (the disc in the SH: "
+          f"{want_sh / got - 1:+.2%})")
     assert abs(want / got - 1) < 0.03, (want, got)
+    assert abs(want_sh / got - 1) < 0.03, (want_sh, got)
 
 
 def test_the_panorama_is_rendered_once_per_change():

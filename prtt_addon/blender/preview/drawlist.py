@@ -90,11 +90,12 @@ class PreviewStatus:
 
 # --- light ----------------------------------------------------------------------------
 
-def current_light(scene, bands: int, setup=None) -> tuple[np.ndarray, str]:
+def current_light(scene, bands: int, setup=None, view_layer=None) -> tuple[np.ndarray, str]:
     """The World light at ``bands`` bands (or ``setup``'s), with its projection cached."""
     st = scene.prtt
     if setup is None:
-        setup = world_setup(scene, source=st.light_source, builtin=st.builtin_environment or "forest")
+        setup = world_setup(scene, source=st.light_source, builtin=st.builtin_environment or "forest",
+                            view_layer=view_layer)
     key = (setup.key, bands)
     proj = _PROJECTIONS.get(key)
     if proj is None:
@@ -347,7 +348,8 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
             os.path.join(out_dir, sfile)) else None
         sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight, sun_mask)
     try:
-        light, status.light_description = current_light(scene, bands)
+        light, status.light_description = current_light(scene, bands,
+                                                         view_layer=getattr(context, "view_layer", None))
     except world_panorama.Pending as exc:        # drawn from the next frame, once rendered
         status.add("INFO", f"light: {exc}")
         return None, status

@@ -529,7 +529,8 @@ def _assemble(context, parts, mats, warnings, st, with_light) -> ExportResult:
     if with_light:
         res.light, res.light_description = world_light(context.scene, max(st.bands, 1),
                                                        source=st.light_source,
-                                                       builtin=st.builtin_environment or "forest")
+                                                       builtin=st.builtin_environment or "forest",
+                                                       view_layer=context.view_layer)
     res.sun = scene_sun(context.scene, context.view_layer)[0]
     lamps = unbaked_lamps(context.scene, context.view_layer)
     if lamps:

@@ -8,12 +8,22 @@ colour's mean); other suns, and point, spot and area lamps (not baked yet),
 are named. A Sun's light is ``energy`` (W/m²) times ``2^exposure`` (Blender
 4.5 on) times its colour (its temperature's colour where ``use_temperature``,
 Blender 5 on), as Cycles lights with it.
+
+Without a Sun lamp, the sun disc of the World's Sky Texture is the sun
+(``scene.prtt.sky_sun``, on by default): its direction, size and energy as
+Cycles renders the World (world_panorama.sky_sun), its mask baked, and the
+World's SH made of the sky without it (world.world_setup). With a Sun lamp
+the lamp is the sun and the disc stays in the World's SH, as it does with
+``sky_sun`` off.
 """
 from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ...core.light.sun import MAX_ANGLE, Sun, SunError
+from . import world_panorama
 
 
 def rendered_lamps(scene, view_layer=None) -> list:
@@ -42,9 +52,41 @@ def sun_of(ob) -> Sun:
                strength=strength, name=ob.name)
 
 
+def sky_sun_world(scene, view_layer=None):
+    """The World whose Sky Texture's disc is the scene's sun, or None: the
+    ``sky_sun`` option on, the World the light, no rendering Sun lamp, and one
+    measurable disc (world_panorama.sky_sun_nodes) in a local World's nodes.
+    Cheap: reads nodes, renders nothing."""
+    st = getattr(scene, "prtt", None)
+    if st is not None and (not getattr(st, "sky_sun", True) or getattr(st, "light_source", "WORLD") != "WORLD"):
+        return None
+    world = scene.world
+    if world is None or world.node_tree is None or world.library is not None:
+        return None
+    if any(ob.data.type == "SUN" for ob in rendered_lamps(scene, view_layer)):
+        return None
+    return world if len(world_panorama.sky_sun_nodes(world.node_tree, wide=True)) == 1 else None
+
+
+def sky_sun_of(world, error=ValueError, on_ready=None) -> Sun | None:
+    """The Sky Texture's sun of ``world`` as a core Sun (named "<World>: <node>"),
+    from its measurement (world_panorama.sky_sun: a render, cached with the
+    World's panorama), or None when the disc is too faint to measure.
+    Strength: the largest of its RGB energy (W/m²); colour: energy / strength."""
+    m = world_panorama.sky_sun(world, error, on_ready)
+    if m is None:
+        return None
+    strength = float(np.max(m.energy))
+    return Sun(direction=tuple(m.direction), angle=min(m.angle, MAX_ANGLE),
+               color=tuple(float(v) / strength for v in m.energy), strength=strength,
+               name=f"{world.name}: {m.node}")
+
+
 def scene_sun(scene, view_layer=None) -> tuple:
-    """(Sun or None, the lamp object it is, notes (list of one-line strings)):
-    the brightest rendering Sun lamp as the bake's sun."""
+    """(Sun or None, the lamp object it is (None for a sky's sun), notes (list
+    of one-line strings)): the brightest rendering Sun lamp as the bake's sun,
+    or without one the World's Sky Texture sun (:func:`sky_sun_world`; a
+    render the first time, cached: Pending inside Blender's drawing)."""
     suns = [ob for ob in rendered_lamps(scene, view_layer) if ob.data.type == "SUN"]
     notes = []
     taken = []
@@ -58,6 +100,18 @@ def scene_sun(scene, view_layer=None) -> tuple:
             else:
                 notes.append(f"Sun {ob.name!r}: {exc}; not baked")
     if not taken:
+        world = sky_sun_world(scene, view_layer)
+        if world is not None:
+            try:
+                sun = sky_sun_of(world)
+            except SunError as exc:
+                notes.append(f"the World's Sky Texture sun: {exc}; not baked")
+                sun = None
+            except ValueError as exc:         # the World's own render failed: the light says why
+                notes.append(f"the World's Sky Texture sun could not be measured ({exc})")
+                sun = None
+            if sun is not None:
+                return sun, None, notes
         return None, None, notes
     taken.sort(key=lambda so: -so[0].strength * sum(so[0].color) / 3.0)
     sun, ob = taken[0]
@@ -67,7 +121,17 @@ def scene_sun(scene, view_layer=None) -> tuple:
                      + (f" and {len(taken) - 4} more" if len(taken) > 4 else ""))
     if not getattr(ob.data, "use_shadow", True):
         notes.append(f"Sun {ob.name!r} casts no shadow in Blender; PRTT bakes its shadows")
+    st = getattr(scene, "prtt", None)
+    if world_has_sky_sun(scene) and getattr(st, "sky_sun", True) and getattr(st, "light_source", "WORLD") == "WORLD":
+        notes.append(f"the World's Sky Texture sun stays in the World's soft light, without shadows: PRTT bakes "
+                     f"one sun, the lamp {ob.name!r}")
     return sun, ob, notes
+
+
+def world_has_sky_sun(scene) -> bool:
+    """The scene's World has one Sky Texture with a measurable sun disc (the Sky Sun option applies)."""
+    w = scene.world
+    return w is not None and w.node_tree is not None and len(world_panorama.sky_sun_nodes(w.node_tree, wide=True)) == 1
 
 
 def unbaked_lamps(scene, view_layer=None) -> str:

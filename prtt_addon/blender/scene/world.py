@@ -37,6 +37,7 @@ import numpy as np
 from ...core.io.image_io import read_hdr_image
 from ...core.light import envmap
 from . import world_panorama
+from .lamps import sky_sun_world
 from .material_nodes import image_array
 
 
@@ -103,8 +104,10 @@ class WorldSetup:
     mapping: tuple | None = None  # the Mapping node's ((rx, ry, rz) Euler XYZ radians, vector type), or None
 
 
-def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> WorldSetup:
-    """Parse the World's nodes (or the studio HDRI choice). Cheap: reads no pixels."""
+def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest", view_layer=None) -> WorldSetup:
+    """Parse the World's nodes (or the studio HDRI choice). Cheap: reads no
+    pixels. A World whose Sky Texture's disc is the scene's sun
+    (lamps.sky_sun_world) is the sky without its disc."""
     if source == "BUILTIN":
         return WorldSetup(("builtin", builtin), lambda: envmap.builtin_environment_path(builtin), 1.0, None,
                           f"studio HDRI '{builtin}'", image_name=builtin)
@@ -120,6 +123,8 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest") -> Wor
     if out is None or not out.inputs["Surface"].is_linked:
         raise WorldLightError(f"World {world.name!r} has no connected World Output")
     bg = _linked(out.inputs["Surface"])
+    if source == "WORLD" and sky_sun_world(scene, view_layer) is world:
+        return _panorama_setup(world, "a Sky Texture", disc=False)
     if bg.bl_idname != "ShaderNodeBackground":
         return _panorama_setup(world, f"{bg.name!r} ({bg.bl_label}) feeds the output")
     if bg.inputs["Strength"].is_linked:
@@ -178,15 +183,18 @@ def _redraw() -> None:
     redraw_viewports(bpy.context)
 
 
-def _panorama_setup(world, why: str) -> WorldSetup:
-    """The World rendered by Cycles (world_panorama), for a node tree read no other way."""
+def _panorama_setup(world, why: str, *, disc: bool = True) -> WorldSetup:
+    """The World rendered by Cycles (world_panorama), for a node tree read no
+    other way; ``disc`` False: without its Sky Texture's sun disc (baked as
+    the scene's sun instead)."""
     missing = _missing_image(world.node_tree)
     if missing is not None:
         raise WorldLightError(f"World image {missing.name!r} has no pixels (missing file {missing.filepath!r}?)")
     w, h = world_panorama.PANORAMA_SIZE
-    return WorldSetup(("panorama", world_panorama.world_digest(world)),
-                      lambda: world_panorama.panorama(world, WorldLightError, _redraw), 1.0, None,
-                      f"World {world.name!r} ({why}: rendered by Cycles as a {w}x{h} panorama)",
+    key = ("panorama", world_panorama.world_digest(world)) + (() if disc else ("without its sun disc",))
+    return WorldSetup(key, lambda: world_panorama.panorama(world, WorldLightError, _redraw, disc=disc), 1.0, None,
+                      f"World {world.name!r} ({why}: rendered by Cycles as a {w}x{h} panorama"
+                      + ("" if disc else "; its sun disc is the sun") + ")",
                       image_name=world.name)
 
 
@@ -197,9 +205,10 @@ def project_setup(setup: WorldSetup, bands: int) -> np.ndarray:
     return envmap.project_equirect(setup.source(), bands)
 
 
-def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "forest") -> tuple[np.ndarray, str]:
+def world_light(scene, bands: int, *, source: str = "WORLD", builtin: str = "forest",
+                view_layer=None) -> tuple[np.ndarray, str]:
     """(K, 3) SH light and a one-line description, from the scene's World or a studio HDRI."""
-    setup = world_setup(scene, source=source, builtin=builtin)
+    setup = world_setup(scene, source=source, builtin=builtin, view_layer=view_layer)
     try:
         return envmap.compose_light(project_setup(setup, bands), setup.strength, setup.rotation), setup.description
     except ValueError as exc:        # a colour or strength that makes no finite light (envmap says which)

@@ -23,7 +23,9 @@ read directly: Sky Texture, gradients, mixes, an HDRI behind other nodes).
   without, its energy summed over a 4-degree perspective view (disc on less
   disc off) and put back into the pixel holding its direction (against
   Cycles' own light on a plane: -1.9 %, where sampled with the sky it was
-  10 % short).
+  10 % short). Or, where the scene bakes it as its sun (:func:`sky_sun`,
+  lamps.scene_sun), left out: ``panorama(disc=False)`` is the sky alone and
+  the disc's direction, size and energy become a core Sun with a mask.
 * What a camera sees is not always what lights the scene: a Light Path node
   (e.g. a backdrop colour for camera rays only) makes the two differ, and is
   refused in one line (WorldLightError), as is a World that renders to
@@ -31,6 +33,7 @@ read directly: Sky Texture, gradients, mixes, an HDRI behind other nodes).
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
@@ -40,12 +43,14 @@ import numpy as np
 
 from ...core.io.image_io import read_hdr_image
 from ...core.light.envmap import direction_to_uv, pixel_directions, pixel_solid_angles
+from ...core.light.sun import MAX_ANGLE
 
 #: The panorama's pixels (width, height) and Cycles samples a pixel.
 PANORAMA_SIZE = (512, 256)
 PANORAMA_SAMPLES = 16
 
-_cache: dict[str, np.ndarray] = {}
+#: digest -> (the panorama without a measured sun disc, the disc (SkySun) or None).
+_cache: dict[str, tuple] = {}
 #: Renders made in this session (tests count them: a cached World renders once).
 renders = 0
 
@@ -206,25 +211,73 @@ class drawing:
         _drawing -= 1
 
 
-def panorama(world, error=ValueError, on_ready=None) -> np.ndarray:
+def panorama(world, error=ValueError, on_ready=None, *, disc: bool = True) -> np.ndarray:
     """(H, W, 3) float32 linear, top row first: ``world`` rendered by Cycles
-    through an equirectangular camera (cached by :func:`world_digest`).
-    ``error``: the exception class a World that cannot be evaluated raises.
-    Inside :class:`drawing`, an uncached World raises :class:`Pending` and is
-    rendered from a timer, which calls ``on_ready()`` once it is."""
+    through an equirectangular camera (cached by :func:`world_digest`), a Sky
+    Texture's measured sun disc put back as its energy in the pixel of its
+    direction, or (``disc`` False) left out: the sky alone, for a scene that
+    bakes the disc as its sun (:func:`sky_sun`). ``error``: the exception
+    class a World that cannot be evaluated raises. Inside :class:`drawing`,
+    an uncached World raises :class:`Pending` and is rendered from a timer,
+    which calls ``on_ready()`` once it is."""
+    img, sun = _entry(world, error, on_ready, wide=not disc)
+    if not disc or sun is None:
+        return img
+    H, W = img.shape[:2]
+    u, v = direction_to_uv(sun.direction[None, :])[0]
+    row = min(H - 1, int((1.0 - v) * H))
+    col = min(W - 1, int(u * W))
+    out = img.copy()
+    out[row, col] += (sun.energy / pixel_solid_angles(H, W)[row]).astype(np.float32)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class SkySun:
+    """A Sky Texture's sun disc as measured from Cycles' render of the World:
+    ``direction`` (3,) unit towards it (Z up), ``energy`` (3,) its radiance
+    integrated over the disc (W/m² on a surface facing it, RGB), ``angle``
+    the node's disc size (full angle, radians), ``node`` the node's name."""
+
+    direction: np.ndarray
+    energy: np.ndarray
+    angle: float
+    node: str
+
+
+def sky_sun(world, error=ValueError, on_ready=None) -> "SkySun | None":
+    """The sun disc of ``world``'s one Sky Texture (:func:`sky_sun_nodes`),
+    measured with its panorama (the same render and cache; Pending inside
+    :class:`drawing` as :func:`panorama`), or None: no disc, several, a
+    linked World, or a disc too faint to measure. Discs up to
+    core.light.sun.MAX_ANGLE are measured (the panorama's own, with its disc
+    put back, measures up to SUN_DISC_MAX_DEGREES, as it always has)."""
+    return _entry(world, error, on_ready, wide=True)[1]
+
+
+def _entry(world, error, on_ready, wide: bool = False) -> tuple:
+    """The cache entry (panorama without its measured disc, SkySun or None);
+    ``wide``: discs up to MAX_ANGLE measured apart (a separate entry only
+    where the World's disc is wider than SUN_DISC_MAX_DEGREES)."""
     key = world_digest(world)
+    wide = wide and world.node_tree is not None and any(
+        n.sun_size > math.radians(SUN_DISC_MAX_DEGREES) for n in sky_sun_nodes(world.node_tree, wide=True))
+    if wide:
+        key += ":wide"
     if key not in _cache:
         if _drawing:
             if key in _failed:                 # said once per change; a render outside drawing tries again
                 raise _failed[key]
-            _render_later(world, key, error, on_ready)
+            _render_later(world, key, error, on_ready, wide)
             raise Pending(f"World {world.name!r} is being rendered as a panorama (a few seconds)")
-        _cache.clear()                                  # one World at a time: a panorama is 1.5 MB
-        _cache[key] = _render(world, error)
+        # one World at a time (a panorama is 1.5 MB), or its two entries where its disc is wide
+        for k in [k for k in _cache if k.split(":")[0] != key.split(":")[0]]:
+            del _cache[k]
+        _cache[key] = _render(world, error, wide)
     return _cache[key]
 
 
-def _render_later(world, key: str, error, on_ready) -> None:
+def _render_later(world, key: str, error, on_ready, wide: bool = False) -> None:
     import bpy
     if key in _pending:
         return
@@ -239,9 +292,9 @@ def _render_later(world, key: str, error, on_ready) -> None:
         # By its session id: a linked World and a local one may share a name.
         world = next((w for w in bpy.data.worlds if getattr(w, "session_uid", None) == uid), None) \
             if uid is not None else bpy.data.worlds.get(name)
-        if world is not None and world_digest(world) == key and key not in _cache:
+        if world is not None and world_digest(world) == key.split(":")[0] and key not in _cache:
             try:
-                panorama(world, error)
+                _entry(world, error, None, wide)
             except Exception as exc:             # noqa: BLE001 - said when the draw asks again
                 _failed[key] = exc
             if on_ready is not None:
@@ -264,20 +317,23 @@ SUN_VIEW_PIXELS = 64
 SUN_SAMPLES = 16
 
 
-def _sky_suns(tree) -> list:
+def sky_sun_nodes(tree, *, wide: bool = False) -> list:
     """Sky Texture nodes of ``tree`` (and its groups) that draw a sun disc:
     the models that draw one (Nishita, and its successors in Blender 5), and a
-    small one (the narrow view measures up to 2 degrees; a wider disc is left
-    to the panorama)."""
+    small one: up to SUN_DISC_MAX_DEGREES for the panorama with its disc put
+    back (a wider disc is left in the panorama), up to
+    core.light.sun.MAX_ANGLE with ``wide`` (a disc baked as the sun)."""
+    most = MAX_ANGLE if wide else math.radians(SUN_DISC_MAX_DEGREES)
     return [n for n in tree_nodes(tree)
             if n.bl_idname == "ShaderNodeTexSky" and getattr(n, "sun_disc", False) and not n.mute
             and n.sky_type in ("NISHITA", "SINGLE_SCATTERING", "MULTIPLE_SCATTERING")
-            and getattr(n, "sun_size", 1.0) <= math.radians(SUN_DISC_MAX_DEGREES)]
+            and getattr(n, "sun_size", 1.0) <= most]
 
 
-def _render(world, error) -> np.ndarray:
-    """The panorama; a Sky Texture's sun disc measured apart and put back as
-    its energy in the pixel that holds its direction. Sampled with the rest, a
+def _render(world, error, wide: bool = False) -> tuple:
+    """(the panorama without a measured sun disc, SkySun or None): a Sky
+    Texture's sun disc measured apart (:func:`panorama` puts it back as its
+    energy in the pixel that holds its direction). Sampled with the rest, a
     disc of 0.5 degrees in 0.7-degree pixels came out 10 % / 6 % / 3 % short
     of Cycles' own light at 16 / 64 / 256 samples (the sky alone: 1.6 %)."""
     global renders
@@ -290,10 +346,14 @@ def _render(world, error) -> np.ndarray:
     W, H = PANORAMA_SIZE
     # A linked World cannot be edited (its disc turned off and on): its disc stays in the panorama,
     # as do several discs.
-    suns = _sky_suns(world.node_tree) if world.node_tree is not None and world.library is None else []
+    suns = sky_sun_nodes(world.node_tree, wide=wide) if world.node_tree is not None and world.library is None else []
     sun = None
     if len(suns) == 1:
-        sun = _measure_sun(world, suns[0], error)
+        disc_deg = math.degrees(suns[0].sun_size)
+        # the narrow view as it always was; a wider disc (baked as the sun) in a view 2.5 times as wide
+        view = SUN_VIEW_DEGREES if disc_deg <= SUN_DISC_MAX_DEGREES else 2.5 * disc_deg
+        direction, energy = _measure_sun(world, suns[0], error, view)
+        sun = SkySun(direction, energy, float(suns[0].sun_size), suns[0].name)
         suns[0].sun_disc = False
     try:
         img = _camera_render(world, error, pano=True, size=(W, H), samples=PANORAMA_SAMPLES)
@@ -301,20 +361,15 @@ def _render(world, error) -> np.ndarray:
         if sun is not None:
             suns[0].sun_disc = True
     renders += 1
-    if sun is not None:
-        direction, energy = sun
-        u, v = direction_to_uv(direction[None, :])[0]
-        row = min(H - 1, int((1.0 - v) * H))
-        col = min(W - 1, int(u * W))
-        img = img.copy()
-        img[row, col] += (energy / pixel_solid_angles(H, W)[row]).astype(np.float32)
     if img.shape != (H, W, 3) or not np.isfinite(img).all():
         raise error(f"World {world.name!r}: Cycles rendered it to {img.shape} pixels "
                     f"{'with non-finite values' if img.size else ''}; choose a studio HDRI as the light")
-    return np.ascontiguousarray(img, dtype=np.float32)
+    if sun is not None and not (np.isfinite(sun.energy).all() and sun.energy.max() > 0):
+        sun = None                     # too faint to measure (the sun under the horizon): nothing to add
+    return np.ascontiguousarray(img, dtype=np.float32), sun
 
 
-def _measure_sun(world, node, error) -> tuple[np.ndarray, np.ndarray]:
+def _measure_sun(world, node, error, view_degrees: float = SUN_VIEW_DEGREES) -> tuple[np.ndarray, np.ndarray]:
     """(unit direction, RGB energy: the disc's radiance integrated over its
     solid angle, W m^-2 sr^0 in Blender's units) of Sky Texture ``node``'s sun:
     found where a quick panorama with the disc is brighter than one without
@@ -329,13 +384,15 @@ def _measure_sun(world, node, error) -> tuple[np.ndarray, np.ndarray]:
         lum = (on - off).sum(axis=2)
         row, col = np.unravel_index(int(np.argmax(lum)), lum.shape)
         aim = pixel_directions(*lum.shape)[row, col]
-        off = _camera_render(world, error, pano=False, size=(SUN_VIEW_PIXELS,) * 2, samples=SUN_SAMPLES, aim=aim)
+        off = _camera_render(world, error, pano=False, size=(SUN_VIEW_PIXELS,) * 2, samples=SUN_SAMPLES, aim=aim,
+                             view_degrees=view_degrees)
     finally:
         node.sun_disc = True
-    on = _camera_render(world, error, pano=False, size=(SUN_VIEW_PIXELS,) * 2, samples=SUN_SAMPLES, aim=aim)
+    on = _camera_render(world, error, pano=False, size=(SUN_VIEW_PIXELS,) * 2, samples=SUN_SAMPLES, aim=aim,
+                        view_degrees=view_degrees)
     # Each pixel's direction and solid angle on the view's image plane at distance 1.
     n = SUN_VIEW_PIXELS
-    half = math.tan(math.radians(SUN_VIEW_DEGREES) / 2)
+    half = math.tan(math.radians(view_degrees) / 2)
     c = ((np.arange(n) + 0.5) / n * 2 - 1) * half
     x, y = np.meshgrid(c, -c)                                  # row 0 = top of the view
     pix = (2 * half / n) ** 2
@@ -362,10 +419,11 @@ def _aim_matrix(aim: np.ndarray) -> np.ndarray:
     return np.stack([xr, yr, -f], axis=1)                      # columns: camera x, y, z in world
 
 
-def _camera_render(world, error, *, pano: bool, size, samples: int, aim=None) -> np.ndarray:
+def _camera_render(world, error, *, pano: bool, size, samples: int, aim=None,
+                   view_degrees: float = SUN_VIEW_DEGREES) -> np.ndarray:
     """(H, W, 3) float32 of ``world`` alone, linear, top row first: through an
     equirectangular camera at the origin (``pano``) or a perspective one of
-    SUN_VIEW_DEGREES looking along ``aim``."""
+    ``view_degrees`` wide looking along ``aim``."""
     import bpy
     import mathutils
     W, H = size
@@ -388,7 +446,7 @@ def _camera_render(world, error, *, pano: bool, size, samples: int, aim=None) ->
         else:
             cam_data.type = "PERSP"
             cam_data.sensor_fit = "HORIZONTAL"
-            cam_data.angle = math.radians(SUN_VIEW_DEGREES)
+            cam_data.angle = math.radians(view_degrees)
             cam.matrix_world = mathutils.Matrix(_aim_matrix(aim).tolist()).to_4x4()
         r = scene.render
         r.engine = "CYCLES"

@@ -7,6 +7,7 @@ from bpy.app.handlers import persistent
 from ..preview import draw as preview_draw
 from ..preview import drawlist
 from ..scene import world_panorama
+from ..scene.lamps import world_has_sky_sun
 
 
 class _PRTTPanel:
@@ -89,6 +90,8 @@ class PRTT_PT_bake(_PRTTPanel, bpy.types.Panel):
         col.prop(st, "light_source")
         if st.light_source == "BUILTIN":
             col.prop(st, "builtin_environment")
+        elif world_has_sky_sun(context.scene):
+            col.prop(st, "sky_sun")
         if st.baking:
             draw_progress(layout, st)
         else:

@@ -83,6 +83,11 @@ def _scene_annotations() -> dict:
                    ("BUILTIN", "Studio HDRI", "One of Blender's bundled studio HDRIs")]),
         "builtin_environment": EnumProperty(name="HDRI", items=_builtin_env_items,
                                             description="One of the studio HDRIs Blender ships"),
+        "sky_sun": BoolProperty(
+            name="Sky Sun", default=True,
+            description="Bake the sun disc of the World's Sky Texture as the sun: its shadows as a mask, its "
+                        "light per pixel (as a Sun lamp's). Off: the disc stays in the World's SH light, a soft "
+                        "blob without shadows. A Sun lamp in the scene is the sun either way"),
     }
     preview = {
         "preview": BoolProperty(name="Preview", default=False, update=_redraw,

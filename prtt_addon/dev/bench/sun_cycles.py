@@ -18,6 +18,14 @@ orthographic view 2 cm over the floor across the plank's shadow, the sky
 off, rendered by both (strip_profiles), gives the visible fraction of the
 sun along a line; the 10 %-90 % widths of its two edges, in mm, beside the
 floor's texel.
+
+``--sky`` (issue 48, item 3): the same scene under Blender's Sky Texture
+(single scattering, its sun disc at the same direction, ``angle`` its size)
+instead of the lamp and the band-limited sky: PRTT with the disc baked as
+the sun (the default, ``scene.prtt.sky_sun``) and with it left in the
+World's SH (``sky_sun`` off, as before), both against Cycles. The sky itself
+is not band-limited there: what remains is the sky's own SH error. The strip
+has the sky in it, so its profiles are normalised lit = 1, umbra = 0.
 """
 from __future__ import annotations
 
@@ -49,8 +57,39 @@ def sun_direction() -> np.ndarray:
     return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
 
 
-def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 256, glossy: bool = False):
-    """The scene in the current (empty) file, unwrapped and baked with the add-on; returns the manifest."""
+#: The Sky Texture's strength (its Background's) in ``--sky``: its sun at 40 degrees gives about
+#: 147 W/m² at strength 1 (Blender's physical sky), so this makes it about SUN_STRENGTH.
+SKY_TEXTURE_STRENGTH = 0.02
+
+
+def sky_world(bpy, angle_deg: float):
+    """A World of Blender's Sky Texture (single scattering; Nishita before Blender 5) whose sun disc
+    is at sun_direction(), of ``angle_deg``; Background strength SKY_TEXTURE_STRENGTH."""
+    w = bpy.data.worlds.new("Sky")
+    if hasattr(w, "use_nodes") and bpy.app.version < (5, 0, 0):
+        w.use_nodes = True
+    nt = w.node_tree
+    for n in [n for n in nt.nodes if n.bl_idname != "ShaderNodeOutputWorld"]:
+        nt.nodes.remove(n)
+    out = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeOutputWorld")
+    bg = nt.nodes.new("ShaderNodeBackground")
+    sky = nt.nodes.new("ShaderNodeTexSky")
+    types = [i.identifier for i in sky.bl_rna.properties["sky_type"].enum_items]
+    sky.sky_type = "SINGLE_SCATTERING" if "SINGLE_SCATTERING" in types else "NISHITA"
+    sky.sun_disc, sky.sun_size = True, math.radians(angle_deg)
+    # Blender's sun: (cos e sin r, cos e cos r, sin e) for elevation e and rotation r
+    sky.sun_elevation, sky.sun_rotation = math.radians(SUN_ELEVATION), math.radians(90.0 - SUN_AZIMUTH)
+    bg.inputs["Strength"].default_value = SKY_TEXTURE_STRENGTH
+    nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    return w
+
+
+def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 256, glossy: bool = False,
+          light: str = "lamp", sky_sun: bool = True):
+    """The scene in the current (empty) file, unwrapped and baked with the add-on; returns the manifest.
+    ``light``: "lamp" (a Sun lamp and a band-limited sky) or "sky" (a Sky Texture, its disc baked as
+    the sun where ``sky_sun``)."""
     import mathutils
 
     from . import scene_build as sb
@@ -61,22 +100,26 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     sb.mesh_object("box", mg.box(*BOX), material=grey)
     sb.mesh_object("plank", mg.box(*PLANK), material=grey)
     scene = bpy.context.scene
-    # A band-limited sky (its light exact in 5 bands), dim beside the sun: what lights the shadows.
-    env = os.path.join(out_dir, "band_limited_city.exr")
     os.makedirs(out_dir, exist_ok=True)
-    band_limited_environment(env)
-    scene.world = sb.environment_world("BandLimited", env, strength=SKY_STRENGTH)
-    light = bpy.data.lights.new("Sun", "SUN")
-    light.energy, light.angle = SUN_STRENGTH, math.radians(angle_deg)
-    ob = bpy.data.objects.new("Sun", light)
-    ob.rotation_euler = mathutils.Vector(tuple(sun_direction())).to_track_quat("Z", "Y").to_euler()
-    scene.collection.objects.link(ob)
+    if light == "sky":
+        scene.world = sky_world(bpy, angle_deg)
+    else:
+        # A band-limited sky (its light exact in 5 bands), dim beside the sun: what lights the shadows.
+        env = os.path.join(out_dir, "band_limited_city.exr")
+        band_limited_environment(env)
+        scene.world = sb.environment_world("BandLimited", env, strength=SKY_STRENGTH)
+        lamp = bpy.data.lights.new("Sun", "SUN")
+        lamp.energy, lamp.angle = SUN_STRENGTH, math.radians(angle_deg)
+        ob = bpy.data.objects.new("Sun", lamp)
+        ob.rotation_euler = mathutils.Vector(tuple(sun_direction())).to_track_quat("Z", "Y").to_euler()
+        scene.collection.objects.link(ob)
     scene.camera = sb.camera_object("Camera", (1.6, -2.6, 2.2), (-0.1, 0.2, 0.0), fov_y_deg=50.0)
     scene.view_settings.view_transform = "Standard"
     bpy.context.view_layer.update()
     st = scene.prtt
     st.output_dir, st.resolution, st.rays, st.bounces = out_dir, resolution, rays, 0
     st.texture_sets, st.unwrap_method, st.light_source = "ATLAS", "SMART", "WORLD"
+    st.sky_sun = sky_sun
     for o in bpy.context.view_layer.objects:
         o.select_set(o.type == "MESH")
     if bpy.ops.prtt.unwrap() != {"FINISHED"}:
@@ -88,13 +131,14 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     return outcome.manifest
 
 
-def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = False) -> dict:
+def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = False, sky: bool = False) -> dict:
     """The visible fraction of the sun across the plank's shadow on the floor,
     from above (an orthographic camera 2 cm over the floor, under the plank,
     the World switched off for it): PRTT's preview and Cycles', each divided
     by the unshadowed sun's radiance; rows along y (across the shadow's long
-    edges), averaged over the columns. Returns {"y" (rows,), "prtt", "cycles",
-    "texel_m": the floor's texel in metres}."""
+    edges), averaged over the columns. ``sky``: a Sky Texture World holds the
+    sun, so it stays on and each profile is normalised (lit 1, umbra 0).
+    Returns {"y" (rows,), "prtt", "cycles", "texel_m": the floor's texel in metres}."""
     from ...blender.blendfile import blender_log_muted
     from ...blender.preview.offscreen import render_scene
     from ...blender.shared import UV_MAP
@@ -111,9 +155,10 @@ def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = 
     ob = bpy.data.objects.new("Strip", cam)
     ob.location = (x_mid, y_mid, 0.02)
     scene.collection.objects.link(ob)
-    bg = scene.world.node_tree.nodes["Background"].inputs["Strength"]
+    bg = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground").inputs["Strength"]
     keep_strength, keep_cam = bg.default_value, scene.camera
-    bg.default_value = 0.0
+    if not sky:
+        bg.default_value = 0.0
     scene.camera = ob
     bpy.context.view_layer.update()
     w, h = size
@@ -130,9 +175,14 @@ def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = 
     uv = np.array([d.uv[:] for d in floor.uv_layers[UV_MAP].data])
     res = scene.prtt.resolution
     texel = FLOOR / (np.ptp(uv[:, 0]) * res)
-    return {"y": y_mid + (np.arange(h) + 0.5 - h / 2) * span / h,
-            "prtt": prtt[..., :3].mean(axis=(1, 2)) / unlit, "cycles": cyc[..., :3].mean(axis=(1, 2)) / unlit,
-            "texel_m": float(texel)}
+    profiles = {k: v[..., :3].mean(axis=(1, 2)) for k, v in (("prtt", prtt), ("cycles", cyc))}
+    for k, f in profiles.items():
+        if sky:
+            lo, hi = float(f.min()), float(np.quantile(f, 0.95))
+            profiles[k] = (f - lo) / max(hi - lo, 1e-12)
+        else:
+            profiles[k] = f / unlit
+    return {"y": y_mid + (np.arange(h) + 0.5 - h / 2) * span / h, **profiles, "texel_m": float(texel)}
 
 
 def penumbrae(y: np.ndarray, f: np.ndarray) -> list:
@@ -152,7 +202,7 @@ def penumbrae(y: np.ndarray, f: np.ndarray) -> list:
 
 
 def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, resolution: int = 512,
-            glossy: bool = False, work_dir: str | None = None) -> dict:
+            glossy: bool = False, work_dir: str | None = None, light: str = "lamp", sky_sun: bool = True) -> dict:
     import bpy
 
     from ... import register
@@ -169,7 +219,7 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
             register()
         t = time.perf_counter()
         manifest = build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution,
-                         glossy=glossy)
+                         glossy=glossy, light=light, sky_sun=sky_sun)
         t_bake = time.perf_counter() - t
         mode = "tpfl" if glossy else "diffuse"
         prtt, _, status, _ = render_scene(bpy.context, mode=mode, size=size, bounces=False)
@@ -179,7 +229,7 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
         vp, _ = camera_view(bpy.context.scene.camera, bpy.context.evaluated_depsgraph_get(), *size,
                             bpy.context.scene)
         hits = trace_pixels(ps, vp, *size)
-        strip = strip_profiles(bpy, d, samples=samples, glossy=glossy)
+        strip = strip_profiles(bpy, d, samples=samples, glossy=glossy, sky=light == "sky")
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -198,7 +248,7 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
         return float(np.sqrt(np.mean((a[m] - b[m]) ** 2)) / np.mean(b[m]))
 
     return {"angle_deg": angle_deg, "size": list(size), "samples": samples, "resolution": resolution,
-            "glossy": glossy, "pixels": int(mask.sum()), "shadow_pixels": int(shadow.sum()),
+            "glossy": glossy, "light": light, "sky_sun": sky_sun, "sun": manifest.get("sun"), "pixels": int(mask.sum()), "shadow_pixels": int(shadow.sum()),
             "rel_rmse": rel(mask), "rel_rmse_shadow": rel(shadow) if shadow.sum() >= 20 else float("nan"),
             "mean_ratio_minus_1": float(a[mask].mean() / b[mask].mean() - 1.0),
             "cycles_noise": noise / math.sqrt(2.0), "bake_s": t_bake,
@@ -216,18 +266,31 @@ def main(argv=None) -> int:
     p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel")
     p.add_argument("--resolution", type=int, default=512, help="the atlas")
     p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, roughness 0.3), TPFL")
+    p.add_argument("--sky", action="store_true",
+                   help="a Sky Texture World with its sun disc instead of the lamp: the disc baked as the sun "
+                        "(sky_sun) and left in the World's SH (sky_sun off), both against Cycles")
     a = p.parse_args(argv)
     w, h = (int(v) for v in a.size.split("x"))
-    print(f"Sun lamp over a box and a plank, {w}x{h}, Cycles {a.samples} samples, atlas {a.resolution}², "
+    what = "a Sky Texture's sun" if a.sky else "Sun lamp"
+    print(f"{what} over a box and a plank, {w}x{h}, Cycles {a.samples} samples, atlas {a.resolution}², "
           f"{'glossy floor, TPFL' if a.glossy else 'diffuse, diffuse mode'}:")
-    print(f"  {'angle':>6}  {'image RMSE':>10}  {'shadow RMSE':>11}  {'mean':>7}  {'Cycles noise':>12}  "
+    print(f"  {'angle':>6}  {'disc':>10}  {'image RMSE':>10}  {'shadow RMSE':>11}  {'mean':>7}  {'Cycles noise':>12}  "
           f"{'sun mask s':>10}  penumbrae PRTT / Cycles (mm; texel)")
+    variants = [("sky", True), ("sky", False)] if a.sky else [("lamp", True)]
     for ang in (float(x) for x in a.angles.split(",")):
-        r = compare(ang, (w, h), samples=a.samples, resolution=a.resolution, glossy=a.glossy)
-        print(f"  {ang:6.2f}  {r['rel_rmse']:10.2%}  {r['rel_rmse_shadow']:11.2%}  {r['mean_ratio_minus_1']:+7.2%}  "
-              f"{r['cycles_noise']:12.2%}  {r['sun_seconds']:10.2f}  "
-              + " ".join(f"{1e3 * p:.1f}/{1e3 * c:.1f}" for p, c in zip(*r["penumbra_m"].values()))
-              + f" ({1e3 * r['texel_m']:.1f})", flush=True)
+        for light, sky_sun in variants:
+            r = compare(ang, (w, h), samples=a.samples, resolution=a.resolution, glossy=a.glossy, light=light,
+                        sky_sun=sky_sun)
+            disc = ("lamp" if light == "lamp" else "as sun" if r["sun"] else "in SH")
+            print(f"  {ang:6.2f}  {disc:>10}  {r['rel_rmse']:10.2%}  {r['rel_rmse_shadow']:11.2%}  "
+                  f"{r['mean_ratio_minus_1']:+7.2%}  {r['cycles_noise']:12.2%}  {r['sun_seconds']:10.2f}  "
+                  + " ".join(f"{1e3 * p:.1f}/{1e3 * c:.1f}" for p, c in zip(*r["penumbra_m"].values()))
+                  + f" ({1e3 * r['texel_m']:.1f})", flush=True)
+            if r["sun"]:
+                print(f"          the sun measured from the sky: {r['sun']['strength']:.3g} W/m², colour "
+                      f"{', '.join(f'{c:.3f}' for c in r['sun']['color'])}, "
+                      f"{math.degrees(math.acos(min(1.0, float(np.dot(r['sun']['direction'], sun_direction()))))):.3f}"
+                      f" degrees from the node's direction", flush=True)
     return 0
 
 
