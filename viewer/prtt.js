@@ -21,7 +21,7 @@ import {
   GAUNT_WIDTH,
   MAX_PREVIEW_BANDS, MODES,
 } from './prtt_shaders.js';
-import { gauntTable, lightBlock, relightBlock, turnLightZ } from './prtt_sh.js';
+import { gauntTable, lightBlock, relightBlock, shBasis, turnLightZ } from './prtt_sh.js';
 import {
   MAX_SCENE_BYTES, PRTTError, arrayTexture, concatLayers, declaredBytes, displayTable, dummy2D, expandSharedGlossy,
   gpuLimits, keepLayers, maskTexture,
@@ -138,8 +138,10 @@ class PRTTScene {
     const d = this.sun.direction, a = this.sun.angle, e = this.sun.strength;
     this.sunData.set([d[0], d[1], d[2], a * a / 16, e * this.sun.color[0], e * this.sun.color[1],
       e * this.sun.color[2], 0]);
+    this.relightDirty = true;        // the relightable bounce holds the sun's light too
     if (on !== undefined && Boolean(on) !== this.sunOn) {
       this.sunOn = Boolean(on);
+      this.relightDirty = true;
       this.setMode(this.mode);
     }
   }
@@ -240,12 +242,23 @@ class PRTTScene {
     return mat;
   }
 
+  /**
+   * The light relightable bounces are relit with: the environment's SH and, with the sun drawn,
+   * its SH projection E y_k(l) (shade.sun_sh; PreviewScene.bounce_light in Blender).
+   */
+  bounceLight() {
+    if (!(this.sun && this.sunOn)) return this.light;
+    const y = shBasis(this.sun.direction, this.bands, true);
+    const E = this.sun.color.map((c) => c * this.sun.strength);
+    return this.light.map((c, k) => [c[0] + E[0] * y[k], c[1] + E[1] * y[k], c[2] + E[2] * y[k]]);
+  }
+
   /** Relight every relightable set under the current light (one pass per output layer). */
   relight(renderer) {
     if (!this.relightDirty) return;
     this.relightDirty = false;
     const K4 = shSizes(this.bands)[1];
-    const block = relightBlock(this.light, this.bands);
+    const block = relightBlock(this.bounceLight(), this.bands);
     for (const s of this.sets) {
       const r = s.relight;
       if (!r) continue;

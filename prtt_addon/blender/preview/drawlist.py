@@ -405,6 +405,8 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
     if b and use_bounces:
         if b.get("light_hash") and light_hash(light) != b["light_hash"]:
             status.bounce_stale.append("the World light changed")
+        if b.get("light_hash") and _sun_light_changed(info.get("sun"), sun):   # baked bounces bake the sun's in
+            status.bounce_stale.append("the sun's colour or strength changed")
         sig = info.get("materials_signature")
         if sig and record.materials_signature(scene) != sig:
             status.bounce_stale.append("materials changed")
@@ -416,6 +418,19 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
                          normal_maps=normal_maps, material_names=table.names, image_names=table.image_names,
                          sun=sun)
     return ps, status
+
+
+def _sun_light_changed(baked: dict | None, sun: "pp.PreviewSun | None") -> bool:
+    """Whether the sun's light a baked bounce holds (the bake's sun: strength x
+    colour; none without one) differs from the sun drawn now (none: gone)."""
+    if not baked:
+        return False                  # a bake without a sun: its bounce holds none, and none is drawn with it
+    try:
+        then = float(baked["strength"]) * np.asarray(baked["color"], np.float64)
+    except (KeyError, TypeError, ValueError):
+        return True
+    now = np.zeros(3) if sun is None else np.asarray(sun.irradiance, np.float64)
+    return then.shape != (3,) or not np.allclose(then, now, rtol=1e-6, atol=1e-9)
 
 
 def preview_sun(scene, view_layer, info: dict, status) -> "pp.PreviewSun | None":

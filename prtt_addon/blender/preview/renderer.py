@@ -217,7 +217,8 @@ class Renderer:
             if s is None or s.name in seen or (vertex_mode and not s.vertex):
                 continue
             seen.add(s.name)
-            t, st = self.set_needs(s, ps.use_bounces, vertex_mode, ps.bands, ps.light,
+            # the sun (and its bounce) is drawn in the fragment modes
+            t, st = self.set_needs(s, ps.use_bounces, vertex_mode, ps.bands, ps.light if vertex_mode else ps.bounce_light,
                                    ps.sun is not None and not vertex_mode)
             total, staging = total + t, max(staging, st)
         for i, img in enumerate(ps.images):
@@ -392,7 +393,8 @@ class Renderer:
                 skipped[m.name] = STALE_VERTEX_TRANSFER
                 continue
             try:
-                tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands, ps.light,
+                tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands,
+                                         ps.light if vertex_mode else ps.bounce_light,
                                          ps.sun is not None and not vertex_mode)
             except TextureUploadError as exc:
                 skipped[m.name] = f"cannot use its texture {exc}"

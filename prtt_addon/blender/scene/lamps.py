@@ -20,18 +20,9 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from ...core.light.sun import MAX_ANGLE, Sun, SunError
-from . import world_panorama
-
-
-def rendered_lamps(scene, view_layer=None) -> list:
-    """Light objects that light the render: in the view layer, not disabled in
-    renders, with power."""
-    layer = view_layer if view_layer is not None else scene.view_layers[0]
-    return [ob for ob in layer.objects
-            if ob.type == "LIGHT" and not ob.hide_render and getattr(ob.data, "energy", 0.0) > 0]
+from .scene_objects import rendered_lamps
+from .world import world_has_sky_sun, world_sun
 
 
 def lamp_colour(light) -> tuple:
@@ -52,41 +43,12 @@ def sun_of(ob) -> Sun:
                strength=strength, name=ob.name)
 
 
-def sky_sun_world(scene, view_layer=None):
-    """The World whose Sky Texture's disc is the scene's sun, or None: the
-    ``sky_sun`` option on, the World the light, no rendering Sun lamp, and one
-    measurable disc (world_panorama.sky_sun_nodes) in a local World's nodes.
-    Cheap: reads nodes, renders nothing."""
-    st = getattr(scene, "prtt", None)
-    if st is not None and (not getattr(st, "sky_sun", True) or getattr(st, "light_source", "WORLD") != "WORLD"):
-        return None
-    world = scene.world
-    if world is None or world.node_tree is None or world.library is not None:
-        return None
-    if any(ob.data.type == "SUN" for ob in rendered_lamps(scene, view_layer)):
-        return None
-    return world if len(world_panorama.sky_sun_nodes(world.node_tree, wide=True)) == 1 else None
-
-
-def sky_sun_of(world, error=ValueError, on_ready=None) -> Sun | None:
-    """The Sky Texture's sun of ``world`` as a core Sun (named "<World>: <node>"),
-    from its measurement (world_panorama.sky_sun: a render, cached with the
-    World's panorama), or None when the disc is too faint to measure.
-    Strength: the largest of its RGB energy (W/m²); colour: energy / strength."""
-    m = world_panorama.sky_sun(world, error, on_ready)
-    if m is None:
-        return None
-    strength = float(np.max(m.energy))
-    return Sun(direction=tuple(m.direction), angle=min(m.angle, MAX_ANGLE),
-               color=tuple(float(v) / strength for v in m.energy), strength=strength,
-               name=f"{world.name}: {m.node}")
-
-
 def scene_sun(scene, view_layer=None) -> tuple:
-    """(Sun or None, the lamp object it is (None for a sky's sun), notes (list
-    of one-line strings)): the brightest rendering Sun lamp as the bake's sun,
-    or without one the World's Sky Texture sun (:func:`sky_sun_world`; a
-    render the first time, cached: Pending inside Blender's drawing)."""
+    """(Sun or None, the lamp object it is (None for the World's sun), notes
+    (list of one-line strings)): the brightest rendering Sun lamp as the
+    bake's sun, or without one the World's sun (world.world_sun: its Sky
+    Texture's disc, a render the first time, cached, Pending inside Blender's
+    drawing; or its image's extracted sun)."""
     suns = [ob for ob in rendered_lamps(scene, view_layer) if ob.data.type == "SUN"]
     notes = []
     taken = []
@@ -100,19 +62,8 @@ def scene_sun(scene, view_layer=None) -> tuple:
             else:
                 notes.append(f"Sun {ob.name!r}: {exc}; not baked")
     if not taken:
-        world = sky_sun_world(scene, view_layer)
-        if world is not None:
-            try:
-                sun = sky_sun_of(world)
-            except SunError as exc:
-                notes.append(f"the World's Sky Texture sun: {exc}; not baked")
-                sun = None
-            except ValueError as exc:         # the World's own render failed: the light says why
-                notes.append(f"the World's Sky Texture sun could not be measured ({exc})")
-                sun = None
-            if sun is not None:
-                return sun, None, notes
-        return None, None, notes
+        sun, note = world_sun(scene, view_layer)
+        return sun, None, notes + ([note] if note else [])
     taken.sort(key=lambda so: -so[0].strength * sum(so[0].color) / 3.0)
     sun, ob = taken[0]
     if len(taken) > 1:
@@ -125,13 +76,10 @@ def scene_sun(scene, view_layer=None) -> tuple:
     if world_has_sky_sun(scene) and getattr(st, "sky_sun", True) and getattr(st, "light_source", "WORLD") == "WORLD":
         notes.append(f"the World's Sky Texture sun stays in the World's soft light, without shadows: PRTT bakes "
                      f"one sun, the lamp {ob.name!r}")
+    elif getattr(st, "hdri_sun", False) and getattr(st, "light_source", "WORLD") == "WORLD":
+        notes.append(f"HDRI Sun: the World image's sun stays in the World's soft light: PRTT bakes one sun, the "
+                     f"lamp {ob.name!r}")
     return sun, ob, notes
-
-
-def world_has_sky_sun(scene) -> bool:
-    """The scene's World has one Sky Texture with a measurable sun disc (the Sky Sun option applies)."""
-    w = scene.world
-    return w is not None and w.node_tree is not None and len(world_panorama.sky_sun_nodes(w.node_tree, wide=True)) == 1
 
 
 def unbaked_lamps(scene, view_layer=None) -> str:

@@ -136,3 +136,11 @@ def reported_without_faces(scene, view_layer, with_faces: set) -> list:
             continue
         out.append(ob.name)
     return sorted(out)
+
+
+def rendered_lamps(scene, view_layer=None) -> list:
+    """Light objects that light the render: in the view layer, not disabled in
+    renders, with power."""
+    layer = view_layer if view_layer is not None else scene.view_layers[0]
+    return [ob for ob in layer.objects
+            if ob.type == "LIGHT" and not ob.hide_render and getattr(ob.data, "energy", 0.0) > 0]

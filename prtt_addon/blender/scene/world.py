@@ -17,6 +17,11 @@ camera sees), non-finite values.
   core.io.image_io) or, for packed/generated images, from Blender's pixels
   (byte sRGB images are linearised).
 * Background strength multiplies the light.
+* The World's sun (:func:`world_sun`, without a Sun lamp in the scene): a Sky
+  Texture's disc (``scene.prtt.sky_sun``, on by default) or, for an image
+  World, its brightest compact region (``scene.prtt.hdri_sun``, off by
+  default: core.light.sun_extract) becomes the bake's sun, and the World's
+  SH is made of the World without it.
 * The Mapping node's rotation (Euler XYZ, types Point and Texture) turns the
   light by an SH rotation (core.light.envmap.compose_light states the
   conventions: lookups turn by R, so the image's SH rotates by R^T).
@@ -36,9 +41,11 @@ import numpy as np
 
 from ...core.io.image_io import read_hdr_image
 from ...core.light import envmap
+from ...core.light.sun import MAX_ANGLE, Sun, SunError
+from ...core.light.sun_extract import extract_sun
 from . import world_panorama
-from .lamps import sky_sun_world
 from .material_nodes import image_array
+from .scene_objects import rendered_lamps
 
 
 class WorldLightError(ValueError):
@@ -145,6 +152,7 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest", view_l
     if env.projection != "EQUIRECTANGULAR":
         return _panorama_setup(world, f"a {env.projection.lower().replace('_', ' ')} Environment Texture")
     desc = f"World image {img.name!r} x{strength:g}"
+    extracted = source == "WORLD" and hdri_sun_taken(scene, view_layer)
     R = None
     vec = env.inputs["Vector"]
     if vec.is_linked:
@@ -159,8 +167,136 @@ def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest", view_l
     else:
         mapping = None
     key = ("image", img.name, img.filepath, img.source, tuple(img.size), bool(img.packed_file), img.is_dirty)
+    if extracted:
+        found = _extracted(key, img)
+        if found[0] is not None:
+            return WorldSetup(key + ("its sun extracted",), lambda: _extracted(key, img)[1], strength, R,
+                              desc + ", its sun extracted (the sun)", file=environment_file(img),
+                              image_name=img.name, mapping=mapping)
     return WorldSetup(key, lambda: _image_pixels(img), strength, R, desc, file=environment_file(img),
                       image_name=img.name, mapping=mapping)
+
+
+def sky_sun_world(scene, view_layer=None):
+    """The World whose Sky Texture's disc is the scene's sun, or None: the
+    ``sky_sun`` option on, the World the light, no rendering Sun lamp, and one
+    measurable disc (world_panorama.sky_sun_nodes) in a local World's nodes.
+    Cheap: reads nodes, renders nothing."""
+    st = getattr(scene, "prtt", None)
+    if st is not None and (not getattr(st, "sky_sun", True) or getattr(st, "light_source", "WORLD") != "WORLD"):
+        return None
+    world = scene.world
+    if world is None or world.node_tree is None or world.library is not None:
+        return None
+    if any(ob.data.type == "SUN" for ob in rendered_lamps(scene, view_layer)):
+        return None
+    return world if len(world_panorama.sky_sun_nodes(world.node_tree, wide=True)) == 1 else None
+
+
+def sky_sun_of(world, error=ValueError, on_ready=None) -> "Sun | None":
+    """The Sky Texture's sun of ``world`` as a core Sun (named "<World>: <node>"),
+    from its measurement (world_panorama.sky_sun: a render, cached with the
+    World's panorama), or None when the disc is too faint to measure.
+    Strength: the largest of its RGB energy (W/m²); colour: energy / strength."""
+    m = world_panorama.sky_sun(world, error, on_ready)
+    if m is None:
+        return None
+    strength = float(np.max(m.energy))
+    return Sun(direction=tuple(m.direction), angle=min(m.angle, MAX_ANGLE),
+               color=tuple(float(v) / strength for v in m.energy), strength=strength,
+               name=f"{world.name}: {m.node}")
+
+
+def world_has_sky_sun(scene) -> bool:
+    """The scene's World has one Sky Texture with a measurable sun disc (the Sky Sun option applies)."""
+    w = scene.world
+    return w is not None and w.node_tree is not None and len(world_panorama.sky_sun_nodes(w.node_tree, wide=True)) == 1
+
+
+def hdri_sun_taken(scene, view_layer=None) -> bool:
+    """The World's image gives the scene's sun: ``hdri_sun`` on (off by
+    default), the World the light, no rendering Sun lamp. Cheap: reads no pixels."""
+    st = getattr(scene, "prtt", None)
+    if st is None or not getattr(st, "hdri_sun", False) or getattr(st, "light_source", "WORLD") != "WORLD":
+        return False
+    return not any(ob.data.type == "SUN" for ob in rendered_lamps(scene, view_layer))
+
+
+#: image key -> (ExtractedSun or None, the image without it, why none): one image at a time.
+_EXTRACTED: dict = {}
+
+
+def _extracted(key: tuple, img) -> tuple:
+    """core.light.sun_extract.extract_sun of the World image's pixels, cached by its key."""
+    if key not in _EXTRACTED:
+        _EXTRACTED.clear()
+        _EXTRACTED[key] = extract_sun(_image_pixels(img))
+    return _EXTRACTED[key]
+
+
+def _image_world(scene):
+    """(the Environment Texture image, the Mapping rotation R or None, Background
+    strength) of a World read directly, or None for any other World."""
+    world = scene.world
+    if world is None or world.node_tree is None:
+        return None
+    out = next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output),
+               None)
+    bg = _linked(out.inputs["Surface"]) if out is not None and out.inputs["Surface"].is_linked else None
+    if bg is None or bg.bl_idname != "ShaderNodeBackground" or bg.inputs["Strength"].is_linked:
+        return None
+    env = _linked(bg.inputs["Color"]) if bg.inputs["Color"].is_linked else None
+    if env is None or env.bl_idname != "ShaderNodeTexEnvironment" or env.image is None or \
+            env.projection != "EQUIRECTANGULAR":
+        return None
+    R = None
+    if env.inputs["Vector"].is_linked:
+        m = _linked(env.inputs["Vector"])
+        if m.bl_idname != "ShaderNodeMapping" or m.vector_type not in {"POINT", "TEXTURE"} or any(
+                m.inputs[n].is_linked for n in ("Rotation", "Scale")):
+            return None
+        R = mapping_rotation(m)
+    return env.image, R, float(bg.inputs["Strength"].default_value)
+
+
+def world_sun(scene, view_layer=None) -> tuple:
+    """(the World's sun as a core Sun, or None; a one-line note ("" when none
+    is due)): its Sky Texture's disc (:func:`sky_sun_world`) or its image's
+    extracted sun (:func:`hdri_sun_taken`: direction turned by the Mapping
+    node, energy times the Background strength; named "<image>: sun")."""
+    world = sky_sun_world(scene, view_layer)
+    if world is not None:
+        try:
+            return sky_sun_of(world), ""
+        except SunError as exc:
+            return None, f"the World's Sky Texture sun: {exc}; not baked"
+        except ValueError as exc:             # the World's own render failed: the light says why
+            return None, f"the World's Sky Texture sun could not be measured ({exc})"
+    if not hdri_sun_taken(scene, view_layer):
+        return None, ""
+    found = _image_world(scene)
+    if found is None:
+        return None, "HDRI Sun: the World is not an Environment Texture image read directly; no sun extracted"
+    img, R, strength = found
+    key = ("image", img.name, img.filepath, img.source, tuple(img.size), bool(img.packed_file), img.is_dirty)
+    try:
+        sun, _, why = _extracted(key, img)
+    except (WorldLightError, OSError, ValueError) as exc:
+        return None, f"HDRI Sun: {exc}"
+    if sun is None:
+        return None, f"HDRI Sun: World image {img.name!r}: {why}"
+    d = np.asarray(sun.direction)
+    if R is not None:
+        d = np.asarray(R).T @ d               # the image is read at R w: its sun lies at w = R^T d
+    energy = np.asarray(sun.energy) * max(strength, 0.0)
+    top = float(energy.max())
+    if not top > 0.0:
+        return None, ""
+    try:
+        return Sun(direction=tuple(d), angle=sun.angle, color=tuple(energy / top), strength=top,
+                   name=f"{img.name}: sun"), ""
+    except SunError as exc:
+        return None, f"HDRI Sun: {exc}"
 
 
 def _missing_image(tree):

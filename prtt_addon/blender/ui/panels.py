@@ -7,7 +7,7 @@ from bpy.app.handlers import persistent
 from ..preview import draw as preview_draw
 from ..preview import drawlist
 from ..scene import world_panorama
-from ..scene.lamps import world_has_sky_sun
+from ..scene.world import world_has_sky_sun
 
 
 class _PRTTPanel:
@@ -92,6 +92,8 @@ class PRTT_PT_bake(_PRTTPanel, bpy.types.Panel):
             col.prop(st, "builtin_environment")
         elif world_has_sky_sun(context.scene):
             col.prop(st, "sky_sun")
+        else:
+            col.prop(st, "hdri_sun")
         if st.baking:
             draw_progress(layout, st)
         else:

@@ -88,6 +88,11 @@ def _scene_annotations() -> dict:
             description="Bake the sun disc of the World's Sky Texture as the sun: its shadows as a mask, its "
                         "light per pixel (as a Sun lamp's). Off: the disc stays in the World's SH light, a soft "
                         "blob without shadows. A Sun lamp in the scene is the sun either way"),
+        "hdri_sun": BoolProperty(
+            name="HDRI Sun", default=False,
+            description="Take the World image's sun (its brightest compact region, at least 5 % of its light) "
+                        "out of the SH light and bake it as the sun: crisp shadows and its light per pixel. "
+                        "A Sun lamp in the scene is the sun instead"),
     }
     preview = {
         "preview": BoolProperty(name="Preview", default=False, update=_redraw,

@@ -44,7 +44,7 @@ from ..model.material import DEFAULT
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..shading.materials import dielectric_f0
 from ..shading.relit import apply_light
-from ..shading.shade import light_hash
+from ..shading.shade import light_hash, sun_sh
 
 #: Width of the per-vertex transfer texture.
 VERTEX_TEXTURE_WIDTH = 4096
@@ -329,6 +329,15 @@ class PreviewScene:
     material_names: list = dataclasses.field(default_factory=list)
     image_names: list = dataclasses.field(default_factory=list)
     sun: "PreviewSun | None" = None      # drawn where a set has its mask (PreviewSet.sun)
+
+    @property
+    def bounce_light(self) -> np.ndarray:
+        """(K, 3) the light relightable bounces are relit with: the
+        environment's SH and, with a sun, its SH projection
+        (shade.sun_sh): the sun's bounce, low-frequency as bounce light is."""
+        if self.sun is None:
+            return self.light
+        return np.asarray(self.light, np.float64) + sun_sh(self.sun.direction, self.sun.irradiance, self.bands)
 
 
 @dataclasses.dataclass(frozen=True)

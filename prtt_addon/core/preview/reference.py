@@ -157,7 +157,9 @@ def reference_image(ps: pp.PreviewScene, mode: str, view_projection, camera, wid
         bary = hits.bary.reshape(-1, 3)[sel]
         transfer = s.load_transfer()
         H, W, K = transfer.shape
-        bounce = s.load_bounce(K, ps.light) if ps.use_bounces and s.has_bounce else None
+        # the sun (and its bounce) is drawn in the fragment modes
+        lit = ps.light if vertex_mode else ps.bounce_light
+        bounce = s.load_bounce(K, lit) if ps.use_bounces and s.has_bounce else None
         if vertex_mode:
             color = _vertex_colors(ps, m, s, method, cam, bounce)[m.indices[tri]]     # (n, 3, 3)
             rgb = np.einsum("nk,nkc->nc", bary, color)

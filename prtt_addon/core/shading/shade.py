@@ -173,6 +173,18 @@ def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance,
     return out * cos[:, None]
 
 
+def sun_sh(direction, irradiance, bands: int) -> np.ndarray:
+    """(K, 3) RGB SH of a distant light of ``irradiance`` (3,) W/m² from unit
+    ``direction`` (3,), L(w) = E delta(w - l): L_k = E y_k(l). What the bounce
+    sees of a sun: through a texel's transfer it gives the band-limited
+    shadowed cosine at l times E, low-frequency as bounce light is (its
+    direct light is drawn exactly, with its mask: :func:`sun_direct`)."""
+    d = np.asarray(direction, np.float64).reshape(1, 3)
+    d = d / np.linalg.norm(d)
+    y = basis_unchecked(d, bands)[0]                                  # (K,)
+    return np.outer(y, np.asarray(irradiance, np.float64).reshape(3))
+
+
 def light_hash(light) -> str:
     """sha256 of the light coefficients a bounce texture was baked with."""
     import hashlib

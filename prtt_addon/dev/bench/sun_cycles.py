@@ -26,6 +26,11 @@ the sun (the default, ``scene.prtt.sky_sun``) and with it left in the
 World's SH (``sky_sun`` off, as before), both against Cycles. The sky itself
 is not band-limited there: what remains is the sky's own SH error. The strip
 has the sky in it, so its profiles are normalised lit = 1, umbra = 0.
+
+``--hdri NAME`` (issue 48, item 3): the scene lit by one of Blender's studio
+HDRIs as it is (not band-limited, no lamp), with its sun extracted
+(``scene.prtt.hdri_sun``: core/light/sun_extract.py) and without (the sun in
+the SH), both against Cycles; profiles normalised as for the sky.
 """
 from __future__ import annotations
 
@@ -57,6 +62,8 @@ def sun_direction() -> np.ndarray:
     return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
 
 
+#: An HDRI's strength in ``--hdri``: city's sun (47.8 degrees up) is then about SUN_STRENGTH W/m².
+HDRI_STRENGTH = 1.0
 #: The Sky Texture's strength (its Background's) in ``--sky``: its sun at 40 degrees gives about
 #: 147 W/m² at strength 1 (Blender's physical sky), so this makes it about SUN_STRENGTH.
 SKY_TEXTURE_STRENGTH = 0.02
@@ -86,7 +93,7 @@ def sky_world(bpy, angle_deg: float):
 
 
 def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 256, glossy: bool = False,
-          light: str = "lamp", sky_sun: bool = True):
+          light: str = "lamp", sky_sun: bool = True, bounces: int = 0):
     """The scene in the current (empty) file, unwrapped and baked with the add-on; returns the manifest.
     ``light``: "lamp" (a Sun lamp and a band-limited sky) or "sky" (a Sky Texture, its disc baked as
     the sun where ``sky_sun``)."""
@@ -103,6 +110,9 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     os.makedirs(out_dir, exist_ok=True)
     if light == "sky":
         scene.world = sky_world(bpy, angle_deg)
+    elif light.startswith("hdri:"):
+        from ...core.light.envmap import builtin_environment_path
+        scene.world = sb.environment_world("HDRI", builtin_environment_path(light[5:]), strength=HDRI_STRENGTH)
     else:
         # A band-limited sky (its light exact in 5 bands), dim beside the sun: what lights the shadows.
         env = os.path.join(out_dir, "band_limited_city.exr")
@@ -117,9 +127,10 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     scene.view_settings.view_transform = "Standard"
     bpy.context.view_layer.update()
     st = scene.prtt
-    st.output_dir, st.resolution, st.rays, st.bounces = out_dir, resolution, rays, 0
+    st.output_dir, st.resolution, st.rays, st.bounces = out_dir, resolution, rays, bounces
+    st.bounce_rays = 256
     st.texture_sets, st.unwrap_method, st.light_source = "ATLAS", "SMART", "WORLD"
-    st.sky_sun = sky_sun
+    st.sky_sun = st.hdri_sun = sky_sun
     for o in bpy.context.view_layer.objects:
         o.select_set(o.type == "MESH")
     if bpy.ops.prtt.unwrap() != {"FINISHED"}:
@@ -131,7 +142,39 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     return outcome.manifest
 
 
-def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = False, sky: bool = False) -> dict:
+def _reference_sun(light: str, manifest: dict):
+    """(direction, mean irradiance W/m²) of the sun whose shadows are
+    measured: the baked one, else an HDRI's (extracted from its image as the
+    bake would: the same sun, left in the SH), else None (sun_direction())."""
+    s = manifest.get("sun")
+    if s:
+        return np.asarray(s["direction"], np.float64), float(s["strength"] * np.mean(s["color"]))
+    if light.startswith("hdri:"):
+        from ...core.io.image_io import read_hdr_image
+        from ...core.light.envmap import builtin_environment_path
+        from ...core.light.sun_extract import extract_sun
+        found = extract_sun(read_hdr_image(builtin_environment_path(light[5:])))[0]
+        if found is not None:
+            return np.asarray(found.direction, np.float64), float(np.mean(found.energy)) * HDRI_STRENGTH
+    return None
+
+
+def _normalised(f: np.ndarray) -> np.ndarray:
+    """A lit - shadow - lit profile with the sky in it as 0 at its umbra and 1
+    on each side's own lit plateau (the median of its outer eighth): the
+    skylight differs on the two sides of a plank."""
+    n = len(f)
+    k = int(np.argmin(f))
+    lo = float(f.min())
+    left, right = float(np.median(f[:max(1, n // 8)])), float(np.median(f[-max(1, n // 8):]))
+    out = np.empty_like(f, dtype=np.float64)
+    out[:k] = (f[:k] - lo) / max(left - lo, 1e-12)
+    out[k:] = (f[k:] - lo) / max(right - lo, 1e-12)
+    return out
+
+
+def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = False, sky: bool = False,
+                   towards=None) -> dict:
     """The visible fraction of the sun across the plank's shadow on the floor,
     from above (an orthographic camera 2 cm over the floor, under the plank,
     the World switched off for it): PRTT's preview and Cycles', each divided
@@ -144,7 +187,7 @@ def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = 
     from ...blender.shared import UV_MAP
     from .cycles_compare import render_cycles
     scene = bpy.context.scene
-    l = sun_direction()
+    l = sun_direction() if towards is None else np.asarray(towards, np.float64)
     t = (PLANK[1][2] - PLANK[0][2] / 2) / l[2]
     y_mid = PLANK[1][1] - t * l[1]                  # the shadow's centre line on the floor
     x_mid = PLANK[1][0] - t * l[0]
@@ -177,11 +220,7 @@ def strip_profiles(bpy, d: str, *, samples: int, size=(48, 480), glossy: bool = 
     texel = FLOOR / (np.ptp(uv[:, 0]) * res)
     profiles = {k: v[..., :3].mean(axis=(1, 2)) for k, v in (("prtt", prtt), ("cycles", cyc))}
     for k, f in profiles.items():
-        if sky:
-            lo, hi = float(f.min()), float(np.quantile(f, 0.95))
-            profiles[k] = (f - lo) / max(hi - lo, 1e-12)
-        else:
-            profiles[k] = f / unlit
+        profiles[k] = _normalised(f) if sky else f / unlit
     return {"y": y_mid + (np.arange(h) + 0.5 - h / 2) * span / h, **profiles, "texel_m": float(texel)}
 
 
@@ -201,8 +240,24 @@ def penumbrae(y: np.ndarray, f: np.ndarray) -> list:
     return [abs(cross(0.1, down[1][0]) - cross(0.9, down[0][0])), abs(cross(0.9, up[1][-1]) - cross(0.1, up[0][-1]))]
 
 
+class _without_sun_bounce:
+    """``with _without_sun_bounce():`` the preview relights relightable bounces
+    with the environment alone (PreviewScene.bounce_light = light): what it
+    drew before the sun's bounce, for the comparison."""
+
+    def __enter__(self):
+        from ...core.preview import pack
+        self.prop = pack.PreviewScene.bounce_light
+        pack.PreviewScene.bounce_light = property(lambda ps: ps.light)
+
+    def __exit__(self, *exc):
+        from ...core.preview import pack
+        pack.PreviewScene.bounce_light = self.prop
+
+
 def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, resolution: int = 512,
-            glossy: bool = False, work_dir: str | None = None, light: str = "lamp", sky_sun: bool = True) -> dict:
+            glossy: bool = False, work_dir: str | None = None, light: str = "lamp", sky_sun: bool = True,
+            bounces: int = 0) -> dict:
     import bpy
 
     from ... import register
@@ -219,17 +274,23 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
             register()
         t = time.perf_counter()
         manifest = build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution,
-                         glossy=glossy, light=light, sky_sun=sky_sun)
+                         glossy=glossy, light=light, sky_sun=sky_sun, bounces=bounces)
         t_bake = time.perf_counter() - t
         mode = "tpfl" if glossy else "diffuse"
-        prtt, _, status, _ = render_scene(bpy.context, mode=mode, size=size, bounces=False)
+        prtt, _, status, _ = render_scene(bpy.context, mode=mode, size=size, bounces=bounces > 0)
+        no_sun_bounce = None
+        if bounces:
+            with _without_sun_bounce():
+                no_sun_bounce = render_scene(bpy.context, mode=mode, size=size, bounces=True)[0]
         with blender_log_muted():
-            cyc = [render_cycles(bpy, os.path.join(d, f"cycles{s}.exr"), size, samples, 0, s) for s in (1, 2)]
+            cyc = [render_cycles(bpy, os.path.join(d, f"cycles{s}.exr"), size, samples, bounces, s) for s in (1, 2)]
         ps, _ = collect(bpy.context, use_bounces=False)
         vp, _ = camera_view(bpy.context.scene.camera, bpy.context.evaluated_depsgraph_get(), *size,
                             bpy.context.scene)
         hits = trace_pixels(ps, vp, *size)
-        strip = strip_profiles(bpy, d, samples=samples, glossy=glossy, sky=light == "sky")
+        ref_sun = _reference_sun(light, manifest)
+        strip = strip_profiles(bpy, d, samples=samples, glossy=glossy, sky=light != "lamp",
+                               towards=None if ref_sun is None else ref_sun[0])
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -240,14 +301,22 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
     floor_k = [m.name for m in ps.meshes].index("floor")
     on_floor = mask & (hits.mesh == floor_k)
     lit = float(np.quantile(yb[on_floor], 0.9))
-    shadow = on_floor & (yb < 0.5 * lit)
+    if light.startswith("hdri:") and ref_sun is not None:
+        # an HDRI's sky is bright: the shadow is where Cycles has lost half the sun's light on the floor
+        albedo = FLOOR_ALBEDO[bool(glossy)]
+        shadow = on_floor & (yb < lit - 0.5 * albedo / math.pi * ref_sun[1] * max(ref_sun[0][2], 0.0))
+    else:
+        shadow = on_floor & (yb < 0.5 * lit)
     noise = float(np.sqrt(np.mean((cyc[0][..., :3][mask] - cyc[1][..., :3][mask]) ** 2) / 2.0) / np.mean(b[mask]))
     pen = {k: penumbrae(strip["y"], strip[k]) for k in ("prtt", "cycles")}
 
     def rel(m):
         return float(np.sqrt(np.mean((a[m] - b[m]) ** 2)) / np.mean(b[m]))
 
+    without = (float(np.sqrt(np.mean((no_sun_bounce[..., :3][mask] - b[mask]) ** 2)) / np.mean(b[mask]))
+               if no_sun_bounce is not None else float("nan"))
     return {"angle_deg": angle_deg, "size": list(size), "samples": samples, "resolution": resolution,
+            "bounces": bounces, "rel_rmse_without_sun_bounce": without,
             "glossy": glossy, "light": light, "sky_sun": sky_sun, "sun": manifest.get("sun"), "pixels": int(mask.sum()), "shadow_pixels": int(shadow.sum()),
             "rel_rmse": rel(mask), "rel_rmse_shadow": rel(shadow) if shadow.sum() >= 20 else float("nan"),
             "mean_ratio_minus_1": float(a[mask].mean() / b[mask].mean() - 1.0),
@@ -266,27 +335,39 @@ def main(argv=None) -> int:
     p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel")
     p.add_argument("--resolution", type=int, default=512, help="the atlas")
     p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, roughness 0.3), TPFL")
+    p.add_argument("--bounces", type=int, default=0, help="PRTT's relightable bounce and Cycles' diffuse "
+                   "bounces (with 1: also the preview without the sun's bounce)")
+    p.add_argument("--hdri", metavar="NAME", help="a studio HDRI as the World (not band-limited): its sun "
+                   "extracted (hdri_sun) and left in the SH, both against Cycles; --angles is then ignored")
     p.add_argument("--sky", action="store_true",
                    help="a Sky Texture World with its sun disc instead of the lamp: the disc baked as the sun "
                         "(sky_sun) and left in the World's SH (sky_sun off), both against Cycles")
     a = p.parse_args(argv)
     w, h = (int(v) for v in a.size.split("x"))
-    what = "a Sky Texture's sun" if a.sky else "Sun lamp"
-    print(f"{what} over a box and a plank, {w}x{h}, Cycles {a.samples} samples, atlas {a.resolution}², "
+    what = f"the {a.hdri} HDRI's sun" if a.hdri else "a Sky Texture's sun" if a.sky else "Sun lamp"
+    print(f"{what} over a box and a plank, {w}x{h}, Cycles {a.samples} samples, {a.bounces} bounce(s), "
+          f"atlas {a.resolution}², "
           f"{'glossy floor, TPFL' if a.glossy else 'diffuse, diffuse mode'}:")
     print(f"  {'angle':>6}  {'disc':>10}  {'image RMSE':>10}  {'shadow RMSE':>11}  {'mean':>7}  {'Cycles noise':>12}  "
           f"{'sun mask s':>10}  penumbrae PRTT / Cycles (mm; texel)")
-    variants = [("sky", True), ("sky", False)] if a.sky else [("lamp", True)]
-    for ang in (float(x) for x in a.angles.split(",")):
+    variants = ([(f"hdri:{a.hdri}", True), (f"hdri:{a.hdri}", False)] if a.hdri else
+                [("sky", True), ("sky", False)] if a.sky else [("lamp", True)])
+    for ang in ([0.0] if a.hdri else (float(x) for x in a.angles.split(","))):
         for light, sky_sun in variants:
             r = compare(ang, (w, h), samples=a.samples, resolution=a.resolution, glossy=a.glossy, light=light,
-                        sky_sun=sky_sun)
+                        sky_sun=sky_sun, bounces=a.bounces)
             disc = ("lamp" if light == "lamp" else "as sun" if r["sun"] else "in SH")
+            if a.hdri and r["sun"]:
+                print(f"          extracted: a {math.degrees(r['sun']['angle']):.2f} degree disc of "
+                      f"{r['sun']['strength']:.3g} W/m²", flush=True)
             print(f"  {ang:6.2f}  {disc:>10}  {r['rel_rmse']:10.2%}  {r['rel_rmse_shadow']:11.2%}  "
                   f"{r['mean_ratio_minus_1']:+7.2%}  {r['cycles_noise']:12.2%}  {r['sun_seconds']:10.2f}  "
                   + " ".join(f"{1e3 * p:.1f}/{1e3 * c:.1f}" for p, c in zip(*r["penumbra_m"].values()))
                   + f" ({1e3 * r['texel_m']:.1f})", flush=True)
-            if r["sun"]:
+            if a.bounces:
+                print(f"          {a.bounces} bounce(s): without the sun's bounce the image is "
+                      f"{r['rel_rmse_without_sun_bounce']:.2%} from Cycles", flush=True)
+            if r["sun"] and a.sky:
                 print(f"          the sun measured from the sky: {r['sun']['strength']:.3g} W/m², colour "
                       f"{', '.join(f'{c:.3f}' for c in r['sun']['color'])}, "
                       f"{math.degrees(math.acos(min(1.0, float(np.dot(r['sun']['direction'], sun_direction()))))):.3f}"

@@ -209,7 +209,7 @@ def coarse_source(ctx: BakeContext, geo: Geometry, src: BounceSource, grid: Boun
 def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry | None = None, *,
                   lit: bool = True) -> tuple[BounceInputs, dict[int, np.ndarray]]:
     """Skip masks and surface texels of every set, and level 1's incident
-    radiance {set index: Lp (M, 3, K) float32} (ctx.light through each
+    radiance {set index: Lp (M, 3, K) float32} (ctx.bounce_light through each
     transfer texture). Drops each source's ``incident`` texture once used
     (the exit textures replace it). With settings.bounce_downscale > 1 (and
     ``geo``), sources move to their coarse grid (choose_grid): the returned
@@ -233,7 +233,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         full = r.fine if r.fine is not None else surface_texels(sc, r.gbuffer, st.dilate, diffuse_only=True)
         if not lit:
             return full, r.incident.at(full.valid, K, padded=True)
-        return full, incident_dc_at(full, r.incident, ctx.light, st.bands)
+        return full, incident_dc_at(full, r.incident, ctx.bounce_light, st.bands)
 
     for at, r in enumerate(sources):
         # Consumed: the full-resolution source (its G-buffer's layout, open mask)
@@ -277,7 +277,7 @@ def bounce_inputs(ctx: BakeContext, sources: list[BounceSource], geo: Geometry |
         # positions and normals (the points' own arrays): the rest is dropped.
         r.gbuffer.release_surface(keep_geometry=True)
         if lit:
-            Lp[r.index] = incident_at(surf[r.index], incident, ctx.light, st.bands)
+            Lp[r.index] = incident_at(surf[r.index], incident, ctx.bounce_light, st.bands)
         else:
             # The coarse grid's own incident set (the fine one is level 1's diffuse table: kept).
             Lp[r.index] = incident.at(surf[r.index].valid, K, padded=True, consume=grid.downscale > 1)

@@ -26,7 +26,7 @@ from ...base.errors import BakeError, Cancelled
 from ...base.memory import StagePeaks
 from ...io.outdir import file_info
 from ...model.scene import Scene
-from ...shading.shade import prepare_light
+from ...shading.shade import prepare_light, sun_sh
 from ..estimators.transfer import TransferSettings
 
 MANIFEST = "manifest.json"
@@ -246,7 +246,8 @@ class BakeContext:
         sets : names of the texture sets to bake (default: all, in scene order);
                BakeError for a name the scene does not have.
         dask : a distributed.DaskSpec: the ray chunks run on that Dask cluster.
-        sun : a core.light.sun.Sun, or None: each set's sun mask is baked.
+        sun : a core.light.sun.Sun, or None: each set's sun mask is baked, and
+              baked bounces see it as its SH projection (:attr:`bounce_light`).
         """
         set_ids = list(range(scene.n_sets))
         if sets is not None:
@@ -260,6 +261,15 @@ class BakeContext:
         helpers = cf.ThreadPoolExecutor(max_workers=max(2, settings.n_threads) + 1)
         return cls(scene=scene, out_dir=out_dir, settings=settings, light=prepared, progress=progress,
                    cancel=cancel, set_ids=set_ids, helpers=helpers, dask=dask, sun=sun)
+
+    @property
+    def bounce_light(self) -> np.ndarray | None:
+        """(K, 3) what baked bounces are lit by: ``light`` and, with a sun, its
+        SH projection (shade.sun_sh: E y_k(l)), as the preview relights
+        relightable bounces; ``light`` itself without a sun."""
+        if self.light is None or self.sun is None:
+            return self.light
+        return self.light + sun_sh(self.sun.direction, self.sun.irradiance, self.settings.bands)
 
     @property
     def n_coeffs(self) -> int:

@@ -131,7 +131,7 @@ def plan_bake(ctx: BakeContext, *, skip_if_unchanged: bool = True) -> BakePlan:
                         "or use --bounce-denoise edge-aware or none")
     l_hash = light_hash(ctx.light) if ctx.light is not None else None
     m_hash = materials_hash(sc)
-    b_key = bounce_key(in_hash, set_hash, ctx.light, m_hash, st) if bouncing else None
+    b_key = bounce_key(in_hash, set_hash, ctx.bounce_light, m_hash, st) if bouncing else None
     old = read_manifest(ctx.out_dir)
     s_key = sun_key(ctx.sun, in_hash)
     transfer_ok, bounce_ok = reusable(ctx, old, in_hash, set_hash, b_key, bouncing=bouncing,
