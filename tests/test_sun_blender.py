@@ -78,3 +78,32 @@ def test_a_sun_turned_after_the_bake_is_stale_until_baked_again(tmp_path):
     r = run("render", "scene.blend", "--size", "64x36", "--out", "d.exr", cwd=tmp_path, timeout=600)
     assert r.returncode == 0 and "stale" not in r.stdout + r.stderr, r.stdout + r.stderr
     assert np.isfinite(read_exr_rgba(str(tmp_path / "d.exr"))).all()
+
+
+def test_a_sun_with_shadow_off_bakes_no_shadow_and_turning_it_on_is_stale(tmp_path):
+    """Blender's Sun Shadow off: the bake's sun casts none (its masks are 1),
+    the panel says so; turning Shadow on makes the masks stale."""
+    import numpy as np
+
+    from prtt_addon.core.io.exr_io import read_mask_exr
+    bpy = addon_bpy()
+    rs.floor_and_box(bpy)
+    sun = bpy.data.objects.new("Key", bpy.data.lights.new("Key", "SUN"))
+    sun.data.energy, sun.data.use_shadow = 2.0, False
+    sun.rotation_euler = (math.radians(40), 0.0, math.radians(30))
+    bpy.context.scene.collection.objects.link(sun)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "scene.blend"))
+    r = run("bake", "scene.blend", "--out", "tex", "--unwrap", "SMART", "--resolution", "32", "--rays", "16",
+            "--bounces", "0", cwd=tmp_path, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    m = json.load(open(tmp_path / "tex" / "manifest.json"))
+    assert m["sun"]["shadow"] is False
+    mask = read_mask_exr(str(tmp_path / "tex" / "Floor.sun.exr"))[0]
+    assert np.isin(mask, (0.0, 1.0)).all() and mask.max() == 1.0
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "scene.blend"))
+    from prtt_addon.blender.preview import drawlist
+    _, status = drawlist.collect(bpy.context, with_meshes=False)
+    assert status.sun_description.endswith("no shadow (its Shadow is off)"), status.sun_description
+    bpy.data.objects["Key"].data.use_shadow = True
+    _, status = drawlist.collect(bpy.context, with_meshes=False)
+    assert status.sun_stale == "the sun 'Key''s Shadow is on, baked off", status.sun_stale

@@ -129,3 +129,33 @@ def test_the_mask_pass_stays_within_its_memory_bound():
         tracemalloc.stop()
         bound = mask_bytes(1, 1, n, 2, chunk, 64)
         assert 0.3 * bound < peak <= bound, (peak, bound)
+
+
+def test_a_sun_without_shadow_has_a_mask_of_one_and_its_own_key(tmp_path):
+    """Blender's Shadow off: the mask is 1 on every texel (nothing traced), the
+    key differs from the shadowing sun's, and a shadowing sun's key, JSON and
+    mask are what they were before the field existed."""
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.runner import bake_scene
+    from prtt_addon.core.io.exr_io import read_mask_exr
+    from prtt_addon.dev.bench import contact_profile as cp
+    lit = Sun(direction=(0.5, 0.1, 0.8), angle=math.radians(3.0))
+    free = Sun(direction=(0.5, 0.1, 0.8), angle=math.radians(3.0), shadow=False)
+    assert "shadow" not in lit.as_dict() and "shadow" not in lit.mask_key()
+    assert lit.mask_key() == {"direction": [round(v, 12) for v in lit.direction], "angle": round(lit.angle, 12)}
+    assert free.as_dict()["shadow"] is False and free.mask_hash() != lit.mask_hash()
+    assert Sun.from_dict(free.as_dict()) == free
+    assert "Shadow is on, baked off" in lit.moved_from(free)
+    with pytest.raises(SunError, match="shadow must be true or false"):
+        Sun.from_dict({"direction": [0, 0, 1], "angle": 0.01, "shadow": "no"})
+    sc = cp.build(32)
+    st = BakeSettings(rays=16, bounces=0, vertex_mode=False)
+    m = bake_scene(sc, str(tmp_path / "a"), st, sun=free)
+    assert m["sun"]["shadow"] is False
+    mask, attrs = read_mask_exr(os.path.join(str(tmp_path / "a"), "floor.sun.exr"))
+    assert attrs["sun_shadow"] == 0 and mask.max() == 1.0
+    shadowed = read_mask_exr(os.path.join(str(bake_scene(sc, str(tmp_path / "b"), st, sun=lit) and tmp_path / "b"),
+                                          "floor.sun.exr"))[0]
+    assert shadowed.min() < 0.5                         # the box's shadow: what the unshadowed sun has not
+    # every texel the floor covers is 1 (the dilated ring too)
+    assert np.all(mask[shadowed > 0] == 1.0)

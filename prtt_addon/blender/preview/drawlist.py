@@ -447,7 +447,7 @@ def preview_sun(scene, view_layer, info: dict, status) -> "pp.PreviewSun | None"
         return None
     try:
         baked = Sun.from_dict({k: v for k, v in baked_spec.items() if k in ("name", "direction", "angle",
-                                                                             "color", "strength")})
+                                                                             "color", "strength", "shadow")})
     except SunError as exc:
         status.add("ERROR", f"the bake's sun: {exc}; bake again")
         return None
@@ -459,5 +459,6 @@ def preview_sun(scene, view_layer, info: dict, status) -> "pp.PreviewSun | None"
         status.sun_stale = why
         status.add("WARNING", f"the sun's shadows are stale ({why}): drawn as baked; Bake again to update them")
     status.sun_description = (f"{live.name!r}, {math.degrees(baked.angle):.2g} degree disc, {live.strength:.3g} W/m², "
-                              f"shadows baked{' (stale)' if why else ''}")
+                              + (f"shadows baked{' (stale)' if why else ''}" if baked.shadow else
+                                 f"no shadow (its Shadow is off){' (stale)' if why else ''}"))
     return pp.PreviewSun(baked.direction, tuple(float(v) for v in live.irradiance), baked.angle)

@@ -40,7 +40,7 @@ def sun_of(ob) -> Sun:
     z = ob.matrix_world.to_3x3().col[2]          # a Sun shines along its local -Z
     strength = float(light.energy) * 2.0 ** float(getattr(light, "exposure", 0.0))
     return Sun(direction=(z.x, z.y, z.z), angle=float(light.angle), color=lamp_colour(light),
-               strength=strength, name=ob.name)
+               strength=strength, name=ob.name, shadow=bool(getattr(light, "use_shadow", True)))
 
 
 def scene_sun(scene, view_layer=None) -> tuple:
@@ -70,8 +70,6 @@ def scene_sun(scene, view_layer=None) -> tuple:
         others = ", ".join(repr(o.name) for _, o in taken[1:4])
         notes.append(f"PRTT bakes one sun, {ob.name!r} (the brightest); not {others}"
                      + (f" and {len(taken) - 4} more" if len(taken) > 4 else ""))
-    if not getattr(ob.data, "use_shadow", True):
-        notes.append(f"Sun {ob.name!r} casts no shadow in Blender; PRTT bakes its shadows")
     st = getattr(scene, "prtt", None)
     if world_has_sky_sun(scene) and getattr(st, "sky_sun", True) and getattr(st, "light_source", "WORLD") == "WORLD":
         notes.append(f"the World's Sky Texture sun stays in the World's soft light, without shadows: PRTT bakes "

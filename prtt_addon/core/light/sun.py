@@ -17,6 +17,8 @@ Conventions (Z-up world, as the scene):
   facing the sun is ``strength * color`` (Cycles' convention: a white diffuse
   plane facing a Sun of strength 1 renders at 1 / pi). Neither changes the
   mask: they are applied at shading time and change live.
+* ``shadow``: False for a Sun whose *Shadow* is off in Blender: nothing
+  blocks it, its mask is 1 everywhere (traced nowhere).
 """
 from __future__ import annotations
 
@@ -46,6 +48,7 @@ class Sun:
     color: tuple = (1.0, 1.0, 1.0)
     strength: float = 1.0     # W/m²
     name: str = "Sun"
+    shadow: bool = True       # False: casts no shadow (Blender's Shadow off): the mask is 1
 
     def __post_init__(self):
         d = np.asarray(self.direction, np.float64).reshape(-1)
@@ -69,6 +72,8 @@ class Sun:
             raise SunError(f"sun {self.name!r}: strength must be a non-negative number, got {self.strength!r}")
         object.__setattr__(self, "strength", s)
         object.__setattr__(self, "name", str(self.name)[:200])
+        if not isinstance(self.shadow, bool):
+            raise SunError(f"sun {self.name!r}: shadow must be true or false, got {self.shadow!r}")
 
     @property
     def irradiance(self) -> np.ndarray:
@@ -80,27 +85,32 @@ class Sun:
         return math.cos(0.5 * self.angle)
 
     def mask_key(self) -> dict:
-        """What the mask depends on: direction and disc (not colour, strength or name)."""
-        return {"direction": [round(v, 12) for v in self.direction], "angle": round(self.angle, 12)}
+        """What the mask depends on: direction and disc, and whether it casts a
+        shadow (not colour, strength or name). A shadowing sun's key is the
+        one it had before ``shadow`` existed."""
+        key = {"direction": [round(v, 12) for v in self.direction], "angle": round(self.angle, 12)}
+        if not self.shadow:
+            key["shadow"] = False
+        return key
 
     def mask_hash(self) -> str:
         return hashlib.sha256(json.dumps(self.mask_key(), sort_keys=True).encode()).hexdigest()
 
     def as_dict(self) -> dict:
         return {"name": self.name, "direction": list(self.direction), "angle": self.angle,
-                "color": list(self.color), "strength": self.strength}
+                "color": list(self.color), "strength": self.strength, **({} if self.shadow else {"shadow": False})}
 
     @classmethod
     def from_dict(cls, d) -> "Sun":
         """A sun from a job file's or manifest's JSON (untrusted: SunError on anything else)."""
         if not isinstance(d, dict):
             raise SunError(f"sun: expected a JSON object, got {type(d).__name__}")
-        unknown = set(d) - {"name", "direction", "angle", "color", "strength"}
+        unknown = set(d) - {"name", "direction", "angle", "color", "strength", "shadow"}
         if unknown:
             raise SunError(f"sun: unknown field(s) {', '.join(sorted(map(str, unknown)))}")
         try:
             return cls(direction=d["direction"], angle=d["angle"], color=d.get("color", (1.0, 1.0, 1.0)),
-                       strength=d.get("strength", 1.0), name=d.get("name", "Sun"))
+                       strength=d.get("strength", 1.0), name=d.get("name", "Sun"), shadow=d.get("shadow", True))
         except KeyError as exc:
             raise SunError(f"sun: missing field {exc.args[0]!r}") from None
         except (TypeError, ValueError) as exc:
@@ -115,6 +125,8 @@ class Sun:
         turned = math.degrees(math.acos(cos))
         if turned > tolerance_deg:
             return f"the sun {self.name!r} turned {turned:.2f} degrees since the bake"
+        if self.shadow != baked.shadow:
+            return f"the sun {self.name!r}'s Shadow is {'on' if self.shadow else 'off'}, baked {'on' if baked.shadow else 'off'}"
         if abs(math.degrees(self.angle - baked.angle)) > tolerance_deg:
             return (f"the sun {self.name!r}'s angle is {math.degrees(self.angle):.3g} degrees, baked at "
                     f"{math.degrees(baked.angle):.3g}")

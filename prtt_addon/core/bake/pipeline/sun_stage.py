@@ -42,9 +42,12 @@ def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | No
     t = time.perf_counter()
     if rays is None:
         rays = ctx.validity_scene[0] if ctx.validity_scene is not None else RayScene(ctx.scene.positions)
-    m = sun_mask(rays, gb.position, gb.geo_normal, gb.texel.astype(np.int64), sun.direction, sun.angle,
-                 rays=SUN_RAYS, seed=st.seed, set_index=gb.set_index, threads=st.n_threads,
-                 chunk_rays=st.chunk_rays, cancel=ctx.cancel)
+    if sun.shadow:
+        m = sun_mask(rays, gb.position, gb.geo_normal, gb.texel.astype(np.int64), sun.direction, sun.angle,
+                     rays=SUN_RAYS, seed=st.seed, set_index=gb.set_index, threads=st.n_threads,
+                     chunk_rays=st.chunk_rays, cancel=ctx.cancel)
+    else:                              # Shadow off: nothing blocks it (n.l is the shading's)
+        m = np.ones(gb.texel.size, np.float32)
     H, W = gb.height, gb.width
     plane = np.zeros((1, H * W), np.float32)
     plane[0, gb.texel] = m
@@ -60,7 +63,7 @@ def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | No
     exr_io.write_mask_exr(ctx.staging.path(fname), plane.reshape(H, W), atomic=False,
                           attrs={"sun_rays": SUN_RAYS, "seed": st.seed, "sun_key": key,
                                  "sun_direction": " ".join(f"{v:.9f}" for v in sun.direction),
-                                 "sun_angle": float(sun.angle)})
+                                 "sun_angle": float(sun.angle), **({} if sun.shadow else {"sun_shadow": 0})})
     seconds = time.perf_counter() - t
     lit = float(np.count_nonzero(m > 0.0)) / max(1, m.size)
     return fname, {"sun_file": fname, "sun_seconds": round(seconds, 3), "sun_lit_fraction": round(lit, 4)}
