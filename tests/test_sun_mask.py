@@ -159,3 +159,49 @@ def test_a_sun_without_shadow_has_a_mask_of_one_and_its_own_key(tmp_path):
     assert shadowed.min() < 0.5                         # the box's shadow: what the unshadowed sun has not
     # every texel the floor covers is 1 (the dilated ring too)
     assert np.all(mask[shadowed > 0] == 1.0)
+
+
+@pytest.mark.parametrize("bounce_mode", [None, "relightable", "baked"])
+def test_a_turned_sun_bakes_its_masks_alone_over_the_transfer(tmp_path, bounce_mode):
+    """Only the sun changed: the transfer on disk is reused (not traced again),
+    the masks are the very bytes a bake from scratch writes for the new sun;
+    a relightable bounce (which holds no sun) is kept as it is, a baked one
+    (which holds the sun's bounce) is baked again; a sun that comes or goes
+    likewise bakes or removes the masks alone."""
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.runner import bake_scene
+    from prtt_addon.core.io.exr_io import read_mask_exr
+    from prtt_addon.core.light.envmap import builtin_environment_path, environment_light
+    from prtt_addon.dev.bench import contact_profile as cp
+    sc = cp.build(32)
+    kw = dict(bounces=1, bounce_rays=8, bounce_mode=bounce_mode) if bounce_mode else dict(bounces=0)
+    st = BakeSettings(rays=16, vertex_mode=False, **kw)
+    light = environment_light(builtin_environment_path("forest"), 5)
+    a = Sun(direction=(0.5, 0.1, 0.8), angle=math.radians(3.0))
+    b = Sun(direction=(0.2, -0.4, 0.9), angle=math.radians(1.0))
+    work, fresh = str(tmp_path / "work"), str(tmp_path / "fresh")
+    m1 = bake_scene(sc, work, st, light=light, sun=a)
+    m2 = bake_scene(sc, work, st, light=light, sun=b)
+    assert m2["transfer_reused"] and not m2["skipped"] and m2["seconds"]["trace"] < m1["seconds"]["trace"]
+    for f in m1["transfer_files"]:
+        if f.endswith(".transfer.exr"):
+            assert m2["file_info"][f] == m1["file_info"][f], f
+    m3 = bake_scene(sc, fresh, st, light=light, sun=b)
+    for name in ("floor", "box"):
+        got = read_mask_exr(os.path.join(work, f"{name}.sun.exr"))[0]
+        want = read_mask_exr(os.path.join(fresh, f"{name}.sun.exr"))[0]
+        assert got.tobytes() == want.tobytes(), name
+    assert [r.get("sun_lit_fraction") for r in m2["sets"]] == [r.get("sun_lit_fraction") for r in m3["sets"]]
+    if bounce_mode == "relightable":
+        assert m2["bounce"]["files"] == m1["bounce"]["files"]
+        assert all(m2["file_info"][f] == m1["file_info"][f] for f in m1["bounce"]["files"])
+    elif bounce_mode == "baked":
+        assert m2["bounce"]["key"] != m1["bounce"]["key"]
+        assert m2["bounce"]["files"] == m3["bounce"]["files"]
+    m4 = bake_scene(sc, work, st, light=light)                       # the sun gone
+    assert m4["transfer_reused"] and "sun" not in m4 and not any(f.endswith(".sun.exr") for f in m4["files"])
+    assert not os.path.exists(os.path.join(work, "floor.sun.exr"))
+    assert not any(k.startswith("sun_") for r in m4["sets"] for k in r)
+    m5 = bake_scene(sc, work, st, light=light, sun=b)                # and back
+    assert m5["transfer_reused"] and m5["sun"]["files"] == m3["sun"]["files"]
+    assert bake_scene(sc, work, st, light=light, sun=b)["skipped"]

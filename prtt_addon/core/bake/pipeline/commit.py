@@ -39,10 +39,19 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
         transfer_files = old.get("transfer_files", old.get("files", []))
         set_reports = manifest_dicts(old.get("sets"))
         vertex_reports = manifest_dicts(old.get("vertex"))
+        if plan.sun_only:
+            # the masks baked anew over the reused transfer (or none, the sun gone)
+            transfer_files = [f for f in transfer_files if not f.endswith(".sun.exr")] + [
+                f for r in sets for f in r.files if f.endswith(".sun.exr")]
+            new = {r.name: r.report for r in sets}
+            set_reports = [new.get(r.get("name"), {k: v for k, v in r.items() if not k.startswith("sun_")})
+                           for r in set_reports]
     else:
         transfer_files = [f for r in sets for f in r.files] + vertex_files
         set_reports = [r.report for r in sets]
     bounce_entry = bounce.manifest_entry(plan, st) if bounce is not None else None
+    if bounce is None and plan.bouncing and plan.transfer_reused and plan.bounce_reused:
+        bounce_entry = old.get("bounce")               # a masks-only re-bake: the bounce as it was
     files = transfer_files + (bounce_entry["files"] if bounce_entry else [])
     if not files:
         raise BakeError("nothing was baked: no texture set has covered texels")
@@ -88,8 +97,9 @@ def commit_bake(ctx: BakeContext, plan: BakePlan, manifest: dict) -> dict:
              if f not in files and (".bounce" in f or f.endswith((".relight.exr", ".sun.exr")))]
     ctx.check_cancel()
     new_info = ctx.staging.seal()
-    # The reused transfer's entries were verified by plan.reusable.
-    reused_info = {f: old["file_info"][f] for f in manifest["transfer_files"]} if plan.transfer_reused else {}
+    # The reused files' entries (the transfer's, and a masks-only re-bake's bounce) were verified by plan.reusable.
+    reused_info = {f: old["file_info"][f] for f in files if f in (old.get("file_info") or {})} \
+        if plan.transfer_reused else {}
     manifest["file_info"] = {f: (new_info.get(f) or reused_info[f]) for f in files}
     _rename_into_place(ctx, manifest, stale)
     ctx.emit(type="done", skipped=False, manifest=os.path.join(ctx.out_dir, MANIFEST))

@@ -95,11 +95,17 @@ class BakePlan:
     transfer_reused: bool        # the transfer outputs on disk are this bake's: read, not traced
     bounce_reused: bool          # the bounce outputs on disk are this bake's (or none are wanted nor there)
     sun_key: str | None = None   # sun_stage.sun_key: the sun masks' key; None without a sun
+    sun_reused: bool = True      # the sun masks on disk (or their absence) are this bake's
 
     @property
     def skipped(self) -> bool:
         """Nothing to bake: every output on disk is this bake's."""
-        return self.transfer_reused and self.bounce_reused
+        return self.transfer_reused and self.bounce_reused and self.sun_reused
+
+    @property
+    def sun_only(self) -> bool:
+        """The transfer on disk is reused, the sun's masks are baked (or removed) anew."""
+        return self.transfer_reused and not self.sun_reused
 
     def exr_attrs(self, st: BakeSettings) -> dict:
         """Header attributes every texture of this bake carries (stages add their own)."""
@@ -134,39 +140,40 @@ def plan_bake(ctx: BakeContext, *, skip_if_unchanged: bool = True) -> BakePlan:
     b_key = bounce_key(in_hash, set_hash, ctx.bounce_light, m_hash, st) if bouncing else None
     old = read_manifest(ctx.out_dir)
     s_key = sun_key(ctx.sun, in_hash)
-    transfer_ok, bounce_ok = reusable(ctx, old, in_hash, set_hash, b_key, bouncing=bouncing,
-                                      skip_if_unchanged=skip_if_unchanged, sun=s_key)
+    transfer_ok, bounce_ok, sun_ok = reusable(ctx, old, in_hash, set_hash, b_key, bouncing=bouncing,
+                                              skip_if_unchanged=skip_if_unchanged, sun=s_key)
     return BakePlan(input_hash=in_hash, settings_hash=set_hash, light_hash=l_hash, materials_hash=m_hash,
                     bouncing=bouncing, bounce_key=b_key, old_manifest=old,
-                    transfer_reused=transfer_ok, bounce_reused=bounce_ok, sun_key=s_key)
+                    transfer_reused=transfer_ok, bounce_reused=bounce_ok, sun_key=s_key, sun_reused=sun_ok)
 
 
 def reusable(ctx: BakeContext, old: dict | None, in_hash: str, set_hash: str, b_key: str | None, *,
-             bouncing: bool, skip_if_unchanged: bool, sun: str | None = None) -> tuple[bool, bool]:
-    """(transfer outputs reusable, bounce outputs reusable) per the old manifest,
-    with every file checked against its recorded size and sha256. A mismatch is
-    reported as a warning and that part is re-baked. ``sun``: the sun masks'
-    key (sun_stage.sun_key), which the old manifest's "sun" must match: the
-    masks are transfer outputs."""
+             bouncing: bool, skip_if_unchanged: bool, sun: str | None = None) -> tuple[bool, bool, bool]:
+    """(transfer outputs reusable, bounce outputs reusable, sun masks reusable)
+    per the old manifest, with every file checked against its recorded size
+    and sha256. A mismatch is reported as a warning and that part is
+    re-baked. ``sun``: the sun masks' key (sun_stage.sun_key, None without a
+    sun), which the old manifest's "sun" must match; a sun turned, come or
+    gone bakes the masks alone (stages.sun_only_set) over the reused transfer."""
     if not (skip_if_unchanged and old):
-        return False, False
+        return False, False, False
     old_sun = old.get("sun") if isinstance(old.get("sun"), dict) else {}
-    same_inputs = (old.get("input_hash") == in_hash and old.get("settings_hash") == set_hash
-                   and old_sun.get("key") == sun)
+    same_inputs = old.get("input_hash") == in_hash and old.get("settings_hash") == set_hash
     transfer_ok = False
     if same_inputs:
         why = outputs_changed(old, ctx.out_dir, old.get("transfer_files", old.get("files", [])))
         transfer_ok = why is None
         if why:
             ctx.warn(f"re-baking the transfer: {why}")
+    sun_ok = transfer_ok and old_sun.get("key") == sun
     old_bounce = old.get("bounce") or {}
     if not bouncing:
-        return transfer_ok, not old_bounce.get("files")
+        return transfer_ok, not old_bounce.get("files"), sun_ok
     if old_bounce.get("key") != b_key:
-        return transfer_ok, False
+        return transfer_ok, False, sun_ok
     why = outputs_changed(old, ctx.out_dir, old_bounce.get("files", []))
     if why:
         ctx.warn(f"re-baking the bounce textures: {why}")
-    return transfer_ok, why is None
+    return transfer_ok, why is None, sun_ok
 
 

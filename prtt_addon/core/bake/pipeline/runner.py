@@ -67,6 +67,7 @@ from .plan import (
 )
 from .relightable_stage import relight_glossy_bands, relight_levels
 from .stages import (
+    SetResult,
     bake_points_input,
     build_geometry,
     gbuffer_stage,
@@ -74,6 +75,7 @@ from .stages import (
     scene_face_data,
     start_gbuffer,
     start_tables,
+    sun_only_set,
     transfer_set,
     vertex_stage,
 )
@@ -199,12 +201,21 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
                 results.append(transfer_set(ctx, geo, plan, gb, position=position,
                                             keep_for_bounce=plan.bouncing))
             elif gb.n:
-                results.append(load_transfer_set(ctx, geo, gb, old_reports.get(ctx.scene.set_names[s], {})))
+                old_rep = old_reports.get(ctx.scene.set_names[s], {})
+                if plan.bouncing and not plan.bounce_reused:
+                    r = load_transfer_set(ctx, geo, gb, old_rep)
+                else:
+                    r = SetResult(gb.set_index, ctx.scene.set_names[s], old_rep, [])
+                if plan.sun_only:
+                    # only the sun changed (or came, or went): its masks alone over the transfer on disk
+                    r.files, sun_rep = sun_only_set(ctx, geo, plan, gb)
+                    r.report = {**{k: v for k, v in old_rep.items() if not k.startswith("sun_")}, **sun_rep}
+                results.append(r)
         # The results hold what the bounce needs of each G-buffer: not the last one whole (#35).
         gb = first_gb = None
     vertex = vertex_stage(ctx, geo, plan) if st.vertex_mode and not plan.transfer_reused else None
     bounce = None
-    if plan.bouncing:
+    if plan.bouncing and not (plan.transfer_reused and plan.bounce_reused):
         levels = relight_levels if st.bounce_mode == "relightable" else bounce_levels
         sources = [r.bounce for r in results if r.bounce is not None]
         for r in results:

@@ -412,8 +412,24 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     name = rep["name"]
     if rep.get("skipped"):
         return SetResult(gb.set_index, name, rep, [])
+    inside, step = validity_pass(ctx, geo, gb, rep)
+    traced = trace_set(ctx, geo, gb, position=position)
+    sun_files = []
+    if ctx.sun is not None:
+        # Before the texture's write may release the G-buffer's points (moved by validity).
+        fname, sun_rep = sun_set(ctx, geo.rays, gb, inside, plan.sun_key)
+        sun_files.append(fname)
+        rep.update(sun_rep)
+    return _finish_transfer_set(ctx, geo, plan, gb, rep, traced, inside, step, sun_files, keep_for_bounce)
+
+
+def validity_pass(ctx: BakeContext, geo: Geometry, gb: GBuffer, rep: dict) -> tuple[np.ndarray | None, float]:
+    """Texel validity of set ``gb`` (settings.texel_validity): (its texels
+    inside geometry (N,) bool or None, the set's texel footprint in metres);
+    texels beside a single-plane wall moved to its darker side, in
+    ``gb.position``; ``rep`` gets the counts. The footprint is validity's
+    contact distance and the guided texels' filter's (0 when neither runs)."""
     inside = None
-    # The set's texel footprint: validity's contact distance and the guided texels' filter read it.
     step = validity.texel_step(gb.texel, gb.position, gb.width) if (
         ctx.settings.texel_validity or ctx.settings.guided_filter) else 0.0
     if ctx.settings.texel_validity:
@@ -437,13 +453,13 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
             gb.position[moved] = where
         rep["moved_texels"] = int(moved.size)
         ctx.seconds["trace"] += time.perf_counter() - t         # with the trace, as the guided filter
-    traced = trace_set(ctx, geo, gb, position=position)
-    sun_files = []
-    if ctx.sun is not None:
-        # Before the texture's write may release the G-buffer's points (moved by validity).
-        fname, sun_rep = sun_set(ctx, geo.rays, gb, inside, plan.sun_key)
-        sun_files.append(fname)
-        rep.update(sun_rep)
+    return inside, step
+
+
+def _finish_transfer_set(ctx, geo, plan, gb, rep, traced, inside, step, sun_files, keep_for_bounce) -> SetResult:
+    """transfer_set after the trace: the guided filter, projection, mips and
+    dilation, the write, and the bounce's source."""
+    name = rep["name"]
     guided_index = traced.info.pop("guided_index", None)
     if ctx.settings.guided_filter and guided_index is not None and guided_index.size:
         t = time.perf_counter()
@@ -508,6 +524,21 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     if keep_for_bounce:
         res.bounce = BounceSource(gb.set_index, name, gb, traced.points, is_open, incident, fine, analytic)
     return res
+
+
+def sun_only_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer) -> tuple[list, dict]:
+    """A set's sun mask where the transfer on disk is reused (only the sun
+    changed, or came or went): texel validity again (the points the full bake
+    traces the mask from: the same code, the same bits), then the mask;
+    returns ([its file] or [], the set report's sun entries). The G-buffer's
+    own positions are left as they are (a bounce re-bake reads them)."""
+    if ctx.sun is None or not gb.n:
+        return [], {}
+    own = dataclasses.replace(gb, position=gb.position.copy())
+    rep = {"name": ctx.scene.set_names[gb.set_index]}
+    inside, _ = validity_pass(ctx, geo, own, rep)
+    fname, sun_rep = sun_set(ctx, geo.rays, own, inside, plan.sun_key)
+    return [fname], sun_rep
 
 
 def load_transfer_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, old_report: dict) -> SetResult:
