@@ -84,12 +84,64 @@ vec3 shade_point(vec4 T4[SH_K4], vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec
 }
 
 #ifdef PRTT_SUN
+/* Unpolarised Fresnel reflectance of a dielectric of relative IOR eta at
+ * cos(incidence) c (core.shading.shade.fresnel_dielectric). */
+float prtt_fresnel_dielectric(float c, float eta)
+{
+  float g2 = eta * eta - 1.0 + c * c;
+  if (!(g2 > 0.0)) {
+    return 1.0;
+  }
+  float g = sqrt(g2);
+  float a = (g - c) / (g + c);
+  float b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0);
+  return 0.5 * a * a * (1.0 + b * b);
+}
+
+float prtt_smith_lambda(float c, float a2)
+{
+  float c2 = clamp(c * c, 1e-12, 1.0);
+  return 0.5 * (sqrt(1.0 + a2 * (1.0 - c2) / c2) - 1.0);
+}
+
+/* The sun's specular BRDF (core.shading.shade.sun_glossy): GGX of
+ * alpha'^2 = alpha^2 + angle^2 / 32 (alpha^2 = 1 / (2 s + 1), widened by the
+ * disc: w = angle^2 / 16), Smith's height-correlated masking, the dielectric
+ * Fresnel of the material's F0 plus Schlick's for its metallic part:
+ * D G F / (4 n.v n.l). */
+vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
+{
+  float nv = dot(n, v);
+  float nl = dot(n, l);
+  vec3 h = v + l;
+  float hh = dot(h, h);
+  if (!(nv > 0.0) || !(nl > 0.0) || !(hh > 0.0)) {
+    return vec3(0.0);
+  }
+  h *= inversesqrt(hh);
+  float nh = clamp(dot(n, h), 0.0, 1.0);
+  float vh = clamp(dot(v, h), 0.0, 1.0);
+  float a2 = 1.0 / (2.0 * max(exponent, 0.0) + 1.0);
+  float a2s = a2 + 0.5 * sun.direction.w;
+  float t = nh * nh * (a2s - 1.0) + 1.0;
+  float D = a2s / (PRTT_PI * t * t);
+  float G = 1.0 / (1.0 + prtt_smith_lambda(nv, a2) + prtt_smith_lambda(nl, a2));
+  float m = material.base.w;
+  float f0 = material.params.y;
+  float sf = sqrt(clamp(f0, 0.0, 0.999));
+  vec3 metal = spec - vec3((1.0 - m) * f0);      /* metallic x base colour */
+  float q = pow(1.0 - vh, 5.0);
+  vec3 F = vec3((1.0 - m) * prtt_fresnel_dielectric(vh, (1.0 + sf) / (1.0 - sf))) + metal
+           + (vec3(m) - metal) * q;
+  return F * (D * G / (4.0 * nv * nl));
+}
+
 /* The sun's direct light at a point (core.shading.shade.sun_direct): the
- * uniform block `sun` holds direction (xyz unit towards the sun, w = angle² / 16,
- * the disc's widening of a Phong lobe) and irradiance (rgb, W/m² facing it);
- * sunTex (r) the visible fraction of its disc, baked per texel at PRTT UV uv.
- * B = mask max(0, n.l) E (albedo / pi + spec (s' + 1) / (2 pi) max(0, r.l)^s'),
- * s' = 1 / (1 / s + w); the diffuse mode leaves the lobe out. */
+ * uniform block `sun` holds direction (xyz unit towards the sun, w = angle² / 16)
+ * and irradiance (rgb, W/m² facing it); sunTex (r) the visible fraction of
+ * its disc, baked per texel at PRTT UV uv.
+ * B = mask max(0, n.l) E (albedo / pi + sun_glossy); the diffuse mode leaves
+ * the lobe out. */
 vec3 sun_light(vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
 {
   vec3 l = sun.direction.xyz;
@@ -100,13 +152,7 @@ vec3 sun_light(vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
   vec3 b = albedo / PRTT_PI;
 #  ifndef PRTT_DIFFUSE
   if (any(greaterThan(spec, vec3(0.0)))) {
-    vec3 r = 2.0 * dot(n, v) * n - v;
-    float rl2 = dot(r, r);
-    r = (rl2 > 0.0) ? r * inversesqrt(rl2) : n;
-    float s = (exponent > 0.0) ? 1.0 / (1.0 / exponent + sun.direction.w) : 0.0;
-    float rl = max(dot(r, l), 0.0);
-    float lobe = (s > 0.0) ? pow(rl, s) : 1.0;
-    b += spec * ((s + 1.0) / (2.0 * PRTT_PI) * lobe);
+    b += sun_glossy(n, v, l, spec, exponent);
   }
 #  endif
   return b * sun.irradiance.rgb * c;

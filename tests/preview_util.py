@@ -10,6 +10,7 @@
   Background strength 1.5;
 * a camera; bake at 64 texels with 64 rays, one bounce, per-vertex transfer.
 """
+import math
 import os
 
 import numpy as np
@@ -75,8 +76,10 @@ def world_forest(bpy, strength=1.5, rot_z=0.6):
     return w
 
 
-def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1, bounce_mode="BAKED"):
-    """Create, unwrap and bake the scene (module doc). Returns the objects."""
+def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1, bounce_mode="BAKED", sun=False):
+    """Create, unwrap and bake the scene (module doc); ``sun``: with a warm
+    3-degree Sun lamp whose highlight falls on the floor and the ball.
+    Returns the objects."""
     bpy.ops.mesh.primitive_plane_add(size=4)
     floor = bpy.context.active_object
     floor.name = "Floor"
@@ -112,6 +115,12 @@ def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1, bounce_mode=
     import mathutils
     cam.rotation_euler = mathutils.Vector(direction).to_track_quat("-Z", "Y").to_euler()
     bpy.context.scene.camera = cam
+    if sun:
+        lamp = bpy.data.objects.new("Key", bpy.data.lights.new("Key", "SUN"))
+        lamp.data.energy, lamp.data.angle, lamp.data.color = 3.0, math.radians(3.0), (1.0, 0.9, 0.75)
+        # towards the camera's mirror side of the floor: its highlight is in view
+        lamp.rotation_euler = mathutils.Vector((-0.45, 0.5, 0.74)).to_track_quat("Z", "Y").to_euler()
+        bpy.context.scene.collection.objects.link(lamp)
     st = bpy.context.scene.prtt
     st.resolution, st.rays, st.bounces, st.bounce_rays = resolution, rays, bounces, 16
     st.vertex_transfer = True

@@ -74,6 +74,37 @@ def test_gpu_matches_reference(blend, mode, bounces):
     assert err.max() <= 1e-3, f"{mode}: max relative error {err.max():.2e} (p99 {np.quantile(err, 0.99):.2e})"
 
 
+@pytest.fixture(scope="module")
+def sun_blend(tmp_path_factory):
+    return baked_blend(str(tmp_path_factory.mktemp("preview_sun")), sun=True, bounce_mode="RELIGHTABLE")
+
+
+@pytest.mark.parametrize("mode", ["tpfl", "tp", "diffuse"])
+def test_gpu_matches_reference_with_the_sun(sun_blend, mode):
+    """A Sun lamp's direct light (its mask, the GGX highlight on the glossy,
+    roughness-textured floor and the metallic ball) and its bounce (the
+    relightable bounce relit with its SH projection): the GLSL against the
+    numpy twin pixel by pixel, as without the sun; the sun is in the picture
+    (the forest World is bright: a twentieth of the pixels 1.2x or more)."""
+    from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
+    from prtt_addon.core.preview.reference import reference_image, relative_error
+    bpy = open_blend(sun_blend)
+    ps, _, vp, cam = frame(bpy)
+    assert ps.sun is not None and all(s.sun for s in ps.sets.values())
+    px, stats = render_offscreen(Renderer(), ps, mode, vp, cam, W, H, exposure=EXPOSURE)
+    assert sorted(stats.drawn) == ["Ball", "Block", "Floor"] and not stats.skipped
+    ref, hits = reference_image(ps, mode, vp, cam, W, H, exposure=EXPOSURE)
+    interior = hits.hit & (hits.edge_px > EDGE_MARGIN_PX)
+    floor = 1e-2 * ref[..., :3][hits.hit].mean()
+    err = relative_error(px[..., :3][interior], ref[..., :3][interior], floor)
+    assert err.max() <= 1e-3, f"{mode}: max relative error {err.max():.2e} (p99 {np.quantile(err, 0.99):.2e})"
+    import dataclasses
+    dark, _ = reference_image(dataclasses.replace(ps, sun=None), mode, vp, cam, W, H, exposure=EXPOSURE)
+    gain = ref[..., :3][interior].sum(axis=1) / np.maximum(dark[..., :3][interior].sum(axis=1), 1e-9)
+    more = ref[..., :3][interior].mean() / dark[..., :3][interior].mean()
+    assert more > 1.05 and np.quantile(gain, 0.95) > 1.2, (more, np.quantile(gain, 0.95))
+
+
 def test_tp_equals_tpfl_and_prepass_changes_nothing(blend):
     from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
     bpy = open_blend(blend)

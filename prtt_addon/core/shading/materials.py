@@ -52,11 +52,16 @@ def dielectric_f0(ior, specular) -> np.ndarray:
 
 @dataclasses.dataclass
 class ShadingParams:
-    """Per-point parameters: albedo (N, 3), spec (N, 3), exponent (N,)."""
+    """Per-point parameters: albedo (N, 3), spec (N, 3), exponent (N,); and
+    metallic (N,) and the dielectric F0 (N,) where known (the sun's
+    microfacet lobe reads them: shade.sun_direct; None: a dielectric of
+    F0 = spec)."""
 
     albedo: np.ndarray
     spec: np.ndarray
     exponent: np.ndarray
+    metallic: np.ndarray | None = None
+    f0: np.ndarray | None = None
 
     @classmethod
     def constant(cls, n: int, material: Material = DEFAULT) -> "ShadingParams":
@@ -64,7 +69,9 @@ class ShadingParams:
                       np.full(n, material.roughness), np.full(n, material.specular), np.full(n, material.ior))
 
     def take(self, idx) -> "ShadingParams":
-        return ShadingParams(self.albedo[idx], self.spec[idx], self.exponent[idx])
+        return ShadingParams(self.albedo[idx], self.spec[idx], self.exponent[idx],
+                             None if self.metallic is None else self.metallic[idx],
+                             None if self.f0 is None else self.f0[idx])
 
 
 def derive(base, metallic, roughness, specular, ior) -> ShadingParams:
@@ -77,7 +84,8 @@ def derive_from_f0(base, metallic, roughness, f0) -> ShadingParams:
     base = np.asarray(base, dtype=np.float64)
     m = np.asarray(metallic, dtype=np.float64)[:, None]
     f0 = np.asarray(f0, dtype=np.float64)[:, None]
-    return ShadingParams(base * (1.0 - m), (1.0 - m) * f0 + m * base, phong_exponent(roughness))
+    return ShadingParams(base * (1.0 - m), (1.0 - m) * f0 + m * base, phong_exponent(roughness),
+                         m[:, 0].copy(), np.broadcast_to(f0, m.shape)[:, 0].copy())
 
 
 def sample_texture(img_top_first: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -102,6 +110,7 @@ def eval_materials(sc, tri: np.ndarray, bary: np.ndarray) -> ShadingParams:
                      np.array([m.ior for m in table], np.float64))
     row = np.where((mid >= 0) & (mid < k), mid, k)
     albedo, spec, exponent = per_mat.albedo[row], per_mat.spec[row], per_mat.exponent[row]
+    metallic, f0 = per_mat.metallic[row], per_mat.f0[row]
     for i, mat in enumerate(mats):
         if not mat.textured:
             continue
@@ -119,7 +128,7 @@ def eval_materials(sc, tri: np.ndarray, bary: np.ndarray) -> ShadingParams:
         p = derive(base, np.full(sel.size, mat.metallic), rough, np.full(sel.size, mat.specular),
                    np.full(sel.size, mat.ior))
         albedo[sel], spec[sel], exponent[sel] = p.albedo, p.spec, p.exponent
-    return ShadingParams(albedo, spec, exponent)
+    return ShadingParams(albedo, spec, exponent, metallic, f0)
 
 
 def materials_hash(sc) -> str:

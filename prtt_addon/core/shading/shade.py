@@ -136,28 +136,22 @@ def shade(T, normal, view, light, params: ShadingParams, *, bounces=(), method: 
     return outgoing(Lp, normal, view, params, clamp=clamp)
 
 
-def sun_exponent(exponent, angle: float) -> np.ndarray:
-    """The Phong exponent of a lobe of exponent ``exponent`` seen through a sun
-    disc of full angle ``angle`` (radians): the lobe near its axis is a
-    Gaussian of per-axis variance 1 / s, the uniform disc of radius a / 2 adds
-    (a / 2)² / 4, so s' = 1 / (1 / s + a² / 16) (an exponent of 0 stays 0). A
-    mirror's highlight of the sun is then the disc's width, not a point."""
-    s = np.asarray(exponent, np.float64)
-    widen = angle * angle / 16.0
-    return np.where(s > 0.0, 1.0 / (1.0 / np.maximum(s, 1e-300) + widen), 0.0)
-
-
 def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance, angle: float, *,
                method: str = "tpfl") -> np.ndarray:
     """(N, 3) radiance towards ``view`` from a sun (core.light.sun.Sun):
     unit ``direction`` (3,) towards it, ``irradiance`` (3,) W/m² on a surface
     facing it, disc of full ``angle``; ``mask`` (N,) the visible fraction of
-    its disc (the bake's sun mask). With the preview's material model, the
-    sun as one direction (its Lp is E V max(0, n.l) delta(w - l)):
+    its disc (the bake's sun mask). The sun as one direction l (its Lp is
+    E V max(0, n.l) delta(w - l)), evaluated per pixel, so its highlight is
+    Cycles' microfacet model rather than the SH lobe:
 
-        B = mask max(0, n.l) E (rho_d / pi + k_s (s' + 1) / (2 pi) max(0, r.l)^s')
+        B = mask max(0, n.l) E (rho_d / pi + f_s),  f_s = D G F / (4 (n.v) (n.l))
 
-    s' the material's exponent widened by the disc (:func:`sun_exponent`);
+    D the GGX distribution of alpha'^2 = alpha^2 + angle^2 / 32 (the
+    material's alpha^2 = 1 / (2 s + 1), materials.phong_exponent inverted,
+    widened by the disc: :func:`sun_alpha2`), G Smith's height-correlated
+    masking of alpha^2, F the dielectric Fresnel of the IOR whose F0 the
+    material has, plus Schlick's for the metallic part (:func:`sun_fresnel`).
     ``method`` "diffuse" leaves the lobe out, as the diffuse mode does."""
     n = np.asarray(normal, np.float64)
     l = np.asarray(direction, np.float64).reshape(3)
@@ -165,12 +159,72 @@ def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance,
     cos = np.maximum(n @ l, 0.0) * np.asarray(mask, np.float64).reshape(-1)
     out = params.albedo / math.pi * E
     if method != "diffuse" and np.any(params.spec):
-        r = reflect(np.asarray(view, np.float64), n)
-        r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-300)
-        s = sun_exponent(params.exponent, angle).reshape(-1)
-        lobe = (s + 1.0) / (2.0 * math.pi) * np.maximum(r @ l, 0.0) ** s
-        out = out + params.spec * E * lobe[:, None]
+        out = out + sun_glossy(n, np.asarray(view, np.float64), l, params, angle) * E
     return out * cos[:, None]
+
+
+def sun_alpha2(exponent, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """(alpha^2, alpha'^2): the GGX roughness of a Phong ``exponent``
+    (materials.phong_exponent: alpha^2 = 1 / (2 s + 1)) and that widened by a
+    disc of full ``angle``. Near its peak GGX is a Gaussian in tan(theta_h)
+    of per-axis variance alpha^2 / 2; the disc's uniform radius a / 2 adds
+    (a / 2)^2 / 4 per axis in the light's direction, a quarter of it in the
+    half vector's: alpha'^2 = alpha^2 + a^2 / 32."""
+    a2 = 1.0 / (2.0 * np.maximum(np.asarray(exponent, np.float64), 0.0) + 1.0)
+    return a2, a2 + angle * angle / 32.0
+
+
+def fresnel_dielectric(c, eta) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of a dielectric of relative IOR ``eta``
+    at cos(incidence) ``c`` (1 beyond total internal reflection)."""
+    c = np.asarray(c, np.float64)
+    g2 = np.asarray(eta, np.float64) ** 2 - 1.0 + c * c
+    g = np.sqrt(np.maximum(g2, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = (g - c) / (g + c)
+        b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
+        f = 0.5 * a * a * (1.0 + b * b)
+    return np.where(g2 > 0.0, np.nan_to_num(f, nan=1.0), 1.0)
+
+
+def sun_fresnel(vh, params: ShadingParams) -> np.ndarray:
+    """(N, 3) F at cos(v.h) ``vh``: (1 - m) times the dielectric Fresnel of
+    eta = (1 + sqrt F0) / (1 - sqrt F0) and, for the metallic part, Schlick's
+    with the base colour (m C = spec - (1 - m) F0)."""
+    spec = np.asarray(params.spec, np.float64)
+    n = spec.shape[0]
+    m = np.zeros(n) if params.metallic is None else np.asarray(params.metallic, np.float64).reshape(n)
+    f0 = spec.mean(axis=1) if params.f0 is None else np.asarray(params.f0, np.float64).reshape(n)
+    sf = np.sqrt(np.clip(f0, 0.0, 0.999))
+    eta = (1.0 + sf) / (1.0 - sf)
+    metal = spec - ((1.0 - m) * f0)[:, None]
+    q = (1.0 - np.clip(vh, 0.0, 1.0)) ** 5
+    return ((1.0 - m) * fresnel_dielectric(vh, eta))[:, None] + metal + (m[:, None] - metal) * q[:, None]
+
+
+def _smith_lambda(c, a2):
+    c2 = np.clip(c * c, 1e-12, 1.0)
+    return 0.5 * (np.sqrt(1.0 + a2 * (1.0 - c2) / c2) - 1.0)
+
+
+def sun_glossy(n, v, l, params: ShadingParams, angle: float) -> np.ndarray:
+    """(N, 3) the sun's specular BRDF f_s = D G F / (4 (n.v) (n.l)) at unit
+    normals ``n`` and view vectors ``v`` (N, 3), towards the sun ``l`` (3,)
+    (0 where n.v or n.l is not positive): see :func:`sun_direct`."""
+    nv, nl = np.einsum("ij,ij->i", n, v), n @ l
+    h = v + l
+    hn = np.linalg.norm(h, axis=1, keepdims=True)
+    h = np.where(hn > 0, h / np.where(hn > 0, hn, 1.0), n)
+    nh = np.clip(np.einsum("ij,ij->i", n, h), 0.0, 1.0)
+    vh = np.clip(np.einsum("ij,ij->i", v, h), 0.0, 1.0)
+    a2, a2s = sun_alpha2(params.exponent, angle)
+    a2, a2s = np.broadcast_to(a2, nh.shape), np.broadcast_to(a2s, nh.shape)
+    t = nh * nh * (a2s - 1.0) + 1.0
+    D = a2s / (math.pi * t * t)
+    ok = (nv > 0.0) & (nl > 0.0)
+    G = 1.0 / (1.0 + _smith_lambda(nv, a2) + _smith_lambda(nl, a2))
+    f = np.where(ok, D * G / (4.0 * np.where(ok, nv * nl, 1.0)), 0.0)
+    return sun_fresnel(vh, params) * f[:, None]
 
 
 def sun_sh(direction, irradiance, bands: int) -> np.ndarray:

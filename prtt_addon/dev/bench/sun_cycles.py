@@ -327,6 +327,110 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
             "images": {"prtt": prtt, "cycles": ref, "mask": mask, "shadow": shadow}}
 
 
+def _cycles_glossy(bpy, path: str, size, samples: int, seed: int) -> np.ndarray:
+    """Cycles' glossy light of the scene's lamps alone: Glossy Direct times Glossy
+    Color (the World's strength 0, no bounce), (H, W, 3), row 0 at the bottom."""
+    import OpenEXR
+    layer = bpy.context.view_layer
+    layer.use_pass_glossy_direct = layer.use_pass_glossy_color = True
+    r = bpy.context.scene.render
+    fmt = r.image_settings
+    if hasattr(fmt, "media_type"):
+        fmt.media_type = "MULTI_LAYER_IMAGE"                  # Blender 5: its one format, OPEN_EXR_MULTILAYER
+    else:
+        fmt.file_format = "OPEN_EXR_MULTILAYER"               # Blender 4
+    try:
+        _render_multilayer(bpy, path, size, samples, seed)
+        with OpenEXR.File(path) as f:
+            # one part per pass in Blender 5 ("Glossy Direct"), one list of channels in Blender 4 ("GlossDir")
+            ch = {k: v for part in f.parts for k, v in part.channels.items()}
+
+            def plane(*names):
+                key = next((k for k in ch if any(k.endswith(f".{n}") or f".{n}." in k for n in names)), None)
+                if key is None:
+                    raise RuntimeError(f"{path}: no {names[0]} pass among {sorted(ch)}")
+                px = np.array(ch[key].pixels, np.float32)
+                return px[..., :3] if px.ndim == 3 else px
+            out = plane("Glossy Direct", "GlossDir") * plane("Glossy Color", "GlossCol")
+    finally:
+        if hasattr(fmt, "media_type"):
+            fmt.media_type = "IMAGE"
+        fmt.file_format = "OPEN_EXR"
+        layer.use_pass_glossy_direct = layer.use_pass_glossy_color = False
+    return out[::-1].copy()
+
+
+def _render_multilayer(bpy, path: str, size, samples: int, seed: int) -> None:
+    scene = bpy.context.scene
+    r = scene.render
+    r.engine = "CYCLES"
+    r.resolution_x, r.resolution_y, r.resolution_percentage = size[0], size[1], 100
+    r.film_transparent = True
+    r.image_settings.color_depth = "32"
+    r.filepath = path
+    c = scene.cycles
+    c.device, c.samples, c.use_adaptive_sampling, c.use_denoising, c.seed = "CPU", samples, False, False, seed
+    c.filter_width = 0.01
+    c.max_bounces = c.diffuse_bounces = c.glossy_bounces = c.transmission_bounces = 0
+    c.volume_bounces = c.transparent_max_bounces = 0
+    c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
+    bpy.ops.render.render(write_still=True)
+
+
+def glossy_highlight(size=(320, 180), *, samples: int = 256, resolution: int = 512, angle_deg: float = 0.5,
+                     work_dir: str | None = None) -> dict:
+    """The sun's highlight on the glossy floor (Principled, roughness 0.3) seen
+    from where it mirrors the sun: PRTT's lobe alone ((TPFL - diffuse) with the
+    sun less without it) against Cycles' Glossy Direct x Glossy Color with the
+    World off. Returns the energy ratio and relative RMSE over the floor where
+    Cycles' highlight is above a tenth of its peak, and the peaks."""
+    import bpy
+
+    from ... import register
+    from ...blender.blendfile import blender_log_muted
+    from ...blender.preview.offscreen import render_scene
+    from . import scene_build as sb
+    tmp = tempfile.TemporaryDirectory(prefix="prtt-gloss-") if work_dir is None else None
+    d = work_dir or tmp.name
+    try:
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        if not hasattr(bpy.types.Scene, "prtt"):
+            register()
+        build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution, glossy=True)
+        scene = bpy.context.scene
+        l = sun_direction()
+        target = np.array([0.3, -0.3, 0.0])
+        eye = target + 3.5 * np.array([-l[0], -l[1], l[2]])       # the floor mirrors the sun at the target
+        scene.camera = sb.camera_object("Mirror", tuple(eye), tuple(target), fov_y_deg=40.0)
+        bpy.context.view_layer.update()
+        lamp = bpy.data.objects["Sun"]
+        img = {}
+        for on in (True, False):
+            lamp.hide_render = not on
+            bpy.context.view_layer.update()
+            for mode in ("tpfl", "diffuse"):
+                img[mode, on] = render_scene(bpy.context, mode=mode, size=size, bounces=False)[0][..., :3]
+        lamp.hide_render = False
+        bpy.context.view_layer.update()
+        prtt = (img["tpfl", True] - img["tpfl", False]) - (img["diffuse", True] - img["diffuse", False])
+        bg = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        bg.inputs["Strength"].default_value = 0.0
+        with blender_log_muted():
+            cyc = [_cycles_glossy(bpy, os.path.join(d, f"gloss{s}.exr"), size, samples, s) for s in (1, 2)]
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    ref = 0.5 * (cyc[0] + cyc[1])
+    yr = ref.mean(axis=2)
+    hi = yr > 0.1 * float(yr.max())
+    a, b = prtt[hi].astype(np.float64), ref[hi].astype(np.float64)
+    return {"angle_deg": angle_deg, "pixels": int(hi.sum()), "energy_ratio": float(a.sum() / b.sum()),
+            "rel_rmse": float(np.sqrt(np.mean((a - b) ** 2)) / b.mean()),
+            "peak_prtt": float(prtt.mean(axis=2).max()), "peak_cycles": float(yr.max()),
+            "cycles_noise": float(np.sqrt(np.mean((cyc[0][hi] - cyc[1][hi]) ** 2) / 2) / b.mean() / math.sqrt(2)),
+            "images": {"prtt": prtt, "cycles": ref}}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m prtt_addon.dev.bench sun", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -335,6 +439,9 @@ def main(argv=None) -> int:
     p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel")
     p.add_argument("--resolution", type=int, default=512, help="the atlas")
     p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, roughness 0.3), TPFL")
+    p.add_argument("--glossy-pass", action="store_true",
+                   help="the sun's highlight on the glossy floor, seen where it mirrors the sun: PRTT's lobe "
+                        "against Cycles' Glossy Direct x Glossy Color")
     p.add_argument("--bounces", type=int, default=0, help="PRTT's relightable bounce and Cycles' diffuse "
                    "bounces (with 1: also the preview without the sun's bounce)")
     p.add_argument("--hdri", metavar="NAME", help="a studio HDRI as the World (not band-limited): its sun "
@@ -344,6 +451,16 @@ def main(argv=None) -> int:
                         "(sky_sun) and left in the World's SH (sky_sun off), both against Cycles")
     a = p.parse_args(argv)
     w, h = (int(v) for v in a.size.split("x"))
+    if a.glossy_pass:
+        print(f"the sun's highlight on a glossy floor (roughness 0.3), {w}x{h}, Cycles {a.samples} samples "
+              f"(Glossy Direct x Color, World off), atlas {a.resolution}²:")
+        print(f"  {'angle':>6}  {'energy PRTT/Cycles':>18}  {'RMSE':>7}  {'peak PRTT':>9}  {'peak Cycles':>11}  "
+              f"{'Cycles noise':>12}  pixels")
+        for ang in (float(x) for x in a.angles.split(",")):
+            r = glossy_highlight((w, h), samples=a.samples, resolution=a.resolution, angle_deg=ang)
+            print(f"  {ang:6.2f}  {r['energy_ratio']:18.3f}  {r['rel_rmse']:7.2%}  {r['peak_prtt']:9.3f}  "
+                  f"{r['peak_cycles']:11.3f}  {r['cycles_noise']:12.2%}  {r['pixels']}", flush=True)
+        return 0
     what = f"the {a.hdri} HDRI's sun" if a.hdri else "a Sky Texture's sun" if a.sky else "Sun lamp"
     print(f"{what} over a box and a plank, {w}x{h}, Cycles {a.samples} samples, {a.bounces} bounce(s), "
           f"atlas {a.resolution}², "
