@@ -34,8 +34,8 @@ Uniform blocks (std140, only vec4/mat4 members so there is no padding):
   L_k, rgb), K = bands², K4 = ceil(K / 4).
 
 * ``PRTTSun sun`` (variants with the sun only): ``direction`` (xyz unit
-  towards the sun, w = angle² / 16: the disc's widening of a Phong lobe,
-  shading.shade.sun_exponent) and ``irradiance`` (rgb W/m² facing it); with
+  towards the sun, w = angle² / 16: the disc's widening of the GGX lobe,
+  alpha'² = alpha² + w / 2: shading.shade.sun_alpha2) and ``irradiance`` (rgb W/m² facing it); with
   the sampler ``sunTex`` (r: the baked visible fraction of its disc).
 
 Push constants: ``ModelMatrix`` and ``NormalMatrix`` (mat4 each, 128 bytes:
