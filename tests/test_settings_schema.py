@@ -25,7 +25,7 @@ BAKE_JOB_OTHER = {"-h", "--help", "--out", "--force", "--env", "--env-strength",
 BLENDER_OTHER = {"-h", "--help", "--out", "--absolute-out", "--scene", "--atlas", "--unwrap", "--force", "--job-only", "--no-save", "--save-as",
                  "-q", "--quiet", "--dask"}
 #: scene.prtt properties that are not bake settings (layout, light, preview, state, where the bake runs).
-SCENE_OTHER = {"unwrap_method", "existing_uv_map", "texture_sets", "output_dir", "selection_only", "light_source",
+SCENE_OTHER = {"unwrap_method", "existing_uv_map", "texture_sets", "output_dir", "selection_only", "light_source", "sky_sun", "hdri_sun",
                "builtin_environment", "preview", "preview_mode", "preview_bounces", "status", "progress",
                "baking", "last_bake", "dask_scheduler"}
 

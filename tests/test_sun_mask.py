@@ -205,3 +205,47 @@ def test_a_turned_sun_bakes_its_masks_alone_over_the_transfer(tmp_path, bounce_m
     m5 = bake_scene(sc, work, st, light=light, sun=b)                # and back
     assert m5["transfer_reused"] and m5["sun"]["files"] == m3["sun"]["files"]
     assert bake_scene(sc, work, st, light=light, sun=b)["skipped"]
+
+
+def test_a_finer_sun_mask_resolves_a_narrow_penumbra_and_bakes_alone(tmp_path):
+    """sun_detail f: the mask is f times the set's texels per side over the
+    same layout (f² as many), its penumbra across the box's shadow edge f
+    times narrower in the set's texels; changing f bakes the masks alone
+    (the transfer reused); a mask wider than a texture may be is refused
+    before anything is baked."""
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.runner import bake_scene
+    from prtt_addon.core.base.errors import BakeError
+    from prtt_addon.core.io.exr_io import read_mask_exr
+    from prtt_addon.dev.bench import contact_profile as cp
+    sc = cp.build(32)
+    sun = Sun(direction=(0.5, 0.1, 0.8), angle=math.radians(0.5))
+    out = str(tmp_path / "b")
+    widths = {}
+    for f in (1, 2, 4):
+        m = bake_scene(sc, out, BakeSettings(rays=16, bounces=0, vertex_mode=False, sun_detail=f), sun=sun)
+        assert m["transfer_reused"] == (f > 1)
+        mask, _ = read_mask_exr(os.path.join(out, "floor.sun.exr"))
+        assert mask.shape == (32 * f, 32 * f)
+        rep = next(r for r in m["sets"] if r["name"] == "floor")
+        assert rep.get("sun_detail", 1) == f
+        # texels (in the set's texel units) that are neither lit nor shadowed
+        widths[f] = float(((mask > 0.05) & (mask < 0.95)).sum()) / f ** 2
+    assert widths[2] < 0.7 * widths[1] and widths[4] < 0.7 * widths[2], widths
+    big = cp.build(8192)
+    with pytest.raises(BakeError, match="over the 16384 a texture may have a side"):
+        bake_scene(big, str(tmp_path / "c"), BakeSettings(rays=16, bounces=0, vertex_mode=False, sun_detail=4),
+                   sun=sun)
+    assert not os.path.exists(os.path.join(str(tmp_path / "c"), "manifest.json"))
+
+
+def test_the_memory_plan_counts_a_finer_masks_gbuffer():
+    """With sun_detail f the trace stage's estimate holds the mask's own
+    G-buffer, f² as many texels at GBUFFER_BUILD bytes while it is built."""
+    from prtt_addon.core.bake.pipeline.memory_plan import GBUFFER_BUILD, stage_bytes
+    sets = [(2048, 2048, 3_000_000)]
+    kw = dict(bands=5, dilate=3, n_triangles=100_000, validity=True, sun=True)
+    plain = stage_bytes(sets, **kw)["trace"]
+    for f in (2, 4):
+        fine = stage_bytes(sets, sun_detail=f, **kw)["trace"]
+        assert fine >= GBUFFER_BUILD * f * f * 3_000_000 > plain / 2, (f, fine, plain)

@@ -228,6 +228,11 @@ SETTINGS: tuple[Setting, ...] = (
             note="in texels of the island's texture set", ui=Ui("dilate", "Dilation", soft_hi=16,
                                                                    why_soft="a few texels cover bilinear "
                                                                             "and mip lookups")),
+    Setting("sun_detail", "bake", "int", 1, "texels of a sun's shadow mask per texel of its set, per side: 2 "
+            "or 4 resolve penumbrae narrower than a texel (a 0.5 degree sun's are millimetres wide) at 4 or 16 "
+            "times the mask's rays and bytes; the transfer is unchanged (a new value bakes the masks alone)",
+            unit="x", lo=1, hi=4, option="--sun-detail", metavar="F",
+            ui=Ui("sun_detail", "Sun Shadow Detail")),
     Setting("half", "bake", "bool", True, "half-float EXR textures (float32 for a texture whose values "
             "exceed 65504)", flags=("--half", "--float"), off_help="float32 EXR textures"),
     Setting("mips", "bake", "bool", False, "also write coverage-weighted mip levels", flags=("--mips", "--no-mips"),

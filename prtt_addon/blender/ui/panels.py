@@ -129,6 +129,7 @@ class PRTT_PT_bake_quality(_PRTTPanel, bpy.types.Panel):
         sub.active = st.guiding
         sub.prop(st, "guided_filter")
         col.prop(st, "texel_validity")
+        col.prop(st, "sun_detail")
 
 
 class _SettingsList:

@@ -93,7 +93,7 @@ def sky_world(bpy, angle_deg: float):
 
 
 def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 256, glossy: bool = False,
-          light: str = "lamp", sky_sun: bool = True, bounces: int = 0):
+          light: str = "lamp", sky_sun: bool = True, bounces: int = 0, sun_detail: int = 1):
     """The scene in the current (empty) file, unwrapped and baked with the add-on; returns the manifest.
     ``light``: "lamp" (a Sun lamp and a band-limited sky) or "sky" (a Sky Texture, its disc baked as
     the sun where ``sky_sun``)."""
@@ -131,6 +131,7 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     st.bounce_rays = 256
     st.texture_sets, st.unwrap_method, st.light_source = "ATLAS", "SMART", "WORLD"
     st.sky_sun = st.hdri_sun = sky_sun
+    st.sun_detail = sun_detail
     for o in bpy.context.view_layer.objects:
         o.select_set(o.type == "MESH")
     if bpy.ops.prtt.unwrap() != {"FINISHED"}:
@@ -257,7 +258,7 @@ class _without_sun_bounce:
 
 def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, resolution: int = 512,
             glossy: bool = False, work_dir: str | None = None, light: str = "lamp", sky_sun: bool = True,
-            bounces: int = 0) -> dict:
+            bounces: int = 0, sun_detail: int = 1) -> dict:
     import bpy
 
     from ... import register
@@ -274,7 +275,7 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
             register()
         t = time.perf_counter()
         manifest = build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution,
-                         glossy=glossy, light=light, sky_sun=sky_sun, bounces=bounces)
+                         glossy=glossy, light=light, sky_sun=sky_sun, bounces=bounces, sun_detail=sun_detail)
         t_bake = time.perf_counter() - t
         mode = "tpfl" if glossy else "diffuse"
         prtt, _, status, _ = render_scene(bpy.context, mode=mode, size=size, bounces=bounces > 0)
@@ -439,6 +440,8 @@ def main(argv=None) -> int:
     p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel")
     p.add_argument("--resolution", type=int, default=512, help="the atlas")
     p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, roughness 0.3), TPFL")
+    p.add_argument("--sun-detail", default="1", help="the sun masks' detail (Sun Shadow Detail), "
+                   "comma-separated: a row each")
     p.add_argument("--glossy-pass", action="store_true",
                    help="the sun's highlight on the glossy floor, seen where it mirrors the sun: PRTT's lobe "
                         "against Cycles' Glossy Direct x Glossy Color")
@@ -469,11 +472,14 @@ def main(argv=None) -> int:
           f"{'sun mask s':>10}  penumbrae PRTT / Cycles (mm; texel)")
     variants = ([(f"hdri:{a.hdri}", True), (f"hdri:{a.hdri}", False)] if a.hdri else
                 [("sky", True), ("sky", False)] if a.sky else [("lamp", True)])
-    for ang in ([0.0] if a.hdri else (float(x) for x in a.angles.split(","))):
-        for light, sky_sun in variants:
+    details = [int(x) for x in a.sun_detail.split(",")]
+    runs = [(ang, light, sky_sun, f) for ang in ([0.0] if a.hdri else [float(x) for x in a.angles.split(",")])
+            for light, sky_sun in variants for f in details]
+    for ang, light, sky_sun, f in runs:
+        if True:
             r = compare(ang, (w, h), samples=a.samples, resolution=a.resolution, glossy=a.glossy, light=light,
-                        sky_sun=sky_sun, bounces=a.bounces)
-            disc = ("lamp" if light == "lamp" else "as sun" if r["sun"] else "in SH")
+                        sky_sun=sky_sun, bounces=a.bounces, sun_detail=f)
+            disc = ("lamp" if light == "lamp" else "as sun" if r["sun"] else "in SH") + (f" x{f}" if f > 1 else "")
             if a.hdri and r["sun"]:
                 print(f"          extracted: a {math.degrees(r['sun']['angle']):.2f} degree disc of "
                       f"{r['sun']['strength']:.3g} W/m²", flush=True)

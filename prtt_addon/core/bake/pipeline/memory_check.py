@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...base.errors import BakeError
 from ...base.memory import check_fits, resident_bytes
+from ...model.scene import MAX_RESOLUTION
 from ..estimators import hit_kernel
 from ..estimators.relightable import GLOSSY_BANDS, relight_shared_colour
 from .context import BakeContext, BakeSettings, asked_downscale
@@ -37,7 +39,7 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
                                   else asked_downscale(st.bounces, st.tuning, st.bounce_downscale)),
                        relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg,
                        compiling=compiling, extra=extra, dask=dask, half=st.half, guiding=st.guiding,
-                       validity=st.texel_validity, sun=sun)
+                       validity=st.texel_validity, sun=sun, sun_detail=st.sun_detail)
 
 
 def job_array_bytes(scene) -> int:
@@ -88,6 +90,12 @@ def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None 
         # numba's import took (both vary with the machine: file-backed pages).
         ctx.memory.held_extra = process_extra(before, job_array_bytes(sc), resident_bytes())
     sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
+    if ctx.sun is not None and st.sun_detail > 1:
+        for i, (w, h, _) in zip(ctx.set_ids, sizes):
+            if max(w, h) * st.sun_detail > MAX_RESOLUTION:
+                raise BakeError(f"texture set {sc.set_names[i]!r}: a sun mask of {st.sun_detail} x its {w}x{h} "
+                                f"texels is {w * st.sun_detail}x{h * st.sun_detail}, over the {MAX_RESOLUTION} a "
+                                f"texture may have a side; lower --sun-detail (Sun Shadow Detail) or the resolution")
     stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing,
                               downscales=downscales, compiling=compiling, extra=ctx.memory.held_extra,
                               dask=ctx.dask is not None, sun=ctx.sun is not None)

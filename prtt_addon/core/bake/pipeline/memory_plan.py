@@ -190,7 +190,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
                 dask: bool = False, half: bool = True, guiding: bool = False,
-                validity: bool = False, sun: bool = False) -> dict[str, int]:
+                validity: bool = False, sun: bool = False, sun_detail: int = 1) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -211,7 +211,9 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     validity: texel validity runs before each set's trace (estimators/validity.py: its chunks of
     rays and the inside regions' labels, validity.validity_bytes).
     sun: each set's sun mask is traced after its transfer, beside its rows (pipeline/sun_stage.py,
-    sun_mask.mask_bytes).
+    sun_mask.mask_bytes); with ``sun_detail`` f > 1 on a G-buffer of its own, f² as many texels,
+    once the set's rows are written (stages.sun_detail_set): its build, then its surface beside
+    validity's pass and the mask's.
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -250,7 +252,13 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         valid_pass = base + held + SURFACE * n + validity_bytes(w, h, n, threads) if validity else 0
         # The sun's mask is traced once the rows are, beside them (pipeline/sun_stage.py).
         sun_pass = (base + held + SURFACE * n + 4 * K * n + guide
-                    + mask_bytes(w, h, n, threads, chunk_rays, SUN_RAYS)) if sun else 0
+                    + mask_bytes(w, h, n, threads, chunk_rays, SUN_RAYS)) if sun and sun_detail == 1 else 0
+        if sun and sun_detail > 1:
+            fw, fh, fn = w * sun_detail, h * sun_detail, n * sun_detail * sun_detail
+            kept = held + ((surface + 4 * K * v) if bounces else 0)         # this set's bounce source too
+            sun_pass = base + kept + max(GBUFFER_BUILD * fn, SURFACE * fn + max(
+                validity_bytes(fw, fh, fn, threads) if validity else 0,
+                mask_bytes(fw, fh, fn, threads, chunk_rays, SUN_RAYS)))
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
                            projection, build, smooth, valid_pass, sun_pass)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);

@@ -415,12 +415,38 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     inside, step = validity_pass(ctx, geo, gb, rep)
     traced = trace_set(ctx, geo, gb, position=position)
     sun_files = []
-    if ctx.sun is not None:
+    if ctx.sun is not None and ctx.settings.sun_detail == 1:
         # Before the texture's write may release the G-buffer's points (moved by validity).
         fname, sun_rep = sun_set(ctx, geo.rays, gb, inside, plan.sun_key)
         sun_files.append(fname)
         rep.update(sun_rep)
-    return _finish_transfer_set(ctx, geo, plan, gb, rep, traced, inside, step, sun_files, keep_for_bounce)
+    res = _finish_transfer_set(ctx, geo, plan, gb, rep, traced, inside, step, sun_files, keep_for_bounce)
+    if ctx.sun is not None and ctx.settings.sun_detail > 1:
+        # A finer mask of its own G-buffer, once this set's rows are written and given back.
+        files, sun_rep = sun_detail_set(ctx, geo, plan, gb.set_index)
+        res.files += files
+        res.report.update(sun_rep)
+    return res
+
+
+def sun_detail_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, set_index: int) -> tuple[list, dict]:
+    """Set ``set_index``'s sun mask at settings.sun_detail f times its
+    resolution per side: a G-buffer of its own over the same UV layout
+    (build_gbuffer's resolution), texel validity on it, the mask dilated by f
+    times the set's rings (the same gutter in UV space). Returns ([its
+    file] or [], the report's sun entries, ``sun_detail`` among them)."""
+    st = ctx.settings
+    f = st.sun_detail
+    W, H = (int(v) for v in ctx.scene.set_resolution[set_index])
+    t = time.perf_counter()
+    fine = build_gbuffer(ctx.scene, set_index, normal_maps=st.normal_maps, executor=ctx.helpers,
+                         bands=max(2, st.n_threads), cancel=ctx.stop, resolution=(W * f, H * f))
+    ctx.seconds["gbuffer"] += time.perf_counter() - t
+    if not fine.n:
+        return [], {}
+    inside, _ = validity_pass(ctx, geo, fine, {})
+    fname, sun_rep = sun_set(ctx, geo.rays, fine, inside, plan.sun_key, rings=st.dilate * f)
+    return [fname], {**sun_rep, "sun_detail": f}
 
 
 def validity_pass(ctx: BakeContext, geo: Geometry, gb: GBuffer, rep: dict) -> tuple[np.ndarray | None, float]:
@@ -534,6 +560,8 @@ def sun_only_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer) -
     own positions are left as they are (a bounce re-bake reads them)."""
     if ctx.sun is None or not gb.n:
         return [], {}
+    if ctx.settings.sun_detail > 1:
+        return sun_detail_set(ctx, geo, plan, gb.set_index)
     own = dataclasses.replace(gb, position=gb.position.copy())
     rep = {"name": ctx.scene.set_names[gb.set_index]}
     inside, _ = validity_pass(ctx, geo, own, rep)

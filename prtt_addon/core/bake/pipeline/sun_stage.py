@@ -23,18 +23,23 @@ from ..estimators.sun_mask import sun_mask
 from .context import BakeContext
 
 
-def sun_key(sun: Sun | None, input_hash: str) -> str | None:
+def sun_key(sun: Sun | None, input_hash: str, detail: int = 1) -> str | None:
     """sha256 hex of what a set's mask depends on beyond the transfer's inputs:
-    the sun's direction and disc, the rays; None without a sun."""
+    the sun's direction and disc, the rays, the mask's detail (settings.sun_detail,
+    when not 1: the keys of the bakes before it); None without a sun."""
     if sun is None:
         return None
-    return hashlib.sha256(f"{input_hash}|{sun.mask_hash()}|{SUN_RAYS}".encode()).hexdigest()
+    extra = f"|detail={detail}" if detail != 1 else ""
+    return hashlib.sha256(f"{input_hash}|{sun.mask_hash()}|{SUN_RAYS}{extra}".encode()).hexdigest()
 
 
-def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | None, key: str) -> tuple[str, dict]:
-    """Trace, dilate and stage set ``gb``'s mask; returns (file name, the
-    set report's sun entries). ``rays`` the scene's BVH (None under Dask: the
-    mask is traced here, on a BVH of its own)."""
+def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | None, key: str,
+            rings: int | None = None) -> tuple[str, dict]:
+    """Trace, dilate and stage set ``gb``'s mask (``gb`` the set's G-buffer,
+    or one settings.sun_detail times finer over its layout, dilated by
+    ``rings``: as many of its texels as the set's dilation covers);
+    returns (file name, the set report's sun entries). ``rays`` the scene's
+    BVH (None under Dask: the mask is traced here, on a BVH of its own)."""
     st, sun = ctx.settings, ctx.sun
     name = ctx.scene.set_names[gb.set_index]
     ctx.check_cancel()
@@ -57,7 +62,7 @@ def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | No
         drop = gb.texel[inside]
         plane[0, drop] = 0.0
         cov[drop] = False
-    dilate(plane.reshape(1, H, W), cov.reshape(H, W), st.dilate)
+    dilate(plane.reshape(1, H, W), cov.reshape(H, W), st.dilate if rings is None else rings)
     fname = f"{name}.sun.exr"
     ctx.emit(type="progress", stage="write", file=fname, fraction=0.0)
     exr_io.write_mask_exr(ctx.staging.path(fname), plane.reshape(H, W), atomic=False,
