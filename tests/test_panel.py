@@ -58,6 +58,14 @@ def test_panel_order_split_and_closed_subpanels():
         assert layout.flags.get("use_property_split") is True, cls.bl_label
         assert layout.flags.get("use_property_decorate") is False, cls.bl_label
         seen.update(layout.props())
+    # Sky Sun is drawn where it applies: a World with a Sky Texture's sun disc
+    from prtt_addon.dev.bench.sun_cycles import sky_world
+    world = bpy.context.scene.world
+    bpy.context.scene.world = sky_world(bpy, 0.5)
+    sky_props = _draw(bpy, panels.PRTT_PT_bake).props()
+    assert "sky_sun" in sky_props and "hdri_sun" not in sky_props
+    seen.update(sky_props)
+    bpy.context.scene.world = world
     st = bpy.context.scene.prtt
     # every scene setting is drawn somewhere (state properties excepted)
     drawn_or_state = seen | {"status", "progress", "baking", "last_bake", "existing_uv_map", "builtin_environment"}
