@@ -56,6 +56,41 @@ export function gpuLimits(renderer) {
   };
 }
 
+/** The KTX2 container of a payload's bytes (ktx-parse), or a PRTTError naming ``what``. */
+function parseKTX2(bytes, what) {
+  try {
+    return readKTX2(bytes);
+  } catch (e) {
+    throw new PRTTError(`${what}: not a readable KTX2 file (${e.message})`);
+  }
+}
+
+/**
+ * The ``want`` bytes of KTX2 ``level`` of container ``c``: Zstandard-decoded
+ * (its declared size checked first) or as stored; any other scheme or size
+ * is a PRTTError naming ``what``.
+ */
+function levelBytes(c, level, want, zstd, what) {
+  let data = level.levelData;
+  if (c.supercompressionScheme === KTX2_ZSTD) {
+    if (level.uncompressedByteLength !== want) {
+      throw new PRTTError(`${what}: declares ${level.uncompressedByteLength} bytes, ${want} expected`);
+    }
+    try {
+      data = zstd.decode(data, want);
+    } catch (e) {
+      throw new PRTTError(`${what}: damaged Zstandard data (${e.message || e})`);
+    }
+    if (data.byteLength !== want) {
+      throw new PRTTError(`${what}: damaged Zstandard data (${data.byteLength} bytes decoded, ${want} expected)`);
+    }
+  } else if (c.supercompressionScheme !== 0) {
+    throw new PRTTError(`${what}: supercompression scheme ${c.supercompressionScheme} is not PRTT's`);
+  }
+  if (data.byteLength !== want) throw new PRTTError(`${what}: ${data.byteLength} bytes, ${want} expected`);
+  return data;
+}
+
 /**
  * One KTX2 payload as a half-float 2D array texture, checked against what
  * the extension says it holds (layers, size) and the browser's limits.
@@ -63,12 +98,7 @@ export function gpuLimits(renderer) {
  * (prtt_addon/dev/fuzz/page.py).
  */
 export function arrayTexture(bytes, zstd, what, { layers, width, height, encoding = 'half', scale, offset }, limits) {
-  let c;
-  try {
-    c = readKTX2(bytes);
-  } catch (e) {
-    throw new PRTTError(`${what}: not a readable KTX2 file (${e.message})`);
-  }
+  const c = parseKTX2(bytes, what);
   const u8 = encoding === 'u8';
   if (!u8 && encoding !== 'half') throw new PRTTError(`${what}: unknown encoding ${encoding} (half or u8)`);
   const [vk, fmt] = u8 ? [VK_FORMAT_R8G8B8A8_UNORM, 'RGBA8'] : [VK_FORMAT_R16G16B16A16_SFLOAT, 'RGBA16F'];
@@ -97,23 +127,7 @@ export function arrayTexture(bytes, zstd, what, { layers, width, height, encodin
     throw new PRTTError(`${what}: ${width}x${height} in ${layers} layers is ${(want / 2 ** 20).toFixed(0)} MiB, `
       + `over the viewer's ${MAX_TEXTURE_BYTES / 2 ** 20} MiB per texture`);
   }
-  let data = level.levelData;
-  if (c.supercompressionScheme === KTX2_ZSTD) {
-    if (level.uncompressedByteLength !== want) {
-      throw new PRTTError(`${what}: declares ${level.uncompressedByteLength} bytes, ${want} expected`);
-    }
-    try {
-      data = zstd.decode(data, want);
-    } catch (e) {
-      throw new PRTTError(`${what}: damaged Zstandard data (${e.message || e})`);
-    }
-    if (data.byteLength !== want) {
-      throw new PRTTError(`${what}: damaged Zstandard data (${data.byteLength} bytes decoded, ${want} expected)`);
-    }
-  } else if (c.supercompressionScheme !== 0) {
-    throw new PRTTError(`${what}: supercompression scheme ${c.supercompressionScheme} is not PRTT's`);
-  }
-  if (data.byteLength !== want) throw new PRTTError(`${what}: ${data.byteLength} bytes, ${want} expected`);
+  const data = levelBytes(c, level, want, zstd, what);
   if (u8) return halfArrayTexture(decodeU8(data, width * height, layers, scale, offset), width, height, layers);
   const half = new Uint16Array(data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength));
   return halfArrayTexture(half, width, height, layers);
@@ -126,12 +140,7 @@ export function arrayTexture(bytes, zstd, what, { layers, width, height, encodin
  * filters bilinearly (the shader reads .r in 0 .. 1).
  */
 export function maskTexture(bytes, zstd, what, { width, height }, limits) {
-  let c;
-  try {
-    c = readKTX2(bytes);
-  } catch (e) {
-    throw new PRTTError(`${what}: not a readable KTX2 file (${e.message})`);
-  }
+  const c = parseKTX2(bytes, what);
   if (c.vkFormat !== VK_FORMAT_R8_UNORM || c.levels.length < 1) {
     throw new PRTTError(`${what}: not an R8 texture (vkFormat ${c.vkFormat})`);
   }
@@ -143,22 +152,7 @@ export function maskTexture(bytes, zstd, what, { width, height }, limits) {
     throw new PRTTError(`${what}: ${width}x${height} texels exceeds this browser's MAX_TEXTURE_SIZE `
       + `(${limits.maxTextureSize}); export a smaller bake`);
   }
-  const want = width * height;
-  const level = c.levels[0];
-  let data = level.levelData;
-  if (c.supercompressionScheme === KTX2_ZSTD) {
-    if (level.uncompressedByteLength !== want) {
-      throw new PRTTError(`${what}: declares ${level.uncompressedByteLength} bytes, ${want} expected`);
-    }
-    try {
-      data = zstd.decode(data, want);
-    } catch (e) {
-      throw new PRTTError(`${what}: damaged Zstandard data (${e.message || e})`);
-    }
-  } else if (c.supercompressionScheme !== 0) {
-    throw new PRTTError(`${what}: supercompression scheme ${c.supercompressionScheme} is not PRTT's`);
-  }
-  if (data.byteLength !== want) throw new PRTTError(`${what}: ${data.byteLength} bytes, ${want} expected`);
+  const data = levelBytes(c, c.levels[0], width * height, zstd, what);
   const tex = new THREE.DataTexture(new Uint8Array(data), width, height, THREE.RedFormat, THREE.UnsignedByteType);
   tex.minFilter = tex.magFilter = THREE.LinearFilter;
   tex.wrapS = tex.wrapT = THREE.ClampToEdgeWrapping;
