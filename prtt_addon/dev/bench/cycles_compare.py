@@ -83,12 +83,21 @@ def build(bpy, env_path: str, out_dir: str, *, resolution: int, rays: int, bounc
 
 def render_cycles(bpy, path: str, size, samples: int, bounces: int, seed: int) -> np.ndarray:
     from ...core.io.image_write import read_exr_rgba
+    bpy.context.scene.render.image_settings.file_format = "OPEN_EXR"
+    cycles_still(bpy, path, size, samples, bounces, seed)
+    return read_exr_rgba(path)
+
+
+def cycles_still(bpy, path: str, size, samples: int, bounces: int, seed: int) -> None:
+    """Render the scene with Cycles to ``path`` in the scene's image format, as
+    the comparisons do: CPU, ``samples`` a pixel without adaptive sampling or
+    denoising, ``seed``, a 0.01-pixel filter, ``bounces`` diffuse bounces and no
+    other, no clamping, a transparent film, 32-bit floats."""
     scene = bpy.context.scene
     r = scene.render
     r.engine = "CYCLES"
     r.resolution_x, r.resolution_y, r.resolution_percentage = size[0], size[1], 100
     r.film_transparent = True
-    r.image_settings.file_format = "OPEN_EXR"
     r.image_settings.color_depth = "32"
     r.filepath = path
     c = scene.cycles
@@ -103,7 +112,6 @@ def render_cycles(bpy, path: str, size, samples: int, bounces: int, seed: int) -
     c.glossy_bounces = c.transmission_bounces = c.volume_bounces = c.transparent_max_bounces = 0
     c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
     bpy.ops.render.render(write_still=True)
-    return read_exr_rgba(path)
 
 
 def turn_world(bpy, degrees: float) -> None:

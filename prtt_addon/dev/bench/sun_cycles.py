@@ -341,7 +341,8 @@ def _cycles_glossy(bpy, path: str, size, samples: int, seed: int) -> np.ndarray:
     else:
         fmt.file_format = "OPEN_EXR_MULTILAYER"               # Blender 4
     try:
-        _render_multilayer(bpy, path, size, samples, seed)
+        from .cycles_compare import cycles_still
+        cycles_still(bpy, path, size, samples, 0, seed)
         with OpenEXR.File(path) as f:
             # one part per pass in Blender 5 ("Glossy Direct"), one list of channels in Blender 4 ("GlossDir")
             ch = {k: v for part in f.parts for k, v in part.channels.items()}
@@ -359,23 +360,6 @@ def _cycles_glossy(bpy, path: str, size, samples: int, seed: int) -> np.ndarray:
         fmt.file_format = "OPEN_EXR"
         layer.use_pass_glossy_direct = layer.use_pass_glossy_color = False
     return out[::-1].copy()
-
-
-def _render_multilayer(bpy, path: str, size, samples: int, seed: int) -> None:
-    scene = bpy.context.scene
-    r = scene.render
-    r.engine = "CYCLES"
-    r.resolution_x, r.resolution_y, r.resolution_percentage = size[0], size[1], 100
-    r.film_transparent = True
-    r.image_settings.color_depth = "32"
-    r.filepath = path
-    c = scene.cycles
-    c.device, c.samples, c.use_adaptive_sampling, c.use_denoising, c.seed = "CPU", samples, False, False, seed
-    c.filter_width = 0.01
-    c.max_bounces = c.diffuse_bounces = c.glossy_bounces = c.transmission_bounces = 0
-    c.volume_bounces = c.transparent_max_bounces = 0
-    c.sample_clamp_direct = c.sample_clamp_indirect = 0.0
-    bpy.ops.render.render(write_still=True)
 
 
 def glossy_highlight(size=(320, 180), *, samples: int = 256, resolution: int = 512, angle_deg: float = 0.5,
