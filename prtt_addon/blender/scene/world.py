@@ -113,8 +113,10 @@ class WorldSetup:
 
 def world_setup(scene, *, source: str = "WORLD", builtin: str = "forest", view_layer=None) -> WorldSetup:
     """Parse the World's nodes (or the studio HDRI choice). Cheap: reads no
-    pixels. A World whose Sky Texture's disc is the scene's sun
-    (lamps.sky_sun_world) is the sky without its disc."""
+    pixels, but for an image World whose sun HDRI Sun takes (its pixels read
+    and its sun extracted once, cached: :func:`_extracted`). A World whose Sky
+    Texture's disc is the scene's sun (:func:`sky_sun_world`) is the sky
+    without its disc."""
     if source == "BUILTIN":
         return WorldSetup(("builtin", builtin), lambda: envmap.builtin_environment_path(builtin), 1.0, None,
                           f"studio HDRI '{builtin}'", image_name=builtin)
@@ -234,31 +236,6 @@ def _extracted(key: tuple, img) -> tuple:
     return _EXTRACTED[key]
 
 
-def _image_world(scene):
-    """(the Environment Texture image, the Mapping rotation R or None, Background
-    strength) of a World read directly, or None for any other World."""
-    world = scene.world
-    if world is None or world.node_tree is None:
-        return None
-    out = next((n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output),
-               None)
-    bg = _linked(out.inputs["Surface"]) if out is not None and out.inputs["Surface"].is_linked else None
-    if bg is None or bg.bl_idname != "ShaderNodeBackground" or bg.inputs["Strength"].is_linked:
-        return None
-    env = _linked(bg.inputs["Color"]) if bg.inputs["Color"].is_linked else None
-    if env is None or env.bl_idname != "ShaderNodeTexEnvironment" or env.image is None or \
-            env.projection != "EQUIRECTANGULAR":
-        return None
-    R = None
-    if env.inputs["Vector"].is_linked:
-        m = _linked(env.inputs["Vector"])
-        if m.bl_idname != "ShaderNodeMapping" or m.vector_type not in {"POINT", "TEXTURE"} or any(
-                m.inputs[n].is_linked for n in ("Rotation", "Scale")):
-            return None
-        R = mapping_rotation(m)
-    return env.image, R, float(bg.inputs["Strength"].default_value)
-
-
 def world_sun(scene, view_layer=None) -> tuple:
     """(the World's sun as a core Sun, or None; a one-line note ("" when none
     is due)): its Sky Texture's disc (:func:`sky_sun_world`) or its image's
@@ -274,17 +251,17 @@ def world_sun(scene, view_layer=None) -> tuple:
             return None, f"the World's Sky Texture sun could not be measured ({exc})"
     if not hdri_sun_taken(scene, view_layer):
         return None, ""
-    found = _image_world(scene)
-    if found is None:
-        return None, "HDRI Sun: the World is not an Environment Texture image read directly; no sun extracted"
-    img, R, strength = found
-    key = ("image", img.name, img.filepath, img.source, tuple(img.size), bool(img.packed_file), img.is_dirty)
     try:
-        sun, _, why = _extracted(key, img)
+        # the World as the light reads it: its image's extraction is made (and cached) there
+        setup = world_setup(scene, view_layer=view_layer)
     except (WorldLightError, OSError, ValueError) as exc:
         return None, f"HDRI Sun: {exc}"
+    if setup.key[0] != "image":
+        return None, "HDRI Sun: the World is not an Environment Texture image read directly; no sun extracted"
+    sun, _, why = _EXTRACTED[setup.key[:7]]
+    R, strength = setup.rotation, setup.strength
     if sun is None:
-        return None, f"HDRI Sun: World image {img.name!r}: {why}"
+        return None, f"HDRI Sun: World image {setup.image_name!r}: {why}"
     d = np.asarray(sun.direction)
     if R is not None:
         d = np.asarray(R).T @ d               # the image is read at R w: its sun lies at w = R^T d
@@ -294,7 +271,7 @@ def world_sun(scene, view_layer=None) -> tuple:
         return None, ""
     try:
         return Sun(direction=tuple(d), angle=sun.angle, color=tuple(energy / top), strength=top,
-                   name=f"{img.name}: sun"), ""
+                   name=f"{setup.image_name}: sun"), ""
     except SunError as exc:
         return None, f"HDRI Sun: {exc}"
 
