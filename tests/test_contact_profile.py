@@ -195,3 +195,43 @@ def test_the_bounce_takes_the_texture_rows_without_a_copy_when_validity_empties_
     m = bake_scene(sc, str(tmp_path / "b"), BakeSettings(rays=32, bounces=1, bounce_rays=16, vertex_mode=False))
     assert m["sets"][0]["inside_texels"] > 0
     assert copies == []
+
+
+def test_a_tasks_random_numbers_are_its_blocks_rows():
+    """validity._block_uniforms: the rows of a block's numbers a task draws
+    alone are those the block's one generator draws, bit for bit."""
+    from prtt_addon.core.bake.estimators import validity
+    a, b, rays = 65_536, 65_536 + 20_000, 16
+    u1, u2 = np.random.default_rng([7, a]).random((2, b - a, rays))
+    for lo, hi in ((a, a + 8192), (a + 8192, a + 16384), (a + 16384, b)):
+        v1, v2 = validity._block_uniforms([7], a, b, lo, hi, rays)
+        assert v1.tobytes() == u1[lo - a:hi - a].tobytes() and v2.tobytes() == u2[lo - a:hi - a].tobytes()
+
+
+def test_validity_does_not_depend_on_the_tasks_or_threads(monkeypatch):
+    """inside_texels and across_walls on the shed at 400² (160,000 texels: three
+    blocks), in tasks of 8192 texels on two threads and of one block on one
+    thread: the same texels inside, the same moved to the same points."""
+    import concurrent.futures as cf
+
+    from prtt_addon.core.bake.estimators import validity
+    from prtt_addon.core.bake.estimators.raytrace import RayScene
+    from prtt_addon.core.texels.gbuffer import build_gbuffer
+    from prtt_addon.dev.bench import contact_profile as cp
+    sc = cp.build_shed(400)
+    rs, w = RayScene(sc.positions), validity.winding_normals(sc.positions)
+    gb = build_gbuffer(sc, 0)
+    step = validity.texel_step(gb.texel, gb.position, gb.width)
+
+    def run(executor):
+        inside = validity.inside_texels(rs, w, gb.position, gb.geo_normal, contact=0.5 * step, executor=executor,
+                                        grid=(gb.texel, gb.width, gb.height))
+        idx, where = validity.across_walls(rs, w, gb.position, gb.geo_normal, step, gb.texel, gb.width, gb.height,
+                                           inside=inside, executor=executor)
+        return inside.tobytes(), idx.tobytes(), where.tobytes(), idx.size
+
+    with cf.ThreadPoolExecutor(2) as ex:
+        tasks = run(ex)
+    monkeypatch.setattr(validity, "TASK_TEXELS", validity.CHUNK_TEXELS)
+    whole = run(None)
+    assert tasks == whole and tasks[3] > 100

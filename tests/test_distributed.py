@@ -8,6 +8,7 @@ scheduler a `dask scheduler` and `dask worker` started as separate
 processes. Units are made small (UNIT_RAYS) so that a bake is dozens of
 tasks and a fault lands in the middle of a pass.
 """
+import dataclasses
 import hashlib
 import json
 import os
@@ -193,6 +194,33 @@ def test_cluster_bake_under_load_is_bit_identical(tmp_path):
         for h in hogs:
             h.kill()
             h.wait(30)
+    assert no_workers_left()
+
+
+def test_cluster_bake_with_a_sun_is_bit_identical_under_load(tmp_path, room, small_units):
+    """A bake with a sun (issue 48): masks at Sun Shadow Detail 2, refined in
+    their penumbrae, and a relightable bounce that holds the sun's SH, baked
+    locally and on `local:2` while two processes keep both cores busy: every
+    file (the masks too) byte for byte."""
+    import math
+
+    from prtt_addon.core.light.sun import Sun
+    sc, light = room
+    sun = Sun(direction=(0.45, -0.3, 0.84), angle=math.radians(1.0), strength=3.0)
+    st = BakeSettings(rays=64, bounces=1, bounce_rays=32, bounce_mode="relightable", sun_detail=2)
+    bake_scene(sc, tmp_path / "local", st, light=light, sun=sun)
+    want = files(tmp_path / "local")
+    assert sum(n.endswith(".sun.exr") for n in want) == len(sc.set_names)
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        bake_scene(sc, tmp_path / "dask", st, light=light, sun=sun, dask="local:2")
+        bake_scene(sc, tmp_path / "threads1", dataclasses.replace(st, threads=1), light=light, sun=sun)
+    finally:
+        for h in hogs:
+            h.kill()
+            h.wait(30)
+    assert files(tmp_path / "dask") == want
+    assert files(tmp_path / "threads1") == want
     assert no_workers_left()
 
 

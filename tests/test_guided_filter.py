@@ -125,3 +125,27 @@ def test_the_compiled_band_gives_the_numpy_paths_values():
     others = np.setdiff1d(np.arange(texel.size), targets)
     assert np.array_equal(a[others], rows[others])
     print("bit-identical rows:", np.mean(np.all(a[targets] == b[targets], axis=1)))
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_threads_and_groups_do_not_change_the_answer(monkeypatch, compiled):
+    """Bands filtered GROUP at a time on two threads (each band from the rows
+    as traced, written once its neighbours' bands are done): the bits of one
+    band at a time, for groups of 2, 3 and 4 bands of RADIUS rows."""
+    import concurrent.futures as cf
+    H, W = 90, 41
+    texel, pos, nrm = _plane(H, W, holes=np.arange(0, H * W, 13))
+    rng = np.random.default_rng(3)
+    rows = rng.normal(size=(texel.size, 9)).astype(np.float32)
+    targets = np.flatnonzero(rng.random(texel.size) < 0.7)
+    monkeypatch.setattr(gf, "BAND_ROWS", gf.RADIUS)
+    a = rows.copy()
+    gf.smooth_guided(a, texel, W, H, pos, nrm, targets, np.ones(texel.size, bool), 0.01, compiled=compiled)
+    with cf.ThreadPoolExecutor(2) as ex:
+        for group in (2, 3, 4):
+            monkeypatch.setattr(gf, "GROUP", group)
+            b = rows.copy()
+            gf.smooth_guided(b, texel, W, H, pos, nrm, targets, np.ones(texel.size, bool), 0.01,
+                             compiled=compiled, executor=ex)
+            assert np.array_equal(a, b), group
+    assert not np.array_equal(a, rows)

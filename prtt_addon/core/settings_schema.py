@@ -230,9 +230,15 @@ SETTINGS: tuple[Setting, ...] = (
                                                                             "and mip lookups")),
     Setting("sun_detail", "bake", "int", 1, "texels of a sun's shadow mask per texel of its set, per side: 2 "
             "or 4 resolve penumbrae narrower than a texel (a 0.5 degree sun's are millimetres wide) at 4 or 16 "
-            "times the mask's rays and bytes; the transfer is unchanged (a new value bakes the masks alone)",
+            "times the mask's bytes (its rays grow with its penumbrae: sun_refine); the transfer is unchanged "
+            "(a new value bakes the masks alone)",
             unit="x", lo=1, hi=4, option="--sun-detail", metavar="F",
             ui=Ui("sun_detail", "Sun Shadow Detail")),
+    Setting("sun_refine", "bake", "bool", True, "a sun mask's texel traces its disc's first 4 rays, and "
+            "all 64 only where they disagree or a texel within 2 of it has (a penumbra): the mask at a sixth "
+            "of the rays or less (bench sun, 0.5 degrees: 1.86 s -> 0.26 s at Sun Shadow Detail 1, 7.5 s -> 0.9 s at 2), the same "
+            "error against Cycles", flags=("--sun-refine", "--no-sun-refine"),
+            off_help="every mask texel traces all its rays (the masks before it, byte for byte)"),
     Setting("half", "bake", "bool", True, "half-float EXR textures (float32 for a texture whose values "
             "exceed 65504)", flags=("--half", "--float"), off_help="float32 EXR textures"),
     Setting("mips", "bake", "bool", False, "also write coverage-weighted mip levels", flags=("--mips", "--no-mips"),

@@ -93,7 +93,8 @@ def sky_world(bpy, angle_deg: float):
 
 
 def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 256, glossy: bool = False,
-          light: str = "lamp", sky_sun: bool = True, bounces: int = 0, sun_detail: int = 1):
+          light: str = "lamp", sky_sun: bool = True, bounces: int = 0, sun_detail: int = 1,
+          sun_refine: bool = True):
     """The scene in the current (empty) file, unwrapped and baked with the add-on; returns the manifest.
     ``light``: "lamp" (a Sun lamp and a band-limited sky) or "sky" (a Sky Texture, its disc baked as
     the sun where ``sky_sun``)."""
@@ -137,7 +138,7 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     if bpy.ops.prtt.unwrap() != {"FINISHED"}:
         raise RuntimeError("unwrap failed")
     from ...blender.bake.run import bake_blocking
-    outcome = bake_blocking(bpy.context, force=True)
+    outcome = bake_blocking(bpy.context, force=True, overrides=None if sun_refine else {"sun_refine": False})
     if outcome.status != "done":
         raise RuntimeError(outcome.message)
     return outcome.manifest
@@ -258,7 +259,7 @@ class _without_sun_bounce:
 
 def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, resolution: int = 512,
             glossy: bool = False, work_dir: str | None = None, light: str = "lamp", sky_sun: bool = True,
-            bounces: int = 0, sun_detail: int = 1) -> dict:
+            bounces: int = 0, sun_detail: int = 1, sun_refine: bool = True) -> dict:
     import bpy
 
     from ... import register
@@ -275,7 +276,8 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
             register()
         t = time.perf_counter()
         manifest = build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution,
-                         glossy=glossy, light=light, sky_sun=sky_sun, bounces=bounces, sun_detail=sun_detail)
+                         glossy=glossy, light=light, sky_sun=sky_sun, bounces=bounces, sun_detail=sun_detail,
+                         sun_refine=sun_refine)
         t_bake = time.perf_counter() - t
         mode = "tpfl" if glossy else "diffuse"
         prtt, _, status, _ = render_scene(bpy.context, mode=mode, size=size, bounces=bounces > 0)
@@ -323,6 +325,7 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
             "mean_ratio_minus_1": float(a[mask].mean() / b[mask].mean() - 1.0),
             "cycles_noise": noise / math.sqrt(2.0), "bake_s": t_bake,
             "sun_seconds": sum(s.get("sun_seconds", 0.0) for s in manifest["sets"]),
+            "bake_seconds": float(manifest["seconds"]["total"]),
             "notes": [t for _, t in status.messages], "texel_m": strip["texel_m"],
             "penumbra_m": pen, "strip": strip,
             "images": {"prtt": prtt, "cycles": ref, "mask": mask, "shadow": shadow}}
@@ -426,6 +429,8 @@ def main(argv=None) -> int:
     p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, roughness 0.3), TPFL")
     p.add_argument("--sun-detail", default="1", help="the sun masks' detail (Sun Shadow Detail), "
                    "comma-separated: a row each")
+    p.add_argument("--no-sun-refine", action="store_true", help="fine masks trace every texel's 64 rays "
+                   "(sun_refine off: the masks before refinement)")
     p.add_argument("--glossy-pass", action="store_true",
                    help="the sun's highlight on the glossy floor, seen where it mirrors the sun: PRTT's lobe "
                         "against Cycles' Glossy Direct x Glossy Color")
@@ -453,7 +458,7 @@ def main(argv=None) -> int:
           f"atlas {a.resolution}², "
           f"{'glossy floor, TPFL' if a.glossy else 'diffuse, diffuse mode'}:")
     print(f"  {'angle':>6}  {'disc':>10}  {'image RMSE':>10}  {'shadow RMSE':>11}  {'mean':>7}  {'Cycles noise':>12}  "
-          f"{'sun mask s':>10}  penumbrae PRTT / Cycles (mm; texel)")
+          f"{'sun mask s':>10}  {'bake s':>6}  penumbrae PRTT / Cycles (mm; texel)")
     variants = ([(f"hdri:{a.hdri}", True), (f"hdri:{a.hdri}", False)] if a.hdri else
                 [("sky", True), ("sky", False)] if a.sky else [("lamp", True)])
     details = [int(x) for x in a.sun_detail.split(",")]
@@ -462,13 +467,13 @@ def main(argv=None) -> int:
     for ang, light, sky_sun, f in runs:
         if True:
             r = compare(ang, (w, h), samples=a.samples, resolution=a.resolution, glossy=a.glossy, light=light,
-                        sky_sun=sky_sun, bounces=a.bounces, sun_detail=f)
+                        sky_sun=sky_sun, bounces=a.bounces, sun_detail=f, sun_refine=not a.no_sun_refine)
             disc = ("lamp" if light == "lamp" else "as sun" if r["sun"] else "in SH") + (f" x{f}" if f > 1 else "")
             if a.hdri and r["sun"]:
                 print(f"          extracted: a {math.degrees(r['sun']['angle']):.2f} degree disc of "
                       f"{r['sun']['strength']:.3g} W/m²", flush=True)
             print(f"  {ang:6.2f}  {disc:>10}  {r['rel_rmse']:10.2%}  {r['rel_rmse_shadow']:11.2%}  "
-                  f"{r['mean_ratio_minus_1']:+7.2%}  {r['cycles_noise']:12.2%}  {r['sun_seconds']:10.2f}  "
+                  f"{r['mean_ratio_minus_1']:+7.2%}  {r['cycles_noise']:12.2%}  {r['sun_seconds']:10.2f}  {r['bake_seconds']:6.2f}  "
                   + " ".join(f"{1e3 * p:.1f}/{1e3 * c:.1f}" for p, c in zip(*r["penumbra_m"].values()))
                   + f" ({1e3 * r['texel_m']:.1f})", flush=True)
             if a.bounces:

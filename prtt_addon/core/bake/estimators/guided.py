@@ -45,6 +45,7 @@ resolution, beside 4 B a point for its cell (:func:`guide_bytes`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import threading
 
@@ -309,10 +310,20 @@ def _tables(counts: np.ndarray):
     return row_cdf, col, p.reshape(c, BINS) * np.float32(BINS / (4.0 * math.pi))
 
 
+@functools.lru_cache(maxsize=8)
+def _sobol_u32(rays: int, seed: int) -> np.ndarray:
+    """(rays, 2) uint32: sobol2(rays, seed) times 2^32 (its points are
+    multiples of 2^-32), read-only; one per (rays, seed), made once."""
+    u = (sobol2(rays, seed) * 4294967296.0).astype(np.uint32)
+    u.flags.writeable = False
+    return u
+
+
 def _invert(cdf: np.ndarray, group: np.ndarray, u: np.ndarray):
     """Continuous inversion of piecewise-constant distributions: ``cdf`` (G, B)
     (last column 1), ``group`` (n,) which row each sample uses, ``u`` (n,) in
-    [0, 1). Returns (bin (n,) int64, position in the bin (n,) in [0, 1)).
+    [0, 1), float, or uint32 numerators of u * 2^32 (the same samples).
+    Returns (bin (n,) int64, position in the bin (n,) in [0, 1)).
 
     One search over the rows laid end to end, in integers (a row's index in
     the high bits, its CDF in 2^-32 steps below): exact, so a sample's bin
@@ -321,8 +332,11 @@ def _invert(cdf: np.ndarray, group: np.ndarray, u: np.ndarray):
     G, B = cdf.shape
     c = cdf.astype(np.float64).ravel()
     flat = ((np.arange(G, dtype=np.int64)[:, None] << 33) + np.round(c * 2.0 ** 32).astype(np.int64).reshape(G, B)).ravel()
-    # u >= 0: truncation is the floor.
-    key = (u * 2.0 ** 32).astype(np.int64)
+    if u.dtype == np.uint32:
+        key = u.astype(np.int64)
+        u = key * 2.0 ** -32                   # exact: at most 32 significant bits
+    else:
+        key = (u * 2.0 ** 32).astype(np.int64)  # u >= 0: truncation is the floor
     g33 = group.astype(np.int64) << 33
     key += g33
     pos = np.searchsorted(flat, key, side="right")
@@ -355,11 +369,11 @@ def guide_directions(guide: Guide, cell: np.ndarray, ids: np.ndarray, rays: int,
     pc, pp = pairs // PATTERNS, pairs % PATTERNS
     cells, local = np.unique(pc, return_inverse=True)
     local = local.ravel()
-    u = sobol2(rays, int(hash_u32(seed, _SALT_GUIDE)))
-    shift = np.stack([hash_unit(seed, pc, pp, _SALT_GUIDE, 1), hash_unit(seed, pc, pp, _SALT_GUIDE, 2)], axis=-1)
-    # (u + shift) mod 1 for both in [0, 1): a sum in [1, 2) less 1 is exact (Sterbenz).
+    u = _sobol_u32(rays, int(hash_u32(seed, _SALT_GUIDE)))
+    shift = np.stack([hash_u32(seed, pc, pp, _SALT_GUIDE, 1), hash_u32(seed, pc, pp, _SALT_GUIDE, 2)], axis=-1)
+    # (u + shift) mod 1 for both in [0, 1), both multiples of 2^-32: the sum of
+    # their 32-bit numerators wraps exactly where the float sum less 1 would.
     w = (u[None, :, :] + shift[:, None, :]).reshape(-1, 2)
-    w[w >= 1.0] -= 1.0
     grp = local.repeat(rays)
     iz, fz = _invert(guide.row_cdf[cells], grp, w[:, 0])
     ip, fp = _invert(guide.col_cdf[cells].reshape(-1, BINS_PHI), grp * BINS_Z + iz, w[:, 1])

@@ -49,15 +49,19 @@ NORMAL_POWER = 16
 BAND_ROWS = 16
 #: Targets whose neighbours' rows are gathered at a time.
 SUB = 4096
+#: Bands filtered at a time on an executor's threads (their outputs held until written).
+GROUP = 4
 
 
 def filter_bytes(width: int, coeffs: int) -> int:
     """Upper bound of the filter's temporaries (bytes) for a set ``width``
-    texels wide with ``coeffs`` coefficients a row: two bands' outputs and
-    one band's gathered neighbour (float32 and float64 sums, indices, weights)."""
+    texels wide with ``coeffs`` coefficients a row: GROUP + 1 bands' outputs
+    and GROUP bands' gathered neighbours (float32 and float64 sums, indices,
+    weights) at once."""
     texels = BAND_ROWS * width
     per_offset = (2 * RADIUS + 1) ** 2 * (8 + 8 + 4)       # neighbour index, weight, float32 weight
-    return texels * (2 * 4 * coeffs + per_offset + 64) + SUB * (2 * RADIUS + 1) ** 2 * 4 * coeffs
+    return (texels * ((GROUP + 1) * 4 * coeffs + GROUP * (per_offset + 64))
+            + GROUP * SUB * (2 * RADIUS + 1) ** 2 * 4 * coeffs)
 
 
 _JIT = "prtt_addon.core.bake.estimators.guided_filter_jit"
@@ -106,14 +110,20 @@ def _band(rows, texel, width, height, position, normal, valid, tg, offsets, spat
 
 def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, position: np.ndarray,
                   normal: np.ndarray, targets: np.ndarray, valid: np.ndarray, step: float, *,
-                  compiled: bool = True) -> int:
+                  compiled: bool = True, executor=None) -> int:
     """Filter ``rows`` (N, K) float32 in place at the rows ``targets`` (M,)
     int (ascending), texels of a set ``width`` x ``height``: ``texel`` (N,)
     flat indices ascending (the G-buffer's), ``position``/``normal`` (N, 3)
     world, unit; ``valid`` (N,) bool: texels that may be neighbours; ``step``
     the set's texel step (world units, > 0); ``compiled``: False takes the numpy
-    path even where numba is there (the tests compare the two). Returns the
-    texels filtered."""
+    path even where numba is there (the tests compare the two); ``executor``:
+    a thread pool that filters GROUP bands at a time (the compiled loop holds
+    no GIL). Returns the texels filtered.
+
+    Every band is filtered from the rows as traced: a band's filtered rows are
+    written once the bands that read them (the next, within RADIUS <=
+    BAND_ROWS rows) are filtered, so the answer does not depend on the
+    threads or the grouping."""
     targets = np.asarray(targets, np.int64)
     if targets.size == 0 or step <= 0:
         return 0
@@ -125,25 +135,33 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     band_of = ty // BAND_ROWS
     cuts = np.flatnonzero(np.diff(band_of)) + 1
     bands = np.split(np.arange(targets.size), cuts)
-    pending = None                    # (rows of the band before, their filtered values)
-    fast = _compiled() if compiled else None
+    state = {"fast": _compiled() if compiled else None}
     spatial_f64 = np.asarray(spatial, np.float64)
-    for members in bands:
+
+    def band(members) -> tuple:
+        """(the band's target rows, their filtered values), from ``rows`` as traced."""
         tg = targets[members]
-        out = None
+        fast = state["fast"]
         if fast is not None:
             out = np.empty((tg.size, rows.shape[1]), np.float32)
             try:
                 fast.smooth_band(rows, texel, width, height, position, normal, valid, tg, spatial_f64, r,
                                  inv_world, NORMAL_POWER, out)
+                return tg, out
             except Exception as exc:    # noqa: BLE001 - a numba that imports but cannot compile it
                 jit.broken(_JIT, exc)
-                fast = out = None
-        if out is None:
-            out = _band(rows, texel, width, height, position, normal, valid, tg, offsets, spatial, inv_world)
-        # The band before reads no row of this one's neighbours any more: write it now.
-        if pending is not None:
-            rows[pending[0]] = pending[1]
-        pending = (tg, out)
+                state["fast"] = None
+        return tg, _band(rows, texel, width, height, position, normal, valid, tg, offsets, spatial, inv_world)
+
+    group = GROUP if executor is not None else 1
+    pending = None                    # the band before this group's, filtered, not yet written
+    for a in range(0, len(bands), group):
+        part = bands[a:a + group]
+        done = list(executor.map(band, part)) if len(part) > 1 else [band(m) for m in part]
+        # The band before reads no row of this group's neighbours any more: write it now,
+        # and every band of the group but the last (the next group's first band reads it).
+        for tg, out in ([pending] if pending is not None else []) + done[:-1]:
+            rows[tg] = out
+        pending = done[-1]
     rows[pending[0]] = pending[1]
     return int(targets.size)

@@ -15,6 +15,20 @@ The directions are one Owen-scrambled Sobol' (0,2) pattern, (u, v) ->
 neighbouring texels' errors are independent and a penumbra is smooth at 64
 rays (its steps 1/64). Every number is a hash of (seed, set, texel) and the
 chunks write their own rows: the same mask for any thread count.
+
+Refinement (``grid``, the fine masks of Sun Shadow Detail): a mask 2-4 times
+finer a side holds 4-16 times the texels, nearly all of them in full sun or
+full shadow. Every texel first traces the first :data:`FIRST_RAYS` rays of
+its pattern (one in each quarter of the disc: a (0,2) net's first four
+points); where they disagree the texel is in a penumbra, and it and every
+texel within :data:`REFINE_RING` of it on the grid trace the rest. Those
+texels' masks are exactly the full trace's (the same directions); the others
+take what their first rays agree on, 0 or 1. What that can miss: a shadow
+edge crossing less than about a quarter of the disc over a whole
+(2 REFINE_RING + 1)² neighbourhood (the far tails of a penumbra, below
+~1/4 coverage) or a shadow thinner than the disc's quarter at every texel
+(a wire's); tests/test_sun_mask.py measures the difference from the full
+trace on a penumbra.
 """
 from __future__ import annotations
 
@@ -33,14 +47,21 @@ _SALT = 0x5C41
 #: coordinates and directions with their products (~112 B at the peak, in
 #: disc_directions), then float32 directions, origins, tfar and flags.
 RAY_BYTES = 128
+#: Rays every texel traces first where the mask is refined (module docstring).
+FIRST_RAYS = 4
+#: Texels within this many of a texel whose first rays disagree trace all of theirs.
+REFINE_RING = 2
 
 
-def mask_bytes(width: int, height: int, texels: int, threads: int, chunk_rays: int, rays: int) -> int:
+def mask_bytes(width: int, height: int, texels: int, threads: int, chunk_rays: int, rays: int,
+               refine: bool = False) -> int:
     """Upper bound of a set's mask pass (bytes): each thread's chunk
-    (RAY_BYTES a ray), the texels' mask and the plane it is dilated in."""
+    (RAY_BYTES a ray), the texels' mask and the plane it is dilated in;
+    ``refine`` (sun_mask's ``grid``): the grown planes and the counts of both passes."""
     per = max(1, chunk_rays // max(rays, 1)) * rays
     chunks = max(1, threads) * min(per, max(1, texels) * rays) * RAY_BYTES
-    return chunks + 4 * texels + 5 * width * height + 16 * texels
+    extra = 3 * width * height + 32 * texels if refine else 0
+    return chunks + 4 * texels + 5 * width * height + 16 * texels + extra
 
 
 def disc_pattern(rays: int, seed: int) -> np.ndarray:
@@ -65,11 +86,14 @@ def disc_directions(direction, angle: float, pattern: np.ndarray, shift: np.ndar
 
 def sun_mask(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray, ids: np.ndarray, direction,
              angle: float, *, rays: int, seed: int, set_index: int = 0, threads: int = 1,
-             chunk_rays: int = 1 << 18, cancel=None) -> np.ndarray:
+             chunk_rays: int = 1 << 18, cancel=None, grid: tuple[int, int] | None = None) -> np.ndarray:
     """(N,) float32 in [0, 1]: the visible fraction of the sun's disc at each
     point; position/geo_normal (N, 3) float64 world points and unit geometric
     normals, ids (N,) int64 stable ids (the G-buffer's flat texel indices);
-    direction (3,) unit towards the sun, angle its full angular diameter."""
+    direction (3,) unit towards the sun, angle its full angular diameter.
+    ``grid`` (width, height): the ids are texels of that grid and the mask is
+    refined where its first rays disagree (module docstring), else every
+    point traces all ``rays``."""
     n = int(position.shape[0])
     out = np.zeros(n, np.float32)
     if n == 0 or rays <= 0:
@@ -80,25 +104,62 @@ def sun_mask(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray, ids: np
     facing = geo_normal @ l > -math.sin(half)
     todo = np.flatnonzero(facing)
     pattern = disc_pattern(rays, seed)
-    per = max(1, chunk_rays // rays)
-    parts = [todo[a:a + per] for a in range(0, todo.size, per)]
 
-    def one(idx):
+    def seen(idx, rows):
+        """(m,) rays of ``pattern[rows]`` that escape from the points ``idx``."""
         if cancel is not None and cancel.is_set():
             raise Cancelled()
+        r = rows.stop - rows.start
         shift = np.stack([hash_unit(seed, set_index, ids[idx], _SALT, 1),
                           hash_unit(seed, set_index, ids[idx], _SALT, 2)], axis=-1)
-        d = disc_directions(l, angle, pattern, shift)                       # (m, R, 3)
+        d = disc_directions(l, angle, pattern[rows], shift)                  # (m, r, 3)
         g = geo_normal[idx]
         above = np.einsum("mrc,mc->mr", d, g) > 0.0
-        org = np.repeat(rs.origins(position[idx], g), rays, axis=0)
+        org = np.repeat(rs.origins(position[idx], g), r, axis=0)
         tfar = np.where(above.ravel(), np.float32(np.inf), np.float32(-1.0))
-        hit = rs.occluded(org, d.reshape(-1, 3).astype(np.float32), tfar=tfar).reshape(-1, rays)
-        seen = np.count_nonzero(above & ~hit, axis=1)
-        return idx, (seen / rays).astype(np.float32)
+        hit = rs.occluded(org, d.reshape(-1, 3).astype(np.float32), tfar=tfar).reshape(-1, r)
+        return np.count_nonzero(above & ~hit, axis=1)
 
-    def put(r):
-        out[r[0]] = r[1]
+    def trace(points, rows) -> np.ndarray:
+        """(len(points),) int64 escaping rays of ``pattern[rows]`` from ``points``,
+        in chunks on the threads (each chunk writes its own entries)."""
+        count = np.zeros(points.size, np.int64)
+        per = max(1, chunk_rays // (rows.stop - rows.start))
+        starts = range(0, points.size, per)
 
-    run_chunks(one, parts, threads, put, cancel)
+        def put(res):
+            count[res[0]:res[0] + res[1].size] = res[1]
+
+        run_chunks(lambda a: (a, seen(points[a:a + per], rows)), starts, threads, put, cancel)
+        return count
+
+    first = min(FIRST_RAYS, rays) if grid is not None else rays
+    count = trace(todo, slice(0, first))
+    if first < rays:
+        width, height = grid
+        near = np.zeros((height, width), bool)
+        near.ravel()[ids[todo[(count > 0) & (count < first)]]] = True     # the first rays disagree
+        again = _grow(near, REFINE_RING).ravel()[ids[todo]]
+        del near
+        # The rest of their rays: with the first, exactly the full trace's count.
+        refined = count[again] + trace(todo[again], slice(first, rays))
+        count = np.where(count == first, rays, 0)              # decided: all of the disc or none
+        count[again] = refined
+    out[todo] = (count / rays).astype(np.float32)
+    return out
+
+
+def _grow(mask: np.ndarray, ring: int) -> np.ndarray:
+    """(H, W) bool ``mask`` grown by ``ring`` texels each way (a square's max filter)."""
+    out = mask.copy()
+    for axis in (0, 1):
+        src = out.copy()
+        for k in range(1, ring + 1):
+            if k >= src.shape[axis]:
+                break
+            a = [slice(None)] * 2
+            b = [slice(None)] * 2
+            a[axis], b[axis] = slice(k, None), slice(None, -k)
+            out[tuple(a)] |= src[tuple(b)]
+            out[tuple(b)] |= src[tuple(a)]
     return out

@@ -354,8 +354,10 @@ class ChunkKernel:
     thread.
     """
 
-    def __init__(self, rs: RayScene, pts: Points, st: TransferSettings, G: int, cancel=None):
+    def __init__(self, rs: RayScene, pts: Points, st: TransferSettings, G: int, cancel=None,
+                 skip: np.ndarray | None = None):
         self.rs, self.pts, self.st, self.G = rs, pts, st, G
+        self.skip = skip                 # (N,) bool: points not traced (bake_points)
         self.K = st.bands ** 2
         self.dirs_bank, self.w_bank, self.cum_w = pattern_bank(
             G, st.rays, st.bands, st.sampler, st.distribution, st.seed, cancel=cancel)
@@ -377,9 +379,10 @@ class ChunkKernel:
             self._local.b = b
         return b
 
-    def _trace_round_shared(self, R, org, P, cancel=None):
+    def _trace_round_shared(self, R, org, P, cancel=None, skip=None):
         """Occlusion (m, size) float32 when all m origins share the frame R (3, 3):
-        one Embree call per direction, broadcast over the origins."""
+        one Embree call per direction, broadcast over the origins; ``skip`` (m,)
+        bool: origins not traced (their rows meaningless)."""
         m, size = org.shape[0], P.shape[0]
         Dw = np.ascontiguousarray(P @ R.T)                      # (size, 3) world directions
         # The loop holds the GIL between Embree calls, and each time a thread must
@@ -387,6 +390,8 @@ class ChunkKernel:
         # (bare embreex results, 0 = occluded), and convert once at the end.
         rows = []
         tfar = np.full(m, np.inf, np.float32)                   # read-only to embreex
+        if skip is not None:
+            tfar[skip] = -1.0                                   # rejected without traversal
         trace = self.rs.occluded_raw
         for j in range(size):
             if j % 32 == 0 and cancel is not None and cancel.is_set():
@@ -396,16 +401,29 @@ class ChunkKernel:
         del rows
         OT = hits.view(np.float32)                              # 1.0 = occluded, in place
         np.equal(hits, 0, out=OT, casting="unsafe")
-        return OT.T, m * size, 0
+        skipped = 0 if skip is None else int(np.count_nonzero(skip)) * size
+        return OT.T, m * size - skipped, 0
 
-    def _trace_round(self, R, org, ng, hz, P, shared=False, cancel=None):
-        """Occlusion (m, size) float32 of pattern directions P turned by R."""
+    def _trace_round(self, R, org, ng, hz, P, shared=False, cancel=None, skip=None):
+        """Occlusion (m, size) float32 of pattern directions P turned by R;
+        ``skip`` (m,) bool: points not traced (their rows meaningless)."""
         if shared:
-            return self._trace_round_shared(np.asarray(R[0]), org, P, cancel)
+            return self._trace_round_shared(np.asarray(R[0]), org, P, cancel, skip)
         m, size = R.shape[0], P.shape[0]
         ob, db, tb = self._buffers(m * size)
         ob[:m * size].reshape(m, size, 3)[...] = org[:, None, :]      # GIL-free broadcast copy
         D3 = np.matmul(P[None], R.transpose(0, 2, 1), out=db[:m * size].reshape(m, size, 3))
+        if skip is not None:
+            # Every ray of a skipped point goes to Embree with an empty interval.
+            below = (np.matmul(D3, ng[:, :, None])[..., 0] <= 0.0) & hz[:, None]
+            tfar = tb[:m * size]
+            tfar.fill(np.inf)
+            tfar[below.ravel()] = -1.0
+            tfar.reshape(m, size)[skip] = -1.0
+            occ = self.rs.occluded(ob[:m * size], db[:m * size], tfar=tfar).reshape(m, size)
+            occ |= below
+            n_below = int(below[~skip].sum())
+            return occ.astype(np.float32), (m - int(np.count_nonzero(skip))) * size - n_below, n_below
         if not hz.any():
             occ = self.rs.occluded(ob[:m * size], db[:m * size])
             return occ.reshape(m, size).astype(np.float32), m * size, 0
@@ -428,8 +446,10 @@ class ChunkKernel:
         fr = chunk_frames(self.rs, self.pts, idx, st.seed, shared=chunk.shared, anchor=chunk.anchor)
         n = idx.size
         if not self.adaptive:
+            skip = None if self.skip is None else self.skip[idx]
             O, traced, below = self._trace_round(fr.R, fr.origins, fr.geo_normal, fr.horizon,
-                                                 self.dirs_bank[g], fr.shared, cancel)
+                                                 self.dirs_bank[g], fr.shared, cancel,
+                                                 skip if skip is not None and skip.any() else None)
             base, table = self.base32[st.rays][g], self.tables[st.rays][1][g]
             if fr.shared:
                 # One frame: turn the estimator to world once (a (rays, K) table)
@@ -510,8 +530,18 @@ SWITCH_INTERVAL = 0.0005
 
 
 def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
-                progress=None, cancel: threading.Event | None = None, remote=None):
+                progress=None, cancel: threading.Event | None = None, remote=None,
+                skip: np.ndarray | None = None):
     """Transfer vectors of ``pts``: returns ((N, K) float32, stats dict).
+
+    ``skip`` (N,) bool: points whose rows the caller drops (texels inside
+    geometry, validity.inside_texels): their rays are not traced and their
+    rows are meaningless (zero where guided). The other points' rows are
+    theirs bit for bit: the guide's pilot still counts the skipped points,
+    and they stay in their chunks (the same shapes through BLAS, whose
+    rounding can depend on them), their rays handed to Embree with an empty
+    interval (ChunkKernel.run). Not under adaptive sampling (its rounds'
+    shapes follow every point's noise) or a Dask cluster: there they are traced.
 
     Chunks run on ``settings.n_threads`` threads with single-threaded BLAS and
     write their rows of the result (disjoint, whole rows: see bake.py for why
@@ -527,12 +557,12 @@ def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
     sys.setswitchinterval(SWITCH_INTERVAL)
     try:
         with single_threaded_blas():
-            return _bake_points(rs, pts, settings, progress, cancel, remote)
+            return _bake_points(rs, pts, settings, progress, cancel, remote, skip)
     finally:
         sys.setswitchinterval(old_interval)
 
 
-def _bake_points(rs, pts, settings, progress, cancel, remote=None):
+def _bake_points(rs, pts, settings, progress, cancel, remote=None, skip=None):
     st = settings.validate()
     K = st.bands ** 2
     N = pts.n
@@ -542,6 +572,18 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
     # The guide (its pilot rays) before the rows exist: its temporaries and the rows are never held together.
     guide = _guide(rs, pts, st, analytic, cancel) if st.guiding else None
     guided_pts = None if guide is None else guide.cell >= 0
+    kernel_skip = None                        # the plain chunks' points whose rays are not traced
+    skipped_guided = 0
+    if skip is not None:
+        skip = np.asarray(skip, bool) & ~analytic
+        if guide is not None:
+            # Guided points run alone (their rows do not depend on their company): left out.
+            skipped_guided = int(np.count_nonzero(skip & guided_pts))
+            guide = dataclasses.replace(guide, cell=np.where(skip, -1, guide.cell).astype(np.int32))
+        if remote is None and len(st.round_sizes()) == 1:
+            kernel_skip = skip & ~guided_pts if guided_pts is not None else skip
+            if not kernel_skip.any():
+                kernel_skip = None
     # Planned before the rows exist: the planner's temporaries and the rows are never held together.
     chunks, G = chunk_plan(pts, st, guided_pts)
     out = np.zeros((N, K), np.float32)
@@ -549,8 +591,9 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
     ia = np.flatnonzero(analytic)
     if ia.size:
         out[ia] = unoccluded_transfer(pts.normal[ia], st.bands)
-    n_traced = N - int(ia.size)
-    done = int(ia.size)
+    skipped = skipped_guided + (0 if kernel_skip is None else int(np.count_nonzero(kernel_skip)))
+    n_traced = N - int(ia.size) - skipped
+    done = int(ia.size) + skipped_guided       # the plain chunks' skipped points count as their chunks finish
     if progress:
         progress(done, N, 0)
 
@@ -575,7 +618,7 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
         if remote is not None:
             remote.trace_points(pts, st, chunks, G, sink, on_result, cancel)
         else:
-            kernel = ChunkKernel(rs, pts, st, G, cancel)
+            kernel = ChunkKernel(rs, pts, st, G, cancel, skip=kernel_skip)
 
             def run_chunk(chunk):
                 if cancel is not None and cancel.is_set():
@@ -594,13 +637,14 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None):
             guided_threads.add(thread)
             on_result(idx.size)
 
-        n_guided = int(np.count_nonzero(guided_pts))
+        n_guided = int(np.count_nonzero(guided_pts))       # chosen by the guide (skipped ones too)
         guided.bake_guided(rs, pts.position, pts.normal, pts.geo_normal, pts.ids, guide, st.rays, st.bands,
                            st.seed, st.n_threads, st.chunk_rays, guided_sink, cancel)
     seconds = time.perf_counter() - t0
     info = {
         "points": N,
         "analytic_points": int(ia.size),
+        "skipped_points": skipped,
         "traced_points": n_traced,
         "rays_traced": stats.rays_traced,
         "rays_below_horizon_skipped": stats.rays_below_horizon,

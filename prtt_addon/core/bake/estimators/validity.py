@@ -55,8 +55,14 @@ INSIDE_FRACTION = 0.9
 FIRST_RAYS = 4
 #: Near hits: closer than this many of the set's texel steps (a texel's footprint) count as blocked.
 CONTACT_TEXELS = 0.5
-#: Texels traced at a time (RAYS rays each: ~1M rays, ~80 MB of temporaries).
+#: Texels whose random numbers are drawn from one generator (seeded by the
+#: block's first texel: the same numbers whatever the threads).
 CHUNK_TEXELS = 65_536
+#: Texels a task traces: a part of a block, its share of the block's numbers
+#: drawn alone (_block_uniforms), so that both cores work on a set of fewer
+#: than two blocks (the 512² window room's 89K texels were one block of
+#: 65,536 and one of 23,832).
+TASK_TEXELS = 8_192
 #: Walls through a texel's neighbourhood (across_walls): directions in the
 #: surface's plane, how far they look (in texel steps: a bilinear lookup reads
 #: texel centres up to one step away), how steep a surface they stop at (|cos|
@@ -121,6 +127,31 @@ SKY_RAYS = 128
 #: resting on it, or beside a sphere, where some texels near the contact see
 #: past it: 0.6-7 %).
 ROOM_SKY_SHARE = 0.2
+
+
+def _block_uniforms(seed, a: int, b: int, lo: int, hi: int, rays: int):
+    """(u1, u2), each (hi - lo, rays) float64: rows lo - a .. hi - a of
+    ``np.random.default_rng(seed + [a]).random((2, b - a, rays))``, the numbers
+    of block [a, b) that texels lo..hi use, without drawing the others: a
+    double is one 64-bit step of PCG64, which ``advance`` skips."""
+    def rows(skip):
+        bits = np.random.PCG64(np.random.SeedSequence(list(seed) + [a]))
+        bits.advance(skip)
+        return np.random.Generator(bits).random((hi - lo, rays))
+    return rows((lo - a) * rays), rows((b - a + lo - a) * rays)
+
+
+def _blocks(n: int):
+    """(block start, its tasks [(block start, first, end)]) covering n texels:
+    blocks of CHUNK_TEXELS in tasks of TASK_TEXELS."""
+    for a in range(0, n, CHUNK_TEXELS):
+        yield a, [(a, lo, min(n, a + CHUNK_TEXELS, lo + TASK_TEXELS))
+                  for lo in range(a, min(n, a + CHUNK_TEXELS), TASK_TEXELS)]
+
+
+def _run(executor, fn, items) -> list:
+    """fn over items, on ``executor`` when there is more than one."""
+    return list(executor.map(fn, items)) if executor is not None and len(items) > 1 else [fn(i) for i in items]
 
 
 def _sees_sky(rays, points: np.ndarray, normals: np.ndarray, n_rays: int, seed) -> np.ndarray:
@@ -205,20 +236,20 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
             bad |= hit & (t < near)
         return bad.reshape(-1, nr)
 
-    def chunk(a: int) -> None:
-        b = min(n, a + CHUNK_TEXELS)
-        rng = np.random.default_rng([seed, a])
-        u1, u2 = rng.random((2, b - a, RAYS))
-        nrm = geo_normal[a:b]
+    def task(span) -> np.ndarray:
+        """The texels of one task that are inside (indices, ascending)."""
+        a, lo, hi = span
+        u1, u2 = _block_uniforms([seed], a, min(n, a + CHUNK_TEXELS), lo, hi, RAYS)
+        nrm = geo_normal[lo:hi]
         t1, t2 = tangent_frames(nrm)
 
-        def directions(sel, lo, hi):
-            """(m, hi - lo, 3) float64: rays lo..hi of texels ``sel`` (only those are
+        def directions(sel, first, last):
+            """(m, last - first, 3) float64: rays first..last of texels ``sel`` (only those are
             made: the head's 4 of every texel, the rest's 12 of a few)."""
-            return _cosine(u1[sel, lo:hi], u2[sel, lo:hi], t1[sel], t2[sel], nrm[sel])
+            return _cosine(u1[sel, first:last], u2[sel, first:last], t1[sel], t2[sel], nrm[sel])
 
         # Off the surface along its normal, as the transfer's rays start.
-        o = rays.origins(position[a:b], nrm)
+        o = rays.origins(position[lo:hi], nrm)
         f = FIRST_RAYS
         # The first rays without the peel (most of their hits are front faces of a
         # room's walls and ceiling: 0.24 s of the demo's 1024²); a texel inside
@@ -226,21 +257,21 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
         head = blocked(np.repeat(o, f, axis=0), directions(slice(None), 0, f).reshape(-1, 3), f, False).sum(axis=1)
         rest = np.flatnonzero(head >= first_needed)
         if rest.size == 0:
-            return
+            return rest
         tail = blocked(np.repeat(o[rest], RAYS - f, axis=0), directions(rest, f, RAYS).reshape(-1, 3), RAYS - f,
                        True).sum(axis=1)
-        marked = rest[head[rest] + tail >= needed]
-        # Back faces all round are a solid's inside, or a room whose walls face
-        # out (Blender's cube with faces deleted): the room sees its door.
-        out[a + marked] = True
-        sky_seen[a + marked] = _sees_sky(rays, position[a + marked], nrm[marked], ESCAPE_RAYS, [seed, a, 0xE5])
+        return lo + rest[head[rest] + tail >= needed]
 
-    starts = range(0, n, CHUNK_TEXELS)
-    if executor is not None and len(starts) > 1:
-        list(executor.map(chunk, starts))
-    else:
-        for a in starts:
-            chunk(a)
+    def block(item) -> None:
+        # Back faces all round are a solid's inside, or a room whose walls face
+        # out (Blender's cube with faces deleted): the room sees its door. Drawn
+        # for the block's inside texels together (its seed: its first texel).
+        a, marked = item
+        out[marked] = True
+        sky_seen[marked] = _sees_sky(rays, position[marked], geo_normal[marked], ESCAPE_RAYS, [seed, a, 0xE5])
+
+    for a, spans in _blocks(n):
+        block((a, np.concatenate(_run(executor, task, spans))))
     if not sky_seen.any():
         return out
     if grid is None:
@@ -353,21 +384,27 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
     angles = 2.0 * np.pi * np.arange(WALL_DIRECTIONS) / WALL_DIRECTIONS
     found_index, found_position = [], []
 
-    def chunk(a: int):
-        b = min(n, a + CHUNK_TEXELS)
-        nrm = geo_normal[a:b]
+    empty = None
+
+    def walls(span):
+        """The texels of one task with a wall beside them: (index (M,) ascending,
+        the wall's direction (M, 3), its normalised distance (M,), what the way
+        on beyond it meets (prim (M,), t (M,)), the mirrored point (M, 3) world,
+        the texels' tangents (M, 3) x 2)."""
+        a, lo, hi = span
+        nrm = geo_normal[lo:hi]
         t1, t2 = tangent_frames(nrm)
         # (m, D, 3): the plane's directions, a texel's turned by its frame.
         d = np.cos(angles)[None, :, None] * t1[:, None] + np.sin(angles)[None, :, None] * t2[:, None]
-        o = rays.origins(position[a:b], nrm)
+        o = rays.origins(position[lo:hi], nrm)
         od = np.repeat(o, WALL_DIRECTIONS, axis=0)
         hit = rays.occluded(od, d.reshape(-1, 3).astype(np.float32),
                             np.full(len(od), reach, np.float32)).reshape(-1, WALL_DIRECTIONS)
         if inside is not None:
-            hit &= ~inside[a:b, None]
+            hit &= ~inside[lo:hi, None]
         cand = np.flatnonzero(hit.any(axis=1))
         if cand.size == 0:
-            return None
+            return empty
         # The nearest steep hit of each candidate's directions.
         rows, cols = np.nonzero(hit[cand])
         oc, dc = o[cand[rows]], d[cand[rows], cols]
@@ -375,23 +412,34 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
         steep = (prim >= 0) & (t <= reach)
         steep[steep] &= np.abs(np.einsum("ij,ij->i", unit[prim[steep]], nrm[cand[rows[steep]]])) <= WALL_STEEP
         if not steep.any():
-            return None
+            return empty
         rows, cols, t = rows[steep], cols[steep], t[steep]
         order = np.lexsort((t, rows))
         first = order[np.flatnonzero(np.r_[True, np.diff(rows[order]) != 0])]
-        who = cand[rows[first]]                                   # chunk-local texels with a wall
+        who = cand[rows[first]]                                   # task-local texels with a wall
         dirs = d[who, cols[first]]
         tw = t[first].astype(np.float64)                          # normalised distance to the wall
         # Mirrored across the wall, unless something stops the way on first.
         beyond = o[who] + (dirs * (tw[:, None] * (1.0 + 1e-3))).astype(np.float32)
         p2, _, _, t2b = rays.intersect(beyond.astype(np.float32), dirs.astype(np.float32))
         further = np.where(p2 >= 0, np.minimum(t2b.astype(np.float64) * 0.5, tw), tw)
-        moved = position[a + who] + dirs * ((tw * (1.0 + 1e-3) + further) / rays.scale)[:, None]
+        moved = position[lo + who] + dirs * ((tw * (1.0 + 1e-3) + further) / rays.scale)[:, None]
+        return lo + who, dirs, tw, p2, t2b, moved, t1[who], t2[who]
+
+    def block(item):
+        """The texels of one block that move, and where: the random numbers of
+        both sides' rays drawn for the block's texels with a wall together (its
+        seed: its first texel)."""
+        a, parts = item
+        parts = [q for q in parts if q is not None]
+        if not parts:
+            return None
+        who, dirs, tw, p2, t2b, moved, t1w, t2w = (np.concatenate(c) for c in zip(*parts))
         # Both sides' sky, by the same cosine rays about the normal.
         rng = np.random.default_rng([seed, a, 0x5A])
         u1, u2 = rng.random((2, who.size, SIDE_RAYS))
-        nw = nrm[who]
-        rd = _cosine(u1, u2, t1[who], t2[who], nw).reshape(-1, 3)
+        nw = geo_normal[who]
+        rd = _cosine(u1, u2, t1w, t2w, nw).reshape(-1, 3)
 
         def sides(points):
             og = np.repeat(rays.origins(points, nw), SIDE_RAYS, axis=0)
@@ -406,7 +454,7 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
         pb, _, _, tb = rays.intersect(og, (-nw).astype(np.float32))
         on = (pb >= 0) & (tb <= np.float32(4.0 * RAY_EPSILON))
         on[on] &= np.einsum("ij,ij->i", unit[pb[on]], nw[on]) >= 1.0 - WALL_STEEP / 10.0
-        sky_here, _ = sides(position[a + who])
+        sky_here, _ = sides(position[who])
         sky_there, back_there = sides(moved)
         # Beyond the wall the way on is clear for a while, and the point is not in
         # a solid: a solid wall shows its far side's back face (the window room's
@@ -423,15 +471,14 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
         if doubt.size:
             take[doubt] = _sees_sky(rays, moved[doubt], nw[doubt], SKY_RAYS, [seed, a, 0x5B])
         if take.any():
-            wall_at = position[a + who] + dirs * (tw / rays.scale)[:, None]
-            take[take] &= _open_texel_at(moved[take], texel[a + who[take]], texel, width, height, position,
+            wall_at = position[who] + dirs * (tw / rays.scale)[:, None]
+            take[take] &= _open_texel_at(moved[take], texel[who[take]], texel, width, height, position,
                                          inside, 1.5 * step, wall_at[take], dirs[take])
-        return a + who[take], moved[take]
+        return who[take], moved[take]
 
-    starts = range(0, n, CHUNK_TEXELS)
-    parts = list(executor.map(chunk, starts)) if executor is not None and len(starts) > 1 else [
-        chunk(a) for a in starts]
-    for part in parts:
+    # A block at a time (what its tasks found is held until it is done), its tasks on the threads.
+    for a, spans in _blocks(n):
+        part = block((a, _run(executor, walls, spans)))
         if part is not None:
             found_index.append(part[0])
             found_position.append(part[1])

@@ -258,7 +258,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
             kept = held + ((surface + 4 * K * v) if bounces else 0)         # this set's bounce source too
             sun_pass = base + kept + max(GBUFFER_BUILD * fn, SURFACE * fn + max(
                 validity_bytes(fw, fh, fn, threads) if validity else 0,
-                mask_bytes(fw, fh, fn, threads, chunk_rays, SUN_RAYS)))
+                mask_bytes(fw, fh, fn, threads, chunk_rays, SUN_RAYS, refine=True)))
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
                            projection, build, smooth, valid_pass, sun_pass)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);

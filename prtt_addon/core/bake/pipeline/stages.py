@@ -221,10 +221,12 @@ class SetRows:
         self.gbuffer.release_surface()
 
 
-def trace_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, *, position: int = 0) -> SetRows:
+def trace_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, *, position: int = 0,
+              inside: np.ndarray | None = None) -> SetRows:
     """Trace the transfer of ``gb``'s covered texels (progress stage "trace";
-    ``position`` = the set's place among ctx.set_ids, reported as set_index).
-    Waits for the ray tables first. Needs gb.n > 0."""
+    ``position`` = the set's place among ctx.set_ids, reported as set_index)
+    but those ``inside`` geometry ((N,) bool: dropped and filled by the
+    dilation; their rows zero). Waits for the ray tables first. Needs gb.n > 0."""
     name = ctx.scene.set_names[gb.set_index]
     pts = geo.points(ctx.scene, gb.set_index, gb)
     ctx.wait_tables()
@@ -238,7 +240,7 @@ def trace_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, *, position: int = 0
     # Chunks write whole rows (N, K) (a chunk's texels are scattered over the
     # atlas; K separate plane writes per texel cost more than the trace glue).
     rows, info = bake_points(geo.rays, pts, ctx.settings, progress=on_progress, cancel=ctx.cancel,
-                             remote=ctx.remote)
+                             remote=ctx.remote, skip=inside)
     ctx.seconds["trace"] += time.perf_counter() - t
     return SetRows(gb, pts, rows, info)
 
@@ -413,7 +415,7 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     if rep.get("skipped"):
         return SetResult(gb.set_index, name, rep, [])
     inside, step = validity_pass(ctx, geo, gb, rep)
-    traced = trace_set(ctx, geo, gb, position=position)
+    traced = trace_set(ctx, geo, gb, position=position, inside=inside)
     sun_files = []
     if ctx.sun is not None and ctx.settings.sun_detail == 1:
         # Before the texture's write may release the G-buffer's points (moved by validity).
@@ -492,7 +494,7 @@ def _finish_transfer_set(ctx, geo, plan, gb, rep, traced, inside, step, sun_file
         valid = np.ones(gb.n, bool) if inside is None else ~inside
         rep["filtered_texels"] = guided_filter.smooth_guided(
             traced.rows, gb.texel, gb.width, gb.height, gb.position, gb.normal,
-            guided_index[valid[guided_index]], valid, step)
+            guided_index[valid[guided_index]], valid, step, executor=ctx.helpers)
         ctx.seconds["trace"] += time.perf_counter() - t
     grid = ctx.bounce_grids.get(gb.set_index) if keep_for_bounce else None
     fine = analytic = None

@@ -19,17 +19,20 @@ from ...io import exr_io
 from ...light.sun import SUN_RAYS, Sun
 from ...texels.dilate import dilate
 from ..estimators.raytrace import RayScene
-from ..estimators.sun_mask import sun_mask
+from ..estimators.sun_mask import FIRST_RAYS, REFINE_RING, sun_mask
 from .context import BakeContext
 
 
-def sun_key(sun: Sun | None, input_hash: str, detail: int = 1) -> str | None:
+def sun_key(sun: Sun | None, input_hash: str, detail: int = 1, refine: bool = True) -> str | None:
     """sha256 hex of what a set's mask depends on beyond the transfer's inputs:
     the sun's direction and disc, the rays, the mask's detail (settings.sun_detail,
-    when not 1: the keys of the bakes before it); None without a sun."""
+    when not 1: the keys of the bakes before it) and its refinement
+    (settings.sun_refine; off: the keys before it); None without a sun."""
     if sun is None:
         return None
     extra = f"|detail={detail}" if detail != 1 else ""
+    if refine:
+        extra += f"|refine={FIRST_RAYS},{REFINE_RING}"
     return hashlib.sha256(f"{input_hash}|{sun.mask_hash()}|{SUN_RAYS}{extra}".encode()).hexdigest()
 
 
@@ -37,7 +40,8 @@ def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | No
             rings: int | None = None) -> tuple[str, dict]:
     """Trace, dilate and stage set ``gb``'s mask (``gb`` the set's G-buffer,
     or one settings.sun_detail times finer over its layout, dilated by
-    ``rings``: as many of its texels as the set's dilation covers);
+    ``rings``: as many of its texels as the set's dilation covers); with
+    settings.sun_refine all its rays only in penumbrae (sun_mask's ``grid``);
     returns (file name, the set report's sun entries). ``rays`` the scene's
     BVH (None under Dask: the mask is traced here, on a BVH of its own)."""
     st, sun = ctx.settings, ctx.sun
@@ -50,7 +54,8 @@ def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | No
     if sun.shadow:
         m = sun_mask(rays, gb.position, gb.geo_normal, gb.texel.astype(np.int64), sun.direction, sun.angle,
                      rays=SUN_RAYS, seed=st.seed, set_index=gb.set_index, threads=st.n_threads,
-                     chunk_rays=st.chunk_rays, cancel=ctx.cancel)
+                     chunk_rays=st.chunk_rays, cancel=ctx.cancel,
+                     grid=(gb.width, gb.height) if st.sun_refine else None)
     else:                              # Shadow off: nothing blocks it (n.l is the shading's)
         m = np.ones(gb.texel.size, np.float32)
     H, W = gb.height, gb.width
