@@ -235,3 +235,33 @@ def test_validity_does_not_depend_on_the_tasks_or_threads(monkeypatch):
     monkeypatch.setattr(validity, "TASK_TEXELS", validity.CHUNK_TEXELS)
     whole = run(None)
     assert tasks == whole and tasks[3] > 100
+
+
+def test_texels_inside_are_not_traced_and_the_others_keep_their_bits():
+    """bake_points(skip=inside): the window room's texels inside its walls
+    (11,249 of 89,368 at 512²) trace no ray, guided or not, and every other
+    row is the bake's without skip, bit for bit (their chunks keep their
+    shapes through BLAS)."""
+    from prtt_addon.core.bake.estimators import validity
+    from prtt_addon.core.bake.estimators.raytrace import RayScene
+    from prtt_addon.core.bake.estimators.transfer import bake_points
+    from prtt_addon.core.bake.pipeline.context import BakeSettings
+    from prtt_addon.core.bake.pipeline.stages import bake_points_input, scene_face_data
+    from prtt_addon.core.texels.gbuffer import build_gbuffer
+    from prtt_addon.dev.bench import window_room as wr
+    sc = wr.build(256)
+    st = BakeSettings(rays=64, bounces=0).validate()
+    rs, w = RayScene(sc.positions), validity.winding_normals(sc.positions)
+    fn, grp, clear, _ = scene_face_data(sc)
+    gb = build_gbuffer(sc, 0)
+    step = validity.texel_step(gb.texel, gb.position, gb.width)
+    inside = validity.inside_texels(rs, w, gb.position, gb.geo_normal, contact=0.5 * step,
+                                    grid=(gb.texel, gb.width, gb.height))
+    pts = bake_points_input(sc, 0, gb, fn, clear, grp)
+    all_rows, all_info = bake_points(rs, pts, st)
+    rows, info = bake_points(rs, pts, st, skip=inside)
+    assert inside.sum() > 1000 and all_info["guided_points"] > 1000
+    assert rows[~inside].tobytes() == all_rows[~inside].tobytes()
+    assert info["skipped_points"] == int(inside.sum()) and info["guided_points"] == all_info["guided_points"]
+    # The skipped points' rays are gone from the count (all but those below a horizon would be traced).
+    assert info["rays_traced"] <= all_info["rays_traced"] - 0.5 * st.rays * int(inside.sum())
