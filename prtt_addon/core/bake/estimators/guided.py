@@ -79,6 +79,9 @@ PATTERNS = 16
 #: the window room 6.7 % at 3/4, 6.05 % at 7/8, 7.9 % at 1/2, the same time).
 GUIDED_SHARE = 0.875
 
+#: Pilot parts a thread at least (a set's pilot points fit one chunk of rays: 22K at 512²).
+PILOT_PARTS = 4
+
 #: Cells pool their pilot counts with their neighbours this many voxels each
 #: way (same normal side): more escapes to learn from where openings are
 #: seen in few pilot rays.
@@ -247,7 +250,9 @@ def build_guide(rs: RayScene, position, normal, geo_normal, ids, traced: np.ndar
     # One point in PILOT_EVERY (by a hash of its id) sends the pilot rays: a cell learns from its
     # share of them, and every point of a cell is guided or not by what the cell learned.
     sent_by = tr if PILOT_EVERY == 1 else tr[hash_u32(seed, ids[tr], _SALT_PILOT) % np.uint32(PILOT_EVERY) == 0]
-    per = max(1, chunk_rays // PILOT_RAYS)
+    # At least PILOT_PARTS parts a thread, so both cores send them (the counts are integers:
+    # their sums do not depend on the parts).
+    per = max(1, min(chunk_rays // PILOT_RAYS, -(-sent_by.size // (PILOT_PARTS * max(1, threads)))))
     parts = [sent_by[a:a + per] for a in range(0, sent_by.size, per)]
 
     def pilot(idx):

@@ -129,16 +129,21 @@ SKY_RAYS = 128
 ROOM_SKY_SHARE = 0.2
 
 
-def _block_uniforms(seed, a: int, b: int, lo: int, hi: int, rays: int):
-    """(u1, u2), each (hi - lo, rays) float64: rows lo - a .. hi - a of
-    ``np.random.default_rng(seed + [a]).random((2, b - a, rays))``, the numbers
-    of block [a, b) that texels lo..hi use, without drawing the others: a
-    double is one 64-bit step of PCG64, which ``advance`` skips."""
-    def rows(skip):
-        bits = np.random.PCG64(np.random.SeedSequence(list(seed) + [a]))
+def _uniform_rows(seed: list, rows: int, lo: int, hi: int, cols: int):
+    """(u1, u2), each (hi - lo, cols) float64: rows lo..hi of
+    ``np.random.default_rng(seed).random((2, rows, cols))``, without drawing
+    the others: a double is one 64-bit step of PCG64, which ``advance`` skips."""
+    def part(skip):
+        bits = np.random.PCG64(np.random.SeedSequence(list(seed)))
         bits.advance(skip)
-        return np.random.Generator(bits).random((hi - lo, rays))
-    return rows((lo - a) * rays), rows((b - a + lo - a) * rays)
+        return np.random.Generator(bits).random((hi - lo, cols))
+    return part(lo * cols), part((rows + lo) * cols)
+
+
+def _block_uniforms(seed, a: int, b: int, lo: int, hi: int, rays: int):
+    """(u1, u2), each (hi - lo, rays): the numbers of texels lo..hi of block
+    [a, b), whose generator is ``default_rng(seed + [a])`` drawing (2, b - a, rays)."""
+    return _uniform_rows(list(seed) + [a], b - a, lo - a, hi - a, rays)
 
 
 def _blocks(n: int):
@@ -154,17 +159,29 @@ def _run(executor, fn, items) -> list:
     return list(executor.map(fn, items)) if executor is not None and len(items) > 1 else [fn(i) for i in items]
 
 
-def _sees_sky(rays, points: np.ndarray, normals: np.ndarray, n_rays: int, seed) -> np.ndarray:
+#: Points a task of _sees_sky traces.
+SKY_TASK = 2048
+
+
+def _sees_sky(rays, points: np.ndarray, normals: np.ndarray, n_rays: int, seed, executor=None) -> np.ndarray:
     """(M,) bool: at least one of ``n_rays`` cosine rays about ``normals``
     (M, 3) from ``points`` (M, 3) world escapes the scene; ``seed`` seeds
-    numpy's generator (a list of ints)."""
-    if len(points) == 0:
+    numpy's generator (a list of ints), which draws (2, M, n_rays) numbers;
+    ``executor``: tasks of SKY_TASK points on its threads (each draws its
+    rows of those numbers alone: the same answer)."""
+    m = len(points)
+    if m == 0:
         return np.zeros(0, bool)
-    rng = np.random.default_rng(seed)
-    u1, u2 = rng.random((2, len(points), n_rays))
-    d = _cosine(u1, u2, *tangent_frames(normals), normals)
-    o = np.repeat(rays.origins(points, normals), n_rays, axis=0)
-    return (~rays.occluded(o, d.reshape(-1, 3).astype(np.float32))).reshape(-1, n_rays).any(axis=1)
+
+    def task(lo):
+        hi = min(m, lo + SKY_TASK)
+        u1, u2 = _uniform_rows(seed, m, lo, hi, n_rays)
+        nrm = normals[lo:hi]
+        d = _cosine(u1, u2, *tangent_frames(nrm), nrm)
+        o = np.repeat(rays.origins(points[lo:hi], nrm), n_rays, axis=0)
+        return (~rays.occluded(o, d.reshape(-1, 3).astype(np.float32))).reshape(-1, n_rays).any(axis=1)
+
+    return np.concatenate(_run(executor, task, list(range(0, m, SKY_TASK))))
 
 
 #: How far past a front face a back face in (nearly) its plane is looked for (normalised units).
@@ -268,7 +285,8 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
         # for the block's inside texels together (its seed: its first texel).
         a, marked = item
         out[marked] = True
-        sky_seen[marked] = _sees_sky(rays, position[marked], geo_normal[marked], ESCAPE_RAYS, [seed, a, 0xE5])
+        sky_seen[marked] = _sees_sky(rays, position[marked], geo_normal[marked], ESCAPE_RAYS, [seed, a, 0xE5],
+                                     executor)
 
     for a, spans in _blocks(n):
         block((a, np.concatenate(_run(executor, task, spans))))
