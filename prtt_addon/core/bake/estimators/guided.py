@@ -357,9 +357,10 @@ def _invert(cdf: np.ndarray, group: np.ndarray, u: np.ndarray):
     return b, np.clip(frac, 0.0, np.nextafter(1.0, 0.0), out=frac)
 
 
-def guide_directions(guide: Guide, cell: np.ndarray, ids: np.ndarray, rays: int, seed: int):
+def guide_directions(guide: Guide, cell: np.ndarray, ids: np.ndarray, rays: int, seed: int, out=None):
     """(m, rays, 3) float32 directions drawn from the points' cells'
-    histograms, and their bins (m, rays) int64.
+    histograms (written into ``out`` (m, rays, 3) float32 when given, and
+    returned), and their bins (m, rays) int32.
 
     A cell has :data:`PATTERNS` patterns; a point takes the one its id
     hashes to (neighbours' noise stays independent but for one in PATTERNS).
@@ -391,7 +392,12 @@ def guide_directions(guide: Guide, cell: np.ndarray, ids: np.ndarray, rays: int,
     np.multiply(r, np.sin(phi), out=d[:, 1], casting="same_kind")
     d[:, 2] = z
     b = (iz * BINS_PHI + ip).astype(np.int32)
-    return d.reshape(pairs.size, rays, 3)[which], b.reshape(pairs.size, rays)[which]
+    d = d.reshape(pairs.size, rays, 3)
+    if out is None:
+        out = d[which]
+    else:
+        np.take(d, which, axis=0, out=out, mode="clip")     # which < pairs.size: clip is the identity
+    return out, b.reshape(pairs.size, rays)[which]
 
 
 def guided_transfer(rs: RayScene, position, normal, geo_normal, ids, idx: np.ndarray, guide: Guide,
@@ -410,7 +416,7 @@ def guided_transfer(rs: RayScene, position, normal, geo_normal, ids, idx: np.nda
     d[:, :n_c] = cosine_directions(n, pid, n_c, seed, _SALT_COS)
     bins_g = None
     if n_g:
-        d[:, n_c:], bins_g = guide_directions(guide, cell, pid, n_g, seed)
+        _, bins_g = guide_directions(guide, cell, pid, n_g, seed, out=d[:, n_c:])
     n32, g32 = n.astype(np.float32), g.astype(np.float32)
     cos_n = np.matmul(d, n32[:, :, None])[..., 0]
     trace = cos_n > 0.0
@@ -462,9 +468,11 @@ def guided_transfer(rs: RayScene, position, normal, geo_normal, ids, idx: np.nda
             a += 1
             continue
         hi = ends[b - 1]
-        contrib = basis_unchecked(dv[lo:hi], bands, np.float32)       # (rays, K)
-        contrib *= weight[lo:hi, None]
-        out[i[starts[a:b]]] = np.add.reduceat(contrib, starts[a:b] - lo, axis=0)
+        # Coefficient-major (K, rays): no transposed copy, and each point's sum runs
+        # along its own rays in order, as reduceat over rows does (the same bits).
+        contrib = basis_unchecked(dv[lo:hi], bands, np.float32, coeff_major=True)
+        contrib *= weight[None, lo:hi]
+        out[i[starts[a:b]]] = np.add.reduceat(contrib, starts[a:b] - lo, axis=1).T
         a = b
     return out, traced
 
