@@ -32,6 +32,7 @@ float32 rounding (not the same bits), in a fraction of the time.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -53,15 +54,16 @@ SUB = 4096
 GROUP = 4
 
 
-def filter_bytes(width: int, coeffs: int) -> int:
+def filter_bytes(width: int, coeffs: int, height: int | None = None) -> int:
     """Upper bound of the filter's temporaries (bytes) for a set ``width``
     texels wide with ``coeffs`` coefficients a row: GROUP + 1 bands' outputs
     and GROUP bands' gathered neighbours (float32 and float64 sums, indices,
-    weights) at once."""
+    weights) at once; the numpy path's texel lookup (4 B a texel of the set,
+    ``height`` rows: ``width`` unless given)."""
     texels = BAND_ROWS * width
     per_offset = (2 * RADIUS + 1) ** 2 * (8 + 8 + 4)       # neighbour index, weight, float32 weight
     return (texels * ((GROUP + 1) * 4 * coeffs + GROUP * (per_offset + 64))
-            + GROUP * SUB * (2 * RADIUS + 1) ** 2 * 4 * coeffs)
+            + GROUP * SUB * (2 * RADIUS + 1) ** 2 * 4 * coeffs + 4 * width * (width if height is None else height))
 
 
 _JIT = "prtt_addon.core.bake.estimators.guided_filter_jit"
@@ -72,13 +74,13 @@ def _compiled():
     return jit.load(_JIT)
 
 
-def _band(rows, texel, width, height, position, normal, valid, tg, offsets, spatial, inv_world) -> np.ndarray:
+def _band(rows, texel, lookup, width, height, position, normal, valid, tg, offsets, spatial, inv_world) -> np.ndarray:
     """(M, K) float32: the filtered rows of one band's targets ``tg`` (M,),
     numpy: each target's neighbours (index, weight; weight 0 where there is
     none), then the weighted sum of their rows, SUB targets at a time (C
     loops of einsum: the same sums whatever the machine; ~10 MB of gathered
-    rows). Reads ``rows`` only."""
-    N = texel.size
+    rows). ``lookup`` (H W,) int32: the row of each texel, -1 where none.
+    Reads ``rows`` only."""
     flat = texel[tg]
     y, x = flat // width, flat % width
     p0, n0 = position[tg], normal[tg]
@@ -87,13 +89,16 @@ def _band(rows, texel, width, height, position, normal, valid, tg, offsets, spat
     for o, ((dy, dx), ws) in enumerate(zip(offsets, spatial)):
         yq, xq = y + dy, x + dx
         ok = (yq >= 0) & (yq < height) & (xq >= 0) & (xq < width)
-        q = yq * width + xq
-        j = np.minimum(np.searchsorted(texel, q), N - 1)
-        ok &= texel[j] == q
-        ok &= valid[j]
+        j = np.where(ok, lookup[np.where(ok, yq * width + xq, 0)], -1)    # the row of texel q, -1: none
+        ok = j >= 0
+        ok[ok] = valid[j[ok]]
         i, j = np.flatnonzero(ok), j[ok]
-        dw = np.sum((position[j] - p0[i]) ** 2, axis=1)
-        cos = np.clip(np.sum(normal[j] * n0[i], axis=1), 0.0, 1.0)
+        # A sum of 3 in order, as np.sum over the axis adds them (the same bits).
+        pj, p0i = position[j], p0[i]
+        d0, d1, d2 = pj[:, 0] - p0i[:, 0], pj[:, 1] - p0i[:, 1], pj[:, 2] - p0i[:, 2]
+        dw = d0 * d0 + d1 * d1 + d2 * d2
+        nj, n0i = normal[j], n0[i]
+        cos = np.clip(nj[:, 0] * n0i[:, 0] + nj[:, 1] * n0i[:, 1] + nj[:, 2] * n0i[:, 2], 0.0, 1.0)
         nb[i, o] = j
         wt[i, o] = ws * np.exp(-dw * inv_world) * cos ** NORMAL_POWER
     wsum = wt.sum(axis=1)
@@ -136,6 +141,7 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     cuts = np.flatnonzero(np.diff(band_of)) + 1
     bands = np.split(np.arange(targets.size), cuts)
     state = {"fast": _compiled() if compiled else None}
+    lock = threading.Lock()
     spatial_f64 = np.asarray(spatial, np.float64)
 
     def band(members) -> tuple:
@@ -151,7 +157,13 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
             except Exception as exc:    # noqa: BLE001 - a numba that imports but cannot compile it
                 jit.broken(_JIT, exc)
                 state["fast"] = None
-        return tg, _band(rows, texel, width, height, position, normal, valid, tg, offsets, spatial, inv_world)
+        with lock:                      # made once, by the first band that needs it
+            if state.get("lookup") is None:
+                lookup = np.full(width * height, -1, np.int32 if texel.size < 1 << 31 else np.int64)
+                lookup[texel] = np.arange(texel.size)
+                state["lookup"] = lookup
+        return tg, _band(rows, texel, state["lookup"], width, height, position, normal, valid, tg, offsets, spatial,
+                         inv_world)
 
     group = GROUP if executor is not None else 1
     pending = None                    # the band before this group's, filtered, not yet written

@@ -247,7 +247,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         # The guide is built before the rows exist (its cells' search), then held through the trace.
         build = base + held + SURFACE * n + guide_build_bytes(n) if guiding else 0
         # The guided texels' filter runs on the rows once they are traced (estimators/guided_filter.py).
-        smooth = base + held + SURFACE * n + 4 * K * n + guide + filter_bytes(w, K) if guiding else 0
+        smooth = base + held + SURFACE * n + 4 * K * n + guide + filter_bytes(w, K, h) if guiding else 0
         # Texel validity runs before the trace, beside the G-buffer's surface (estimators/validity.py).
         valid_pass = base + held + SURFACE * n + validity_bytes(w, h, n, threads) if validity else 0
         # The sun's mask is traced once the rows are, beside them (pipeline/sun_stage.py).
