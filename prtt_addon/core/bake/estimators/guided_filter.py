@@ -56,14 +56,30 @@ GROUP = 4
 
 def filter_bytes(width: int, coeffs: int, height: int | None = None) -> int:
     """Upper bound of the filter's temporaries (bytes) for a set ``width``
-    texels wide with ``coeffs`` coefficients a row: GROUP + 1 bands' outputs
-    and GROUP bands' gathered neighbours (float32 and float64 sums, indices,
-    weights) at once; the numpy path's texel lookup (4 B a texel of the set,
-    ``height`` rows: ``width`` unless given)."""
-    texels = BAND_ROWS * width
+    texels wide with ``coeffs`` coefficients a row, the larger of its two
+    layouts: one band at a time (two bands' outputs, one band's gathered
+    neighbours: float32 and float64 sums, indices, weights, SUB targets'
+    rows) or GROUP bands of a GROUP-th the rows (GROUP + 1 outputs, GROUP
+    gathers of a GROUP-th the targets); and the numpy path's texel lookup
+    (4 B a texel of the set, ``height`` rows: ``width`` unless given)."""
     per_offset = (2 * RADIUS + 1) ** 2 * (8 + 8 + 4)       # neighbour index, weight, float32 weight
-    return (texels * ((GROUP + 1) * 4 * coeffs + GROUP * (per_offset + 64))
-            + GROUP * SUB * (2 * RADIUS + 1) ** 2 * 4 * coeffs + 4 * width * (width if height is None else height))
+
+    def layout(rows, group, sub):
+        texels = rows * width
+        return (texels * ((group + 1) * 4 * coeffs + group * (per_offset + 64))
+                + group * sub * (2 * RADIUS + 1) ** 2 * 4 * coeffs)
+    grouped = layout(_grouped_rows(), GROUP, _grouped_sub())
+    return max(layout(BAND_ROWS, 1, SUB), grouped) + 4 * width * (width if height is None else height)
+
+
+def _grouped_rows() -> int:
+    """Texture rows of a band when GROUP bands run at once (at least RADIUS)."""
+    return max(RADIUS, BAND_ROWS // GROUP)
+
+
+def _grouped_sub() -> int:
+    """Targets gathered at a time by each of GROUP bands at once."""
+    return max(1, SUB // GROUP)
 
 
 _JIT = "prtt_addon.core.bake.estimators.guided_filter_jit"
@@ -74,10 +90,11 @@ def _compiled():
     return jit.load(_JIT)
 
 
-def _band(rows, texel, lookup, width, height, position, normal, valid, tg, offsets, spatial, inv_world) -> np.ndarray:
+def _band(rows, texel, lookup, width, height, position, normal, valid, tg, offsets, spatial, inv_world,
+          sub: int = SUB) -> np.ndarray:
     """(M, K) float32: the filtered rows of one band's targets ``tg`` (M,),
     numpy: each target's neighbours (index, weight; weight 0 where there is
-    none), then the weighted sum of their rows, SUB targets at a time (C
+    none), then the weighted sum of their rows, ``sub`` targets at a time (C
     loops of einsum: the same sums whatever the machine; ~10 MB of gathered
     rows). ``lookup`` (H W,) int32: the row of each texel, -1 where none.
     Reads ``rows`` only."""
@@ -106,8 +123,8 @@ def _band(rows, texel, lookup, width, height, position, normal, valid, tg, offse
     wt[good] /= wsum[good, None]
     wt = wt.astype(np.float32)
     out = rows[tg]
-    for a in range(0, tg.size, SUB):
-        b = min(a + SUB, tg.size)
+    for a in range(0, tg.size, sub):
+        b = min(a + sub, tg.size)
         g = np.flatnonzero(good[a:b]) + a
         out[g] = np.einsum("mo,mok->mk", wt[g], rows[nb[g]])
     return out
@@ -136,8 +153,11 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
     spatial = [math.exp(-(dy * dy + dx * dx) / (2.0 * SIGMA_TEXELS ** 2)) for dy, dx in offsets]
     inv_world = 1.0 / (2.0 * (SIGMA_STEPS * step) ** 2)
+    group = GROUP if executor is not None else 1
+    # GROUP bands at once of a GROUP-th the rows each: the memory of one band at a time.
+    band_rows, sub = (_grouped_rows(), _grouped_sub()) if group > 1 else (BAND_ROWS, SUB)
     ty = texel[targets] // width
-    band_of = ty // BAND_ROWS
+    band_of = ty // band_rows
     cuts = np.flatnonzero(np.diff(band_of)) + 1
     bands = np.split(np.arange(targets.size), cuts)
     state = {"fast": _compiled() if compiled else None}
@@ -163,9 +183,8 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
                 lookup[texel] = np.arange(texel.size)
                 state["lookup"] = lookup
         return tg, _band(rows, texel, state["lookup"], width, height, position, normal, valid, tg, offsets, spatial,
-                         inv_world)
+                         inv_world, sub)
 
-    group = GROUP if executor is not None else 1
     pending = None                    # the band before this group's, filtered, not yet written
     for a in range(0, len(bands), group):
         part = bands[a:a + group]
