@@ -69,7 +69,9 @@ def filter_bytes(width: int, coeffs: int, height: int | None = None) -> int:
         return (texels * ((group + 1) * 4 * coeffs + group * (per_offset + 64))
                 + group * sub * (2 * RADIUS + 1) ** 2 * 4 * coeffs)
     grouped = layout(_grouped_rows(), GROUP, _grouped_sub())
-    return max(layout(BAND_ROWS, 1, SUB), grouped) + 4 * width * (width if height is None else height)
+    # The numpy path's steps over a window row at once: ~6 int64 arrays a neighbour of it.
+    window_row = BAND_ROWS * width * 48 * (2 * RADIUS + 1)
+    return max(layout(BAND_ROWS, 1, SUB) + window_row, grouped) + 4 * width * (width if height is None else height)
 
 
 def _grouped_rows() -> int:
@@ -103,21 +105,28 @@ def _band(rows, texel, lookup, width, height, position, normal, valid, tg, offse
     p0, n0 = position[tg], normal[tg]
     nb = np.zeros((tg.size, len(offsets)), np.int64)
     wt = np.zeros((tg.size, len(offsets)), np.float64)
-    for o, ((dy, dx), ws) in enumerate(zip(offsets, spatial)):
-        yq, xq = y + dy, x + dx
+    side = 2 * RADIUS + 1
+    for r0 in range(0, len(offsets), side):
+        # One row of the window at a time (its side offsets together: few steps, each
+        # on side times the targets), the same arithmetic per neighbour as one at a time.
+        dy = np.asarray([d[0] for d in offsets[r0:r0 + side]])
+        dx = np.asarray([d[1] for d in offsets[r0:r0 + side]])
+        ws = np.asarray(spatial[r0:r0 + side], np.float64)
+        yq, xq = y[:, None] + dy[None, :], x[:, None] + dx[None, :]
         ok = (yq >= 0) & (yq < height) & (xq >= 0) & (xq < width)
         j = np.where(ok, lookup[np.where(ok, yq * width + xq, 0)], -1)    # the row of texel q, -1: none
         ok = j >= 0
         ok[ok] = valid[j[ok]]
-        i, j = np.flatnonzero(ok), j[ok]
+        i, o = np.nonzero(ok)
+        j = j[i, o]
         # A sum of 3 in order, as np.sum over the axis adds them (the same bits).
         pj, p0i = position[j], p0[i]
         d0, d1, d2 = pj[:, 0] - p0i[:, 0], pj[:, 1] - p0i[:, 1], pj[:, 2] - p0i[:, 2]
         dw = d0 * d0 + d1 * d1 + d2 * d2
         nj, n0i = normal[j], n0[i]
         cos = np.clip(nj[:, 0] * n0i[:, 0] + nj[:, 1] * n0i[:, 1] + nj[:, 2] * n0i[:, 2], 0.0, 1.0)
-        nb[i, o] = j
-        wt[i, o] = ws * np.exp(-dw * inv_world) * cos ** NORMAL_POWER
+        nb[i, r0 + o] = j
+        wt[i, r0 + o] = ws[o] * np.exp(-dw * inv_world) * cos ** NORMAL_POWER
     wsum = wt.sum(axis=1)
     good = wsum > 0
     wt[good] /= wsum[good, None]
@@ -139,8 +148,8 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     world, unit; ``valid`` (N,) bool: texels that may be neighbours; ``step``
     the set's texel step (world units, > 0); ``compiled``: False takes the numpy
     path even where numba is there (the tests compare the two); ``executor``:
-    a thread pool that filters GROUP bands at a time (the compiled loop holds
-    no GIL). Returns the texels filtered.
+    a thread pool on which the compiled loop (which holds no GIL) filters
+    GROUP bands at a time. Returns the texels filtered.
 
     Every band is filtered from the rows as traced: a band's filtered rows are
     written once the bands that read them (the next, within RADIUS <=
@@ -153,15 +162,17 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
     spatial = [math.exp(-(dy * dy + dx * dx) / (2.0 * SIGMA_TEXELS ** 2)) for dy, dx in offsets]
     inv_world = 1.0 / (2.0 * (SIGMA_STEPS * step) ** 2)
-    group = GROUP if executor is not None else 1
-    # GROUP bands at once of a GROUP-th the rows each: the memory of one band at a time.
+    state = {"fast": _compiled() if compiled else None}
+    lock = threading.Lock()
+    # GROUP bands at once of a GROUP-th the rows each (the memory of one band at a
+    # time) where the compiled loop runs them: it holds no GIL, while the numpy path's
+    # many small steps on thin bands would wait for it (0.07 s -> 0.15 s, the window room).
+    group = GROUP if executor is not None and state["fast"] is not None else 1
     band_rows, sub = (_grouped_rows(), _grouped_sub()) if group > 1 else (BAND_ROWS, SUB)
     ty = texel[targets] // width
     band_of = ty // band_rows
     cuts = np.flatnonzero(np.diff(band_of)) + 1
     bands = np.split(np.arange(targets.size), cuts)
-    state = {"fast": _compiled() if compiled else None}
-    lock = threading.Lock()
     spatial_f64 = np.asarray(spatial, np.float64)
 
     def band(members) -> tuple:
