@@ -31,6 +31,12 @@ has the sky in it, so its profiles are normalised lit = 1, umbra = 0.
 HDRIs as it is (not band-limited, no lamp), with its sun extracted
 (``scene.prtt.hdri_sun``: core/light/sun_extract.py) and without (the sun in
 the SH), both against Cycles; profiles normalised as for the sky.
+
+``--memory SIZES`` (issue 48: memory measured like time): the demo-class
+room (scene_library.room_scene, one atlas of each size, one relightable
+bounce) baked in a child process of its own without a sun and with a 0.5°
+sun at Sun Shadow Detail 1 and 2: the process's peak RSS (VmHWM) beside
+the bake's memory estimate (memory_plan), its seconds and the masks'.
 """
 from __future__ import annotations
 
@@ -419,6 +425,45 @@ def glossy_highlight(size=(320, 180), *, samples: int = 256, resolution: int = 5
             "images": {"prtt": prtt, "cycles": ref}}
 
 
+_MEMORY_CHILD = r"""
+import json, math, sys, tempfile
+from prtt_addon.core.bake.pipeline.context import BakeSettings
+from prtt_addon.core.bake.pipeline.runner import bake_scene
+from prtt_addon.core.light.envmap import environment_light
+from prtt_addon.core.light.sun import Sun
+from prtt_addon.dev.bench import scene_library
+size, detail = int(sys.argv[1]), int(sys.argv[2])
+sc = scene_library.room_scene(size, atlas=True, materials=True)
+sun = Sun(direction=(0.45, -0.3, 0.84), angle=math.radians(0.5), strength=3.0) if detail else None
+with tempfile.TemporaryDirectory(prefix="prtt-sun-memory-") as d:
+    m = bake_scene(sc, d, BakeSettings(bounces=1, sun_detail=max(detail, 1)),
+                   light=environment_light("forest", 5, 1.0, 0.0), sun=sun)
+hwm = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:"))
+print(json.dumps({"peak_rss_mb": hwm / 1024.0, "estimate_mb": m.get("memory", {}).get("estimate_mb"),
+                  "seconds": m["seconds"]["total"], "texels": m["totals"]["texels"],
+                  "sun_s": sum(s.get("sun_seconds", 0.0) for s in m["sets"])}))
+"""
+
+
+def memory_rows(sizes, details=(0, 1, 2)) -> list:
+    """One child process a (size, detail) bake (detail 0: no sun): its peak RSS,
+    the bake's estimate, seconds (module docstring, ``--memory``)."""
+    import json
+    import subprocess
+    import sys
+
+    from . import scene_library
+    rows = []
+    for size in sizes:
+        for f in details:
+            r = subprocess.run([sys.executable, "-c", _MEMORY_CHILD, str(size), str(f)], capture_output=True,
+                               text=True, env=dict(os.environ, PYTHONPATH=scene_library.ROOT), timeout=3600)
+            if r.returncode != 0:
+                raise RuntimeError(f"the {size}² bake with detail {f} failed: {r.stderr[-1500:]}")
+            rows.append(dict(size=size, detail=f, **json.loads(r.stdout.strip().splitlines()[-1])))
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m prtt_addon.dev.bench sun", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -429,6 +474,9 @@ def main(argv=None) -> int:
     p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, roughness 0.3), TPFL")
     p.add_argument("--sun-detail", default="1", help="the sun masks' detail (Sun Shadow Detail), "
                    "comma-separated: a row each")
+    p.add_argument("--memory", metavar="SIZES", help="peak RSS of the room's bake in a process of its own at "
+                   "each atlas size (comma-separated), without a sun and with one at Sun Shadow Detail 1 and 2, "
+                   "beside the bake's estimate (no Cycles)")
     p.add_argument("--no-sun-refine", action="store_true", help="fine masks trace every texel's 64 rays "
                    "(sun_refine off: the masks before refinement)")
     p.add_argument("--glossy-pass", action="store_true",
@@ -442,6 +490,15 @@ def main(argv=None) -> int:
                    help="a Sky Texture World with its sun disc instead of the lamp: the disc baked as the sun "
                         "(sky_sun) and left in the World's SH (sky_sun off), both against Cycles")
     a = p.parse_args(argv)
+    if a.memory:
+        print("the room's bake (one relightable bounce) in a process of its own: peak RSS and the bake's estimate:")
+        print(f"  {'atlas':>6}  {'sun':>14}  {'texels':>9}  {'peak MiB':>8}  {'estimate':>8}  {'est/peak':>8}  "
+              f"{'bake s':>6}  {'mask s':>6}")
+        for r in memory_rows([int(x) for x in a.memory.split(",")]):
+            sun = "none" if r["detail"] == 0 else f"0.5 deg x{r['detail']}"
+            print(f"  {r['size']:>5}²  {sun:>14}  {r['texels']:>9}  {r['peak_rss_mb']:8.0f}  {r['estimate_mb']:8.0f}  "
+                  f"{r['estimate_mb'] / r['peak_rss_mb']:8.2f}  {r['seconds']:6.2f}  {r['sun_s']:6.2f}", flush=True)
+        return 0
     w, h = (int(v) for v in a.size.split("x"))
     if a.glossy_pass:
         print(f"the sun's highlight on a glossy floor (roughness 0.3), {w}x{h}, Cycles {a.samples} samples "

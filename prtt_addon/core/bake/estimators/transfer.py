@@ -214,6 +214,8 @@ class Chunk:
     # (point index, smallest id) its frame is made from, those of the whole
     # chunk, so the points it keeps get the rows they had with it whole.
     anchor: tuple | None = None
+    # (n,) bool: the points whose rays are not traced (bake_points' ``skip``), or None.
+    skip: np.ndarray | None = None
 
 
 def _stable_order(major: np.ndarray, minor: np.ndarray | None = None) -> np.ndarray:
@@ -354,10 +356,8 @@ class ChunkKernel:
     thread.
     """
 
-    def __init__(self, rs: RayScene, pts: Points, st: TransferSettings, G: int, cancel=None,
-                 skip: np.ndarray | None = None):
+    def __init__(self, rs: RayScene, pts: Points, st: TransferSettings, G: int, cancel=None):
         self.rs, self.pts, self.st, self.G = rs, pts, st, G
-        self.skip = skip                 # (N,) bool: points not traced (bake_points)
         self.K = st.bands ** 2
         self.dirs_bank, self.w_bank, self.cum_w = pattern_bank(
             G, st.rays, st.bands, st.sampler, st.distribution, st.seed, cancel=cancel)
@@ -446,10 +446,8 @@ class ChunkKernel:
         fr = chunk_frames(self.rs, self.pts, idx, st.seed, shared=chunk.shared, anchor=chunk.anchor)
         n = idx.size
         if not self.adaptive:
-            skip = None if self.skip is None else self.skip[idx]
             O, traced, below = self._trace_round(fr.R, fr.origins, fr.geo_normal, fr.horizon,
-                                                 self.dirs_bank[g], fr.shared, cancel,
-                                                 skip if skip is not None and skip.any() else None)
+                                                 self.dirs_bank[g], fr.shared, cancel, chunk.skip)
             base, table = self.base32[st.rays][g], self.tables[st.rays][1][g]
             if fr.shared:
                 # One frame: turn the estimator to world once (a (rays, K) table)
@@ -540,8 +538,9 @@ def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
     theirs bit for bit: the guide's pilot still counts the skipped points,
     and they stay in their chunks (the same shapes through BLAS, whose
     rounding can depend on them), their rays handed to Embree with an empty
-    interval (ChunkKernel.run). Not under adaptive sampling (its rounds'
-    shapes follow every point's noise) or a Dask cluster: there they are traced.
+    interval (ChunkKernel.run; each Chunk carries its ``skip``, to a Dask
+    worker too). Not under adaptive sampling (its rounds' shapes follow
+    every point's noise): there they are traced.
 
     Chunks run on ``settings.n_threads`` threads with single-threaded BLAS and
     write their rows of the result (disjoint, whole rows: see bake.py for why
@@ -580,12 +579,18 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None, skip=None):
             # Guided points run alone (their rows do not depend on their company): left out.
             skipped_guided = int(np.count_nonzero(skip & guided_pts))
             guide = dataclasses.replace(guide, cell=np.where(skip, -1, guide.cell).astype(np.int32))
-        if remote is None and len(st.round_sizes()) == 1:
+        if len(st.round_sizes()) == 1:
             kernel_skip = skip & ~guided_pts if guided_pts is not None else skip
             if not kernel_skip.any():
                 kernel_skip = None
     # Planned before the rows exist: the planner's temporaries and the rows are never held together.
     chunks, G = chunk_plan(pts, st, guided_pts)
+    if kernel_skip is not None:
+        # Each chunk carries its own (to a Dask worker too): the same rays traced either way.
+        for c in chunks:
+            own = kernel_skip[c.idx]
+            if own.any():
+                c.skip = own
     out = np.zeros((N, K), np.float32)
 
     ia = np.flatnonzero(analytic)
@@ -618,7 +623,7 @@ def _bake_points(rs, pts, settings, progress, cancel, remote=None, skip=None):
         if remote is not None:
             remote.trace_points(pts, st, chunks, G, sink, on_result, cancel)
         else:
-            kernel = ChunkKernel(rs, pts, st, G, cancel, skip=kernel_skip)
+            kernel = ChunkKernel(rs, pts, st, G, cancel)
 
             def run_chunk(chunk):
                 if cancel is not None and cancel.is_set():
