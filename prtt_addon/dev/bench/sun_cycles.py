@@ -445,23 +445,22 @@ print(json.dumps({"peak_rss_mb": hwm / 1024.0, "estimate_mb": m.get("memory", {}
 """
 
 
-def memory_rows(sizes, details=(0, 1, 2)) -> list:
-    """One child process a (size, detail) bake (detail 0: no sun): its peak RSS,
-    the bake's estimate, seconds (module docstring, ``--memory``)."""
+def memory_rows(sizes, details=(0, 1, 2)):
+    """One child process a (size, detail) bake (detail 0: no sun), yielded as
+    each ends: its peak RSS, the bake's estimate, seconds (module docstring,
+    ``--memory``)."""
     import json
     import subprocess
     import sys
 
     from . import scene_library
-    rows = []
     for size in sizes:
         for f in details:
             r = subprocess.run([sys.executable, "-c", _MEMORY_CHILD, str(size), str(f)], capture_output=True,
                                text=True, env=dict(os.environ, PYTHONPATH=scene_library.ROOT), timeout=3600)
             if r.returncode != 0:
                 raise RuntimeError(f"the {size}² bake with detail {f} failed: {r.stderr[-1500:]}")
-            rows.append(dict(size=size, detail=f, **json.loads(r.stdout.strip().splitlines()[-1])))
-    return rows
+            yield dict(size=size, detail=f, **json.loads(r.stdout.strip().splitlines()[-1]))
 
 
 def main(argv=None) -> int:
