@@ -223,3 +223,21 @@ def test_inversion_matches_a_per_sample_search():
         width = float(cdf[group[k], bk]) - lo
         assert b[k] == bk
         assert f[k] == (min(max((u[k] - lo) / width, 0.0), np.nextafter(1.0, 0.0)) if width > 0 else 0.0)
+
+
+def test_coefficient_major_projection_sums_as_the_row_major_one():
+    """guided_transfer's projection: reduceat along each point's rays of the
+    (K, rays) basis gives the bits the (rays, K) basis summed over rows gave,
+    for segments of 1 to ~3000 rays."""
+    from prtt_addon.core.sh.basis import basis_unchecked
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(60_000, 3)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    w = rng.random(60_000).astype(np.float32)
+    starts = np.unique(np.r_[0, rng.integers(1, 60_000, 300), np.arange(1, 40)])
+    rows = basis_unchecked(d, 5, np.float32)
+    rows *= w[:, None]
+    cols = basis_unchecked(d, 5, np.float32, coeff_major=True)
+    cols *= w[None, :]
+    assert np.add.reduceat(rows, starts, axis=0).tobytes() == np.ascontiguousarray(
+        np.add.reduceat(cols, starts, axis=1).T).tobytes()

@@ -149,3 +149,20 @@ def test_threads_and_groups_do_not_change_the_answer(monkeypatch, compiled):
                              compiled=compiled, executor=ex)
             assert np.array_equal(a, b), group
     assert not np.array_equal(a, rows)
+
+
+@pytest.mark.parametrize("W, H, K", [(1024, 64, 16), (2048, 48, 9)])
+def test_filter_bytes_bounds_the_numpy_paths_peak(W, H, K):
+    """filter_bytes against what the numpy path allocates (tracemalloc's peak)
+    with every texel of a set a target: an upper bound."""
+    import tracemalloc
+    texel, pos, nrm = _plane(H, W)
+    rows = np.random.default_rng(0).normal(size=(texel.size, K)).astype(np.float32)
+    tracemalloc.start()
+    try:
+        gf.smooth_guided(rows, texel, W, H, pos, nrm, np.arange(texel.size), np.ones(texel.size, bool), 0.01,
+                         compiled=False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak <= gf.filter_bytes(W, K, H), (peak, gf.filter_bytes(W, K, H))

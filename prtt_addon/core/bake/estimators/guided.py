@@ -475,8 +475,8 @@ def guided_transfer(rs: RayScene, position, normal, geo_normal, ids, idx: np.nda
             a += 1
             continue
         hi = ends[b - 1]
-        # Coefficient-major (K, rays): no transposed copy, and each point's sum runs
-        # along its own rays in order, as reduceat over rows does (the same bits).
+        # Coefficient-major (K, rays): no transposed copy; reduceat along a point's own
+        # rays sums them as reduceat over rows did (the same bits: tests/test_guided.py, numpy 1.26).
         contrib = basis_unchecked(dv[lo:hi], bands, np.float32, coeff_major=True)
         contrib *= weight[None, lo:hi]
         out[i[starts[a:b]]] = np.add.reduceat(contrib, starts[a:b] - lo, axis=1).T

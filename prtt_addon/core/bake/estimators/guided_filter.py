@@ -50,6 +50,8 @@ NORMAL_POWER = 16
 BAND_ROWS = 16
 #: Targets whose neighbours' rows are gathered at a time.
 SUB = 4096
+#: Bytes a target holds for the numpy path's offset in flight (filter_bytes).
+OFFSET_BYTES = 320
 #: Bands filtered at a time on an executor's threads (their outputs held until written).
 GROUP = 4
 
@@ -69,9 +71,11 @@ def filter_bytes(width: int, coeffs: int, height: int | None = None) -> int:
         return (texels * ((group + 1) * 4 * coeffs + group * (per_offset + 64))
                 + group * sub * (2 * RADIUS + 1) ** 2 * 4 * coeffs)
     grouped = layout(_grouped_rows(), GROUP, _grouped_sub())
-    # The numpy path's steps over a window row at once: ~6 int64 arrays a neighbour of it.
-    window_row = BAND_ROWS * width * 48 * (2 * RADIUS + 1)
-    return max(layout(BAND_ROWS, 1, SUB) + window_row, grouped) + 4 * width * (width if height is None else height)
+    # The numpy path's one offset in flight: its bounds, lookups and indices (~60 B a
+    # target), the gathered positions and normals and their differences (~170 B);
+    # with 320 B the peaks are 0.97 of the bound (tests/test_guided_filter.py).
+    offset = BAND_ROWS * width * OFFSET_BYTES
+    return max(layout(BAND_ROWS, 1, SUB) + offset, grouped) + 4 * width * (width if height is None else height)
 
 
 def _grouped_rows() -> int:
@@ -98,35 +102,29 @@ def _band(rows, texel, lookup, width, height, position, normal, valid, tg, offse
     numpy: each target's neighbours (index, weight; weight 0 where there is
     none), then the weighted sum of their rows, ``sub`` targets at a time (C
     loops of einsum: the same sums whatever the machine; ~10 MB of gathered
-    rows). ``lookup`` (H W,) int32: the row of each texel, -1 where none.
+    rows). ``lookup`` (H W,) int32: the row of each texel, -1 where none
+    (found without a search: the same neighbours, in the same order).
     Reads ``rows`` only."""
     flat = texel[tg]
     y, x = flat // width, flat % width
     p0, n0 = position[tg], normal[tg]
     nb = np.zeros((tg.size, len(offsets)), np.int64)
     wt = np.zeros((tg.size, len(offsets)), np.float64)
-    side = 2 * RADIUS + 1
-    for r0 in range(0, len(offsets), side):
-        # One row of the window at a time (its side offsets together: few steps, each
-        # on side times the targets), the same arithmetic per neighbour as one at a time.
-        dy = np.asarray([d[0] for d in offsets[r0:r0 + side]])
-        dx = np.asarray([d[1] for d in offsets[r0:r0 + side]])
-        ws = np.asarray(spatial[r0:r0 + side], np.float64)
-        yq, xq = y[:, None] + dy[None, :], x[:, None] + dx[None, :]
+    for o, ((dy, dx), ws) in enumerate(zip(offsets, spatial)):
+        yq, xq = y + dy, x + dx
         ok = (yq >= 0) & (yq < height) & (xq >= 0) & (xq < width)
         j = np.where(ok, lookup[np.where(ok, yq * width + xq, 0)], -1)    # the row of texel q, -1: none
         ok = j >= 0
         ok[ok] = valid[j[ok]]
-        i, o = np.nonzero(ok)
-        j = j[i, o]
+        i, j = np.flatnonzero(ok), j[ok]
         # A sum of 3 in order, as np.sum over the axis adds them (the same bits).
         pj, p0i = position[j], p0[i]
         d0, d1, d2 = pj[:, 0] - p0i[:, 0], pj[:, 1] - p0i[:, 1], pj[:, 2] - p0i[:, 2]
         dw = d0 * d0 + d1 * d1 + d2 * d2
         nj, n0i = normal[j], n0[i]
         cos = np.clip(nj[:, 0] * n0i[:, 0] + nj[:, 1] * n0i[:, 1] + nj[:, 2] * n0i[:, 2], 0.0, 1.0)
-        nb[i, r0 + o] = j
-        wt[i, r0 + o] = ws[o] * np.exp(-dw * inv_world) * cos ** NORMAL_POWER
+        nb[i, o] = j
+        wt[i, o] = ws * np.exp(-dw * inv_world) * cos ** NORMAL_POWER
     wsum = wt.sum(axis=1)
     good = wsum > 0
     wt[good] /= wsum[good, None]

@@ -56,12 +56,14 @@ REFINE_RING = 2
 def mask_bytes(width: int, height: int, texels: int, threads: int, chunk_rays: int, rays: int,
                refine: bool = False) -> int:
     """Upper bound of a set's mask pass (bytes): each thread's chunk
-    (RAY_BYTES a ray), the texels' mask and the plane it is dilated in;
+    (RAY_BYTES a ray), the texels' counts and mask and the plane it is dilated in;
     ``refine`` (sun_mask's ``grid``): the grown planes and the counts of both passes."""
     per = max(1, chunk_rays // max(rays, 1)) * rays
     chunks = max(1, threads) * min(per, max(1, texels) * rays) * RAY_BYTES
     extra = 3 * width * height + 32 * texels if refine else 0
-    return chunks + 4 * texels + 5 * width * height + 16 * texels + extra
+    # Per texel: the flags and indices of the points facing the sun, the counts
+    # (int64), their quotient (float64) and the mask (float32), with a margin.
+    return chunks + 5 * width * height + 64 * texels + extra
 
 
 def disc_pattern(rays: int, seed: int) -> np.ndarray:

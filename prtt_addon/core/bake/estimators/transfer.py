@@ -539,8 +539,9 @@ def bake_points(rs: RayScene, pts: Points, settings: TransferSettings, *,
     and they stay in their chunks (the same shapes through BLAS, whose
     rounding can depend on them), their rays handed to Embree with an empty
     interval (ChunkKernel.run; each Chunk carries its ``skip``, to a Dask
-    worker too). Not under adaptive sampling (its rounds' shapes follow
-    every point's noise): there they are traced.
+    worker too). Under adaptive sampling (its rounds' shapes follow every
+    point's noise) the plain chunks' skipped points are traced; guided ones
+    are left out either way.
 
     Chunks run on ``settings.n_threads`` threads with single-threaded BLAS and
     write their rows of the result (disjoint, whole rows: see bake.py for why

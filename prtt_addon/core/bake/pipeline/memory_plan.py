@@ -252,7 +252,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         valid_pass = base + held + SURFACE * n + validity_bytes(w, h, n, threads) if validity else 0
         # The sun's mask is traced once the rows are, beside them (pipeline/sun_stage.py).
         sun_pass = (base + held + SURFACE * n + 4 * K * n + guide
-                    + mask_bytes(w, h, n, threads, chunk_rays, SUN_RAYS)) if sun and sun_detail == 1 else 0
+                    + mask_bytes(w, h, n, threads, chunk_rays, SUN_RAYS, refine=True)) if sun and sun_detail == 1 else 0
         if sun and sun_detail > 1:
             fw, fh, fn = w * sun_detail, h * sun_detail, n * sun_detail * sun_detail
             kept = held + ((surface + 4 * K * v) if bounces else 0)         # this set's bounce source too
