@@ -25,3 +25,10 @@ def run_chunks(fn, items, threads: int, on_result=None, cancel=None) -> None:
             for f in futures:
                 f.cancel()
             raise
+
+
+def map_items(executor, fn, items) -> list:
+    """[fn(item) for item in items], on ``executor``'s threads (concurrent.futures)
+    when there is one and more than one item, in the items' order."""
+    items = list(items)
+    return list(executor.map(fn, items)) if executor is not None and len(items) > 1 else [fn(i) for i in items]

@@ -37,6 +37,7 @@ import threading
 import numpy as np
 
 from ...base import jit
+from ...base.threads import map_items
 
 #: Window half-width in texels, the texel-distance sigma, the world-distance sigma in texel
 #: steps and the normals' power. The window room (512², 256 rays, the prototype of this filter on
@@ -197,7 +198,7 @@ def smooth_guided(rows: np.ndarray, texel: np.ndarray, width: int, height: int, 
     pending = None                    # the band before this group's, filtered, not yet written
     for a in range(0, len(bands), group):
         part = bands[a:a + group]
-        done = list(executor.map(band, part)) if len(part) > 1 else [band(m) for m in part]
+        done = map_items(executor, band, part)
         # The band before reads no row of this group's neighbours any more: write it now,
         # and every band of the group but the last (the next group's first band reads it).
         for tg, out in ([pending] if pending is not None else []) + done[:-1]:

@@ -413,31 +413,23 @@ class ChunkKernel:
         ob, db, tb = self._buffers(m * size)
         ob[:m * size].reshape(m, size, 3)[...] = org[:, None, :]      # GIL-free broadcast copy
         D3 = np.matmul(P[None], R.transpose(0, 2, 1), out=db[:m * size].reshape(m, size, 3))
-        if skip is not None:
-            # Every ray of a skipped point goes to Embree with an empty interval.
-            below = (np.matmul(D3, ng[:, :, None])[..., 0] <= 0.0) & hz[:, None]
-            tfar = tb[:m * size]
-            tfar.fill(np.inf)
-            tfar[below.ravel()] = -1.0
-            tfar.reshape(m, size)[skip] = -1.0
-            occ = self.rs.occluded(ob[:m * size], db[:m * size], tfar=tfar).reshape(m, size)
-            occ |= below
-            n_below = int(below[~skip].sum())
-            return occ.astype(np.float32), (m - int(np.count_nonzero(skip))) * size - n_below, n_below
-        if not hz.any():
+        if not hz.any() and skip is None:
             occ = self.rs.occluded(ob[:m * size], db[:m * size])
             return occ.reshape(m, size).astype(np.float32), m * size, 0
         # Rays below the geometric horizon would enter the surface: they count
         # as blocked and go to Embree with an empty interval (tfar < tnear = 0),
-        # which it rejects without traversal.
+        # which it rejects without traversal; so do every ray of a skipped point.
         below = (np.matmul(D3, ng[:, :, None])[..., 0] <= 0.0) & hz[:, None]
         tfar = tb[:m * size]
         tfar.fill(np.inf)
         tfar[below.ravel()] = -1.0
+        if skip is not None:
+            tfar.reshape(m, size)[skip] = -1.0
         occ = self.rs.occluded(ob[:m * size], db[:m * size], tfar=tfar).reshape(m, size)
         occ |= below
-        n_below = int(below.sum())
-        return occ.astype(np.float32), m * size - n_below, n_below
+        n_skip = 0 if skip is None else int(np.count_nonzero(skip))
+        n_below = int(below.sum() if skip is None else below[~skip].sum())
+        return occ.astype(np.float32), (m - n_skip) * size - n_below, n_below
 
     def run(self, chunk: "Chunk", cancel=None):
         """World transfer (n, K) float32 of the chunk's points, and (rays

@@ -41,6 +41,7 @@ import math
 
 import numpy as np
 
+from ...base.threads import map_items
 from ...texels.islands import island_labels
 from .raytrace import RAY_EPSILON
 from .sampling import tangent_frames
@@ -154,11 +155,6 @@ def _blocks(n: int):
                   for lo in range(a, min(n, a + CHUNK_TEXELS), TASK_TEXELS)]
 
 
-def _run(executor, fn, items) -> list:
-    """fn over items, on ``executor`` when there is more than one."""
-    return list(executor.map(fn, items)) if executor is not None and len(items) > 1 else [fn(i) for i in items]
-
-
 #: Points a task of _sees_sky traces.
 SKY_TASK = 2048
 
@@ -181,7 +177,7 @@ def _sees_sky(rays, points: np.ndarray, normals: np.ndarray, n_rays: int, seed, 
         o = np.repeat(rays.origins(points[lo:hi], nrm), n_rays, axis=0)
         return (~rays.occluded(o, d.reshape(-1, 3).astype(np.float32))).reshape(-1, n_rays).any(axis=1)
 
-    return np.concatenate(_run(executor, task, list(range(0, m, SKY_TASK))))
+    return np.concatenate(map_items(executor, task, list(range(0, m, SKY_TASK))))
 
 
 #: How far past a front face a back face in (nearly) its plane is looked for (normalised units).
@@ -289,7 +285,7 @@ def inside_texels(rays, winding: np.ndarray, position: np.ndarray, geo_normal: n
                                      executor)
 
     for a, spans in _blocks(n):
-        block((a, np.concatenate(_run(executor, task, spans))))
+        block((a, np.concatenate(map_items(executor, task, spans))))
     if not sky_seen.any():
         return out
     if grid is None:
@@ -402,8 +398,6 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
     angles = 2.0 * np.pi * np.arange(WALL_DIRECTIONS) / WALL_DIRECTIONS
     found_index, found_position = [], []
 
-    empty = None
-
     def walls(span):
         """The texels of one task with a wall beside them: (index (M,) ascending,
         the wall's direction (M, 3), its normalised distance (M,), what the way
@@ -422,7 +416,7 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
             hit &= ~inside[lo:hi, None]
         cand = np.flatnonzero(hit.any(axis=1))
         if cand.size == 0:
-            return empty
+            return None
         # The nearest steep hit of each candidate's directions.
         rows, cols = np.nonzero(hit[cand])
         oc, dc = o[cand[rows]], d[cand[rows], cols]
@@ -430,7 +424,7 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
         steep = (prim >= 0) & (t <= reach)
         steep[steep] &= np.abs(np.einsum("ij,ij->i", unit[prim[steep]], nrm[cand[rows[steep]]])) <= WALL_STEEP
         if not steep.any():
-            return empty
+            return None
         rows, cols, t = rows[steep], cols[steep], t[steep]
         order = np.lexsort((t, rows))
         first = order[np.flatnonzero(np.r_[True, np.diff(rows[order]) != 0])]
@@ -496,7 +490,7 @@ def across_walls(rays, winding: np.ndarray, position: np.ndarray, geo_normal: np
 
     # A block at a time (what its tasks found is held until it is done), its tasks on the threads.
     for a, spans in _blocks(n):
-        part = block((a, _run(executor, walls, spans)))
+        part = block((a, map_items(executor, walls, spans)))
         if part is not None:
             found_index.append(part[0])
             found_position.append(part[1])
