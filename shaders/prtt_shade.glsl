@@ -51,6 +51,13 @@ void add_bounce(vec2 uv, float w[SH_K], inout vec3 dc, inout vec3 glossy)
  * textures), unit normal n and unit view vector v. */
 vec3 shade_point(vec4 T4[SH_K4], vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
 {
+  /* The Principled layering (prtt_layering.glsl): the specular layer's
+   * albedo at this view angle is taken from the diffuse beneath and weighs
+   * the glossy lobe (core.shading.shade.outgoing). */
+  float dw;
+  vec3 gw;
+  prtt_layer_weights(dot(n, v), exponent, material.params.y, material.base.w, spec, dw, gw);
+  albedo *= dw;
 #ifdef PRTT_DIFFUSE
   vec3 e = diffuse_dot(T4);
 #  ifdef PRTT_BOUNCE
@@ -79,7 +86,7 @@ vec3 shade_point(vec4 T4[SH_K4], vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec
 #  ifdef PRTT_BOUNCE
   add_bounce(uv, w, dc, glossy);
 #  endif
-  return outgoing(dc, glossy, albedo, spec);
+  return outgoing(dc, glossy, albedo, gw);
 #endif
 }
 
@@ -140,8 +147,8 @@ vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
  * uniform block `sun` holds direction (xyz unit towards the sun, w = angle² / 16)
  * and irradiance (rgb, W/m² facing it); sunTex (r) the visible fraction of
  * its disc, baked per texel at PRTT UV uv.
- * B = mask max(0, n.l) E (albedo / pi + sun_glossy); the diffuse mode leaves
- * the lobe out. */
+ * B = mask max(0, n.l) E (dw albedo / pi + sun_glossy), dw the layering's
+ * diffuse weight (prtt_layering.glsl); the diffuse mode leaves the lobe out. */
 vec3 sun_light(vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
 {
   vec3 l = sun.direction.xyz;
@@ -149,7 +156,10 @@ vec3 sun_light(vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
   if (!(c > 0.0)) {
     return vec3(0.0);
   }
-  vec3 b = albedo / PRTT_PI;
+  float dw;
+  vec3 gw;
+  prtt_layer_weights(dot(n, v), exponent, material.params.y, material.base.w, spec, dw, gw);
+  vec3 b = albedo * dw / PRTT_PI;
 #  ifndef PRTT_DIFFUSE
   if (any(greaterThan(spec, vec3(0.0)))) {
     b += sun_glossy(n, v, l, spec, exponent);

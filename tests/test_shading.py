@@ -7,7 +7,7 @@ import pytest
 from prtt_addon.core import sh
 from prtt_addon.core.model.material import Material
 from prtt_addon.core.shading.materials import ShadingParams, derive, phong_exponent
-from prtt_addon.core.shading.shade import incident_tp, incident_tpfl, outgoing, reflect, shade
+from prtt_addon.core.shading.shade import incident_tp, incident_tpfl, layer, outgoing, reflect, shade
 from tests.conftest import random_dirs
 
 BANDS = 5
@@ -29,13 +29,17 @@ def cap_quadrature(axis, n=96):
     return d, W, Tt.ravel()
 
 
-def brute_force(T, L, normal, view, params):
+def brute_force(T, L, normal, view, params, layered=True):
     """Outgoing radiance by quadrature, written without Gaunt tensors or
     convolution factors: Lp = projection of the pointwise product T(w) L(w)
     onto the K coefficients (what the SH pipeline keeps), then
     rho_d / pi * integral Lp + k_s * integral Lp(w) (s+1)/(2 pi) max(0, w.r)^s,
-    the lobe integrated on its own hemisphere (it has a kink at w.r = 0)."""
+    the lobe integrated on its own hemisphere (it has a kink at w.r = 0);
+    ``layered``: rho_d and k_s replaced by the layering's weights (layer)."""
     out = np.zeros((T.shape[0], 3))
+    if layered:
+        dw, gw = layer(normal, view, params)
+        params = ShadingParams(params.albedo * dw[:, None], gw, params.exponent)
     for i in range(T.shape[0]):
         t = YQ @ T[i]
         r = 2 * (normal[i] @ view[i]) * normal[i] - view[i]
@@ -66,6 +70,10 @@ def test_tpfl_matches_brute_force(rng):
     got = shade(T, n, v, L, p, clamp=False)
     ref = brute_force(T, L, n, v, p)
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-9)
+    # the model before the layering, one argument away
+    np.testing.assert_allclose(shade(T, n, v, L, p, clamp=False, layered=False),
+                               brute_force(T, L, n, v, p, layered=False), rtol=1e-9, atol=1e-9)
+    assert np.abs(got - shade(T, n, v, L, p, clamp=False, layered=False)).max() > 1e-3
 
 
 def test_tp_tpfl_and_diffuse_agree(rng):

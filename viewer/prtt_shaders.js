@@ -89,7 +89,7 @@ export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0, disp
   if (sun) samplers.push([8, 'FLOAT_2D', 'sunTex']);
   if (display) samplers.push([7, 'FLOAT_3D', 'displayLut']);
   samplers.sort((a, b) => a[0] - b[0]);
-  const lib = ['prtt_common.glsl', 'prtt_view.glsl', 'prtt_light.glsl', 'prtt_shade.glsl'];
+  const lib = ['prtt_common.glsl', 'prtt_view.glsl', 'prtt_light.glsl', 'prtt_layering.glsl', 'prtt_shade.glsl'];
   return {
     name: `prtt_${mode}_b${bands}${bounce ? '_bounce' : ''}${display ? '_display' : ''}${sun ? '_sun' : ''}`,
     defines,

@@ -158,7 +158,7 @@ def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = Fals
         samplers.append((4, "FLOAT_2D_ARRAY", "bounceTex"))
     if triple:
         samplers.append((5, "FLOAT_2D", "gauntTex"))
-    lib = ("prtt_common.glsl", "prtt_view.glsl", "prtt_light.glsl", "prtt_shade.glsl")
+    lib = ("prtt_common.glsl", "prtt_view.glsl", "prtt_light.glsl", "prtt_layering.glsl", "prtt_shade.glsl")
     if mode in FRAGMENT_MODES:
         samplers += [(0, "FLOAT_2D_ARRAY", "transferTex"), (3, "FLOAT_2D", "normalTex")]
         vertex_in = ((0, "VEC3", "pos"), (1, "VEC3", "nor"), (2, "VEC2", "uv"), (3, "VEC2", "muv"),

@@ -17,6 +17,8 @@ Conventions (docs/shading.md):
       glossy   B_s = k_s * sum_lm A_l(s) Lp_lm y_lm(r)
                (normalised Phong lobe of exponent s, zonal.phong_factors)
       B = max(0, B_d + B_s)       clamped: SH ringing can dip below zero.
+  Layered (the default, the Principled BSDF's): rho_d scaled by 1 - a_d(n.v)
+  and k_s replaced by the specular layer's albedo at n.v (layering.py).
 * Inter-reflections: a bounce texture holds the extra cosine-weighted incident
   radiance (K, 3) from k bounces; it is added to Lp before the lobes (the
   model is linear, so this equals adding the shaded results).
@@ -31,6 +33,7 @@ import numpy as np
 from ..sh.basis import band_of_coeffs, bands_of, basis_unchecked
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..sh.zonal import convolve, phong_factors, window_factors
+from .layering import layer_weights
 from .materials import ShadingParams
 
 SQRT_4PI = math.sqrt(4.0 * math.pi)
@@ -88,28 +91,50 @@ def lobe_factors(exponent: np.ndarray, bands: int) -> np.ndarray:
     return phong_factors(u, bands)[:, band_of_coeffs(bands)][inv.reshape(-1)]
 
 
+def layer(normal, view, params: ShadingParams) -> tuple[np.ndarray, np.ndarray]:
+    """(diffuse (N,), glossy (N, 3)): the Principled layering's lobe weights
+    at each point's view cosine n.v (layering.layer_weights): the diffuse
+    albedo is scaled by the first, the glossy lobe weighed by the second
+    instead of ``spec``. Without a known F0 (params.f0 None) a dielectric
+    of F0 = spec; without metallic, 0."""
+    n = np.asarray(normal, np.float64)
+    mu = np.einsum("nc,nc->n", n, np.broadcast_to(np.asarray(view, np.float64), n.shape))
+    spec = np.asarray(params.spec, np.float64).reshape(-1, 3)
+    N = spec.shape[0]
+    m = np.zeros(N) if params.metallic is None else np.asarray(params.metallic, np.float64).reshape(N)
+    f0 = spec.mean(axis=1) if params.f0 is None else np.asarray(params.f0, np.float64).reshape(N)
+    ex = np.broadcast_to(np.asarray(params.exponent, np.float64), (N,))
+    return layer_weights(mu, ex, f0, m, spec)
+
+
 def outgoing(Lp: np.ndarray, normal: np.ndarray, view: np.ndarray, params: ShadingParams,
-             *, clamp: bool = True) -> np.ndarray:
+             *, clamp: bool = True, layered: bool = True) -> np.ndarray:
     """Radiance (N, 3) towards ``view`` from cosine-weighted incident radiance Lp (N, 3, K).
 
+    ``layered`` (the preview's model): the Principled layering's weights
+    (:func:`layer`); False: rho_d and k_s as they are (the model before it).
     Computed in Lp's precision: float64 for the reference, float32 for the
     bounce bake's hit shading (error ~1e-6 relative; tests/test_shading.py).
     """
     N, _, K = Lp.shape
     n = bands_of(K)
     dt = np.float32 if Lp.dtype == np.float32 else np.float64
-    diffuse = (params.albedo * (SQRT_4PI / math.pi)).astype(dt) * Lp[:, :, 0]
+    albedo, spec = params.albedo, params.spec
+    if layered:
+        dw, spec = layer(normal, view, params)
+        albedo = albedo * dw[:, None]
+    diffuse = (albedo * (SQRT_4PI / math.pi)).astype(dt) * Lp[:, :, 0]
     out = diffuse
     if np.any(params.spec):
         r = reflect(np.asarray(view, np.float64), np.asarray(normal, np.float64))
         r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-300)
         Ay = lobe_factors(params.exponent, n).astype(dt) * basis_unchecked(r.astype(dt), n, dt)
-        out = out + params.spec.astype(dt) * np.matmul(Lp, Ay[:, :, None])[:, :, 0]
+        out = out + spec.astype(dt) * np.matmul(Lp, Ay[:, :, None])[:, :, 0]
     return np.maximum(out, 0.0) if clamp else out
 
 
 def shade(T, normal, view, light, params: ShadingParams, *, bounces=(), method: str = "tpfl",
-          window: str | None = None, clamp: bool = True) -> np.ndarray:
+          window: str | None = None, clamp: bool = True, layered: bool = True) -> np.ndarray:
     """Outgoing radiance (N, 3) of points with transfer T (N, K).
 
     bounces : iterable of (N, 3, K) incident-radiance SH (bounce textures).
@@ -120,8 +145,9 @@ def shade(T, normal, view, light, params: ShadingParams, *, bounces=(), method: 
     n = bands_of(T.shape[1])
     L = prepare_light(light, n, window=window)
     if method == "diffuse":
-        direct = params.albedo / math.pi * (T @ L)
-        extra = sum((params.albedo / math.pi * SQRT_4PI * np.asarray(b)[:, :, 0] for b in bounces),
+        albedo = params.albedo * layer(normal, view, params)[0][:, None] if layered else params.albedo
+        direct = albedo / math.pi * (T @ L)
+        extra = sum((albedo / math.pi * SQRT_4PI * np.asarray(b)[:, :, 0] for b in bounces),
                     np.zeros_like(direct))
         out = direct + extra
         return np.maximum(out, 0.0) if clamp else out
@@ -133,11 +159,11 @@ def shade(T, normal, view, light, params: ShadingParams, *, bounces=(), method: 
         raise ValueError(f"unknown shading method {method!r}; use tpfl, tp or diffuse")
     for b in bounces:
         Lp = Lp + np.asarray(b, dtype=np.float64)
-    return outgoing(Lp, normal, view, params, clamp=clamp)
+    return outgoing(Lp, normal, view, params, clamp=clamp, layered=layered)
 
 
 def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance, angle: float, *,
-               method: str = "tpfl") -> np.ndarray:
+               method: str = "tpfl", layered: bool = True) -> np.ndarray:
     """(N, 3) radiance towards ``view`` from a sun (core.light.sun.Sun):
     unit ``direction`` (3,) towards it, ``irradiance`` (3,) W/m² on a surface
     facing it, disc of full ``angle``; ``mask`` (N,) the visible fraction of
@@ -145,8 +171,10 @@ def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance,
     E V max(0, n.l) delta(w - l)), evaluated per pixel, so its highlight is
     Cycles' microfacet model rather than the SH lobe:
 
-        B = mask max(0, n.l) E (rho_d / pi + f_s),  f_s = D G F / (4 (n.v) (n.l))
+        B = mask max(0, n.l) E (w_d rho_d / pi + f_s),  f_s = D G F / (4 (n.v) (n.l))
 
+    (w_d the layering's diffuse weight at n.v, :func:`layer`; ``layered``
+    False: 1)
     D the GGX distribution of alpha'^2 = alpha^2 + angle^2 / 32 (the
     material's alpha^2 = 1 / (2 s + 1), materials.phong_exponent inverted,
     widened by the disc: :func:`sun_alpha2`), G Smith's height-correlated
@@ -157,7 +185,8 @@ def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance,
     l = np.asarray(direction, np.float64).reshape(3)
     E = np.asarray(irradiance, np.float64).reshape(1, 3)
     cos = np.maximum(n @ l, 0.0) * np.asarray(mask, np.float64).reshape(-1)
-    out = params.albedo / math.pi * E
+    albedo = params.albedo * layer(n, view, params)[0][:, None] if layered else params.albedo
+    out = albedo / math.pi * E
     if method != "diffuse" and np.any(params.spec):
         out = out + sun_glossy(n, np.asarray(view, np.float64), l, params, angle) * E
     return out * cos[:, None]
