@@ -85,9 +85,16 @@ void prtt_layer_weights(float mu, float exponent, float f0, float metallic, vec3
 """
 
 
+def _literal(x) -> str:
+    """A float literal of float32 ``x`` (9 significant digits: exact), with a
+    point or an exponent: GLSL ES has no implicit int-to-float conversion."""
+    t = f"{float(x):.9g}"
+    return t if any(c in t for c in ".e") else t + ".0"
+
+
 def _array(name: str, a: np.ndarray) -> str:
     v = np.asarray(a, np.float32).ravel()
-    rows = [", ".join(f"{float(x):.9g}" for x in v[i:i + 8]) for i in range(0, v.size, 8)]
+    rows = [", ".join(_literal(x) for x in v[i:i + 8]) for i in range(0, v.size, 8)]
     body = ",\n  ".join(rows)
     return f"const float {name}[{v.size}] = float[{v.size}](\n  {body});\n"
 
