@@ -480,9 +480,8 @@ class Renderer:
         sh.uniform_block("view", self._view_ubo)
         sh.uniform_block("light", light)
         sh.uniform_float("ModelMatrix", _matrix(m.matrix))
-        if mode != "diffuse" or sun is not None:
-            # the diffuse mode reads no normal (the transfer holds the cosine); the sun's n.l does
-            sh.uniform_float("NormalMatrix", _matrix(pp.normal_matrix(m.matrix)))
+        # Every mode reads the normal: the layering's n.v (prtt_layering.glsl), the sun's n.l.
+        sh.uniform_float("NormalMatrix", _matrix(pp.normal_matrix(m.matrix)))
         if mode in FRAGMENT_MODES:
             sh.uniform_sampler("transferTex", transfer[0])
         if vertex is not None:
