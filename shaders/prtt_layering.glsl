@@ -355,41 +355,61 @@ float prtt_layer_darkening(float E, float E_avg, float Fss)
   return E + Fms * (1.0 - E);
 }
 
-/* Diffuse weight dw (scales albedo) and glossy weight gw (replaces spec) at
- * view cosine mu, Phong exponent (roughness r = (1 / (2 s + 1))^(1/4)),
- * dielectric F0, metallic m and spec = (1 - m) F0 + m C. */
-void prtt_layer_weights(float mu, float exponent, float f0, float metallic, vec3 spec,
-                        out float dw, out vec3 gw)
+/* The tables at view cosine mu, roughness r and z = F0^(1/4): white
+ * albedo E and its mean E_avg, the real-Fresnel blend s and Schlick's s5
+ * (read for a metal only). */
+void prtt_layer_lookup(float mu, float r, float z, bool metal, out float E, out float E_avg,
+                       out float s, out float s5, out float bavg)
 {
-  mu = clamp(mu, 0.0, 1.0);
-  f0 = clamp(f0, 0.0, 1.0);
-  float m = clamp(metallic, 0.0, 1.0);
-  float r = pow(1.0 / (2.0 * max(exponent, 0.0) + 1.0), 0.25);
   int jm, ir, kz;
   float tm, tr, tz;
   prtt_layer_index(mu, PRTT_LAYER_MU, jm, tm);
   prtt_layer_index(r, PRTT_LAYER_ROUGH, ir, tr);
-  prtt_layer_index(sqrt(sqrt(f0)), PRTT_LAYER_Z, kz, tz);
+  prtt_layer_index(z, PRTT_LAYER_Z, kz, tz);
   int a = ir * PRTT_LAYER_MU + jm;
   int b = a + PRTT_LAYER_MU;
-  float E = mix(mix(PRTT_LAYER_E[a], PRTT_LAYER_E[a + 1], tm),
-                mix(PRTT_LAYER_E[b], PRTT_LAYER_E[b + 1], tm), tr);
-  float s5 = mix(mix(PRTT_LAYER_S5[a], PRTT_LAYER_S5[a + 1], tm),
-                 mix(PRTT_LAYER_S5[b], PRTT_LAYER_S5[b + 1], tm), tr);
+  E = mix(mix(PRTT_LAYER_E[a], PRTT_LAYER_E[a + 1], tm),
+          mix(PRTT_LAYER_E[b], PRTT_LAYER_E[b + 1], tm), tr);
+  s5 = 0.0;
+  if (metal) {
+    s5 = mix(mix(PRTT_LAYER_S5[a], PRTT_LAYER_S5[a + 1], tm),
+             mix(PRTT_LAYER_S5[b], PRTT_LAYER_S5[b + 1], tm), tr);
+  }
   int c = kz * PRTT_LAYER_ROUGH * PRTT_LAYER_MU;
   int d = c + PRTT_LAYER_ROUGH * PRTT_LAYER_MU;
   float s0 = mix(mix(PRTT_LAYER_S[c + a], PRTT_LAYER_S[c + a + 1], tm),
                  mix(PRTT_LAYER_S[c + b], PRTT_LAYER_S[c + b + 1], tm), tr);
   float s1 = mix(mix(PRTT_LAYER_S[d + a], PRTT_LAYER_S[d + a + 1], tm),
                  mix(PRTT_LAYER_S[d + b], PRTT_LAYER_S[d + b + 1], tm), tr);
-  float s = mix(s0, s1, tz);
-  float E_avg = mix(PRTT_LAYER_EAVG[ir], PRTT_LAYER_EAVG[ir + 1], tr);
-  float bavg = mix(PRTT_LAYER_BAVG[kz], PRTT_LAYER_BAVG[kz + 1], tz);
+  s = mix(s0, s1, tz);
+  E_avg = mix(PRTT_LAYER_EAVG[ir], PRTT_LAYER_EAVG[ir + 1], tr);
+  bavg = mix(PRTT_LAYER_BAVG[kz], PRTT_LAYER_BAVG[kz + 1], tz);
+}
+
+/* Diffuse weight dw (scales albedo) and glossy weight gw (replaces spec) at
+ * view cosine mu, Phong exponent (roughness r = (1 / (2 s + 1))^(1/4)),
+ * dielectric F0, metallic m and spec = (1 - m) F0 + m C. No specular layer
+ * (spec 0: a Diffuse BSDF): dw = 1, gw = 0 without a lookup. */
+void prtt_layer_weights(float mu, float exponent, float f0, float metallic, vec3 spec,
+                        out float dw, out vec3 gw)
+{
+  dw = 1.0;
+  gw = vec3(0.0);
+  if (!any(greaterThan(spec, vec3(0.0)))) {
+    return;
+  }
+  f0 = clamp(f0, 0.0, 1.0);
+  float m = clamp(metallic, 0.0, 1.0);
+  float r = sqrt(sqrt(1.0 / (2.0 * max(exponent, 0.0) + 1.0)));
+  float E, E_avg, s, s5, bavg;
+  prtt_layer_lookup(mu, r, sqrt(sqrt(f0)), m > 0.0, E, E_avg, s, s5, bavg);
   float a_d = prtt_layer_darkening(E, E_avg, f0 + (1.0 - f0) * bavg) * (f0 + (1.0 - f0) * s);
-  vec3 C = (m > 0.0) ? max(spec - vec3((1.0 - m) * f0), vec3(0.0)) / m : vec3(0.0);
-  vec3 fss = C + (vec3(1.0) - C) / 21.0;
-  vec3 Fms = fss * E_avg / (vec3(1.0) - fss * (1.0 - E_avg));
-  vec3 a_m = (vec3(E) + Fms * (1.0 - E)) * (C + (vec3(1.0) - C) * s5);
   dw = clamp(1.0 - a_d, 0.0, 1.0);
-  gw = vec3((1.0 - m) * a_d) + m * a_m;
+  gw = vec3((1.0 - m) * a_d);
+  if (m > 0.0) {
+    vec3 C = max(spec - vec3((1.0 - m) * f0), vec3(0.0)) / m;
+    vec3 fss = C + (vec3(1.0) - C) / 21.0;
+    vec3 Fms = fss * E_avg / (vec3(1.0) - fss * (1.0 - E_avg));
+    gw += m * (vec3(E) + Fms * (1.0 - E)) * (C + (vec3(1.0) - C) * s5);
+  }
 }

@@ -198,7 +198,8 @@ def layer_weights(mu, exponent, f0, metallic, spec, tab=None):
     lobes at view cosines ``mu`` (N,) for Phong ``exponent`` (N,), dielectric
     ``f0`` (N,), ``metallic`` (N,) and specular weight ``spec`` (N, 3)
     (materials.derive: spec = (1 - m) F0 + m C). diffuse scales rho_d: 1 - a_d;
-    glossy replaces spec: (1 - m) a_d + m a_m (module docstring)."""
+    glossy replaces spec: (1 - m) a_d + m a_m (module docstring); 1 and 0
+    where spec is 0."""
     tab = shader_tables() if tab is None else tab
     mu = np.clip(np.asarray(mu, np.float64).reshape(-1), 0.0, 1.0)
     n = mu.size
@@ -214,4 +215,8 @@ def layer_weights(mu, exponent, f0, metallic, spec, tab=None):
     a_m = darkening(E[:, None], E_avg[:, None], fss_m) * (C + (1.0 - C) * s5[:, None])
     diffuse = np.clip(1.0 - a_d, 0.0, 1.0)
     glossy = ((1.0 - m) * a_d)[:, None] + m[:, None] * a_m
+    # No specular layer (spec 0: a Diffuse BSDF, or a black metal): Lambert
+    # alone, as the GLSL returns it without a lookup.
+    none = ~np.any(spec > 0.0, axis=1)
+    diffuse[none], glossy[none] = 1.0, 0.0
     return diffuse, glossy
