@@ -114,7 +114,8 @@ float prtt_smith_lambda(float c, float a2)
 /* The sun's specular BRDF (core.shading.shade.sun_glossy): GGX of
  * alpha'^2 = alpha^2 + angle^2 / 32 (alpha^2 = 1 / (2 s + 1), widened by the
  * disc: w = angle^2 / 16), Smith's height-correlated masking, the dielectric
- * Fresnel of the material's F0 plus Schlick's for its metallic part:
+ * Fresnel of the material's F0 plus Schlick's for its metallic part, each
+ * with Multiscatter GGX's factor (prtt_layer_multiscatter):
  * D G F / (4 n.v n.l). */
 vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
 {
@@ -138,8 +139,12 @@ vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
   float sf = sqrt(clamp(f0, 0.0, 0.999));
   vec3 metal = spec - vec3((1.0 - m) * f0);      /* metallic x base colour */
   float q = pow(1.0 - vh, 5.0);
-  vec3 F = vec3((1.0 - m) * prtt_fresnel_dielectric(vh, (1.0 + sf) / (1.0 - sf))) + metal
-           + (vec3(m) - metal) * q;
+  /* Multiscatter GGX (Blender's default): each part times its factor at n.v. */
+  float ms_d;
+  vec3 ms_m;
+  prtt_layer_multiscatter(nv, exponent, f0, m, spec, ms_d, ms_m);
+  vec3 F = vec3((1.0 - m) * prtt_fresnel_dielectric(vh, (1.0 + sf) / (1.0 - sf)) * ms_d)
+           + (metal + (vec3(m) - metal) * q) * ms_m;
   return F * (D * G / (4.0 * nv * nl));
 }
 

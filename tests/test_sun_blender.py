@@ -109,14 +109,16 @@ def test_a_sun_with_shadow_off_bakes_no_shadow_and_turning_it_on_is_stale(tmp_pa
     assert status.sun_stale == "the sun 'Key''s Shadow is on, baked off", status.sun_stale
 
 
-@pytest.mark.parametrize("angle", [0.5, 5.0])
-def test_the_suns_highlight_on_a_glossy_floor_is_cycles(tmp_path, angle):
-    """The sun's highlight (roughness 0.3, seen where the floor mirrors it):
-    PRTT's lobe against Cycles' Glossy Direct x Glossy Color, its energy and
-    its pixels within 5 %."""
+@pytest.mark.parametrize("angle,roughness", [(0.5, 0.3), (5.0, 0.3), (5.0, 0.7)])
+def test_the_suns_highlight_on_a_glossy_floor_is_cycles(tmp_path, angle, roughness):
+    """The sun's highlight (roughness 0.3, and 0.7 where Multiscatter GGX
+    gives back a fifth of it, seen where the floor mirrors it): PRTT's lobe
+    against Cycles' Glossy Direct x Glossy Color, its energy and its pixels
+    within 5 %."""
     pytest.importorskip("bpy")
     from prtt_addon.dev.bench.sun_cycles import glossy_highlight
-    r = glossy_highlight((160, 90), samples=64, resolution=256, angle_deg=angle, work_dir=str(tmp_path))
+    r = glossy_highlight((160, 90), samples=64, resolution=256, angle_deg=angle, roughness=roughness,
+                         work_dir=str(tmp_path))
     assert r["pixels"] > 1000
     assert abs(r["energy_ratio"] - 1) < 0.05, r["energy_ratio"]
     assert r["rel_rmse"] < 0.05, r["rel_rmse"]

@@ -102,6 +102,25 @@ void prtt_layer_weights(float mu, float exponent, float f0, float metallic, vec3
     gw += m * (vec3(E) + Fms * (1.0 - E)) * (C + (vec3(1.0) - C) * s5);
   }
 }
+
+/* Multiscatter GGX's factors on the single-scatter lobe seen from mu
+ * (core.shading.layering.multiscatter): 1 + Fms (1 - E) / E for the
+ * dielectric (ms_d) and the metal (ms_m) parts. */
+void prtt_layer_multiscatter(float mu, float exponent, float f0, float metallic, vec3 spec,
+                             out float ms_d, out vec3 ms_m)
+{
+  f0 = clamp(f0, 0.0, 1.0);
+  float m = clamp(metallic, 0.0, 1.0);
+  float r = sqrt(sqrt(1.0 / (2.0 * max(exponent, 0.0) + 1.0)));
+  float E, E_avg, s, s5, bavg;
+  prtt_layer_lookup(mu, r, sqrt(sqrt(f0)), false, E, E_avg, s, s5, bavg);
+  float missing = (1.0 - E) / E;
+  float fss = f0 + (1.0 - f0) * bavg;
+  ms_d = 1.0 + fss * E_avg / (1.0 - fss * (1.0 - E_avg)) * missing;
+  vec3 C = (m > 0.0) ? max(spec - vec3((1.0 - m) * f0), vec3(0.0)) / m : vec3(0.0);
+  vec3 fm = C + (vec3(1.0) - C) / 21.0;
+  ms_m = vec3(1.0) + fm * (E_avg * missing) / (vec3(1.0) - fm * (1.0 - E_avg));
+}
 """
 
 

@@ -220,3 +220,27 @@ def layer_weights(mu, exponent, f0, metallic, spec, tab=None):
     none = ~np.any(spec > 0.0, axis=1)
     diffuse[none], glossy[none] = 1.0, 0.0
     return diffuse, glossy
+
+
+def multiscatter(mu, exponent, f0, metallic, spec, tab=None):
+    """(dielectric (N,), metal (N, 3)): Multiscatter GGX's factor on the
+    single-scatter lobe seen from view cosines ``mu``, 1 + Fms (1 - E) / E
+    (Cycles' energy_scale times its darkening; Fms of each part's Fss, as in
+    :func:`layer_weights`): what the sun's highlight (shade.sun_glossy) gets
+    back of the energy single scattering loses on rough surfaces."""
+    tab = shader_tables() if tab is None else tab
+    mu = np.clip(np.asarray(mu, np.float64).reshape(-1), 0.0, 1.0)
+    n = mu.size
+    f0 = np.clip(np.asarray(f0, np.float64).reshape(n), 0.0, 1.0)
+    m = np.clip(np.asarray(metallic, np.float64).reshape(n), 0.0, 1.0)
+    spec = np.asarray(spec, np.float64).reshape(n, 3)
+    E, E_avg, _, _, blend_avg = lookup(tab, mu, roughness_of(exponent), np.sqrt(np.sqrt(f0)))
+    missing = (1.0 - E) / E
+
+    def factor(Fss):
+        return 1.0 + Fss * E_avg / (1.0 - Fss * (1.0 - E_avg)) * missing
+    metal = np.clip(spec - ((1.0 - m) * f0)[:, None], 0.0, None)
+    C = np.where(m[:, None] > 0.0, metal / np.where(m > 0.0, m, 1.0)[:, None], 0.0)
+    Fss_m = C + (1.0 - C) / 21.0
+    ms_m = 1.0 + Fss_m * (E_avg * missing)[:, None] / (1.0 - Fss_m * (1.0 - E_avg)[:, None])
+    return factor(f0 + (1.0 - f0) * blend_avg), ms_m

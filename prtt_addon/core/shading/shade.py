@@ -33,7 +33,7 @@ import numpy as np
 from ..sh.basis import band_of_coeffs, bands_of, basis_unchecked
 from ..sh.gaunt import sparse_gaunt, tpfl_matrix
 from ..sh.zonal import convolve, phong_factors, window_factors
-from .layering import layer_weights
+from .layering import layer_weights, multiscatter
 from .materials import ShadingParams
 
 SQRT_4PI = math.sqrt(4.0 * math.pi)
@@ -173,8 +173,9 @@ def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance,
 
         B = mask max(0, n.l) E (w_d rho_d / pi + f_s),  f_s = D G F / (4 (n.v) (n.l))
 
-    (w_d the layering's diffuse weight at n.v, :func:`layer`; ``layered``
-    False: 1)
+    (w_d the layering's diffuse weight at n.v, :func:`layer`, and f_s
+    Multiscatter GGX's: :func:`sun_glossy`; ``layered`` False: w_d = 1 and
+    single scattering, the model before)
     D the GGX distribution of alpha'^2 = alpha^2 + angle^2 / 32 (the
     material's alpha^2 = 1 / (2 s + 1), materials.phong_exponent inverted,
     widened by the disc: :func:`sun_alpha2`), G Smith's height-correlated
@@ -188,7 +189,7 @@ def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance,
     albedo = params.albedo * layer(n, view, params)[0][:, None] if layered else params.albedo
     out = albedo / math.pi * E
     if method != "diffuse" and np.any(params.spec):
-        out = out + sun_glossy(n, np.asarray(view, np.float64), l, params, angle) * E
+        out = out + sun_glossy(n, np.asarray(view, np.float64), l, params, angle, multi=layered) * E
     return out * cos[:, None]
 
 
@@ -216,10 +217,11 @@ def fresnel_dielectric(c, eta) -> np.ndarray:
     return np.where(g2 > 0.0, np.nan_to_num(f, nan=1.0), 1.0)
 
 
-def sun_fresnel(vh, params: ShadingParams) -> np.ndarray:
+def sun_fresnel(vh, params: ShadingParams, ms=None) -> np.ndarray:
     """(N, 3) F at cos(v.h) ``vh``: (1 - m) times the dielectric Fresnel of
     eta = (1 + sqrt F0) / (1 - sqrt F0) and, for the metallic part, Schlick's
-    with the base colour (m C = spec - (1 - m) F0)."""
+    with the base colour (m C = spec - (1 - m) F0). ``ms`` (dielectric (N,),
+    metal (N, 3)): each part times its multiscatter factor."""
     spec = np.asarray(params.spec, np.float64)
     n = spec.shape[0]
     m = np.zeros(n) if params.metallic is None else np.asarray(params.metallic, np.float64).reshape(n)
@@ -228,7 +230,11 @@ def sun_fresnel(vh, params: ShadingParams) -> np.ndarray:
     eta = (1.0 + sf) / (1.0 - sf)
     metal = spec - ((1.0 - m) * f0)[:, None]
     q = (1.0 - np.clip(vh, 0.0, 1.0)) ** 5
-    return ((1.0 - m) * fresnel_dielectric(vh, eta))[:, None] + metal + (m[:, None] - metal) * q[:, None]
+    d = ((1.0 - m) * fresnel_dielectric(vh, eta))[:, None]
+    c = metal + (m[:, None] - metal) * q[:, None]
+    if ms is not None:
+        d, c = d * ms[0][:, None], c * ms[1]
+    return d + c
 
 
 def _smith_lambda(c, a2):
@@ -236,11 +242,15 @@ def _smith_lambda(c, a2):
     return 0.5 * (np.sqrt(1.0 + a2 * (1.0 - c2) / c2) - 1.0)
 
 
-def sun_glossy(n, v, l, params: ShadingParams, angle: float) -> np.ndarray:
+def sun_glossy(n, v, l, params: ShadingParams, angle: float, *, multi: bool = True) -> np.ndarray:
     """(N, 3) the sun's specular BRDF f_s = D G F / (4 (n.v) (n.l)) at unit
     normals ``n`` and view vectors ``v`` (N, 3), towards the sun ``l`` (3,)
-    (0 where n.v or n.l is not positive): see :func:`sun_direct`."""
-    nv, nl = np.einsum("ij,ij->i", n, v), n @ l
+    or one direction a point (N, 3) (0 where n.v or n.l is not positive):
+    see :func:`sun_direct`. ``multi`` (Multiscatter GGX, Blender's default): each Fresnel part times
+    layering.multiscatter at n.v; False: single scattering."""
+    l = np.asarray(l, np.float64)
+    nv = np.einsum("ij,ij->i", n, v)
+    nl = n @ l if l.ndim == 1 else np.einsum("ij,ij->i", n, l)
     h = v + l
     hn = np.linalg.norm(h, axis=1, keepdims=True)
     h = np.where(hn > 0, h / np.where(hn > 0, hn, 1.0), n)
@@ -253,7 +263,12 @@ def sun_glossy(n, v, l, params: ShadingParams, angle: float) -> np.ndarray:
     ok = (nv > 0.0) & (nl > 0.0)
     G = 1.0 / (1.0 + _smith_lambda(nv, a2) + _smith_lambda(nl, a2))
     f = np.where(ok, D * G / (4.0 * np.where(ok, nv * nl, 1.0)), 0.0)
-    return sun_fresnel(vh, params) * f[:, None]
+    spec = np.asarray(params.spec, np.float64).reshape(-1, 3)
+    N = spec.shape[0]
+    mm = np.zeros(N) if params.metallic is None else params.metallic
+    f0 = spec.mean(axis=1) if params.f0 is None else params.f0
+    ms = multiscatter(nv, np.broadcast_to(params.exponent, (N,)), f0, mm, spec) if multi else None
+    return sun_fresnel(vh, params, ms) * f[:, None]
 
 
 def sun_sh(direction, irradiance, bands: int) -> np.ndarray:

@@ -99,6 +99,7 @@ def sky_world(bpy, angle_deg: float):
 
 
 def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 256, glossy: bool = False,
+          roughness: float = 0.3,
           light: str = "lamp", sky_sun: bool = True, bounces: int = 0, sun_detail: int = 1,
           sun_refine: bool = True):
     """The scene in the current (empty) file, unwrapped and baked with the add-on; returns the manifest.
@@ -109,7 +110,8 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     from . import scene_build as sb
     from .cycles_compare import band_limited_environment
     grey = sb.principled("grey", base_color=(FLOOR_ALBEDO[False],) * 3, diffuse=True)
-    floor_mat = (sb.principled("floor", base_color=(FLOOR_ALBEDO[True],) * 3, roughness=0.3) if glossy else grey)
+    floor_mat = (sb.principled("floor", base_color=(FLOOR_ALBEDO[True],) * 3, roughness=roughness) if glossy
+                 else grey)
     sb.mesh_object("floor", mg.plane(FLOOR, FLOOR, subdiv=1), material=floor_mat)
     sb.mesh_object("box", mg.box(*BOX), material=grey)
     sb.mesh_object("plank", mg.box(*PLANK), material=grey)
@@ -265,7 +267,7 @@ class _without_sun_bounce:
 
 def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, resolution: int = 512,
             glossy: bool = False, work_dir: str | None = None, light: str = "lamp", sky_sun: bool = True,
-            bounces: int = 0, sun_detail: int = 1, sun_refine: bool = True) -> dict:
+            bounces: int = 0, sun_detail: int = 1, sun_refine: bool = True, roughness: float = 0.3) -> dict:
     import bpy
 
     from ... import register
@@ -283,7 +285,7 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
         t = time.perf_counter()
         manifest = build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution,
                          glossy=glossy, light=light, sky_sun=sky_sun, bounces=bounces, sun_detail=sun_detail,
-                         sun_refine=sun_refine)
+                         sun_refine=sun_refine, roughness=roughness)
         t_bake = time.perf_counter() - t
         mode = "tpfl" if glossy else "diffuse"
         prtt, _, status, _ = render_scene(bpy.context, mode=mode, size=size, bounces=bounces > 0)
@@ -372,8 +374,9 @@ def _cycles_glossy(bpy, path: str, size, samples: int, seed: int) -> np.ndarray:
 
 
 def glossy_highlight(size=(320, 180), *, samples: int = 256, resolution: int = 512, angle_deg: float = 0.5,
+                     roughness: float = 0.3,
                      work_dir: str | None = None) -> dict:
-    """The sun's highlight on the glossy floor (Principled, roughness 0.3) seen
+    """The sun's highlight on the glossy floor (Principled, ``roughness``) seen
     from where it mirrors the sun: PRTT's lobe alone ((TPFL - diffuse) with the
     sun less without it) against Cycles' Glossy Direct x Glossy Color with the
     World off. Returns the energy ratio and relative RMSE over the floor where
@@ -390,7 +393,8 @@ def glossy_highlight(size=(320, 180), *, samples: int = 256, resolution: int = 5
         bpy.ops.wm.read_factory_settings(use_empty=True)
         if not hasattr(bpy.types.Scene, "prtt"):
             register()
-        build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution, glossy=True)
+        build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution, glossy=True,
+              roughness=roughness)
         scene = bpy.context.scene
         l = sun_direction()
         target = np.array([0.3, -0.3, 0.0])
@@ -470,7 +474,8 @@ def main(argv=None) -> int:
     p.add_argument("--size", default="320x180")
     p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel")
     p.add_argument("--resolution", type=int, default=512, help="the atlas")
-    p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, roughness 0.3), TPFL")
+    p.add_argument("--glossy", action="store_true", help="a glossy floor (Principled, --roughness), TPFL")
+    p.add_argument("--roughness", type=float, default=0.3, help="the glossy floor's roughness")
     p.add_argument("--sun-detail", default="1", help="the sun masks' detail (Sun Shadow Detail), "
                    "comma-separated: a row each")
     p.add_argument("--memory", metavar="SIZES", help="peak RSS of the room's bake in a process of its own at "
@@ -500,19 +505,20 @@ def main(argv=None) -> int:
         return 0
     w, h = (int(v) for v in a.size.split("x"))
     if a.glossy_pass:
-        print(f"the sun's highlight on a glossy floor (roughness 0.3), {w}x{h}, Cycles {a.samples} samples "
+        print(f"the sun's highlight on a glossy floor (roughness {a.roughness:g}), {w}x{h}, Cycles {a.samples} samples "
               f"(Glossy Direct x Color, World off), atlas {a.resolution}²:")
         print(f"  {'angle':>6}  {'energy PRTT/Cycles':>18}  {'RMSE':>7}  {'peak PRTT':>9}  {'peak Cycles':>11}  "
               f"{'Cycles noise':>12}  pixels")
         for ang in (float(x) for x in a.angles.split(",")):
-            r = glossy_highlight((w, h), samples=a.samples, resolution=a.resolution, angle_deg=ang)
+            r = glossy_highlight((w, h), samples=a.samples, resolution=a.resolution, angle_deg=ang,
+                                 roughness=a.roughness)
             print(f"  {ang:6.2f}  {r['energy_ratio']:18.3f}  {r['rel_rmse']:7.2%}  {r['peak_prtt']:9.3f}  "
                   f"{r['peak_cycles']:11.3f}  {r['cycles_noise']:12.2%}  {r['pixels']}", flush=True)
         return 0
     what = f"the {a.hdri} HDRI's sun" if a.hdri else "a Sky Texture's sun" if a.sky else "Sun lamp"
     print(f"{what} over a box and a plank, {w}x{h}, Cycles {a.samples} samples, {a.bounces} bounce(s), "
           f"atlas {a.resolution}², "
-          f"{'glossy floor, TPFL' if a.glossy else 'diffuse, diffuse mode'}:")
+          f"{f'glossy floor (roughness {a.roughness:g}), TPFL' if a.glossy else 'diffuse, diffuse mode'}:")
     print(f"  {'angle':>6}  {'disc':>10}  {'image RMSE':>10}  {'shadow RMSE':>11}  {'mean':>7}  {'Cycles noise':>12}  "
           f"{'sun mask s':>10}  {'bake s':>6}  penumbrae PRTT / Cycles (mm; texel)")
     variants = ([(f"hdri:{a.hdri}", True), (f"hdri:{a.hdri}", False)] if a.hdri else
@@ -523,7 +529,8 @@ def main(argv=None) -> int:
     for ang, light, sky_sun, f in runs:
         if True:
             r = compare(ang, (w, h), samples=a.samples, resolution=a.resolution, glossy=a.glossy, light=light,
-                        sky_sun=sky_sun, bounces=a.bounces, sun_detail=f, sun_refine=not a.no_sun_refine)
+                        sky_sun=sky_sun, bounces=a.bounces, sun_detail=f, sun_refine=not a.no_sun_refine,
+                        roughness=a.roughness)
             disc = ("lamp" if light == "lamp" else "as sun" if r["sun"] else "in SH") + (f" x{f}" if f > 1 else "")
             if a.hdri and r["sun"]:
                 print(f"          extracted: a {math.degrees(r['sun']['angle']):.2f} degree disc of "
