@@ -54,7 +54,7 @@ def brute_force_bounce(sc, light, p, n_dirs=4096, q_rays=1024):
     nq /= np.linalg.norm(nq, axis=1, keepdims=True)
     Tq, _ = bake_points(rs, Points(q, nq, nq, np.arange(q.shape[0]), np.zeros(q.shape[0], bool)),
                         TransferSettings(rays=q_rays, analytic=False))
-    Lq = shade(Tq, nq, -d[hit], light, eval_materials(sc, tri, bary))
+    Lq = shade(Tq, nq, -d[hit], light, eval_materials(sc, tri, bary), layered=False)  # the bake's hit model
     Y = sh.eval_basis(d[hit], 5)
     return (math.pi / n_dirs) * np.einsum("nc,nk->ck", Lq, Y)
 

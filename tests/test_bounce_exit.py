@@ -57,7 +57,7 @@ def _reference_radiance(sc, surf, T_pm, light, bands, tri, u, v, view, clamp=Tru
         Lp = np.einsum("cik,k->ci", M, T)[None]                         # (1, 3, K)
         spec = surf.spec[i:i + 1] if glossy[t] else np.zeros((1, 3))
         p = ShadingParams(surf.albedo[i:i + 1], spec, surf.exponent[i:i + 1])
-        out[h] = outgoing(Lp, surf.normal[i:i + 1], view[h:h + 1].astype(np.float64), p, clamp=clamp)[0]
+        out[h] = outgoing(Lp, surf.normal[i:i + 1], view[h:h + 1].astype(np.float64), p, clamp=clamp, layered=False)[0]
     return out
 
 

@@ -57,7 +57,11 @@ class Sun:
         n = float(np.linalg.norm(d))
         if not n > 1e-12:
             raise SunError(f"sun {self.name!r}: direction has no length")
-        object.__setattr__(self, "direction", tuple(float(v) for v in d / n))
+        # A unit vector is kept as it is: normalising it again can move it by an
+        # ulp, so a sun read back from its own JSON would differ from itself.
+        if abs(n - 1.0) > 4.0 * np.finfo(np.float64).eps:
+            d = d / n
+        object.__setattr__(self, "direction", tuple(float(v) for v in d))
         a = float(self.angle)
         if not (math.isfinite(a) and 0.0 <= a <= MAX_ANGLE):
             raise SunError(f"sun {self.name!r}: angle {math.degrees(a) if math.isfinite(a) else a:.4g} degrees "
