@@ -193,13 +193,9 @@ def shader_tables() -> dict[str, np.ndarray]:
     return _TABLES
 
 
-def layer_weights(mu, exponent, f0, metallic, spec, tab=None):
-    """(diffuse (N,), glossy (N, 3)): the weights of the diffuse and glossy
-    lobes at view cosines ``mu`` (N,) for Phong ``exponent`` (N,), dielectric
-    ``f0`` (N,), ``metallic`` (N,) and specular weight ``spec`` (N, 3)
-    (materials.derive: spec = (1 - m) F0 + m C). diffuse scales rho_d: 1 - a_d;
-    glossy replaces spec: (1 - m) a_d + m a_m (module docstring); 1 and 0
-    where spec is 0."""
+def _point(mu, exponent, f0, metallic, spec, tab):
+    """The inputs both weights read, clipped, and the tables at them:
+    (f0, m, spec, C (the metal's colour, N x 3), E, E_avg, s, s5, blend_avg)."""
     tab = shader_tables() if tab is None else tab
     mu = np.clip(np.asarray(mu, np.float64).reshape(-1), 0.0, 1.0)
     n = mu.size
@@ -207,10 +203,22 @@ def layer_weights(mu, exponent, f0, metallic, spec, tab=None):
     m = np.clip(np.asarray(metallic, np.float64).reshape(n), 0.0, 1.0)
     spec = np.asarray(spec, np.float64).reshape(n, 3)
     E, E_avg, s, s5, blend_avg = lookup(tab, mu, roughness_of(exponent), np.sqrt(np.sqrt(f0)))
-    fss_d = f0 + (1.0 - f0) * blend_avg
-    a_d = darkening(E, E_avg, fss_d) * (f0 + (1.0 - f0) * s)
     metal = np.clip(spec - ((1.0 - m) * f0)[:, None], 0.0, None)       # m C
     C = np.where(m[:, None] > 0.0, metal / np.where(m > 0.0, m, 1.0)[:, None], 0.0)
+    return f0, m, spec, C, E, E_avg, s, s5, blend_avg
+
+
+def layer_weights(mu, exponent, f0, metallic, spec, tab=None):
+    """(diffuse (N,), glossy (N, 3)): the weights of the diffuse and glossy
+    lobes at view cosines ``mu`` (N,) for Phong ``exponent`` (N,), dielectric
+    ``f0`` (N,), ``metallic`` (N,) and specular weight ``spec`` (N, 3)
+    (materials.derive: spec = (1 - m) F0 + m C). diffuse scales rho_d: 1 - a_d;
+    glossy replaces spec: (1 - m) a_d + m a_m (module docstring); 1 and 0
+    where spec is 0."""
+    f0, m, spec, C, E, E_avg, s, s5, blend_avg = _point(mu, exponent, f0, metallic, spec,
+                                                        shader_tables() if tab is None else tab)
+    fss_d = f0 + (1.0 - f0) * blend_avg
+    a_d = darkening(E, E_avg, fss_d) * (f0 + (1.0 - f0) * s)
     fss_m = C + (1.0 - C) / 21.0
     a_m = darkening(E[:, None], E_avg[:, None], fss_m) * (C + (1.0 - C) * s5[:, None])
     diffuse = np.clip(1.0 - a_d, 0.0, 1.0)
@@ -228,19 +236,12 @@ def multiscatter(mu, exponent, f0, metallic, spec, tab=None):
     (Cycles' energy_scale times its darkening; Fms of each part's Fss, as in
     :func:`layer_weights`): what the sun's highlight (shade.sun_glossy) gets
     back of the energy single scattering loses on rough surfaces."""
-    tab = shader_tables() if tab is None else tab
-    mu = np.clip(np.asarray(mu, np.float64).reshape(-1), 0.0, 1.0)
-    n = mu.size
-    f0 = np.clip(np.asarray(f0, np.float64).reshape(n), 0.0, 1.0)
-    m = np.clip(np.asarray(metallic, np.float64).reshape(n), 0.0, 1.0)
-    spec = np.asarray(spec, np.float64).reshape(n, 3)
-    E, E_avg, _, _, blend_avg = lookup(tab, mu, roughness_of(exponent), np.sqrt(np.sqrt(f0)))
+    f0, m, spec, C, E, E_avg, _, _, blend_avg = _point(mu, exponent, f0, metallic, spec,
+                                                       shader_tables() if tab is None else tab)
     missing = (1.0 - E) / E
 
     def factor(Fss):
         return 1.0 + Fss * E_avg / (1.0 - Fss * (1.0 - E_avg)) * missing
-    metal = np.clip(spec - ((1.0 - m) * f0)[:, None], 0.0, None)
-    C = np.where(m[:, None] > 0.0, metal / np.where(m > 0.0, m, 1.0)[:, None], 0.0)
     Fss_m = C + (1.0 - C) / 21.0
     ms_m = 1.0 + Fss_m * (E_avg * missing)[:, None] / (1.0 - Fss_m * (1.0 - E_avg)[:, None])
     return factor(f0 + (1.0 - f0) * blend_avg), ms_m
