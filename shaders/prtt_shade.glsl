@@ -148,16 +148,33 @@ vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
   return F * (D * G / (4.0 * nv * nl));
 }
 
+/* The visible fraction of the sun's disc at PRTT UV uv: sunTex r is the
+ * baked mask; where the bake stored sub-texel edges (core.bake.estimators.
+ * sun_edge) g is the signed distance to the shadow edge's line and a the
+ * penumbra's half-width (texels), b = 1 where the line holds. Filtered
+ * bilinearly, d is exact on a plane; b below 1 means a texel around uv left
+ * it to the mask. A mask without edges (one channel) reads b = 0. */
+float sun_visible(vec2 uv)
+{
+  vec4 m = textureLod(sunTex, uv, 0.0);
+  if (m.b > 0.999 && m.a > 0.0) {
+    /* A uniform disc behind a straight edge s radii from its centre (sun_edge.profile). */
+    float s = clamp(m.g / m.a, -1.0, 1.0);
+    return 1.0 - (acos(s) - s * sqrt(1.0 - s * s)) / PRTT_PI;
+  }
+  return m.r;
+}
+
 /* The sun's direct light at a point (core.shading.shade.sun_direct): the
  * uniform block `sun` holds direction (xyz unit towards the sun, w = angle² / 16)
- * and irradiance (rgb, W/m² facing it); sunTex (r) the visible fraction of
+ * and irradiance (rgb, W/m² facing it); sun_visible the visible fraction of
  * its disc, baked per texel at PRTT UV uv.
  * B = mask max(0, n.l) E (dw albedo / pi + sun_glossy), dw the layering's
  * diffuse weight (prtt_layering.glsl); the diffuse mode leaves the lobe out. */
 vec3 sun_light(vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
 {
   vec3 l = sun.direction.xyz;
-  float c = max(dot(n, l), 0.0) * textureLod(sunTex, uv, 0.0).r;
+  float c = max(dot(n, l), 0.0) * sun_visible(uv);
   if (!(c > 0.0)) {
     return vec3(0.0);
   }

@@ -239,6 +239,12 @@ SETTINGS: tuple[Setting, ...] = (
             "of the rays or less (bench sun, 0.5 degrees: 1.86 s -> 0.26 s at Sun Shadow Detail 1, 7.5 s -> 0.9 s at 2), the same "
             "error against Cycles", flags=("--sun-refine", "--no-sun-refine"),
             off_help="every mask texel traces all its rays (the masks before it, byte for byte)"),
+    Setting("sun_edges", "bake", "bool", True, "a sharp sun's shadow edges at their sub-texel place: "
+            "beside the mask, each texel within 3 of an edge stores its distance to the edge's line and the "
+            "penumbra's half-width (<set>.sun_edge.exr), and the preview draws the edge there, as sharp as "
+            "the disc makes it; penumbrae a texel wide or wider are left to the mask",
+            flags=("--sun-edges", "--no-sun-edges"),
+            off_help="the mask alone (the files and keys before it, byte for byte)"),
     Setting("half", "bake", "bool", True, "half-float EXR textures (float32 for a texture whose values "
             "exceed 65504)", flags=("--half", "--float"), off_help="float32 EXR textures"),
     Setting("mips", "bake", "bool", False, "also write coverage-weighted mip levels", flags=("--mips", "--no-mips"),

@@ -343,10 +343,12 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
         rfile = f"{set_name}.relight.exr"
         relight = os.path.join(out_dir, rfile) if rfile in bounce_files and os.path.isfile(
             os.path.join(out_dir, rfile)) else None
-        sfile = f"{set_name}.sun.exr"
+        sfile, efile = f"{set_name}.sun.exr", f"{set_name}.sun_edge.exr"
         sun_mask = os.path.join(out_dir, sfile) if sfile in files and os.path.isfile(
             os.path.join(out_dir, sfile)) else None
-        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight, sun_mask)
+        sun_edge = os.path.join(out_dir, efile) if sun_mask and efile in files and os.path.isfile(
+            os.path.join(out_dir, efile)) else None
+        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight, sun_mask, sun_edge)
     try:
         light, status.light_description = current_light(scene, bands,
                                                          view_layer=getattr(context, "view_layer", None))

@@ -202,7 +202,9 @@ class Renderer:
         if want_vertex and s.vertex:
             add(("vertex", s.key), lambda: (2 * _npz_bytes(s.vertex),) * 2)
         if want_sun and s.sun:
-            add(("sun", s.key), lambda: (lambda H, W: (2 * H * W, 6 * H * W))(*texture_header(s.sun)[2:4]))
+            # R16F, or RGBA16F with edges (mask, d, valid, h): read as float32, stacked, then the buffer
+            add(("sun", s.key), lambda: (lambda H, W: (8 * H * W, 48 * H * W) if s.sun_edge else (
+                2 * H * W, 6 * H * W))(*texture_header(s.sun)[2:4]))
         return total, staging
 
     def planned_bytes(self, ps: pp.PreviewScene, mode: str) -> tuple:
@@ -272,11 +274,14 @@ class Renderer:
             return self._array_texture(pp.pack_vertex_transfer(data), s.vertex)
 
         def sun():
-            mask = np.ascontiguousarray(_load(s.load_sun, s.sun), np.float32)      # (H, W), row 0 at the bottom
-            H, W = mask.shape
+            # (H, W) the mask alone, or (H, W, 4) with its edges (mask, d, valid, h); row 0 at the bottom
+            tex = np.ascontiguousarray(_load(s.load_sun_texture, s.sun), np.float32)
+            H, W = tex.shape[:2]
             _check_limits(s.sun, W, H, 1)
-            # Half holds a mask of R <= 2048 rays exactly (multiples of 1 / R).
-            return gpu.types.GPUTexture((W, H), format="R16F", data=_buffer(mask)), 2 * H * W
+            # Half holds a mask of R <= 2048 rays exactly (multiples of 1 / R), and the edges as written.
+            if tex.ndim == 3:
+                return gpu.types.GPUTexture((W, H), format="RGBA16F", data=_buffer(tex)), 8 * H * W
+            return gpu.types.GPUTexture((W, H), format="R16F", data=_buffer(tex)), 2 * H * W
 
         return (self._get(("transfer", key), transfer),
                 self._get(("bounce", s.bounce_key(light)), bounce) if want_bounce and s.has_bounce else None,

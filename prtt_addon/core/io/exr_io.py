@@ -649,3 +649,33 @@ def read_mask_exr(path) -> tuple[np.ndarray, dict]:
     if not np.isfinite(data).all() or data.min() < 0.0 or data.max() > 1.0:
         raise TextureError(f"{path}: sun mask values outside [0, 1]")
     return data, attrs
+
+
+#: Channels of a sun edge texture (core.bake.estimators.sun_edge.CHANNELS).
+SUN_EDGE_CHANNELS = ["d", "h", "valid"]
+
+
+def write_edge_exr(path, planes: np.ndarray, *, attrs: dict | None = None, atomic: bool = True) -> str:
+    """Write a sun's sub-texel shadow edges, (3, H, W) float32 (d, h in
+    texels of the set, valid in [0, 1]; core.bake.estimators.sun_edge), row 0
+    at the bottom, as three half channels (kind "sun_edge", prtt_bands 1)."""
+    p = np.asarray(planes, np.float32)
+    if p.ndim != 3 or p.shape[0] != 3:
+        raise ValueError(f"sun edges are (3, H, W), got {p.shape}")
+    return write_sh_planes(path, p, kind="sun_edge", half=True, attrs=attrs, atomic=atomic,
+                           names=SUN_EDGE_CHANNELS, bands=1, full_bits=[True] * 3)
+
+
+def read_edge_exr(path) -> tuple[np.ndarray, dict]:
+    """((H, W, 3) float32 (d, h, valid), row 0 at the bottom, attrs) of a sun
+    edge texture; TextureError for any other file or values out of range
+    (|d| or h above 64, valid outside [0, 1], not finite)."""
+    chans, attrs = _read_channels(path)
+    if attrs.get("kind") != "sun_edge":
+        raise TextureError(f"{path}: a {shown(attrs.get('kind'))} texture, not sun edges")
+    data = _stack(path, chans, SUN_EDGE_CHANNELS)
+    if not np.isfinite(data).all() or np.abs(data[..., 0]).max(initial=0.0) > 64.0 \
+            or data[..., 1].min(initial=0.0) < 0.0 or data[..., 1].max(initial=0.0) > 64.0 \
+            or data[..., 2].min(initial=0.0) < 0.0 or data[..., 2].max(initial=0.0) > 1.0:
+        raise TextureError(f"{path}: sun edge values out of range")
+    return data, attrs

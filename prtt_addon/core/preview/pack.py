@@ -32,6 +32,7 @@ from ..io.exr_io import (
     bands_of_header,
     channel_names,
     glossy_tint,
+    read_edge_exr,
     read_mask_exr,
     read_relight_exr,
     read_sh_exr,
@@ -229,6 +230,7 @@ class PreviewSet:
     vertex: str | None = None
     relight: str | None = None
     sun: str | None = None        # <set>.sun.exr: the visible fraction of the sun's disc per texel
+    sun_edge: str | None = None   # <set>.sun_edge.exr: its sub-texel shadow edges (with sun only)
 
     @property
     def has_bounce(self) -> bool:
@@ -244,7 +246,7 @@ class PreviewSet:
     @property
     def key(self) -> str:
         parts = []
-        for p in (self.transfer, *self.bounces, self.vertex, self.relight, self.sun):
+        for p in (self.transfer, *self.bounces, self.vertex, self.relight, self.sun, self.sun_edge):
             if p:
                 try:
                     st = os.stat(p)
@@ -297,6 +299,20 @@ class PreviewSet:
     def load_sun(self) -> np.ndarray | None:
         """(H, W) float32 sun mask, row 0 at the bottom, or None."""
         return read_mask_exr(self.sun)[0] if self.sun else None
+
+    def load_sun_texture(self) -> np.ndarray | None:
+        """The sun's texture as the shaders read it (prtt_shade.glsl
+        sun_visible), row 0 at the bottom: (H, W) float32 the mask alone, or
+        with edges (H, W, 4) (mask, d, valid, h); None without a mask.
+        TextureError when the edges' size is not the mask's."""
+        mask = self.load_sun()
+        if mask is None or not self.sun_edge:
+            return mask
+        edge = read_edge_exr(self.sun_edge)[0]
+        if edge.shape[:2] != mask.shape:
+            raise TextureError(f"{self.sun_edge}: {edge.shape[1]}x{edge.shape[0]} edges for a "
+                               f"{mask.shape[1]}x{mask.shape[0]} mask; bake again")
+        return np.stack([mask, edge[..., 0], edge[..., 2], edge[..., 1]], axis=-1)
 
     def load_vertex(self) -> np.ndarray | None:
         """(V, K) float32 per-vertex transfer, or None."""
@@ -827,11 +843,13 @@ def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_boun
                         if f.startswith(f"{set_name}.bounce") and f.endswith(".exr"))
         vfile = f"{set_name}.vertex.npz"
         rfile = f"{set_name}.relight.exr"
-        sfile = f"{set_name}.sun.exr"
+        sfile, efile = f"{set_name}.sun.exr", f"{set_name}.sun_edge.exr"
+        with_sun = sfile in files and sun is not None
         sets[set_name] = PreviewSet(set_name, os.path.join(out_dir, transfer), bounces,
                                     os.path.join(out_dir, vfile) if vfile in files else None,
                                     os.path.join(out_dir, rfile) if rfile in files else None,
-                                    os.path.join(out_dir, sfile) if sfile in files and sun is not None else None)
+                                    os.path.join(out_dir, sfile) if with_sun else None,
+                                    os.path.join(out_dir, efile) if with_sun and efile in files else None)
         set_tris = sc.triangles_of_set(s)
         corner_vertex = None
         if vfile in files:

@@ -17,6 +17,7 @@ from .bounce_stage import BounceResult
 from .context import BAKE_FORMAT_VERSION, MANIFEST, BakeContext
 from .plan import BakePlan, manifest_dicts, plain_names
 from .stages import Geometry, SetResult, VertexResult
+from .sun_stage import EDGE_SUFFIX, MASK_SUFFIX, SUN_SUFFIXES
 
 
 def finish_skipped(ctx: BakeContext, plan: BakePlan) -> dict:
@@ -41,8 +42,8 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
         vertex_reports = manifest_dicts(old.get("vertex"))
         if plan.sun_only:
             # the masks baked anew over the reused transfer (or none, the sun gone)
-            transfer_files = [f for f in transfer_files if not f.endswith(".sun.exr")] + [
-                f for r in sets for f in r.files if f.endswith(".sun.exr")]
+            transfer_files = [f for f in transfer_files if not f.endswith(SUN_SUFFIXES)] + [
+                f for r in sets for f in r.files if f.endswith(SUN_SUFFIXES)]
             new = {r.name: r.report for r in sets}
             set_reports = [new.get(r.get("name"), {k: v for k, v in r.items() if not k.startswith("sun_")})
                            for r in set_reports]
@@ -80,7 +81,11 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
         "warnings": ctx.warnings, "skipped": False,
         # Only with a sun: a bake without one writes the manifest it wrote before suns.
         **({"sun": {**ctx.sun.as_dict(), "rays": SUN_RAYS, "key": plan.sun_key,
-                    "files": [f for f in transfer_files if f.endswith(".sun.exr")]}} if ctx.sun is not None else {}),
+                    "files": [f for f in transfer_files if f.endswith(MASK_SUFFIX)],
+                    # Only with edges: a bake without them writes the sun entry it wrote before them.
+                    **({"edge_files": edge_files} if (edge_files := [f for f in transfer_files
+                                                                     if f.endswith(EDGE_SUFFIX)]) else {})}}
+            if ctx.sun is not None else {}),
     }
 
 
@@ -94,7 +99,7 @@ def commit_bake(ctx: BakeContext, plan: BakePlan, manifest: dict) -> dict:
     files = manifest["files"]
     old_files = old.get("files", [])
     stale = [f for f in (old_files if plain_names(old_files) else [])
-             if f not in files and (".bounce" in f or f.endswith((".relight.exr", ".sun.exr")))]
+             if f not in files and (".bounce" in f or f.endswith((".relight.exr",) + SUN_SUFFIXES))]
     ctx.check_cancel()
     new_info = ctx.staging.seal()
     # The reused files' entries (the transfer's, and a masks-only re-bake's bounce) were verified by plan.reusable.

@@ -75,6 +75,7 @@ class BakeSettings(TransferSettings):
     dilate: int = _d("dilate")              # texels of dilation
     sun_detail: int = _d("sun_detail")      # a sun mask's texels per set texel, per side (sun_stage)
     sun_refine: bool = _d("sun_refine")     # a finer mask traces all its rays only in penumbrae (sun_mask)
+    sun_edges: bool = _d("sun_edges")       # sub-texel shadow edges beside the mask (sun_edge)
     half: bool = _d("half")                 # float16 EXR (auto float32 on overflow)
     mips: bool = _d("mips")                 # write coverage-weighted mip levels
     texel_validity: bool = _d("texel_validity")   # fill texels inside geometry from their neighbours
@@ -122,7 +123,8 @@ class BakeSettings(TransferSettings):
         """Settings that change the transfer textures (not threads, chunking or bounces)."""
         d = self.as_dict()
         for k in ("threads", "chunk_rays", "bounces", "bounce_rays", "bounce_tolerance", "bounce_denoise",
-                  "bounce_downscale", "tuning", "bounce_mode", "sun_detail", "sun_refine"):     # (the sun's key)
+                  "bounce_downscale", "tuning", "bounce_mode", "sun_detail", "sun_refine",
+                  "sun_edges"):     # (the sun's key)
             d.pop(k)
         if self.storage_bits() < 10:
             d["storage_bits"] = self.storage_bits()     # absent under fixed: its keys are as before

@@ -139,7 +139,7 @@ def plan_bake(ctx: BakeContext, *, skip_if_unchanged: bool = True) -> BakePlan:
     m_hash = materials_hash(sc)
     b_key = bounce_key(in_hash, set_hash, ctx.bounce_light, m_hash, st) if bouncing else None
     old = read_manifest(ctx.out_dir)
-    s_key = sun_key(ctx.sun, in_hash, st.sun_detail, st.sun_refine)
+    s_key = sun_key(ctx.sun, in_hash, st.sun_detail, st.sun_refine, st.sun_edges)
     transfer_ok, bounce_ok, sun_ok = reusable(ctx, old, in_hash, set_hash, b_key, bouncing=bouncing,
                                               skip_if_unchanged=skip_if_unchanged, sun=s_key)
     return BakePlan(input_hash=in_hash, settings_hash=set_hash, light_hash=l_hash, materials_hash=m_hash,

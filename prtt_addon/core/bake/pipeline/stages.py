@@ -419,8 +419,8 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     sun_files = []
     if ctx.sun is not None and ctx.settings.sun_detail == 1:
         # Before the texture's write may release the G-buffer's points (moved by validity).
-        fname, sun_rep = sun_set(ctx, geo.rays, gb, inside, plan.sun_key)
-        sun_files.append(fname)
+        files, sun_rep = sun_set(ctx, geo.rays, gb, inside, plan.sun_key)
+        sun_files += files
         rep.update(sun_rep)
     res = _finish_transfer_set(ctx, geo, plan, gb, rep, traced, inside, step, sun_files, keep_for_bounce)
     if ctx.sun is not None and ctx.settings.sun_detail > 1:
@@ -436,7 +436,7 @@ def sun_detail_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, set_index: i
     resolution per side: a G-buffer of its own over the same UV layout
     (build_gbuffer's resolution), texel validity on it, the mask dilated by f
     times the set's rings (the same gutter in UV space). Returns ([its
-    file] or [], the report's sun entries, ``sun_detail`` among them)."""
+    files] or [], the report's sun entries, ``sun_detail`` among them)."""
     st = ctx.settings
     f = st.sun_detail
     W, H = (int(v) for v in ctx.scene.set_resolution[set_index])
@@ -447,8 +447,8 @@ def sun_detail_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, set_index: i
     if not fine.n:
         return [], {}
     inside, _ = validity_pass(ctx, geo, fine, {})
-    fname, sun_rep = sun_set(ctx, geo.rays, fine, inside, plan.sun_key, rings=st.dilate * f)
-    return [fname], {**sun_rep, "sun_detail": f}
+    files, sun_rep = sun_set(ctx, geo.rays, fine, inside, plan.sun_key, rings=st.dilate * f)
+    return files, {**sun_rep, "sun_detail": f}
 
 
 def validity_pass(ctx: BakeContext, geo: Geometry, gb: GBuffer, rep: dict) -> tuple[np.ndarray | None, float]:
@@ -567,8 +567,7 @@ def sun_only_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer) -
     own = dataclasses.replace(gb, position=gb.position.copy())
     rep = {"name": ctx.scene.set_names[gb.set_index]}
     inside, _ = validity_pass(ctx, geo, own, rep)
-    fname, sun_rep = sun_set(ctx, geo.rays, own, inside, plan.sun_key)
-    return [fname], sun_rep
+    return sun_set(ctx, geo.rays, own, inside, plan.sun_key)
 
 
 def load_transfer_set(ctx: BakeContext, geo: Geometry, gb: GBuffer, old_report: dict) -> SetResult:

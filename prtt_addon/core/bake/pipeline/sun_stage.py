@@ -19,30 +19,43 @@ from ...io import exr_io
 from ...light.sun import SUN_RAYS, Sun
 from ...texels.dilate import dilate
 from ..estimators.raytrace import RayScene
+from ..estimators.sun_edge import REACH, STEPS, TOLERANCE, WIDE, sun_edges
 from ..estimators.sun_mask import FIRST_RAYS, REFINE_RING, sun_mask
 from .context import BakeContext
 
+#: What the edges' texels hold, in the sun's key (a change bakes the masks again).
+EDGE_VERSION = f"1,{REACH},{STEPS},{TOLERANCE},{WIDE}"
+#: A set's mask and edge files end so (commit and the readers tell them by it).
+MASK_SUFFIX = ".sun.exr"
+EDGE_SUFFIX = ".sun_edge.exr"
+SUN_SUFFIXES = (MASK_SUFFIX, EDGE_SUFFIX)
 
-def sun_key(sun: Sun | None, input_hash: str, detail: int = 1, refine: bool = True) -> str | None:
+
+def sun_key(sun: Sun | None, input_hash: str, detail: int = 1, refine: bool = True,
+            edges: bool = False) -> str | None:
     """sha256 hex of what a set's mask depends on beyond the transfer's inputs:
     the sun's direction and disc, the rays, the mask's detail (settings.sun_detail,
-    when not 1: the keys of the bakes before it) and its refinement
-    (settings.sun_refine; off: the keys before it); None without a sun."""
+    when not 1: the keys of the bakes before it), its refinement
+    (settings.sun_refine; off: the keys before it) and its edges
+    (settings.sun_edges; off: the keys before them); None without a sun."""
     if sun is None:
         return None
     extra = f"|detail={detail}" if detail != 1 else ""
     if refine:
         extra += f"|refine={FIRST_RAYS},{REFINE_RING}"
+    if edges:
+        extra += f"|edges={EDGE_VERSION}"
     return hashlib.sha256(f"{input_hash}|{sun.mask_hash()}|{SUN_RAYS}{extra}".encode()).hexdigest()
 
 
 def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | None, key: str,
-            rings: int | None = None) -> tuple[str, dict]:
+            rings: int | None = None) -> tuple[list[str], dict]:
     """Trace, dilate and stage set ``gb``'s mask (``gb`` the set's G-buffer,
     or one settings.sun_detail times finer over its layout, dilated by
     ``rings``: as many of its texels as the set's dilation covers); with
     settings.sun_refine all its rays only in penumbrae (sun_mask's ``grid``);
-    returns (file name, the set report's sun entries). ``rays`` the scene's
+    with settings.sun_edges its sub-texel edges beside it (sun_edge.py);
+    returns (the file names, the set report's sun entries). ``rays`` the scene's
     BVH (None under Dask: the mask is traced here, on a BVH of its own)."""
     st, sun = ctx.settings, ctx.sun
     name = ctx.scene.set_names[gb.set_index]
@@ -67,13 +80,33 @@ def sun_set(ctx: BakeContext, rays: RayScene | None, gb, inside: np.ndarray | No
         drop = gb.texel[inside]
         plane[0, drop] = 0.0
         cov[drop] = False
+    edges = None
+    if st.sun_edges and sun.shadow:
+        # Before the mask's dilation: the edges are found from the traced texels alone.
+        edges, edge_counts = sun_edges(rays, gb.position, gb.geo_normal, gb.texel.astype(np.int64), W, H, m,
+                                       sun.direction, sun.angle, use=None if inside is None else ~inside)
     dilate(plane.reshape(1, H, W), cov.reshape(H, W), st.dilate if rings is None else rings)
-    fname = f"{name}.sun.exr"
+    fname = f"{name}{MASK_SUFFIX}"
     ctx.emit(type="progress", stage="write", file=fname, fraction=0.0)
-    exr_io.write_mask_exr(ctx.staging.path(fname), plane.reshape(H, W), atomic=False,
-                          attrs={"sun_rays": SUN_RAYS, "seed": st.seed, "sun_key": key,
-                                 "sun_direction": " ".join(f"{v:.9f}" for v in sun.direction),
-                                 "sun_angle": float(sun.angle), **({} if sun.shadow else {"sun_shadow": 0})})
+    attrs = {"sun_rays": SUN_RAYS, "seed": st.seed, "sun_key": key,
+             "sun_direction": " ".join(f"{v:.9f}" for v in sun.direction),
+             "sun_angle": float(sun.angle), **({} if sun.shadow else {"sun_shadow": 0})}
+    exr_io.write_mask_exr(ctx.staging.path(fname), plane.reshape(H, W), atomic=False, attrs=attrs)
+    files = [fname]
+    rep = {}
+    if edges is not None:
+        planes = np.zeros((3, H * W), np.float32)
+        planes[:, gb.texel] = edges.T
+        if inside is not None and inside.any():
+            planes[:, gb.texel[inside]] = 0.0
+        # The same rings as the mask's: a gutter texel is valid where all it is filled from are.
+        dilate(planes.reshape(3, H, W), cov.reshape(H, W), st.dilate if rings is None else rings)
+        ename = f"{name}{EDGE_SUFFIX}"
+        exr_io.write_edge_exr(ctx.staging.path(ename), planes.reshape(3, H, W), atomic=False,
+                              attrs={**attrs, "sun_edges": EDGE_VERSION})
+        files.append(ename)
+        rep = {"sun_edge_file": ename, "sun_edge_texels": edge_counts["edge_texels"],
+               "sun_mask_texels": edge_counts["mask_texels"], "sun_crossings": edge_counts["crossings"]}
     seconds = time.perf_counter() - t
     lit = float(np.count_nonzero(m > 0.0)) / max(1, m.size)
-    return fname, {"sun_file": fname, "sun_seconds": round(seconds, 3), "sun_lit_fraction": round(lit, 4)}
+    return files, {"sun_file": fname, "sun_seconds": round(seconds, 3), "sun_lit_fraction": round(lit, 4), **rep}
