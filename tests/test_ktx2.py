@@ -180,3 +180,29 @@ def test_one_channel_r8_masks_round_trip_through_ktx_parse(tmp_path, rng, layers
     back, _ = read_ktx2(path)
     for a, b in zip(back, levels):
         assert a.dtype == np.uint8 and np.array_equal(a, b)
+
+
+def test_a_sun_payload_is_r8_alone_and_rgba16f_with_its_edges(rng):
+    """gltf_prtt.sun_payload: the mask alone as R8 (q = round(255 m), the
+    largest rounding said), with edges the (mask, d, valid, h) halves the
+    preview uploads (pack.PreviewSet.load_sun_texture's order); bad edges
+    are refused, not written."""
+    from prtt_addon.core.io.gltf_prtt import sun_payload
+    from prtt_addon.core.io.ktx2 import parse_ktx2
+    mask = rng.random((6, 9)).astype(np.float32)
+    blob, meta = sun_payload(mask)
+    (q,), keys = parse_ktx2(blob)
+    assert meta["format"] == "R8" and keys["PRTTkind"] == "sun_mask" and q.shape == (1, 6, 9, 1)
+    assert np.array_equal(q[0, ..., 0], np.rint(mask * 255).astype(np.uint8))
+    assert abs(meta["maxError"] - np.abs(q[0, ..., 0] / 255.0 - mask).max()) < 1e-9 and meta["maxError"] <= 1 / 510
+    edges = np.stack([rng.uniform(-3, 3, (6, 9)), rng.uniform(0, 0.5, (6, 9)),
+                      rng.integers(0, 2, (6, 9))], axis=-1).astype(np.float32)
+    blob, meta = sun_payload(mask, edges)
+    (t,), keys = parse_ktx2(blob)
+    assert meta["format"] == "RGBA16F" and keys["PRTTkind"] == "sun_mask_edges" and t.dtype == np.float16
+    want = np.stack([mask, edges[..., 0], edges[..., 2], edges[..., 1]], axis=-1).astype(np.float16)
+    assert np.array_equal(t[0], want)
+    assert meta["maxError"] == float(np.abs(want[..., 0].astype(np.float64) - mask).max()) <= 2 ** -11
+    for bad in (edges[:5], np.where(edges == edges[0, 0, 0], np.nan, edges), edges * 1e6):
+        with pytest.raises(ValueError):
+            sun_payload(mask, bad)

@@ -77,7 +77,7 @@ def sun_server(sunny):
 
 
 def test_the_glb_carries_the_baked_sun_and_its_masks(sunny):
-    from prtt_addon.core.io.exr_io import read_mask_exr
+    from prtt_addon.core.io.exr_io import read_edge_exr, read_mask_exr
     from prtt_addon.core.io.ktx2 import parse_ktx2
     doc, binary = glb(sunny / "sun.glb")
     validate_file(doc)
@@ -97,18 +97,22 @@ def test_the_glb_carries_the_baked_sun_and_its_masks(sunny):
     assert NAME not in node["extensions"]
     light = doc["extensions"]["KHR_lights_punctual"]["lights"][node["extensions"]["KHR_lights_punctual"]["light"]]
     assert light["type"] == "directional"
-    lit = 0.0
+    lit = edged = 0.0
     for s in ext["sets"]:
         meta = s["sun"]
         (q,), keys = parse_ktx2(view(doc, binary, meta["bufferView"]))
-        assert keys["PRTTkind"] == "sun_mask" and q.dtype == np.uint8 and q.shape == (1, meta["height"],
-                                                                                       meta["width"], 1)
         mask = read_mask_exr(sunny / "textures" / f"{s['name']}.sun.exr")[0][::-1]    # rows top first
-        assert np.array_equal(q[0, :, :, 0], np.rint(mask * 255).astype(np.uint8)), s["name"]
-        err = np.abs(q[0, :, :, 0] / 255.0 - mask).max()
-        assert err <= 1 / 510 + 1e-7 and math.isclose(meta["maxError"], err, rel_tol=1e-6, abs_tol=1e-9)
+        # the default bake has sub-texel edges: the very halves Blender's preview uploads
+        assert meta["format"] == "RGBA16F" and keys["PRTTkind"] == "sun_mask_edges", meta
+        assert q.dtype == np.float16 and q.shape == (1, meta["height"], meta["width"], 4)
+        edge = read_edge_exr(sunny / "textures" / f"{s['name']}.sun_edge.exr")[0][::-1]
+        want = np.stack([mask, edge[..., 0], edge[..., 2], edge[..., 1]], axis=-1).astype(np.float16)
+        assert np.array_equal(q[0], want), s["name"]
+        assert meta["maxError"] == 0.0                    # the EXR's mask is half already
         assert meta["bytes"] < 0.5 * meta["uncompressedBytes"]
         lit += float((mask > 0.5).mean())
+        edged += float((edge[..., 2] >= 1.0).mean())
+    assert edged > 0.0                                   # some texels draw their edge's line
     assert 0.2 < lit / len(ext["sets"]) < 0.95                       # shadows and light both present
 
 
@@ -156,6 +160,14 @@ def _mask_is_a_transfer(doc, binary):
     s["sun"]["bufferView"] = s["transfer"]["bufferView"]
 
 
+def _mask_says_r8(doc, binary):
+    doc["extensions"][NAME]["sets"][0]["sun"]["format"] = "R8"
+
+
+def _mask_unknown_format(doc, binary):
+    doc["extensions"][NAME]["sets"][0]["sun"]["format"] = "RGB9E5"
+
+
 def _sun_direction(doc, binary):
     doc["extensions"][NAME]["sun"]["direction"] = [0.0, 0.0, 0.0]
 
@@ -171,7 +183,9 @@ def _sun_strength(doc, binary):
 BAD_SUNS = {
     "mask size": (_mask_cut, "sun mask: 128x128 in 1 layers, the extension says 64x128 in 1"),
     "mask not KTX2": (_mask_garbage, "sun mask: not a readable KTX2 file"),
-    "mask of another format": (_mask_is_a_transfer, "sun mask: not an R8 texture (vkFormat 97)"),
+    "mask is a transfer": (_mask_is_a_transfer, "sun mask: 128x128 in 7 layers, the extension says 128x128 in 1"),
+    "mask of another format": (_mask_says_r8, "sun mask: not an R8 texture (vkFormat 97)"),
+    "mask of no format": (_mask_unknown_format, "sun mask: unknown format RGB9E5 (R8 or RGBA16F)"),
     "direction": (_sun_direction, "the sun's direction must be a unit vector"),
     "angle": (_sun_angle, "the sun's angle 3 is not 0 to 0.5236 radians"),
     "strength": (_sun_strength, "the sun's colour and strength must be finite and not negative"),

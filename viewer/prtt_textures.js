@@ -35,7 +35,9 @@ export function declaredBytes(sets) {
       total += copies * p.layers * p.width * p.height * 8;
     }
     const m = s && s.sun;
-    if (m && [m.width, m.height].every((v) => Number.isInteger(v) && v > 0)) total += m.width * m.height;
+    if (m && [m.width, m.height].every((v) => Number.isInteger(v) && v > 0)) {
+      total += m.width * m.height * (m.format === 'RGBA16F' ? 8 : 1);
+    }
   }
   return total;
 }
@@ -135,14 +137,18 @@ export function arrayTexture(bytes, zstd, what, { layers, width, height, encodin
 
 /**
  * A set's sun mask (docs/gltf.md): a one-layer R8 KTX2, q / 255 the visible
- * fraction of the sun's disc per texel, rows top first; checked against the
- * extension's size and the browser's limits, as an 8-bit 2D texture the GPU
- * filters bilinearly (the shader reads .r in 0 .. 1).
+ * fraction of the sun's disc per texel, or with sub-texel edges (format
+ * RGBA16F) one RGBA16F KTX2 of (mask, d, valid, h), checked against the
+ * extension's size and the browser's limits, as a 2D texture the GPU filters
+ * bilinearly (prtt_shade.glsl sun_visible reads it: an R8 mask has b = 0).
  */
-export function maskTexture(bytes, zstd, what, { width, height }, limits) {
+export function maskTexture(bytes, zstd, what, { width, height, format = 'R8' }, limits) {
   const c = parseKTX2(bytes, what);
-  if (c.vkFormat !== VK_FORMAT_R8_UNORM || c.levels.length < 1) {
-    throw new PRTTError(`${what}: not an R8 texture (vkFormat ${c.vkFormat})`);
+  const edges = format === 'RGBA16F';
+  if (!edges && format !== 'R8') throw new PRTTError(`${what}: unknown format ${format} (R8 or RGBA16F)`);
+  const vk = edges ? VK_FORMAT_R16G16B16A16_SFLOAT : VK_FORMAT_R8_UNORM;
+  if (c.vkFormat !== vk || c.levels.length < 1) {
+    throw new PRTTError(`${what}: not an ${format} texture (vkFormat ${c.vkFormat})`);
   }
   if (c.layerCount !== 1 || c.pixelWidth !== width || c.pixelHeight !== height) {
     throw new PRTTError(`${what}: ${c.pixelWidth}x${c.pixelHeight} in ${c.layerCount} layers, the extension says `
@@ -152,13 +158,28 @@ export function maskTexture(bytes, zstd, what, { width, height }, limits) {
     throw new PRTTError(`${what}: ${width}x${height} texels exceeds this browser's MAX_TEXTURE_SIZE `
       + `(${limits.maxTextureSize}); export a smaller bake`);
   }
-  const data = levelBytes(c, c.levels[0], width * height, zstd, what);
-  const tex = new THREE.DataTexture(new Uint8Array(data), width, height, THREE.RedFormat, THREE.UnsignedByteType);
+  const want = width * height * (edges ? 8 : 1);
+  if (want > MAX_TEXTURE_BYTES) {
+    throw new PRTTError(`${what}: ${width}x${height} is ${(want / 2 ** 20).toFixed(0)} MiB, `
+      + `over the viewer's ${MAX_TEXTURE_BYTES / 2 ** 20} MiB per texture`);
+  }
+  const data = levelBytes(c, c.levels[0], want, zstd, what);
+  let tex;
+  if (edges) {
+    const half = new Uint16Array(data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength));
+    for (let t = 0; t < half.length; t++) {
+      // a half with all exponent bits set is Inf or NaN: never a distance, a width or a fraction
+      if ((half[t] & 0x7c00) === 0x7c00) throw new PRTTError(`${what}: a value that is not finite (a damaged file)`);
+    }
+    tex = new THREE.DataTexture(half, width, height, THREE.RGBAFormat, THREE.HalfFloatType);
+  } else {
+    tex = new THREE.DataTexture(new Uint8Array(data), width, height, THREE.RedFormat, THREE.UnsignedByteType);
+    tex.unpackAlignment = 1;
+  }
   tex.minFilter = tex.magFilter = THREE.LinearFilter;
   tex.wrapS = tex.wrapT = THREE.ClampToEdgeWrapping;
   tex.generateMipmaps = false;
   tex.flipY = false;                 // the KTX2's first row is glTF's v = 0
-  tex.unpackAlignment = 1;
   tex.colorSpace = THREE.NoColorSpace;
   tex.needsUpdate = true;
   return tex;

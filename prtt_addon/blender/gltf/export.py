@@ -47,7 +47,7 @@ import numpy as np
 
 from ...core.base.atomic import atomic_write
 from ...core.base.memory import MemoryLimitError, check_fits
-from ...core.io.exr_io import read_mask_exr
+from ...core.io.exr_io import read_edge_exr, read_mask_exr
 from ...core.io.gltf_prtt import (
     ENCODINGS,
     NAME,
@@ -420,14 +420,15 @@ def _check_exportable(context, info: dict):
 
 def _set_files(ps: pp.PreviewScene, folder: str, info: dict) -> list:
     """Per texture set, in export order: (set name, its objects, transfer
-    file, relightable file or None, baked bounce level files, sun mask file
-    or None: only where the preview draws the sun)."""
+    file, relightable file or None, baked bounce level files, (sun mask
+    file, its edges' file or None) or None: only where the preview draws the
+    sun)."""
     out = []
     for set_name, objects in sorted(info["set_objects"].items()):
         pset = ps.sets.get(set_name)
         relight = pset.relight if pset is not None and pset.relight else None
         bounces = list(pset.bounces) if pset is not None and not relight and pset.bounces else []
-        sun = pset.sun if pset is not None and pset.sun and ps.sun is not None else None
+        sun = (pset.sun, pset.sun_edge) if pset is not None and pset.sun and ps.sun is not None else None
         out.append((set_name, objects, os.path.join(folder, f"{set_name}.transfer.exr"), relight, bounces, sun))
     return out
 
@@ -456,7 +457,7 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
     sets, blobs, set_index = [], [], {}
     held = 0
     for i, (set_name, objects, transfer, relight, bounces, sun) in enumerate(_set_files(ps, folder, info)):
-        _fits(set_payload_bytes(transfer, relight, bounces, K, encoding),
+        _fits(set_payload_bytes(transfer, relight, bounces, K, encoding, sun),
               f"exporting texture set {set_name!r} (beside the {held / 2 ** 20:.0f} MiB of sets made before it)")
         made = file_payloads(transfer, encoding)
         meta = made["transfer"][1]
@@ -471,7 +472,14 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
             else:
                 made["bounce"] = b
         if sun:
-            made["sun"] = sun_payload(read_mask_exr(sun)[0][::-1])     # rows top first, as every payload
+            mask_file, edge_file = sun
+            mask = read_mask_exr(mask_file)[0]
+            edges = read_edge_exr(edge_file)[0] if edge_file else None
+            if edges is not None and edges.shape[:2] != mask.shape:
+                raise GltfExportError(f"{edge_file}: {edges.shape[1]}x{edges.shape[0]} edges for a "
+                                      f"{mask.shape[1]}x{mask.shape[0]} sun mask; bake again")
+            # rows top first, as every payload
+            made["sun"] = sun_payload(mask[::-1], None if edges is None else edges[::-1])
         for key, (blob, meta) in made.items():
             entry[key] = meta
             blobs.append((("sets", i, key), blob))

@@ -346,23 +346,46 @@ def bounce_files_payload(paths: list, K: int, encoding: str = "half",
 #: the disc (the mask's own steps are 1 / SUN_RAYS = 1/64: 8 bits hold them
 #: with at most 1/510 of rounding; a filtered edge texel rounds as any other).
 SUN_MASK_FORMAT = "R8"
+#: With sub-texel edges (core.bake.estimators.sun_edge): RGBA16F, the very
+#: halves Blender's preview uploads (prtt_shade.glsl sun_visible): r the mask,
+#: g the distance d to the edge's line and a the penumbra's half-width h, both
+#: in texels, b = 1 where the line holds. Not 8 bits: h is as small as 0.05
+#: texel for a 0.5 degree sun near its occluder, where a step of d of
+#: 4/255 texel would move the drawn fraction by a tenth.
+SUN_EDGE_FORMAT = "RGBA16F"
 
 
-def sun_payload(mask: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+def sun_payload(mask: np.ndarray, edges: np.ndarray | None = None, *,
+                supercompression: str = "zstd") -> tuple[bytes, dict]:
     """A set's sun mask (H, W) in [0, 1], rows top first, as a one-layer R8
     KTX2 (q = round(255 mask)) and its JSON: width, height, format, bytes and
-    ``maxError``, the largest |q / 255 - mask| (at most 1/510)."""
+    ``maxError``, the largest |q / 255 - mask| (at most 1/510). With
+    ``edges`` (H, W, 3) (d, h, valid; core.bake.estimators.sun_edge), rows
+    top first: one RGBA16F KTX2 of (mask, d, valid, h) (SUN_EDGE_FORMAT),
+    ``maxError`` then the mask's half rounding."""
     m = np.asarray(mask, np.float32)
     if m.ndim != 2:
         raise ValueError(f"a sun mask is (H, W), got {m.shape}")
     if not (np.isfinite(m).all() and m.min(initial=0.0) >= 0.0 and m.max(initial=0.0) <= 1.0):
-        raise ValueError("a sun mask holds fractions in [0, 1]")
-    q = np.rint(m * 255.0).astype(np.uint8)
-    err = float(np.abs(q.astype(np.float64) / 255.0 - m).max(initial=0.0))
+        raise ValueError("a sun mask holds fractions 0 to 1")
     H, W = m.shape
-    blob, level_bytes = ktx2_bytes([q[None, :, :, None]], supercompression=supercompression,
-                                   zstd_level=ZSTD_LEVEL, keys={"PRTTkind": "sun_mask"})
-    return blob, {"layers": 1, "width": int(W), "height": int(H), "format": SUN_MASK_FORMAT,
+    if edges is None:
+        q = np.rint(m * 255.0).astype(np.uint8)
+        err = float(np.abs(q.astype(np.float64) / 255.0 - m).max(initial=0.0))
+        texels, kind, fmt = q[None, :, :, None], "sun_mask", SUN_MASK_FORMAT
+    else:
+        e = np.asarray(edges, np.float32)
+        if e.shape != (H, W, 3) or not np.isfinite(e).all():
+            raise ValueError(f"sun edges are finite (H, W, 3) beside an (H, W) mask, got {e.shape}")
+        with np.errstate(over="ignore"):          # an overflow is refused just below
+            texels = np.stack([m, e[..., 0], e[..., 2], e[..., 1]], axis=-1).astype(np.float16)
+        if not np.isfinite(texels).all():
+            raise ValueError("sun edges beyond a half float's range")
+        err = float(np.abs(texels[..., 0].astype(np.float64) - m).max(initial=0.0))
+        texels, kind, fmt = texels[None], "sun_mask_edges", SUN_EDGE_FORMAT
+    blob, level_bytes = ktx2_bytes([texels], supercompression=supercompression,
+                                   zstd_level=ZSTD_LEVEL, keys={"PRTTkind": kind})
+    return blob, {"layers": 1, "width": int(W), "height": int(H), "format": fmt,
                   "supercompression": supercompression, "bytes": len(blob),
                   "uncompressedBytes": int(level_bytes[0][1]), "maxError": err}
 
@@ -380,19 +403,33 @@ def sun_extension(*, name: str, direction, angle: float, color, strength: float)
             "irradiance": (float(strength) * c).round(9).tolist()}
 
 
-def set_payload_bytes(transfer, relight, bounces: list, K: int, encoding: str = "half") -> int:
+#: Bytes a sun texel costs at most while its payload is made (sun_payload):
+#: the mask read (float32) and its 8 bits and their KTX2; with edges the
+#: three planes read (float32), the RGBA16F stack and its KTX2.
+SUN_MAKING_BYTES = {False: 4 + 1 + 1.01, True: 4 + 12 + 8 + 8.08}
+
+
+def set_payload_bytes(transfer, relight, bounces: list, K: int, encoding: str = "half",
+                      sun: tuple | None = None) -> int:
     """Bytes one texture set's payloads hold at most while they are made
     (:func:`file_payloads` of ``transfer`` and ``relight``, or
     :func:`bounce_files_payload` of ``bounces``), from the files' headers
     alone: the largest payload's layers and compressed bytes
     (:data:`MAKING_BYTES` a value; a baked bounce's float32 sum and level, 8
     more) and the set's other payloads' compressed bytes (at most
-    :data:`STORED_BYTES` a value). The band exr_bands holds is checked when
+    :data:`STORED_BYTES` a value). ``sun`` (mask file, edge file or None):
+    its payload's making (:data:`SUN_MAKING_BYTES` a texel) and stored
+    bytes, from the mask's header. The band exr_bands holds is checked when
     it starts."""
     values = [file_payload_values(p) for p in (transfer, relight) if p]
     bounce = bounce_files_values(bounces, K) if bounces else 0
-    making = max([v * MAKING_BYTES[encoding] for v in values] + [bounce * (8 + MAKING_BYTES[encoding])])
-    return int(making + (sum(values) + bounce) * STORED_BYTES[encoding])
+    making = [v * MAKING_BYTES[encoding] for v in values] + [bounce * (8 + MAKING_BYTES[encoding])]
+    stored = (sum(values) + bounce) * STORED_BYTES[encoding]
+    if sun:
+        H, W = texture_header(os.fspath(sun[0]))[2:4]
+        making.append(H * W * SUN_MAKING_BYTES[bool(sun[1])])
+        stored += H * W * (8.08 if sun[1] else 1.01)
+    return int(max(making) + stored)
 
 
 def material_extension(*, base_color, metallic: float, roughness: float, f0: float, normal_strength: float,

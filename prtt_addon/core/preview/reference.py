@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from ..bake.estimators import sun_edge
 from ..bake.estimators.raytrace import RayScene
 from ..bake.estimators.transfer import Points, TransferSettings, bake_points
 from ..shading.materials import ShadingParams, derive_from_f0
@@ -196,9 +197,11 @@ def _fragment_colors(ps, m, method, cam, transfer, bounce, tri, bary, s=None):
     rgb = shade(T, n, v, ps.light, params, bounces=bounces, method=method)
     if ps.sun is not None and s is not None and s.sun:
         # The sun's direct light with its baked mask, as the fragment shader adds it (PRTT_SUN).
-        mask = s.load_sun()
-        Hm, Wm = mask.shape
-        vis = bilinear(np.ascontiguousarray(mask.reshape(-1, 1), np.float32), Wm, Hm, uv)[:, 0]
+        tex = s.load_sun_texture()
+        Hm, Wm = tex.shape[:2]
+        C = 1 if tex.ndim == 2 else tex.shape[2]
+        filtered = bilinear(np.ascontiguousarray(tex.reshape(-1, C), np.float32), Wm, Hm, uv)
+        vis = sun_edge.visible(filtered[:, 0] if C == 1 else filtered)
         rgb = rgb + sun_direct(n, v, params, vis, ps.sun.direction, ps.sun.irradiance, ps.sun.angle, method=method)
     return rgb
 

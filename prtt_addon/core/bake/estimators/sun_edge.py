@@ -77,6 +77,20 @@ def profile(s):
     return 1.0 - (np.arccos(s) - s * np.sqrt(1.0 - s * s)) / math.pi
 
 
+def visible(tex):
+    """The sun's visible fraction as the preview's sun_visible reads it
+    (shaders/prtt_shade.glsl), the numpy twin: ``tex`` (n,) the mask alone, or
+    (n, 4) filtered (mask, d, valid, h); where valid is whole (> 0.999) and h
+    > 0, :func:`profile` (d / h), else the mask. (n,) float64."""
+    tex = np.asarray(tex, np.float64)
+    if tex.ndim == 1:
+        return tex
+    m, d, ok, h = tex[:, 0], tex[:, 1], tex[:, 2], tex[:, 3]
+    use = (ok > 0.999) & (h > 0.0)
+    s = np.divide(d, h, out=np.zeros_like(d), where=use)
+    return np.where(use, profile(s), m)
+
+
 def edge_bytes(texels: int, pairs: int | None = None) -> int:
     """Upper bound (bytes) of :func:`sun_edges` on a set of ``texels``: per
     texel its rows, labels, planes and results (~120 B); per pair (at most

@@ -39,7 +39,8 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
                                   else asked_downscale(st.bounces, st.tuning, st.bounce_downscale)),
                        relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg,
                        compiling=compiling, extra=extra, dask=dask, half=st.half, guiding=st.guiding,
-                       validity=st.texel_validity, sun=sun, sun_detail=st.sun_detail)
+                       validity=st.texel_validity, sun=sun, sun_detail=st.sun_detail,
+                       sun_edges=bool(sun) and st.sun_edges)
 
 
 def job_array_bytes(scene) -> int:

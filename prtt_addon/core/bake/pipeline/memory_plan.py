@@ -62,8 +62,13 @@ from ...io.exr_io import write_band_rows, writer_bytes
 from ...light.sun import SUN_RAYS
 from ..estimators.guided import guide_build_bytes, guide_bytes
 from ..estimators.guided_filter import filter_bytes
+from ..estimators.sun_edge import edge_bytes
 from ..estimators.sun_mask import mask_bytes
 from ..estimators.validity import validity_bytes
+
+#: Bytes a texel of a sun's edge planes costs while they are filled and written:
+#: three float32 planes and their dilation's copy.
+EDGE_PLANES = 3 * 4 * 2
 
 MiB = 1 << 20
 
@@ -190,7 +195,8 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 bounce_mode: str = "relightable", downscale: int = 1, relight_channels: int = 0,
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
                 dask: bool = False, half: bool = True, guiding: bool = False,
-                validity: bool = False, sun: bool = False, sun_detail: int = 1) -> dict[str, int]:
+                validity: bool = False, sun: bool = False, sun_detail: int = 1,
+                sun_edges: bool = False) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -213,7 +219,8 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     sun: each set's sun mask is traced after its transfer, beside its rows (pipeline/sun_stage.py,
     sun_mask.mask_bytes); with ``sun_detail`` f > 1 on a G-buffer of its own, f² as many texels,
     once the set's rows are written (stages.sun_detail_set): its build, then its surface beside
-    validity's pass and the mask's.
+    validity's pass and the mask's. sun_edges: the mask's sub-texel edges are found after its trace
+    (sun_edge.edge_bytes) and filled into three planes (EDGE_PLANES a texel of the grid).
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -251,14 +258,17 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         # Texel validity runs before the trace, beside the G-buffer's surface (estimators/validity.py).
         valid_pass = base + held + SURFACE * n + validity_bytes(w, h, n, threads) if validity else 0
         # The sun's mask is traced once the rows are, beside them (pipeline/sun_stage.py).
-        sun_pass = (base + held + SURFACE * n + 4 * K * n + guide
-                    + mask_bytes(w, h, n, threads, chunk_rays, SUN_RAYS, refine=True)) if sun and sun_detail == 1 else 0
+        # Its edges (sun_edge.py) after the trace, then their three planes (EDGE_PLANES a texel).
+        sun_pass = (base + held + SURFACE * n + 4 * K * n + guide + max(
+            mask_bytes(w, h, n, threads, chunk_rays, SUN_RAYS, refine=True),
+            (edge_bytes(n) + EDGE_PLANES * w * h) if sun_edges else 0)) if sun and sun_detail == 1 else 0
         if sun and sun_detail > 1:
             fw, fh, fn = w * sun_detail, h * sun_detail, n * sun_detail * sun_detail
             kept = held + ((surface + 4 * K * v) if bounces else 0)         # this set's bounce source too
             sun_pass = base + kept + max(GBUFFER_BUILD * fn, SURFACE * fn + max(
                 validity_bytes(fw, fh, fn, threads) if validity else 0,
-                mask_bytes(fw, fh, fn, threads, chunk_rays, SUN_RAYS, refine=True)))
+                mask_bytes(fw, fh, fn, threads, chunk_rays, SUN_RAYS, refine=True),
+                (edge_bytes(fn) + EDGE_PLANES * fw * fh) if sun_edges else 0))
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
                            projection, build, smooth, valid_pass, sun_pass)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);
