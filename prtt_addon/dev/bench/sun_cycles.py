@@ -101,7 +101,7 @@ def sky_world(bpy, angle_deg: float):
 def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 256, glossy: bool = False,
           roughness: float = 0.3,
           light: str = "lamp", sky_sun: bool = True, bounces: int = 0, sun_detail: int = 1,
-          sun_refine: bool = True):
+          sun_refine: bool = True, sun_edges: bool = True):
     """The scene in the current (empty) file, unwrapped and baked with the add-on; returns the manifest.
     ``light``: "lamp" (a Sun lamp and a band-limited sky) or "sky" (a Sky Texture, its disc baked as
     the sun where ``sky_sun``)."""
@@ -146,7 +146,8 @@ def build(bpy, out_dir: str, *, angle_deg: float, resolution: int, rays: int = 2
     if bpy.ops.prtt.unwrap() != {"FINISHED"}:
         raise RuntimeError("unwrap failed")
     from ...blender.bake.run import bake_blocking
-    outcome = bake_blocking(bpy.context, force=True, overrides=None if sun_refine else {"sun_refine": False})
+    overrides = {k: False for k, on in (("sun_refine", sun_refine), ("sun_edges", sun_edges)) if not on}
+    outcome = bake_blocking(bpy.context, force=True, overrides=overrides or None)
     if outcome.status != "done":
         raise RuntimeError(outcome.message)
     return outcome.manifest
@@ -267,7 +268,8 @@ class _without_sun_bounce:
 
 def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, resolution: int = 512,
             glossy: bool = False, work_dir: str | None = None, light: str = "lamp", sky_sun: bool = True,
-            bounces: int = 0, sun_detail: int = 1, sun_refine: bool = True, roughness: float = 0.3) -> dict:
+            bounces: int = 0, sun_detail: int = 1, sun_refine: bool = True, roughness: float = 0.3,
+            sun_edges: bool = True) -> dict:
     import bpy
 
     from ... import register
@@ -285,7 +287,7 @@ def compare(angle_deg: float = 0.5, size=(320, 180), *, samples: int = 256, reso
         t = time.perf_counter()
         manifest = build(bpy, os.path.join(d, "textures"), angle_deg=angle_deg, resolution=resolution,
                          glossy=glossy, light=light, sky_sun=sky_sun, bounces=bounces, sun_detail=sun_detail,
-                         sun_refine=sun_refine, roughness=roughness)
+                         sun_refine=sun_refine, roughness=roughness, sun_edges=sun_edges)
         t_bake = time.perf_counter() - t
         mode = "tpfl" if glossy else "diffuse"
         prtt, _, status, _ = render_scene(bpy.context, mode=mode, size=size, bounces=bounces > 0)
@@ -483,6 +485,8 @@ def main(argv=None) -> int:
                    "beside the bake's estimate (no Cycles)")
     p.add_argument("--no-sun-refine", action="store_true", help="fine masks trace every texel's 64 rays "
                    "(sun_refine off: the masks before refinement)")
+    p.add_argument("--edges", default="on", help="the sub-texel shadow edges (sun_edges): on, off or on,off "
+                   "(a row each)")
     p.add_argument("--glossy-pass", action="store_true",
                    help="the sun's highlight on the glossy floor, seen where it mirrors the sun: PRTT's lobe "
                         "against Cycles' Glossy Direct x Glossy Color")
@@ -524,14 +528,17 @@ def main(argv=None) -> int:
     variants = ([(f"hdri:{a.hdri}", True), (f"hdri:{a.hdri}", False)] if a.hdri else
                 [("sky", True), ("sky", False)] if a.sky else [("lamp", True)])
     details = [int(x) for x in a.sun_detail.split(",")]
-    runs = [(ang, light, sky_sun, f) for ang in ([0.0] if a.hdri else [float(x) for x in a.angles.split(",")])
-            for light, sky_sun in variants for f in details]
-    for ang, light, sky_sun, f in runs:
+    edges = [{"on": True, "off": False}[x.strip()] for x in a.edges.split(",")]
+    if False in edges:
+        print("  (-e: without the sub-texel shadow edges, --no-sun-edges: the mask alone)")
+    runs = [(ang, light, sky_sun, f, e) for ang in ([0.0] if a.hdri else [float(x) for x in a.angles.split(",")])
+            for light, sky_sun in variants for f in details for e in edges]
+    for ang, light, sky_sun, f, e in runs:
         if True:
             r = compare(ang, (w, h), samples=a.samples, resolution=a.resolution, glossy=a.glossy, light=light,
                         sky_sun=sky_sun, bounces=a.bounces, sun_detail=f, sun_refine=not a.no_sun_refine,
-                        roughness=a.roughness)
-            disc = ("lamp" if light == "lamp" else "as sun" if r["sun"] else "in SH") + (f" x{f}" if f > 1 else "")
+                        roughness=a.roughness, sun_edges=e)
+            disc = ("lamp" if light == "lamp" else "as sun" if r["sun"] else "in SH") + (f" x{f}" if f > 1 else "") + ("" if e else " -e")
             if a.hdri and r["sun"]:
                 print(f"          extracted: a {math.degrees(r['sun']['angle']):.2f} degree disc of "
                       f"{r['sun']['strength']:.3g} W/m²", flush=True)
