@@ -114,6 +114,14 @@ def job_sun(extra: dict):
     return None if spec is None else Sun.from_dict(spec)
 
 
+def job_lamps(extra: dict) -> tuple:
+    """The job's point and spot lamps (core.light.lamp.Lamp) from extra["lamps"],
+    or (); ValueError (LampError) naming what is wrong (untrusted input)."""
+    from .core.light.lamp import lamps_from_list  # deferred (start-up)
+    spec = extra.get("lamps")
+    return () if spec is None else lamps_from_list(spec)
+
+
 def check_job_memory(job, st, *, resolution=None, bouncing: bool) -> None:
     """Refuse (MemoryLimitError) a job whose arrays plus the least any bake of
     it holds (memory_plan.floor_bytes: its largest set's float32 planes) do
@@ -168,6 +176,7 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
             st = BakeSettings.from_dict(settings).validate()
             light = job_light(job.extra, light_override)
             sun = job_sun(job.extra)
+            lamps = job_lamps(job.extra)
             check_job_memory(job, st, resolution=resolution,
                              bouncing=light is not None and st.bounces > 0 and st.textures)
             emit({"type": "progress", "stage": "load", "fraction": 0.0})
@@ -184,7 +193,7 @@ def run_job(job_path: str, out_dir: str, emit, cancel: threading.Event, *,
               "light": None if light is None else (extra.get("light") or {}).get("description", "given")})
         source = extra.get("blend") if isinstance(extra.get("blend"), str) and extra.get("blend") else None
         bake_scene(sc, out_dir, st, light=light, progress=emit, cancel=cancel, skip_if_unchanged=not force,
-                   job=os.path.abspath(job_path), source=source, dask=dask, sun=sun)
+                   job=os.path.abspath(job_path), source=source, dask=dask, sun=sun, lamps=lamps)
     except Cancelled:
         emit({"type": "cancelled"})
         return EXIT_CANCELLED

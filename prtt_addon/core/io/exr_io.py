@@ -651,6 +651,35 @@ def read_mask_exr(path) -> tuple[np.ndarray, dict]:
     return data, attrs
 
 
+#: Channels of a lamp mask texture: lamp i of the manifest's "lamps" in channel ``l<i>``.
+LAMP_CHANNELS = ["l0", "l1", "l2", "l3"]
+
+
+def write_lamp_exr(path, masks: np.ndarray, *, attrs: dict | None = None, atomic: bool = True) -> str:
+    """Write a set's lamp masks, (L, H, W) float32 in [0, 1] (L <= 4: the
+    visible fraction of lamp i's sphere; core.bake.estimators.lamp_mask), row
+    0 at the bottom, as L half channels l0.. (kind "lamp_mask", prtt_bands 1)."""
+    m = np.asarray(masks, np.float32)
+    if m.ndim != 3 or not 1 <= m.shape[0] <= len(LAMP_CHANNELS):
+        raise ValueError(f"lamp masks are (L, H, W) with 1 <= L <= {len(LAMP_CHANNELS)}, got {m.shape}")
+    return write_sh_planes(path, m, kind="lamp_mask", half=True, attrs=attrs, atomic=atomic,
+                           names=LAMP_CHANNELS[:m.shape[0]], bands=1, full_bits=[True] * m.shape[0])
+
+
+def read_lamp_exr(path, lamps: int) -> tuple[np.ndarray, dict]:
+    """((H, W, lamps) float32, row 0 at the bottom, attrs) of a lamp mask
+    texture of ``lamps`` channels; TextureError for any other file."""
+    chans, attrs = _read_channels(path)
+    if attrs.get("kind") != "lamp_mask":
+        raise TextureError(f"{path}: a {shown(attrs.get('kind'))} texture, not lamp masks")
+    if not 1 <= lamps <= len(LAMP_CHANNELS):
+        raise TextureError(f"{path}: {lamps} lamps, a mask texture holds 1 to {len(LAMP_CHANNELS)}")
+    data = _stack(path, chans, LAMP_CHANNELS[:lamps])
+    if not np.isfinite(data).all() or data.min() < 0.0 or data.max() > 1.0:
+        raise TextureError(f"{path}: lamp mask values outside [0, 1]")
+    return data, attrs
+
+
 #: Channels of a sun edge texture (core.bake.estimators.sun_edge.CHANNELS).
 SUN_EDGE_CHANNELS = ["d", "h", "valid"]
 

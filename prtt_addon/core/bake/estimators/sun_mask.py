@@ -122,9 +122,18 @@ def sun_mask(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray, ids: np
         hit = rs.occluded(org, d.reshape(-1, 3).astype(np.float32), tfar=tfar).reshape(-1, r)
         return np.count_nonzero(above & ~hit, axis=1)
 
+    out[todo] = (escaping(seen, todo, ids, rays, grid, threads, chunk_rays, cancel) / rays).astype(np.float32)
+    return out
+
+
+def escaping(seen, todo: np.ndarray, ids: np.ndarray, rays: int, grid, threads: int, chunk_rays: int,
+             cancel) -> np.ndarray:
+    """(len(todo),) int64 rays of each point ``todo`` that escape, of ``rays``:
+    ``seen(idx, rows)`` counts those of pattern rows ``rows`` from points
+    ``idx``, in chunks on the threads (each chunk writes its own entries);
+    with ``grid`` (width, height) refined where the first rays disagree
+    (module docstring: ``ids`` the points' texels of that grid)."""
     def trace(points, rows) -> np.ndarray:
-        """(len(points),) int64 escaping rays of ``pattern[rows]`` from ``points``,
-        in chunks on the threads (each chunk writes its own entries)."""
         count = np.zeros(points.size, np.int64)
         per = max(1, chunk_rays // (rows.stop - rows.start))
         starts = range(0, points.size, per)
@@ -147,8 +156,7 @@ def sun_mask(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray, ids: np
         refined = count[again] + trace(todo[again], slice(first, rays))
         count = np.where(count == first, rays, 0)              # decided: all of the disc or none
         count[again] = refined
-    out[todo] = (count / rays).astype(np.float32)
-    return out
+    return count
 
 
 def _grow(mask: np.ndarray, ring: int) -> np.ndarray:

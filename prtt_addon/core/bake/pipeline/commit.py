@@ -12,12 +12,13 @@ from ....version import __version__
 from ...base import atomic
 from ...base.atomic import atomic_write
 from ...base.errors import BakeError
+from ...light.lamp import LAMP_RAYS
 from ...light.sun import SUN_RAYS
 from .bounce_stage import BounceResult
 from .context import BAKE_FORMAT_VERSION, MANIFEST, BakeContext
 from .plan import BakePlan, manifest_dicts, plain_names
 from .stages import Geometry, SetResult, VertexResult
-from .sun_stage import EDGE_SUFFIX, MASK_SUFFIX, SUN_SUFFIXES
+from .sun_stage import EDGE_SUFFIX, LAMP_SUFFIX, MASK_SUFFIX, SUN_SUFFIXES
 
 
 def finish_skipped(ctx: BakeContext, plan: BakePlan) -> dict:
@@ -86,6 +87,10 @@ def make_manifest(ctx: BakeContext, plan: BakePlan, geo: Geometry, sets: list[Se
                     **({"edge_files": edge_files} if (edge_files := [f for f in transfer_files
                                                                      if f.endswith(EDGE_SUFFIX)]) else {})}}
             if ctx.sun is not None else {}),
+        # Only with lamps: a bake without them writes the manifest it wrote before lamps.
+        **({"lamps": {"lamps": [lp.as_dict() for lp in ctx.lamps], "rays": LAMP_RAYS, "key": plan.sun_key,
+                      "files": [f for f in transfer_files if f.endswith(LAMP_SUFFIX)]}}
+           if ctx.lamps else {}),
     }
 
 

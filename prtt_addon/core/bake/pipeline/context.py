@@ -222,6 +222,7 @@ class BakeContext:
     tables: cf.Future | None = dataclasses.field(init=False)    # warm_tables on a helper (stages.start_tables)
     dask: object | None = None                  # distributed.DaskSpec: trace on a Dask cluster (runner opens it)
     sun: object | None = None                   # core.light.sun.Sun: its mask is baked per set (sun_stage)
+    lamps: tuple = ()                           # core.light.lamp.Lamp (at most 4): their masks per set (sun_stage)
     remote: object | None = dataclasses.field(init=False)       # the open executors.dask_cluster.DaskBake, else None
     memory: StagePeaks = dataclasses.field(init=False)          # peak RSS per stage (the manifest's "memory")
     bounce_grids: dict = dataclasses.field(init=False)          # set index -> bounce_stage.BounceGrid, chosen
@@ -243,7 +244,7 @@ class BakeContext:
     @classmethod
     def create(cls, scene: Scene, out_dir: str, settings: BakeSettings, *, light=None,
                progress: Callable[[dict], None] | None = None, cancel: threading.Event | None = None,
-               sets: list[str] | None = None, dask=None, sun=None) -> "BakeContext":
+               sets: list[str] | None = None, dask=None, sun=None, lamps=()) -> "BakeContext":
         """The context of one bake of ``scene`` into ``out_dir``.
 
         light : (K', 3) RGB SH, K' >= bands² (truncated to bands²), or None.
@@ -252,6 +253,9 @@ class BakeContext:
         dask : a distributed.DaskSpec: the ray chunks run on that Dask cluster.
         sun : a core.light.sun.Sun, or None: each set's sun mask is baked, and
               baked bounces see it as its SH projection (:attr:`bounce_light`).
+        lamps : core.light.lamp.Lamp (point and spot, at most MAX_LAMPS): each
+              set's lamp masks are baked (channel i lamp i); their light is
+              drawn per pixel, not in the bounces.
         """
         set_ids = list(range(scene.n_sets))
         if sets is not None:
@@ -264,7 +268,12 @@ class BakeContext:
         # helper that then waits for its row bands on this same pool.
         helpers = cf.ThreadPoolExecutor(max_workers=max(2, settings.n_threads) + 1)
         return cls(scene=scene, out_dir=out_dir, settings=settings, light=prepared, progress=progress,
-                   cancel=cancel, set_ids=set_ids, helpers=helpers, dask=dask, sun=sun)
+                   cancel=cancel, set_ids=set_ids, helpers=helpers, dask=dask, sun=sun, lamps=tuple(lamps))
+
+    @property
+    def masked(self) -> bool:
+        """The bake has masks (a sun or lamps: sun_stage)."""
+        return self.sun is not None or bool(self.lamps)
 
     @property
     def bounce_light(self) -> np.ndarray | None:

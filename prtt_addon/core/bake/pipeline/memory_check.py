@@ -19,7 +19,8 @@ from .plan import BakePlan
 
 def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing: bool,
                      downscales: list[int] | None = None, compiling: bool = False,
-                     extra: int = 0, dask: bool = False, sun: bool = False) -> dict[str, int]:
+                     extra: int = 0, dask: bool = False, sun: bool = False, lamps: int = 0,
+                     sun_edges: bool | None = None) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake (memory_plan.stage_bytes).
     ``set_sizes``: (width, height, covered texels) per set baked, in order
     (covered: memory_plan.covered_texels of the set's UV area); ``downscales``:
@@ -27,7 +28,8 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
     ``compiling``: the bounce's kernels are compiled in this process (:func:`kernels_compile`);
     ``extra``: what the process holds beyond a bare worker (memory_plan.process_extra);
     ``dask``: the rays are traced on a Dask cluster (this process is its client);
-    ``sun``: each set's sun mask is baked too."""
+    ``sun``: each set's masks are baked too (a sun's, with ``sun_edges``
+    (default: with settings.sun_edges) its edges; ``lamps`` lamps' masks)."""
     K = st.bands ** 2
     kg = min(GLOSSY_BANDS, st.bands) ** 2
     colours = 1 if relight_shared_colour(st) else 3
@@ -40,7 +42,7 @@ def bake_stage_bytes(set_sizes, st: BakeSettings, *, n_triangles: int, bouncing:
                        relight_channels=3 * K + colours * (kg - 1) * kg, glossy_coeffs=kg * kg,
                        compiling=compiling, extra=extra, dask=dask, half=st.half, guiding=st.guiding,
                        validity=st.texel_validity, sun=sun, sun_detail=st.sun_detail,
-                       sun_edges=bool(sun) and st.sun_edges)
+                       sun_edges=bool(sun) and (st.sun_edges if sun_edges is None else sun_edges), lamps=lamps)
 
 
 def job_array_bytes(scene) -> int:
@@ -91,7 +93,7 @@ def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None 
         # numba's import took (both vary with the machine: file-backed pages).
         ctx.memory.held_extra = process_extra(before, job_array_bytes(sc), resident_bytes())
     sizes = scene_set_sizes(sc, ctx.set_ids) if st.textures else []
-    if ctx.sun is not None and st.sun_detail > 1:
+    if ctx.masked and st.sun_detail > 1:
         for i, (w, h, _) in zip(ctx.set_ids, sizes):
             if max(w, h) * st.sun_detail > MAX_RESOLUTION:
                 raise BakeError(f"texture set {sc.set_names[i]!r}: a sun mask of {st.sun_detail} x its {w}x{h} "
@@ -99,7 +101,8 @@ def check_memory(ctx: BakeContext, plan: BakePlan, downscales: list[int] | None 
                                 f"texture may have a side; lower --sun-detail (Sun Shadow Detail) or the resolution")
     stages = bake_stage_bytes(sizes, st, n_triangles=sc.n_triangles, bouncing=plan.bouncing,
                               downscales=downscales, compiling=compiling, extra=ctx.memory.held_extra,
-                              dask=ctx.dask is not None, sun=ctx.sun is not None)
+                              dask=ctx.dask is not None, sun=ctx.masked, lamps=len(ctx.lamps),
+                              sun_edges=ctx.sun is not None and st.sun_edges)
     stage, need = peak_stage(stages)
     ctx.memory.estimate_mb = round(need / 2 ** 20, 1)
     biggest = max(sizes, key=lambda s: s[0] * s[1], default=None)

@@ -69,6 +69,9 @@ from ..estimators.validity import validity_bytes
 #: Bytes a texel of a sun's edge planes costs while they are filled and written:
 #: three float32 planes and their dilation's copy.
 EDGE_PLANES = 3 * 4 * 2
+#: Bytes a texel of the grid costs per lamp while its masks are filled and
+#: written (sun_stage._lamp_set): a float32 plane and its dilation's copy.
+LAMP_PLANE = 4 * 2
 
 MiB = 1 << 20
 
@@ -196,7 +199,7 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
                 glossy_coeffs: int = 0, compiling: bool = False, extra: int = 0,
                 dask: bool = False, half: bool = True, guiding: bool = False,
                 validity: bool = False, sun: bool = False, sun_detail: int = 1,
-                sun_edges: bool = False) -> dict[str, int]:
+                sun_edges: bool = False, lamps: int = 0) -> dict[str, int]:
     """Estimated peak bytes of each stage of a bake.
 
     sets : (width, height, covered texels) per texture set being baked, in bake order.
@@ -221,6 +224,9 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
     once the set's rows are written (stages.sun_detail_set): its build, then its surface beside
     validity's pass and the mask's. sun_edges: the mask's sub-texel edges are found after its trace
     (sun_edge.edge_bytes) and filled into three planes (EDGE_PLANES a texel of the grid).
+    lamps: point and spot lamps whose masks are traced in the same pass, one
+    at a time (mask_bytes each), into LAMP_PLANE a texel each (``sun`` is then
+    true, with or without a sun).
     dask: the rays are traced on a Dask cluster (the client's share: DASK_CLIENT,
     and while a level's exit tables are sent to the workers, Dask's serialised
     copy of them beside them; a worker's own need is checked before each pass,
@@ -261,14 +267,15 @@ def stage_bytes(sets, *, bands: int, dilate: int, n_triangles: int, threads: int
         # Its edges (sun_edge.py) after the trace, then their three planes (EDGE_PLANES a texel).
         sun_pass = (base + held + SURFACE * n + 4 * K * n + guide + max(
             mask_bytes(w, h, n, threads, chunk_rays, SUN_RAYS, refine=True),
-            (edge_bytes(n) + EDGE_PLANES * w * h) if sun_edges else 0)) if sun and sun_detail == 1 else 0
+            (edge_bytes(n) + EDGE_PLANES * w * h) if sun_edges else 0)
+            + LAMP_PLANE * lamps * w * h) if sun and sun_detail == 1 else 0
         if sun and sun_detail > 1:
             fw, fh, fn = w * sun_detail, h * sun_detail, n * sun_detail * sun_detail
             kept = held + ((surface + 4 * K * v) if bounces else 0)         # this set's bounce source too
             sun_pass = base + kept + max(GBUFFER_BUILD * fn, SURFACE * fn + max(
                 validity_bytes(fw, fh, fn, threads) if validity else 0,
                 mask_bytes(fw, fh, fn, threads, chunk_rays, SUN_RAYS, refine=True),
-                (edge_bytes(fn) + EDGE_PLANES * fw * fh) if sun_edges else 0))
+                (edge_bytes(fn) + EDGE_PLANES * fw * fh) if sun_edges else 0) + LAMP_PLANE * lamps * fw * fh)
         out["trace"] = max(out["trace"], base + held + SURFACE * n + 4 * K * n + chunks(n, rays) + guide,
                            projection, build, smooth, valid_pass, sun_pass)
         # The planes are given back as the texture at its valid texels fills (4 K V < 4 K A);

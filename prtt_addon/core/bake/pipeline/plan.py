@@ -139,7 +139,7 @@ def plan_bake(ctx: BakeContext, *, skip_if_unchanged: bool = True) -> BakePlan:
     m_hash = materials_hash(sc)
     b_key = bounce_key(in_hash, set_hash, ctx.bounce_light, m_hash, st) if bouncing else None
     old = read_manifest(ctx.out_dir)
-    s_key = sun_key(ctx.sun, in_hash, st.sun_detail, st.sun_refine, st.sun_edges)
+    s_key = sun_key(ctx.sun, in_hash, st.sun_detail, st.sun_refine, st.sun_edges, ctx.lamps)
     transfer_ok, bounce_ok, sun_ok = reusable(ctx, old, in_hash, set_hash, b_key, bouncing=bouncing,
                                               skip_if_unchanged=skip_if_unchanged, sun=s_key)
     return BakePlan(input_hash=in_hash, settings_hash=set_hash, light_hash=l_hash, materials_hash=m_hash,
@@ -157,7 +157,8 @@ def reusable(ctx: BakeContext, old: dict | None, in_hash: str, set_hash: str, b_
     gone bakes the masks alone (stages.sun_only_set) over the reused transfer."""
     if not (skip_if_unchanged and old):
         return False, False, False
-    old_sun = old.get("sun") if isinstance(old.get("sun"), dict) else {}
+    # The masks' key is the sun's entry's, or without a sun the lamps' entry's.
+    old_sun = next((old[k] for k in ("sun", "lamps") if isinstance(old.get(k), dict)), {})
     same_inputs = old.get("input_hash") == in_hash and old.get("settings_hash") == set_hash
     transfer_ok = False
     if same_inputs:

@@ -112,7 +112,7 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
                progress=None, cancel: threading.Event | None = None,
                skip_if_unchanged: bool = True, sets: list[str] | None = None,
                job: str | None = None, source: str | None = None, dask: str | None = None,
-               sun=None) -> dict:
+               sun=None, lamps=()) -> dict:
     """Bake every texture set of ``sc`` into ``out_dir``.
 
     light : (K', 3) RGB SH of the environment in world coordinates, K' >= bands^2;
@@ -125,6 +125,8 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
           the outputs are the local bake's, bit for bit (executors/dask_cluster.py).
     sun : a core.light.sun.Sun: each set also gets ``<set>.sun.exr``, the
           visible fraction of the sun's disc per texel (pipeline/sun_stage.py).
+    lamps : core.light.lamp.Lamp (point and spot, at most 4): each set also
+          gets ``<set>.lamps.exr``, the visible fraction of each lamp's sphere.
     Returns the manifest dict (``manifest["skipped"]`` is True when an identical
     bake was already there). Raises BakeError (also when another bake holds the
     folder) / SceneError / MemoryLimitError for bad input and transfer.Cancelled
@@ -141,7 +143,7 @@ def bake_scene(sc: Scene, out_dir, settings: BakeSettings | None = None, *, ligh
                                                    f"(pid {lock.taken_over.get('pid')})")
         removed = atomic.remove_stale_temporaries(out_dir)
         ctx = BakeContext.create(sc, out_dir, st, light=light, progress=progress, cancel=cancel, sets=sets,
-                                 dask=spec, sun=sun)
+                                 dask=spec, sun=sun, lamps=lamps)
         if removed:
             ctx.warn(f"removed {len(removed)} temporary file(s) left by an interrupted bake")
         failed = True
@@ -209,7 +211,7 @@ def run_stages(ctx: BakeContext, t_start: float, *, skip_if_unchanged: bool = Tr
                 if plan.sun_only:
                     # only the sun changed (or came, or went): its masks alone over the transfer on disk
                     r.files, sun_rep = sun_only_set(ctx, geo, plan, gb)
-                    r.report = {**{k: v for k, v in old_rep.items() if not k.startswith("sun_")}, **sun_rep}
+                    r.report = {**{k: v for k, v in old_rep.items() if not k.startswith(("sun_", "lamp_"))}, **sun_rep}
                 results.append(r)
         # The results hold what the bounce needs of each G-buffer: not the last one whole (#35).
         gb = first_gb = None

@@ -417,13 +417,13 @@ def transfer_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer, *
     inside, step = validity_pass(ctx, geo, gb, rep)
     traced = trace_set(ctx, geo, gb, position=position, inside=inside)
     sun_files = []
-    if ctx.sun is not None and ctx.settings.sun_detail == 1:
+    if ctx.masked and ctx.settings.sun_detail == 1:
         # Before the texture's write may release the G-buffer's points (moved by validity).
         files, sun_rep = sun_set(ctx, geo.rays, gb, inside, plan.sun_key)
         sun_files += files
         rep.update(sun_rep)
     res = _finish_transfer_set(ctx, geo, plan, gb, rep, traced, inside, step, sun_files, keep_for_bounce)
-    if ctx.sun is not None and ctx.settings.sun_detail > 1:
+    if ctx.masked and ctx.settings.sun_detail > 1:
         # A finer mask of its own G-buffer, once this set's rows are written and given back.
         files, sun_rep = sun_detail_set(ctx, geo, plan, gb.set_index)
         res.files += files
@@ -560,7 +560,7 @@ def sun_only_set(ctx: BakeContext, geo: Geometry, plan: BakePlan, gb: GBuffer) -
     traces the mask from: the same code, the same bits), then the mask;
     returns ([its file] or [], the set report's sun entries). The G-buffer's
     own positions are left as they are (a bounce re-bake reads them)."""
-    if ctx.sun is None or not gb.n:
+    if not ctx.masked or not gb.n:
         return [], {}
     if ctx.settings.sun_detail > 1:
         return sun_detail_set(ctx, geo, plan, gb.set_index)
