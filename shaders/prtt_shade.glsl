@@ -90,7 +90,7 @@ vec3 shade_point(vec4 T4[SH_K4], vec2 uv, vec3 n, vec3 v, vec3 albedo, vec3 spec
 #endif
 }
 
-#ifdef PRTT_SUN
+#if defined(PRTT_SUN) || defined(PRTT_LAMPS)
 /* Unpolarised Fresnel reflectance of a dielectric of relative IOR eta at
  * cos(incidence) c (core.shading.shade.fresnel_dielectric). */
 float prtt_fresnel_dielectric(float c, float eta)
@@ -111,13 +111,13 @@ float prtt_smith_lambda(float c, float a2)
   return 0.5 * (sqrt(1.0 + a2 * (1.0 - c2) / c2) - 1.0);
 }
 
-/* The sun's specular BRDF (core.shading.shade.sun_glossy): GGX of
+/* A small light's specular BRDF (core.shading.shade.sun_glossy): GGX of
  * alpha'^2 = alpha^2 + angle^2 / 32 (alpha^2 = 1 / (2 s + 1), widened by the
- * disc: w = angle^2 / 16), Smith's height-correlated masking, the dielectric
- * Fresnel of the material's F0 plus Schlick's for its metallic part, each
- * with Multiscatter GGX's factor (prtt_layer_multiscatter):
- * D G F / (4 n.v n.l). */
-vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
+ * light's disc of full angle `angle`: w = angle^2 / 16), Smith's
+ * height-correlated masking, the dielectric Fresnel of the material's F0
+ * plus Schlick's for its metallic part, each with Multiscatter GGX's factor
+ * (prtt_layer_multiscatter): D G F / (4 n.v n.l). */
+vec3 prtt_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent, float w)
 {
   float nv = dot(n, v);
   float nl = dot(n, l);
@@ -130,7 +130,7 @@ vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
   float nh = clamp(dot(n, h), 0.0, 1.0);
   float vh = clamp(dot(v, h), 0.0, 1.0);
   float a2 = 1.0 / (2.0 * max(exponent, 0.0) + 1.0);
-  float a2s = a2 + 0.5 * sun.direction.w;
+  float a2s = a2 + 0.5 * w;
   float t = nh * nh * (a2s - 1.0) + 1.0;
   float D = a2s / (PRTT_PI * t * t);
   float G = 1.0 / (1.0 + prtt_smith_lambda(nv, a2) + prtt_smith_lambda(nl, a2));
@@ -146,6 +146,58 @@ vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
   vec3 F = vec3((1.0 - m) * prtt_fresnel_dielectric(vh, (1.0 + sf) / (1.0 - sf)) * ms_d)
            + (metal + (vec3(m) - metal) * q) * ms_m;
   return F * (D * G / (4.0 * nv * nl));
+}
+
+#endif
+
+#ifdef PRTT_LAMPS
+/* Point and spot lamps' direct light at world point p (core.shading.shade.
+ * lamp_direct): the uniform block `lamps` holds, per lamp i < info.x,
+ * position[i] (xyz world, w the sphere's radius), intensity[i] (rgb W/sr,
+ * w the spot's smoothstep scale 1 / ((1 - cos half cone) blend)) and
+ * spot[i] (xyz the unit axis it shines along, w cos half its cone; -2 for
+ * a point lamp); lampTex channel i the visible fraction of lamp i's sphere,
+ * baked per texel at PRTT UV uv.
+ * B = sum_i mask_i spot_i max(0, n.l_i) I_i / r_i^2 (dw albedo / pi + glossy),
+ * the glossy lobe widened by the sphere's disc (full angle 2 asin(R / r)). */
+vec3 lamp_light(vec2 uv, vec3 p, vec3 n, vec3 v, vec3 albedo, vec3 spec, float exponent)
+{
+  vec4 m = textureLod(lampTex, uv, 0.0);
+  int count = int(lamps.info.x + 0.5);
+  float dw;
+  vec3 gw;
+  prtt_layer_weights(dot(n, v), exponent, material.params.y, material.base.w, spec, dw, gw);
+  vec3 sum = vec3(0.0);
+  for (int i = 0; i < 4; i++) {
+    if (i >= count) {
+      break;
+    }
+    vec3 to = lamps.position[i].xyz - p;
+    float r2 = max(dot(to, to), 1e-12);
+    vec3 l = to * inversesqrt(r2);
+    float t = clamp((dot(-l, lamps.spot[i].xyz) - lamps.spot[i].w) * lamps.intensity[i].w, 0.0, 1.0);
+    float c = max(dot(n, l), 0.0) * m[i] * t * t * (3.0 - 2.0 * t);
+    if (!(c > 0.0)) {
+      continue;
+    }
+    vec3 b = albedo * dw / PRTT_PI;
+#  ifndef PRTT_DIFFUSE
+    if (any(greaterThan(spec, vec3(0.0)))) {
+      float a = 2.0 * asin(min(lamps.position[i].w * inversesqrt(r2), 1.0));
+      b += prtt_glossy(n, v, l, spec, exponent, a * a / 16.0);
+    }
+#  endif
+    sum += b * lamps.intensity[i].rgb * (c / r2);
+  }
+  return sum;
+}
+#endif
+
+#ifdef PRTT_SUN
+/* The sun's specular BRDF: prtt_glossy widened by its disc (sun.direction.w = angle^2 / 16). */
+vec3 sun_glossy(vec3 n, vec3 v, vec3 l, vec3 spec, float exponent)
+{
+  return prtt_glossy(n, v, l, spec, exponent, sun.direction.w);
 }
 
 /* The visible fraction of the sun's disc at PRTT UV uv: sunTex r is the

@@ -25,6 +25,9 @@ void main()
 #ifdef PRTT_SUN
   color += sun_light(prtt_uv, n, v, albedo, spec, exponent);
 #endif
+#ifdef PRTT_LAMPS
+  color += lamp_light(prtt_uv, wpos, n, v, albedo, spec, exponent);
+#endif
   FragColor = vec4(color * view.params.x, 1.0);
 #ifdef PRTT_DISPLAY
   /* The scene's view transform; the colour buffer encodes sRGB (prtt_display.glsl). */

@@ -76,10 +76,12 @@ def world_forest(bpy, strength=1.5, rot_z=0.6):
     return w
 
 
-def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1, bounce_mode="BAKED", sun=False):
+def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1, bounce_mode="BAKED", sun=False,
+                lamps=False):
     """Create, unwrap and bake the scene (module doc); ``sun``: with a warm
-    3-degree Sun lamp whose highlight falls on the floor and the ball.
-    Returns the objects."""
+    3-degree Sun lamp whose highlight falls on the floor and the ball;
+    ``lamps``: with a point lamp of 10 cm over the ball and a bluish spot
+    on the block and the floor. Returns the objects."""
     bpy.ops.mesh.primitive_plane_add(size=4)
     floor = bpy.context.active_object
     floor.name = "Floor"
@@ -121,6 +123,18 @@ def build_scene(bpy, out_dir, *, resolution=64, rays=64, bounces=1, bounce_mode=
         # towards the camera's mirror side of the floor: its highlight is in view
         lamp.rotation_euler = mathutils.Vector((-0.45, 0.5, 0.74)).to_track_quat("Z", "Y").to_euler()
         bpy.context.scene.collection.objects.link(lamp)
+    if lamps:
+        bulb = bpy.data.objects.new("Bulb", bpy.data.lights.new("Bulb", "POINT"))
+        bulb.data.energy, bulb.data.shadow_soft_size, bulb.data.color = 150.0, 0.1, (1.0, 0.85, 0.7)
+        bulb.location = (-0.2, -0.6, 1.9)
+        spot = bpy.data.objects.new("Spot", bpy.data.lights.new("Spot", "SPOT"))
+        spot.data.energy, spot.data.shadow_soft_size, spot.data.color = 300.0, 0.05, (0.6, 0.8, 1.0)
+        spot.data.spot_size, spot.data.spot_blend = math.radians(50.0), 0.3
+        spot.location = (2.2, -1.2, 2.0)
+        spot.rotation_euler = mathutils.Vector((0.8, -0.4, 0.35)) \
+            .__sub__(mathutils.Vector(spot.location)).to_track_quat("-Z", "Y").to_euler()
+        for ob in (bulb, spot):
+            bpy.context.scene.collection.objects.link(ob)
     st = bpy.context.scene.prtt
     st.resolution, st.rays, st.bounces, st.bounce_rays = resolution, rays, bounces, 16
     st.vertex_transfer = True

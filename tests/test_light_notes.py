@@ -1,6 +1,6 @@
 """Light PRTT does not carry yet is named, not dropped without a word (issues
-48 and 49): point, spot and area lamps and emissive materials light Cycles'
-render but not the bake; the bake warns, the preview and `render` note the
+48 and 49): area lamps and emissive materials light Cycles' render but not
+the bake (a Sun, Point and Spot lamps are baked); the bake warns, the preview and `render` note the
 lamps, the export still runs (Blender's exporter carries the lamps as glTF
 lights). A Sun lamp is baked (its mask: tests/test_sun_blender.py)."""
 import pytest
@@ -15,7 +15,7 @@ pytestmark = pytest.mark.blender
 def test_lamps_and_emission_are_named(tmp_path):
     bpy = addon_bpy()
     rs.floor_and_box(bpy)
-    for name, kind in (("Key", "SUN"), ("Bulb", "POINT")):
+    for name, kind in (("Key", "SUN"), ("Bulb", "POINT"), ("Panel", "AREA")):
         ob = bpy.data.objects.new(name, bpy.data.lights.new(name, kind))
         bpy.context.scene.collection.objects.link(ob)
     off = bpy.data.objects.new("Off", bpy.data.lights.new("Off", "AREA"))
@@ -31,10 +31,11 @@ def test_lamps_and_emission_are_named(tmp_path):
             "--bounces", "0", cwd=tmp_path, timeout=600)
     out = r.stdout + r.stderr
     assert r.returncode == 0, out
-    assert "1 lamp(s) light Cycles' render but not PRTT's" in out and "Point 'Bulb'" in out
-    assert "Sun 'Key'" not in out                       # the sun is baked
+    assert "1 lamp(s) light Cycles' render but not PRTT's" in out and "Area 'Panel'" in out
+    assert "Sun 'Key'" not in out and "'Bulb'" not in out      # the sun and the point lamp are baked
     import json
-    assert json.load(open(tmp_path / "tex" / "manifest.json"))["sun"]["name"] == "Key"
+    manifest = json.load(open(tmp_path / "tex" / "manifest.json"))
+    assert manifest["sun"]["name"] == "Key" and [lp["name"] for lp in manifest["lamps"]["lamps"]] == ["Bulb"]
     assert "'Off'" not in out
     assert "material 'Glow': its emission lights Cycles' render but not PRTT's" in out
     r = run("render", "scene.blend", "--size", "64x36", "--out", "shot.png", cwd=tmp_path, timeout=600)

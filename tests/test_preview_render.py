@@ -105,6 +105,41 @@ def test_gpu_matches_reference_with_the_sun(sun_blend, mode):
     assert more > 1.05 and np.quantile(gain, 0.95) > 1.2, (more, np.quantile(gain, 0.95))
 
 
+@pytest.fixture(scope="module")
+def lamp_blend(tmp_path_factory):
+    return baked_blend(str(tmp_path_factory.mktemp("preview_lamps")), lamps=True, bounces=0)
+
+
+@pytest.mark.parametrize("mode", ["tpfl", "diffuse"])
+def test_gpu_matches_reference_with_lamps(lamp_blend, mode):
+    """A point and a spot lamp's direct light (their masks, the spot's cone,
+    the glossy floor's and the ball's highlights): the GLSL against the numpy
+    twin pixel by pixel; the lamps are in the picture and a recoloured lamp
+    changes it without a bake."""
+    import dataclasses
+
+    from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
+    from prtt_addon.core.preview.reference import reference_image, relative_error
+    bpy = open_blend(lamp_blend)
+    ps, status, vp, cam = frame(bpy, False)
+    assert [lp.name for lp in ps.lamps] == ["Spot", "Bulb"] and all(s.lamps for s in ps.sets.values()), status.messages
+    assert "Spot 'Spot'" in status.lamps_description
+    r = Renderer()
+    for p in (ps, dataclasses.replace(ps, lamps=(dataclasses.replace(ps.lamps[0], color=(1.0, 0.1, 0.1)),
+                                                   ps.lamps[1]))):
+        px, stats = render_offscreen(r, p, mode, vp, cam, W, H, exposure=EXPOSURE)
+        assert sorted(stats.drawn) == ["Ball", "Block", "Floor"] and not stats.skipped
+        ref, hits = reference_image(p, mode, vp, cam, W, H, exposure=EXPOSURE)
+        interior = hits.hit & (hits.edge_px > EDGE_MARGIN_PX)
+        floor = 1e-2 * ref[..., :3][hits.hit].mean()
+        err = relative_error(px[..., :3][interior], ref[..., :3][interior], floor)
+        assert err.max() <= 1e-3, f"{mode}: max relative error {err.max():.2e} (p99 {np.quantile(err, 0.99):.2e})"
+    dark, _ = reference_image(dataclasses.replace(ps, lamps=()), mode, vp, cam, W, H, exposure=EXPOSURE)
+    lit, _ = reference_image(ps, mode, vp, cam, W, H, exposure=EXPOSURE)
+    gain = lit[..., :3][interior].sum(axis=1) / np.maximum(dark[..., :3][interior].sum(axis=1), 1e-9)
+    assert np.quantile(gain, 0.9) > 1.3 and np.quantile(gain, 0.1) < 1.05, np.quantile(gain, [0.1, 0.9])
+
+
 def test_tp_equals_tpfl_and_prepass_changes_nothing(blend):
     from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
     bpy = open_blend(blend)

@@ -92,6 +92,8 @@ def prepare(context, overrides: dict | None = None) -> Prepared:
         extra["light"] = {"coeffs": exp.light.tolist(), "description": exp.light_description}
     if exp.sun is not None:
         extra["sun"] = exp.sun.as_dict()
+    if exp.lamps:
+        extra["lamps"] = [lp.as_dict() for lp in exp.lamps]
     job = job_path(out_dir)
     save_scene(exp.scene, job, extra=extra)
     return Prepared(job, out_dir, exp, settings, materials_signature(scene), scene.prtt.output_dir or "//prtt/")
@@ -140,6 +142,7 @@ def finish(context, prepared: Prepared, outcome: Outcome) -> None:
                                                           ("levels", "light_hash", "materials_hash", "files")},
                "light": prepared.export.light_description, "seconds": m["seconds"].get("total"),
                **({"sun": m["sun"]} if m.get("sun") else {}),
+               **({"lamps": m["lamps"]} if m.get("lamps") else {}),
                "warnings": m.get("warnings", []) + prepared.export.warnings,
                "objects": prepared.export.objects,
                "materials_signature": prepared.materials_signature,

@@ -28,6 +28,7 @@ import numpy as np
 
 from ...core.io.sidecars import read_corner_vertex
 from ...core.light.envmap import compose_light
+from ...core.light.lamp import LampError, lamps_from_list
 from ...core.light.sun import Sun, SunError
 from ...core.preview import pack as pp
 from ...core.preview.shader_source import MAX_PREVIEW_BANDS
@@ -36,7 +37,7 @@ from .. import record
 from ..rna_arrays import read
 from ..scene import world_panorama
 from ..scene.job import GENERATED_UVS, apply_tile
-from ..scene.lamps import scene_sun, unbaked_lamps
+from ..scene.lamps import scene_lamps, scene_sun, unbaked_lamps
 from ..scene.material_nodes import image_array, parse_material
 from ..scene.scene_objects import scene_geometry
 from ..scene.world import WorldLightError, dim_light_note, project_setup, world_setup
@@ -83,6 +84,10 @@ class PreviewStatus:
     sun_stale: str = ""
     #: The sun the preview draws, in words ("" when none): the panel's "Sun:" line.
     sun_description: str = ""
+    #: Why a lamp's masks no longer match the scene ("" when they do or there are none).
+    lamps_stale: str = ""
+    #: The point and spot lamps the preview draws, in words ("" when none): the panel's "Lamps:" line.
+    lamps_description: str = ""
 
     def add(self, level: str, text: str) -> None:
         self.messages.append((level, text))
@@ -348,7 +353,11 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
             os.path.join(out_dir, sfile)) else None
         sun_edge = os.path.join(out_dir, efile) if sun_mask and efile in files and os.path.isfile(
             os.path.join(out_dir, efile)) else None
-        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight, sun_mask, sun_edge)
+        lfile = f"{set_name}.lamps.exr"
+        lamp_masks = os.path.join(out_dir, lfile) if lfile in files and os.path.isfile(
+            os.path.join(out_dir, lfile)) else None
+        sets[set_name] = pp.PreviewSet(set_name, transfer, bounces, vertex, relight, sun_mask, sun_edge,
+                                       lamp_masks, len((info.get("lamps") or {}).get("lamps") or ()) if lamp_masks else 0)
     try:
         light, status.light_description = current_light(scene, bands,
                                                          view_layer=getattr(context, "view_layer", None))
@@ -371,6 +380,7 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
     if lamps:
         status.add("INFO", lamps)           # a note: the export carries the lamps (glTF's own lights)
     sun = preview_sun(scene, getattr(context, "view_layer", None), info, status)
+    lamps = preview_lamps(scene, getattr(context, "view_layer", None), info, status)
     normal_maps = bool(info["settings"].get("normal_maps", True))
     table = _MaterialTable(normal_maps)
     depsgraph = context.evaluated_depsgraph_get()
@@ -418,7 +428,7 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
     ps = pp.PreviewScene(bands=bands, meshes=meshes, materials=table.materials, sets=sets, light=light,
                          images=table.images, image_keys=table.image_keys, use_bounces=use_bounces,
                          normal_maps=normal_maps, material_names=table.names, image_names=table.image_names,
-                         sun=sun)
+                         sun=sun, lamps=lamps)
     return ps, status
 
 
@@ -433,6 +443,48 @@ def _sun_light_changed(baked: dict | None, sun: "pp.PreviewSun | None") -> bool:
         return True
     now = np.zeros(3) if sun is None else np.asarray(sun.irradiance, np.float64)
     return then.shape != (3,) or not np.allclose(then, now, rtol=1e-6, atol=1e-9)
+
+
+def preview_lamps(scene, view_layer, info: dict, status) -> tuple:
+    """The point and spot lamps the preview draws, in the masks' channel
+    order: each baked lamp where it was baked (its mask holds its shadows)
+    with the scene's lamp of its name's colour, power and spot cone now (they
+    change live); a moved or resized lamp makes the masks stale (a warning:
+    drawn as baked until the next bake), a lamp gone is drawn dark, and a
+    Point or Spot lamp the bake did not take is said."""
+    spec = (info.get("lamps") or {}).get("lamps") or []
+    live = {lp.name: lp for lp in scene_lamps(scene, view_layer)[0]}
+    try:
+        baked = lamps_from_list(list(spec))
+    except LampError as exc:
+        status.add("ERROR", f"the bake's lamps: {exc}; bake again")
+        return ()
+    new = [n for n in live if n not in {lp.name for lp in baked}]
+    if new:
+        status.add("INFO", f"lamp(s) not in the bake: {', '.join(repr(n) for n in new[:4])}: Bake again to add "
+                           f"their light and shadows")
+    out, stale, gone = [], [], []
+    for lp in baked:
+        now = live.get(lp.name)
+        if now is None:
+            gone.append(lp.name)
+            out.append(dataclasses.replace(lp, power=0.0))
+            continue
+        why = now.moved_from(lp)
+        if why:
+            stale.append(why)
+        out.append(dataclasses.replace(lp, power=now.power, color=now.color, axis=now.axis, kind=now.kind,
+                                       spot_size=now.spot_size, spot_blend=now.spot_blend))
+    if gone:
+        status.add("INFO", f"baked lamp(s) gone from the scene (or hidden): {', '.join(repr(n) for n in gone[:4])}: "
+                           f"drawn without them")
+    if stale:
+        status.lamps_stale = "; ".join(stale)
+        status.add("WARNING", f"the lamps' shadows are stale ({status.lamps_stale}): drawn as baked; Bake again to "
+                              f"update them")
+    if out:
+        status.lamps_description = ", ".join(f"{lp.kind.title()} {lp.name!r} {lp.power:.3g} W" for lp in out)
+    return tuple(out)
 
 
 def preview_sun(scene, view_layer, info: dict, status) -> "pp.PreviewSun | None":

@@ -205,6 +205,9 @@ class Renderer:
             # R16F, or RGBA16F with edges (mask, d, valid, h): read as float32, stacked, then the buffer
             add(("sun", s.key), lambda: (lambda H, W: (8 * H * W, 48 * H * W) if s.sun_edge else (
                 2 * H * W, 6 * H * W))(*texture_header(s.sun)[2:4]))
+        if want_sun and s.lamps:
+            # RGBA16F (a lamp a channel): read as float32, padded to four, then the buffer
+            add(("lamps", s.key), lambda: (lambda H, W: (8 * H * W, 48 * H * W))(*texture_header(s.lamps)[2:4]))
         return total, staging
 
     def planned_bytes(self, ps: pp.PreviewScene, mode: str) -> tuple:
@@ -221,7 +224,7 @@ class Renderer:
             seen.add(s.name)
             # the sun (and its bounce) is drawn in the fragment modes
             t, st = self.set_needs(s, ps.use_bounces, vertex_mode, ps.bands, ps.light if vertex_mode else ps.bounce_light,
-                                   ps.sun is not None and not vertex_mode)
+                                   (ps.sun is not None or bool(ps.lamps)) and not vertex_mode)
             total, staging = total + t, max(staging, st)
         for i, img in enumerate(ps.images):
             key = ps.image_keys[i] if i < len(ps.image_keys) else None
@@ -283,10 +286,18 @@ class Renderer:
                 return gpu.types.GPUTexture((W, H), format="RGBA16F", data=_buffer(tex)), 8 * H * W
             return gpu.types.GPUTexture((W, H), format="R16F", data=_buffer(tex)), 2 * H * W
 
+        def lamps():
+            # (H, W, 4) a lamp's mask a channel, row 0 at the bottom; multiples of 1 / 64: exact in half
+            tex = np.ascontiguousarray(_load(s.load_lamp_texture, s.lamps), np.float32)
+            H, W = tex.shape[:2]
+            _check_limits(s.lamps, W, H, 1)
+            return gpu.types.GPUTexture((W, H), format="RGBA16F", data=_buffer(tex)), 8 * H * W
+
         return (self._get(("transfer", key), transfer),
                 self._get(("bounce", s.bounce_key(light)), bounce) if want_bounce and s.has_bounce else None,
                 self._get(("vertex", key), vertex) if want_vertex and s.vertex else None,
-                self._get(("sun", key), sun) if want_sun and s.sun else None)
+                self._get(("sun", key), sun) if want_sun and s.sun else None,
+                self._get(("lamps", key), lamps) if want_sun and s.lamps else None)
 
     def _relit_bounce(self, s: pp.PreviewSet, light, bands: int):
         """The bounce texture of relightable set ``s`` under ``light`` (K, 3), made
@@ -400,7 +411,7 @@ class Renderer:
             try:
                 tex = self._set_textures(s, ps.use_bounces, vertex_mode, ps.bands,
                                          ps.light if vertex_mode else ps.bounce_light,
-                                         ps.sun is not None and not vertex_mode)
+                                         (ps.sun is not None or bool(ps.lamps)) and not vertex_mode)
             except TextureUploadError as exc:
                 skipped[m.name] = f"cannot use its texture {exc}"
                 continue
@@ -455,9 +466,13 @@ class Renderer:
             lut = self._display_lut(display) if display is not None else None
             sun_ubo = (self._get(("sun-block", ps.sun), lambda: gpu.types.GPUUniformBuf(_buffer(ps.sun.block())))
                        if ps.sun is not None else None)
-            for m, (transfer, bounce, vertex, sun) in todo:
+            block = pp.lamp_block(ps.lamps)
+            lamp_ubo = (self._get(("lamp-block", block.tobytes()), lambda: gpu.types.GPUUniformBuf(_buffer(block)))
+                        if ps.lamps else None)
+            for m, (transfer, bounce, vertex, sun, lamps) in todo:
                 self._draw_mesh(ps, m, mode, light, transfer, bounce, vertex, lut,
-                                (sun[0], sun_ubo) if sun is not None else None)
+                                (sun[0], sun_ubo) if sun is not None and ps.sun is not None else None,
+                                (lamps[0], lamp_ubo) if lamps is not None and lamp_ubo is not None else None)
                 stats.drawn.append(m.name)
                 stats.triangles += m.triangles
         finally:
@@ -474,12 +489,16 @@ class Renderer:
         return self._get(("display", display.lut_digest), lambda: gpu.types.GPUTexture(
             (n, n, n), format="RGBA16F", data=_buffer(display.block())))
 
-    def _draw_mesh(self, ps, m, mode, light, transfer, bounce, vertex, lut=None, sun=None):
-        sh = gpu_shaders.surface_shader(mode, ps.bands, bounce is not None, lut is not None, sun is not None)
+    def _draw_mesh(self, ps, m, mode, light, transfer, bounce, vertex, lut=None, sun=None, lamps=None):
+        sh = gpu_shaders.surface_shader(mode, ps.bands, bounce is not None, lut is not None, sun is not None,
+                                        lamps is not None)
         sh.bind()
         if sun is not None:
             sh.uniform_sampler("sunTex", sun[0])
             sh.uniform_block("sun", sun[1])
+        if lamps is not None:
+            sh.uniform_sampler("lampTex", lamps[0])
+            sh.uniform_block("lamps", lamps[1])
         if lut is not None:
             sh.uniform_sampler("displayLut", lut)
         sh.uniform_block("view", self._view_ubo)

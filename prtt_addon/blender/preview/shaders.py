@@ -63,8 +63,9 @@ def build(v: Variant):
     return sh
 
 
-def surface_shader(mode: str, bands: int, bounce: bool, display: bool = False, sun: bool = False):
-    return build(variant(mode, bands, bounce=bounce, display=display, sun=sun))
+def surface_shader(mode: str, bands: int, bounce: bool, display: bool = False, sun: bool = False,
+                   lamps: bool = False):
+    return build(variant(mode, bands, bounce=bounce, display=display, sun=sun, lamps=lamps))
 
 
 def depth_shader():

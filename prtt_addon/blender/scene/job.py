@@ -47,7 +47,7 @@ from ...core.texels.raster import overlap_count
 from ...core.texels.unwrap import UnwrapError, unwrap
 from ..rna_arrays import read
 from ..shared import UV_MAP
-from .lamps import scene_sun, unbaked_lamps
+from .lamps import scene_lamps, scene_sun, unbaked_lamps
 from .material_nodes import image_array, parse_material
 from .scene_objects import reported_without_faces, scene_geometry
 from .uv_maps import generated_margin, needs_user_unwrap
@@ -87,6 +87,7 @@ class ExportResult:
     light: np.ndarray | None = None
     light_description: str = ""
     sun: object | None = None    # core.light.sun.Sun: the scene's Sun lamp, its mask baked (lamps.scene_sun)
+    lamps: tuple = ()            # core.light.lamp.Lamp: its point and spot lamps, their masks baked (lamps.scene_lamps)
     objects: dict = dataclasses.field(default_factory=dict)   # part name -> record (see _records)
     generated_uvs: dict = dataclasses.field(default_factory=dict)  # uv group -> (T, 3, 2) float32
 
@@ -532,6 +533,7 @@ def _assemble(context, parts, mats, warnings, st, with_light) -> ExportResult:
                                                        builtin=st.builtin_environment or "forest",
                                                        view_layer=context.view_layer)
     res.sun = scene_sun(context.scene, context.view_layer)[0]
+    res.lamps = scene_lamps(context.scene, context.view_layer)[0]
     lamps = unbaked_lamps(context.scene, context.view_layer)
     if lamps:
         warnings.append(lamps)

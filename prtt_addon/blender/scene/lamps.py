@@ -1,6 +1,8 @@
 """The scene's lamps as PRTT takes them (issue 48): a Sun lamp becomes the
-bake's sun (core.light.sun.Sun: its mask baked, its light drawn live); every
-lamp PRTT does not take is named in one line.
+bake's sun (core.light.sun.Sun: its mask baked, its light drawn live), up to
+four Point and Spot lamps become its lamps (core.light.lamp.Lamp, issue 49:
+their masks baked, their light drawn live); every lamp PRTT does not take is
+named in one line.
 
 What renders is what counts: Light objects in the view layer, not disabled in
 renders, with power. One sun is baked, the brightest (strength times the
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import math
 
+from ...core.light.lamp import MAX_LAMPS, Lamp, LampError
 from ...core.light.sun import MAX_ANGLE, Sun, SunError
 from .scene_objects import rendered_lamps
 from .world import world_has_sky_sun, world_sun
@@ -80,17 +83,55 @@ def scene_sun(scene, view_layer=None) -> tuple:
     return sun, ob, notes
 
 
+def lamp_of(ob) -> Lamp:
+    """A Point or Spot lamp object as a core Lamp (LampError for one it cannot take)."""
+    light = ob.data
+    m = ob.matrix_world
+    z = m.to_3x3().col[2]                        # a spot shines along its local -Z
+    power = float(light.energy) * 2.0 ** float(getattr(light, "exposure", 0.0))
+    spot = light.type == "SPOT"
+    return Lamp(kind=light.type, position=tuple(m.translation), radius=float(light.shadow_soft_size),
+                power=power, color=lamp_colour(light), axis=(-z.x, -z.y, -z.z),
+                spot_size=float(light.spot_size) if spot else math.radians(45.0),
+                spot_blend=float(light.spot_blend) if spot else 0.15, name=ob.name,
+                shadow=bool(getattr(light, "use_shadow", True)))
+
+
+def scene_lamps(scene, view_layer=None) -> tuple:
+    """(Lamps (core.light.lamp.Lamp, at most MAX_LAMPS, brightest first), notes):
+    the rendering Point and Spot lamps PRTT bakes (their masks, their light
+    drawn live), and one-line notes for those it does not (beyond MAX_LAMPS,
+    or a spot scaled unevenly: its ellipse is drawn round)."""
+    obs = [ob for ob in rendered_lamps(scene, view_layer) if ob.data.type in ("POINT", "SPOT")]
+    taken, notes = [], []
+    for ob in obs:
+        try:
+            taken.append(lamp_of(ob))
+        except LampError as exc:
+            notes.append(f"{ob.data.type.title()} {ob.name!r}: {exc}; not baked")
+            continue
+        sx, sy, _ = ob.matrix_world.to_scale()
+        if ob.data.type == "SPOT" and abs(sx - sy) > 1e-4 * max(abs(sx), abs(sy), 1e-12):
+            notes.append(f"Spot {ob.name!r} is scaled unevenly: PRTT draws its cone round")
+    taken.sort(key=lambda lp: (-lp.power * sum(lp.color) / 3.0, lp.name))
+    if len(taken) > MAX_LAMPS:
+        rest = taken[MAX_LAMPS:]
+        notes.append(f"PRTT bakes {MAX_LAMPS} point and spot lamps, the brightest; not "
+                     + ", ".join(repr(lp.name) for lp in rest[:4]) + (f" and {len(rest) - 4} more" if len(rest) > 4 else ""))
+    return tuple(taken[:MAX_LAMPS]), notes
+
+
 def unbaked_lamps(scene, view_layer=None) -> str:
     """A one-line note naming the scene's lamps that light Cycles' render but
-    not PRTT's ("" when there are none): every rendering lamp but the sun PRTT
-    takes (scene_sun); with scene_sun's own notes."""
+    not PRTT's ("" when there are none): area lamps, suns and lamps beyond
+    what PRTT takes (scene_sun, scene_lamps); with their own notes."""
     _, _, notes = scene_sun(scene, view_layer)
-    # Suns PRTT does not take are in the notes already.
-    lamps = [ob for ob in rendered_lamps(scene, view_layer) if ob.data.type != "SUN"]
-    parts = list(notes)
+    # Suns PRTT does not take are in the notes already, points and spots in scene_lamps'.
+    parts = list(notes) + scene_lamps(scene, view_layer)[1]
+    lamps = [ob for ob in rendered_lamps(scene, view_layer) if ob.data.type not in ("SUN", "POINT", "SPOT")]
     if lamps:
         named = ", ".join(f"{ob.data.type.title()} {ob.name!r}" for ob in lamps[:4]) + (
             f" and {len(lamps) - 4} more" if len(lamps) > 4 else "")
-        parts.append(f"{len(lamps)} lamp(s) light Cycles' render but not PRTT's (point, spot and area lamps are "
+        parts.append(f"{len(lamps)} lamp(s) light Cycles' render but not PRTT's (area lamps are "
                      f"not baked yet): {named}")
     return "; ".join(parts)

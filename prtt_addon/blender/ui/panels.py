@@ -182,6 +182,8 @@ class PRTT_PT_preview(_PRTTPanel, bpy.types.Panel):
             col.label(text=f"Light: {status.light_description}", icon="WORLD")
         if status.sun_description:
             col.label(text=f"Sun: {status.sun_description}", icon="LIGHT_SUN")
+        if status.lamps_description:
+            col.label(text=f"Lamps: {status.lamps_description}", icon="LIGHT_POINT")
         for level, text in status.messages:
             col.label(text=text, icon={"ERROR": "ERROR", "WARNING": "ERROR"}.get(level, "INFO"))
         if st.preview:

@@ -33,6 +33,7 @@ from ..io.exr_io import (
     channel_names,
     glossy_tint,
     read_edge_exr,
+    read_lamp_exr,
     read_mask_exr,
     read_relight_exr,
     read_sh_exr,
@@ -231,6 +232,8 @@ class PreviewSet:
     relight: str | None = None
     sun: str | None = None        # <set>.sun.exr: the visible fraction of the sun's disc per texel
     sun_edge: str | None = None   # <set>.sun_edge.exr: its sub-texel shadow edges (with sun only)
+    lamps: str | None = None      # <set>.lamps.exr: the visible fraction of each lamp's sphere per texel
+    lamp_count: int = 0           # its channels (the manifest's lamps, in order)
 
     @property
     def has_bounce(self) -> bool:
@@ -246,7 +249,7 @@ class PreviewSet:
     @property
     def key(self) -> str:
         parts = []
-        for p in (self.transfer, *self.bounces, self.vertex, self.relight, self.sun, self.sun_edge):
+        for p in (self.transfer, *self.bounces, self.vertex, self.relight, self.sun, self.sun_edge, self.lamps):
             if p:
                 try:
                     st = os.stat(p)
@@ -314,6 +317,16 @@ class PreviewSet:
                                f"{mask.shape[1]}x{mask.shape[0]} mask; bake again")
         return np.stack([mask, edge[..., 0], edge[..., 2], edge[..., 1]], axis=-1)
 
+    def load_lamp_texture(self) -> np.ndarray | None:
+        """(H, W, 4) float32 the lamps' masks as lampTex holds them (channel
+        i lamp i, unused channels 0), row 0 at the bottom; None without lamps."""
+        if not self.lamps or not self.lamp_count:
+            return None
+        m = read_lamp_exr(self.lamps, self.lamp_count)[0]
+        out = np.zeros(m.shape[:2] + (4,), np.float32)
+        out[..., :m.shape[2]] = m
+        return out
+
     def load_vertex(self) -> np.ndarray | None:
         """(V, K) float32 per-vertex transfer, or None."""
         if not self.vertex:
@@ -345,6 +358,7 @@ class PreviewScene:
     material_names: list = dataclasses.field(default_factory=list)
     image_names: list = dataclasses.field(default_factory=list)
     sun: "PreviewSun | None" = None      # drawn where a set has its mask (PreviewSet.sun)
+    lamps: tuple = ()                    # core.light.lamp.Lamp, live, in the masks' channel order (PreviewSet.lamps)
 
     @property
     def bounce_light(self) -> np.ndarray:
@@ -374,6 +388,21 @@ class PreviewSun:
     def block(self) -> np.ndarray:
         """The PRTTSun uniform block: direction and angle² / 16, irradiance; flat float32."""
         return np.array([*self.direction, self.angle * self.angle / 16.0, *self.irradiance, 0.0], np.float32)
+
+
+def lamp_block(lamps) -> np.ndarray:
+    """The PRTTLamps uniform block (shader_source.LAMP_TYPEDEFS) of up to four
+    core.light.lamp.Lamp: info (count), then per lamp position and radius,
+    intensity (W/sr) and the spot's smoothstep scale (1e20 for a hard cone,
+    1 for a point), axis and cos half the cone (-2 for a point); flat float32."""
+    lamps = tuple(lamps)[:4]
+    pos, inten, spot = (np.zeros((4, 4)) for _ in range(3))
+    for i, lp in enumerate(lamps):
+        pos[i] = [*lp.position, lp.radius]
+        smooth = lp.spot_smooth if lp.kind == "SPOT" else 1.0
+        inten[i] = [*lp.intensity, min(smooth, 1e20)]
+        spot[i] = [*lp.axis, lp.cos_half_cone if lp.kind == "SPOT" else -2.0]
+    return np.concatenate([[len(lamps), 0, 0, 0], pos.ravel(), inten.ravel(), spot.ravel()]).astype(np.float32)
 
 
 # --- packing for the GPU ------------------------------------------------------------
@@ -821,10 +850,11 @@ def view_block(view_projection: np.ndarray, camera: np.ndarray, exposure: float,
 # --- a PreviewScene straight from a core Scene and its bake (benchmarks, tests) ------------
 
 def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_bounces: bool = True,
-                    sun=None) -> PreviewScene:
+                    sun=None, lamps=()) -> PreviewScene:
     """Every baked object of ``sc`` as a DrawMesh (world space, identity
     matrix), with the textures the bake wrote to ``out_dir``; ``sun`` (a
-    core.light.sun.Sun) drawn with the sets' masks.
+    core.light.sun.Sun) drawn with the sets' masks, ``lamps`` (core.light.lamp.Lamp,
+    the bake's, in order) with their masks.
 
     Materials come from ``sc.materials`` (default grey where none), material
     textures from ``sc.textures``; normal maps are not carried over (the
@@ -849,7 +879,9 @@ def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_boun
                                     os.path.join(out_dir, vfile) if vfile in files else None,
                                     os.path.join(out_dir, rfile) if rfile in files else None,
                                     os.path.join(out_dir, sfile) if with_sun else None,
-                                    os.path.join(out_dir, efile) if with_sun and efile in files else None)
+                                    os.path.join(out_dir, efile) if with_sun and efile in files else None,
+                                    *((os.path.join(out_dir, f"{set_name}.lamps.exr"), len(lamps))
+                                      if lamps and f"{set_name}.lamps.exr" in files else (None, 0)))
         set_tris = sc.triangles_of_set(s)
         corner_vertex = None
         if vfile in files:
@@ -868,4 +900,4 @@ def from_core_scene(sc, out_dir: str, light: np.ndarray, bands: int, *, use_boun
     return PreviewScene(bands=bands, meshes=meshes, materials=mats, sets=sets, light=np.asarray(light)[:bands * bands],
                         images=list(sc.textures), image_keys=[f"{out_dir}|tex{i}" for i in range(len(sc.textures))],
                         use_bounces=use_bounces, normal_maps=False,
-                        sun=PreviewSun.of(sun) if sun is not None else None)
+                        sun=PreviewSun.of(sun) if sun is not None else None, lamps=tuple(lamps))

@@ -28,7 +28,7 @@ from ..bake.estimators import sun_edge
 from ..bake.estimators.raytrace import RayScene
 from ..bake.estimators.transfer import Points, TransferSettings, bake_points
 from ..shading.materials import ShadingParams, derive_from_f0
-from ..shading.shade import shade, sun_direct
+from ..shading.shade import lamp_direct, shade, sun_direct
 from ..texels.gbuffer import perturb_normals
 from ..texels.texsample import bilinear, bilinear_repeat
 from . import pack as pp
@@ -203,6 +203,12 @@ def _fragment_colors(ps, m, method, cam, transfer, bounce, tri, bary, s=None):
         filtered = bilinear(np.ascontiguousarray(tex.reshape(-1, C), np.float32), Wm, Hm, uv)
         vis = sun_edge.visible(filtered[:, 0] if C == 1 else filtered)
         rgb = rgb + sun_direct(n, v, params, vis, ps.sun.direction, ps.sun.irradiance, ps.sun.angle, method=method)
+    if ps.lamps and s is not None and s.lamps:
+        # The lamps' direct light with their baked masks, as the fragment shader adds it (PRTT_LAMPS).
+        tex = s.load_lamp_texture()
+        Hm, Wm = tex.shape[:2]
+        masks = bilinear(np.ascontiguousarray(tex.reshape(-1, 4), np.float32), Wm, Hm, uv)
+        rgb = rgb + lamp_direct(P, n, v, params, masks, ps.lamps, method=method)
     return rgb
 
 

@@ -37,6 +37,11 @@ Uniform blocks (std140, only vec4/mat4 members so there is no padding):
   towards the sun, w = angle² / 16: the disc's widening of the GGX lobe,
   alpha'² = alpha² + w / 2: shading.shade.sun_alpha2) and ``irradiance`` (rgb W/m² facing it); with
   the sampler ``sunTex`` (r: the baked visible fraction of its disc).
+* ``PRTTLamps lamps`` (variants with lamps only): ``info`` (x the number of
+  lamps, at most 4), per lamp ``position`` (xyz world, w radius),
+  ``intensity`` (rgb W/sr, w the spot's smoothstep scale) and ``spot`` (xyz
+  unit axis, w cos half its cone; -2 for a point); with the sampler
+  ``lampTex`` (channel i: the baked visible fraction of lamp i's sphere).
 
 Push constants: ``ModelMatrix`` and ``NormalMatrix`` (mat4 each, 128 bytes:
 the guaranteed minimum); NormalMatrix[3][3] is the sign of det(ModelMatrix).
@@ -125,13 +130,16 @@ def gaunt_nnz(bands: int) -> int:
     return sparse_gaunt(bands).nnz
 
 
-def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = False, sun: bool = False) -> Variant:
+def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = False, sun: bool = False,
+            lamps: bool = False) -> Variant:
     """The shader for a preview ``mode`` at ``bands`` SH bands, with or without
     bounce textures; ``display``: ending in the scene's view transform
     (prtt_display.glsl, the sampler displayLut) for a colour buffer that
     encodes sRGB, instead of linear radiance; ``sun``: adding a sun's direct
     light with its baked mask (define PRTT_SUN: the sampler sunTex, the
-    uniform block PRTTSun sun; fragment modes only)."""
+    uniform block PRTTSun sun; fragment modes only); ``lamps``: adding point
+    and spot lamps' direct light with their baked masks (define PRTT_LAMPS:
+    the sampler lampTex, the uniform block PRTTLamps lamps; fragment modes only)."""
     if mode not in MODES:
         raise ValueError(f"unknown preview mode {mode!r}; use one of {', '.join(MODES)}")
     if not (isinstance(bands, int) and 1 <= bands <= MAX_PREVIEW_BANDS):
@@ -150,6 +158,10 @@ def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = Fals
         raise ValueError(f"the sun is drawn in the fragment modes ({', '.join(FRAGMENT_MODES)}), not {mode!r}")
     if sun:
         defines.append(("PRTT_SUN", "1"))
+    if lamps and mode not in FRAGMENT_MODES:
+        raise ValueError(f"lamps are drawn in the fragment modes ({', '.join(FRAGMENT_MODES)}), not {mode!r}")
+    if lamps:
+        defines.append(("PRTT_LAMPS", "1"))
     if display:
         defines += [("PRTT_DISPLAY", "1"), ("PRTT_SHAPER_LO", f"{SHAPER_LO:.1f}"),
                     ("PRTT_SHAPER_HI", f"{SHAPER_HI:.1f}")]
@@ -176,16 +188,19 @@ def variant(mode: str, bands: int, *, bounce: bool = False, display: bool = Fals
         ffiles = ("prtt_vertex_frag.glsl",)
     if sun:
         samplers.append((8, "FLOAT_2D", "sunTex"))
+    if lamps:
+        samplers.append((9, "FLOAT_2D", "lampTex"))
     if display:
         samplers.append((7, "FLOAT_3D", "displayLut"))
         ffiles = ffiles[:-1] + ("prtt_display.glsl",) + ffiles[-1:]
     return Variant(
         name=(f"prtt_{mode.replace('-', '_')}_b{bands}{'_bounce' if bounce else ''}{'_display' if display else ''}"
-              f"{'_sun' if sun else ''}"),
-        defines=tuple(defines), typedefs=TYPEDEFS % {"tpfl": 3 * k * k4, "k": k} + (SUN_TYPEDEFS if sun else ""),
+              f"{'_sun' if sun else ''}{'_lamps' if lamps else ''}"),
+        defines=tuple(defines), typedefs=TYPEDEFS % {"tpfl": 3 * k * k4, "k": k} + (SUN_TYPEDEFS if sun else "")
+        + (LAMP_TYPEDEFS if lamps else ""),
         vertex_in=vertex_in, interface=interface, samplers=tuple(sorted(samplers)),
         uniform_bufs=((0, "PRTTView", "view"), (1, "PRTTMaterial", "material"), (2, "PRTTLight", "light"))
-        + (((3, "PRTTSun", "sun"),) if sun else ()),
+        + (((3, "PRTTSun", "sun"),) if sun else ()) + (((4, "PRTTLamps", "lamps"),) if lamps else ()),
         push_constants=(("MAT4", "ModelMatrix"), ("MAT4", "NormalMatrix")),
         vertex_files=vfiles, fragment_files=ffiles)
 
@@ -209,6 +224,16 @@ SUN_TYPEDEFS = """
 struct PRTTSun {
   vec4 direction;
   vec4 irradiance;
+};
+"""
+
+#: Point and spot lamps (prtt_shade.glsl lamp_light; pack.lamp_block): at most core.light.lamp.MAX_LAMPS.
+LAMP_TYPEDEFS = """
+struct PRTTLamps {
+  vec4 info;
+  vec4 position[4];
+  vec4 intensity[4];
+  vec4 spot[4];
 };
 """
 

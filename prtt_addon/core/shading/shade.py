@@ -193,6 +193,34 @@ def sun_direct(normal, view, params: ShadingParams, mask, direction, irradiance,
     return out * cos[:, None]
 
 
+def lamp_direct(points, normal, view, params: ShadingParams, masks, lamps, *, method: str = "tpfl",
+                layered: bool = True) -> np.ndarray:
+    """(N, 3) radiance towards ``view`` from point and spot lamps
+    (core.light.lamp.Lamp) at world ``points`` (N, 3); ``masks`` (N, L) the
+    visible fraction of each lamp's sphere (the bake's lamp masks). Each lamp
+    as one direction l from the point to its centre, as the sun
+    (:func:`sun_direct`), of irradiance E = I spot / r^2 (Lamp.irradiance),
+    its lobe widened by the sphere's disc of full angle 2 asin(R / r):
+
+        B = sum_i mask_i max(0, n.l_i) E_i (w_d rho_d / pi + f_s(l_i))"""
+    n = np.asarray(normal, np.float64)
+    v = np.asarray(view, np.float64)
+    p = np.asarray(points, np.float64)
+    masks = np.asarray(masks, np.float64).reshape(n.shape[0], -1)
+    albedo = params.albedo * layer(n, v, params)[0][:, None] if layered else params.albedo
+    out = np.zeros((n.shape[0], 3))
+    for i, lp in enumerate(lamps):
+        l, E = lp.irradiance(p)
+        cos = np.maximum(np.einsum("nc,nc->n", n, l), 0.0) * masks[:, i]
+        b = albedo / math.pi * E
+        if method != "diffuse" and np.any(params.spec):
+            r = np.linalg.norm(np.asarray(lp.position) - p, axis=1)
+            angle = 2.0 * np.arcsin(np.minimum(lp.radius / np.maximum(r, 1e-12), 1.0))
+            b = b + sun_glossy(n, v, l, params, angle, multi=layered) * E
+        out += b * cos[:, None]
+    return out
+
+
 def sun_alpha2(exponent, angle: float) -> tuple[np.ndarray, np.ndarray]:
     """(alpha^2, alpha'^2): the GGX roughness of a Phong ``exponent``
     (materials.phong_exponent: alpha^2 = 1 / (2 s + 1)) and that widened by a
