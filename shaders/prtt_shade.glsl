@@ -175,16 +175,22 @@ vec3 lamp_light(vec2 uv, vec3 p, vec3 n, vec3 v, vec3 albedo, vec3 spec, float e
     vec3 to = lamps.position[i].xyz - p;
     float r2 = max(dot(to, to), 1e-12);
     vec3 l = to * inversesqrt(r2);
-    float t = clamp((dot(-l, lamps.spot[i].xyz) - lamps.spot[i].w) * lamps.intensity[i].w, 0.0, 1.0);
-    float c = max(dot(n, l), 0.0) * m[i] * t * t * (3.0 - 2.0 * t);
+    /* The cone averaged over the sphere's disc (angular radius a): five
+     * Gauss-Chebyshev nodes over the angle from the axis (Lamp.spot). */
+    float a = asin(min(lamps.position[i].w * inversesqrt(r2), 1.0));
+    float th = acos(clamp(dot(-l, lamps.spot[i].xyz), -1.0, 1.0));
+    vec4 cs = cos(vec4(th - 0.8660254 * a, th - 0.5 * a, th + 0.5 * a, th + 0.8660254 * a));
+    vec4 t = clamp((cs - vec4(lamps.spot[i].w)) * lamps.intensity[i].w, 0.0, 1.0);
+    float t0 = clamp((cos(th) - lamps.spot[i].w) * lamps.intensity[i].w, 0.0, 1.0);
+    float sm = dot(t * t * (3.0 - 2.0 * t), vec4(1.0, 3.0, 3.0, 1.0) / 12.0) + t0 * t0 * (3.0 - 2.0 * t0) / 3.0;
+    float c = max(dot(n, l), 0.0) * m[i] * sm;
     if (!(c > 0.0)) {
       continue;
     }
     vec3 b = albedo * dw / PRTT_PI;
 #  ifndef PRTT_DIFFUSE
     if (any(greaterThan(spec, vec3(0.0)))) {
-      float a = 2.0 * asin(min(lamps.position[i].w * inversesqrt(r2), 1.0));
-      b += prtt_glossy(n, v, l, spec, exponent, a * a / 16.0);
+      b += prtt_glossy(n, v, l, spec, exponent, a * a / 4.0);      /* (2a)^2 / 16 */
     }
 #  endif
     sum += b * lamps.intensity[i].rgb * (c / r2);

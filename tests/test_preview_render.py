@@ -140,6 +140,33 @@ def test_gpu_matches_reference_with_lamps(lamp_blend, mode):
     assert np.quantile(gain, 0.9) > 1.3 and np.quantile(gain, 0.1) < 1.05, np.quantile(gain, [0.1, 0.9])
 
 
+def test_lamps_change_live_and_go_stale_when_moved(lamp_blend):
+    """Power and colour are drawn as they are now (no warning); a moved lamp
+    keeps its baked place and says its shadows are stale; a hidden lamp is
+    drawn dark and named; a new Point lamp is named as not in the bake."""
+    bpy = open_blend(lamp_blend)
+    bulb = bpy.data.objects["Bulb"]
+    bulb.data.energy, bulb.data.color = 40.0, (0.2, 1.0, 0.2)
+    ps, status, _, _ = frame(bpy, False)
+    lp = next(x for x in ps.lamps if x.name == "Bulb")
+    assert lp.power == pytest.approx(40.0) and lp.color == pytest.approx((0.2, 1.0, 0.2)) and not status.lamps_stale
+    baked = lp.position
+    bulb.location.x += 0.3
+    bpy.context.view_layer.update()
+    ps, status, _, _ = frame(bpy, False)
+    assert "the lamp 'Bulb' moved 0.3 m" in status.lamps_stale
+    assert next(x for x in ps.lamps if x.name == "Bulb").position == baked
+    assert any("lamps' shadows are stale" in t for _, t in status.messages)
+    bulb.hide_render = True
+    new = bpy.data.objects.new("Extra", bpy.data.lights.new("Extra", "POINT"))
+    bpy.context.scene.collection.objects.link(new)
+    bpy.context.view_layer.update()
+    ps, status, _, _ = frame(bpy, False)
+    assert next(x for x in ps.lamps if x.name == "Bulb").power == 0.0
+    text = " ".join(t for _, t in status.messages)
+    assert "gone from the scene" in text and "'Bulb'" in text and "not in the bake: 'Extra'" in text
+
+
 def test_tp_equals_tpfl_and_prepass_changes_nothing(blend):
     from prtt_addon.blender.preview.renderer import Renderer, render_offscreen
     bpy = open_blend(blend)

@@ -373,14 +373,15 @@ def collect(context, *, visible=None, use_bounces: bool = True, with_meshes: boo
         status.light_fallback = str(exc)
         status.light_description = f"{desc} (the World's light cannot be read: {exc})"
         status.add("INFO", f"light: {status.light_description}")
-    dim = dim_light_note(light, getattr(scene.view_settings, "exposure", 0.0))
-    if dim:
-        status.add("INFO", dim)
-    lamps = unbaked_lamps(scene, getattr(context, "view_layer", None))
-    if lamps:
-        status.add("INFO", lamps)           # a note: the export carries the lamps (glTF's own lights)
+    unbaked = unbaked_lamps(scene, getattr(context, "view_layer", None))
+    if unbaked:
+        status.add("INFO", unbaked)         # a note: the export carries the lamps (glTF's own lights)
     sun = preview_sun(scene, getattr(context, "view_layer", None), info, status)
     lamps = preview_lamps(scene, getattr(context, "view_layer", None), info, status)
+    # A dim World is the whole light only without a sun or lamps of the bake's.
+    dim = dim_light_note(light, getattr(scene.view_settings, "exposure", 0.0)) if sun is None and not lamps else ""
+    if dim:
+        status.add("INFO", dim)
     normal_maps = bool(info["settings"].get("normal_maps", True))
     table = _MaterialTable(normal_maps)
     depsgraph = context.evaluated_depsgraph_get()

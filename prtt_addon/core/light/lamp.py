@@ -20,7 +20,14 @@ Cycles in tests/test_lamps.py):
   ``spot_size`` (radians) and ``spot_blend`` in [0, 1]: with
   c = cos(half the cone) and t = (cos(angle to the axis) - c) / ((1 - c) blend),
   the attenuation is smoothstep(clamp(t, 0, 1)) (Cycles' spot_light_attenuation;
-  a blend of 0 is a hard cone). Non-uniform spot scales are not modelled.
+  a blend of 0 is a hard cone). Cycles evaluates it along each ray to a point
+  of the lamp's sphere, so seen from a point at distance r the cone's edge is
+  averaged over the sphere's disc of angular radius a = asin(R / r): over the
+  angle from the axis, whose offset across a uniform disc has the semicircle
+  density; five Gauss-Chebyshev nodes (a cos(k pi / 6), k = 1..5, weights
+  sin^2(k pi / 6) / 3) integrate a smoothstep over it to within 2e-3 for a
+  blend at least twice the disc (tests/test_lamps.py).
+  Non-uniform spot scales are not modelled.
 * ``shadow``: False for a lamp whose *Shadow* is off: nothing blocks it,
   its mask is 1 (traced nowhere).
 """
@@ -33,6 +40,9 @@ import math
 
 import numpy as np
 
+#: Gauss-Chebyshev (second kind) nodes and weights of the semicircle density on [-1, 1]:
+#: the angle's offset across a uniform disc (Lamp.spot; prtt_shade.glsl lamp_light).
+SPREAD_NODES = tuple((math.cos(k * math.pi / 6.0), math.sin(k * math.pi / 6.0) ** 2 / 3.0) for k in range(1, 6))
 #: Lamps a texture set's masks hold: one RGBA texture, one channel a lamp (Unity's shadowmask: four).
 MAX_LAMPS = 4
 #: Rays a texel traces to a lamp's sphere (as the sun's disc: core.light.sun.SUN_RAYS).
@@ -110,14 +120,22 @@ class Lamp:
         width = (1.0 - self.cos_half_cone) * self.spot_blend
         return 1.0 / width if self.kind == "SPOT" and width > 0.0 else math.inf
 
-    def spot(self, towards_point: np.ndarray) -> np.ndarray:
-        """(N,) the spot's attenuation along unit directions (N, 3) from the lamp towards points (1 for a point)."""
+    def spot(self, towards_point: np.ndarray, spread=0.0) -> np.ndarray:
+        """(N,) the spot's attenuation along unit directions (N, 3) from the
+        lamp towards points (1 for a point), averaged over the sphere's disc
+        of angular radius ``spread`` ((N,) or scalar radians) as seen there
+        (module docstring)."""
         d = np.asarray(towards_point, np.float64)
         if self.kind != "SPOT":
             return np.ones(d.shape[0])
-        t = (d @ np.asarray(self.axis) - self.cos_half_cone) * self.spot_smooth
-        t = np.clip(np.nan_to_num(t, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
-        return t * t * (3.0 - 2.0 * t)
+        theta = np.arccos(np.clip(d @ np.asarray(self.axis), -1.0, 1.0))
+        a = np.asarray(spread, np.float64)
+
+        def at(th):
+            t = (np.cos(th) - self.cos_half_cone) * self.spot_smooth
+            t = np.clip(np.nan_to_num(t, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+            return t * t * (3.0 - 2.0 * t)
+        return sum(w * at(theta + x * a) for x, w in SPREAD_NODES)
 
     def irradiance(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """((N, 3) unit directions from ``points`` (N, 3) towards the lamp,
@@ -126,7 +144,8 @@ class Lamp:
         to = np.asarray(self.position) - p
         r2 = np.maximum(np.einsum("nc,nc->n", to, to), 1e-12)
         l = to / np.sqrt(r2)[:, None]
-        return l, (self.spot(-l) / r2)[:, None] * self.intensity[None, :]
+        spread = np.arcsin(np.minimum(self.radius / np.sqrt(r2), 1.0))
+        return l, (self.spot(-l, spread) / r2)[:, None] * self.intensity[None, :]
 
     def mask_key(self) -> dict:
         """What the mask depends on: where the lamp is, its size, whether it

@@ -20,6 +20,8 @@ BENCHMARKS = {
                        "of the floor (--leak: across the shed's single-plane wall), the traced light beside it"),
     "sun": ("prtt_addon.dev.bench.sun_cycles", "a Sun lamp's light and shadows in the preview against Cycles "
             "(0.5 and 5 degree discs over a box and a plank)"),
+    "lamps": ("prtt_addon.dev.bench.lamp_cycles", "point and spot lamps' light and shadows in the preview against "
+              "Cycles (over a box and a plank, direct light)"),
     "quality": ("prtt_addon.dev.bench.quality", "issue 53's lightmap artefacts (contact creases, leaks under "
                 "single-plane walls, a window-lit room's noise and time, seams) before their fixes and now"),
     "window-room": ("prtt_addon.dev.bench.window_room", "a room lit only through a window: the transfer's "
