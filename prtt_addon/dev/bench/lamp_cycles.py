@@ -146,14 +146,13 @@ def compare(variant: str = "both", size=(320, 180), *, samples: int = 256, resol
 def _unshadowed_floor(ps, hits, vp, size) -> np.ndarray:
     """(H, W) the lamps' diffuse light on the floor at each pixel without any
     shadow (masks 1): the scale the shadowed region is judged by."""
-    from ...core.preview.reference import _interp  # noqa: PLC2701 - the reference's own interpolation
     from .sun_cycles import FLOOR_ALBEDO
     W, H = size
     out = np.zeros(H * W)
     k = [m.name for m in ps.meshes].index("floor")
     m = ps.meshes[k]
     sel = np.flatnonzero((hits.mesh == k).ravel())
-    P = _interp(m.world_corners("positions"), hits.tri.ravel()[sel], hits.bary.reshape(-1, 3)[sel])
+    P = np.einsum("nk,nkc->nc", hits.bary.reshape(-1, 3)[sel], m.world_corners("positions")[hits.tri.ravel()[sel]])
     for lp in ps.lamps:
         l, E = lp.irradiance(P)
         out[sel] += FLOOR_ALBEDO[False] / math.pi * np.maximum(l[:, 2], 0.0) * E.mean(axis=1)
