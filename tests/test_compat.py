@@ -44,7 +44,7 @@ def test_every_claimed_blender_runs_the_users_chain(compat):
     assert all(" PASS " in ln for ln in lines), r.stdout
     for v, res in rec["results"].items():
         assert set(res["steps"]) == {"install", "unwrap", "bake", "draw_handler", "render", "bake_again",
-                                     "render_vertex", "render_sun", "export", "page"}, (v, res["steps"])
+                                     "render_vertex", "render_sun", "render_lamps", "export", "page"}, (v, res["steps"])
         # numba comes with the zip (issue 46, item 4), one per numpy line, and shades the bounce
         assert res["numba"] == ("0.61.2" if v < "5.1" else "0.68.1"), (v, res["numba"])
         assert res["hit_shading"] == ["compiled"], (v, res["hit_shading"])
@@ -88,6 +88,20 @@ def test_every_version_bakes_and_draws_the_sun(compat):
         assert sun["drawn"] and sun["panel"].startswith("'Sun', 0.53 degree disc, 2 W/m²"), (v, sun)
         assert sun["share"] > 0.05 and sun["share"] == pytest.approx(ref["share"], rel=2e-4), (v, sun, ref)
         assert any(f.endswith(".sun.exr") for f in r["files"]), (v, r["files"])
+
+
+def test_every_version_bakes_and_draws_point_and_spot_lamps(compat):
+    """The second bake has a point lamp and a spot too: every Blender bakes
+    their masks, names them in the panel and draws their light, the same
+    share of the picture in each."""
+    _, rec = compat
+    res = rec["results"]
+    ref = res["4.5.15"]["lamps"]
+    for v, r in res.items():
+        lamps = r["lamps"]
+        assert lamps["drawn"] == ["Spot", "Point"] and "Point 'Point' 200 W" in lamps["panel"], (v, lamps)
+        assert lamps["share"] > 0.01 and lamps["share"] == pytest.approx(ref["share"], rel=2e-4), (v, lamps, ref)
+        assert any(f.endswith(".lamps.exr") for f in r["files"]), (v, r["files"])
 
 
 def test_every_version_draws_its_own_agx(compat):

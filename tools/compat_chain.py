@@ -17,7 +17,8 @@ camera; then
 * bake again as a user changing settings does: Unwrap with xatlas (the pinned
   wheel, so the UVs are the same in every Blender), a Sun lamp added, 128²,
   64 rays, Vertex Transfer on; Render Preview Image in the vertex modes, and
-  in TPFL with the sun and with it hidden (the sun's share of the picture);
+  in TPFL with the sun and with it hidden (the sun's share of the picture),
+  and with a point lamp and a spot (their masks baked) and with them hidden;
   Export glTF.
 
 Prints one JSON object on the last line of stdout (``COMPAT {...}``): each
@@ -36,6 +37,7 @@ import traceback
 import bpy
 
 STEPS = ("install", "unwrap", "bake", "draw_handler", "render", "bake_again", "render_vertex", "render_sun",
+         "render_lamps",
          "export")
 
 
@@ -266,6 +268,11 @@ def main(zip_path, work):
         ok(bpy.ops.prtt.unwrap(), "unwrap (xatlas)")
         bpy.ops.object.light_add(type="SUN", rotation=(0.7, 0.2, 0.5))      # its shadows baked as a mask
         bpy.context.active_object.data.energy = 2.0
+        # a point lamp and a spot: their masks baked, their light drawn (issue 49)
+        bpy.ops.object.light_add(type="POINT", location=(1.5, -1.0, 2.0))
+        bpy.context.active_object.data.energy = 200.0
+        bpy.ops.object.light_add(type="SPOT", location=(-1.5, -1.5, 2.5), rotation=(0.6, 0.0, -0.8))
+        bpy.context.active_object.data.energy = 300.0
         ok(bpy.ops.prtt.bake_transfer(), "bake_transfer (again)")
         result["uv"] = _uv_sha256()
         result["files"] = _hash_outputs(out_dir)
@@ -275,7 +282,7 @@ def main(zip_path, work):
 
     def render_sun():
         from bl_ext.user_default.prtt_addon.blender.preview import drawlist
-        sun = next(o for o in bpy.context.scene.objects if o.type == "LIGHT")
+        sun = next(o for o in bpy.context.scene.objects if o.type == "LIGHT" and o.data.type == "SUN")
         ps, status = drawlist.collect(bpy.context)
         lit = picture("TPFL")
         sun.hide_render = True
@@ -287,6 +294,23 @@ def main(zip_path, work):
                          "share": round(lit - unlit, 6)}
 
     step("render_sun", render_sun)
+
+    def render_lamps():
+        from bl_ext.user_default.prtt_addon.blender.preview import drawlist
+        lamps = [o for o in bpy.context.scene.objects if o.type == "LIGHT" and o.data.type in ("POINT", "SPOT")]
+        ps, status = drawlist.collect(bpy.context)
+        lit = picture("TPFL")
+        for o in lamps:
+            o.hide_render = True
+        try:
+            unlit = picture("TPFL")
+        finally:
+            for o in lamps:
+                o.hide_render = False
+        result["lamps"] = {"drawn": [lp.name for lp in ps.lamps], "panel": status.lamps_description,
+                           "share": round(lit - unlit, 6)}
+
+    step("render_lamps", render_lamps)
 
     def export():
         glb = os.path.join(work, "scene.glb")

@@ -647,6 +647,11 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
         if stale:
             notes.append("the bounce textures are stale (" + ", ".join(stale) + "): exported as baked; bake "
                          "again to update them")
+    if ps.lamps:
+        # Said, not hidden: the page draws what the extension carries (issue 49: lamps come later).
+        notes.append(f"the baked point and spot lamps ({', '.join(repr(lp.name) for lp in ps.lamps)}) are drawn in "
+                     f"Blender, not yet on the page: the glTF carries them as plain KHR_lights_punctual lights, "
+                     f"without their shadow masks")
     return {"sets": len(sets), "objects": len(set_index), "bytes": os.path.getsize(out), "notes": notes,
             "images_encoded": dict(job.images_encoded), "exporter_log": job.log}
 
