@@ -185,7 +185,7 @@ BAD_SUNS = {
     "mask not KTX2": (_mask_garbage, "sun mask: not a readable KTX2 file"),
     "mask is a transfer": (_mask_is_a_transfer, "sun mask: 128x128 in 7 layers, the extension says 128x128 in 1"),
     "mask of another format": (_mask_says_r8, "sun mask: not an R8 texture (vkFormat 97)"),
-    "mask of no format": (_mask_unknown_format, "sun mask: unknown format RGB9E5 (R8 or RGBA16F)"),
+    "mask of no format": (_mask_unknown_format, "sun mask: unknown format RGB9E5 (R8, RGBA8 or RGBA16F)"),
     "direction": (_sun_direction, "the sun's direction must be a unit vector"),
     "angle": (_sun_angle, "the sun's angle 3 is not 0 to 0.5236 radians"),
     "strength": (_sun_strength, "the sun's colour and strength must be finite and not negative"),

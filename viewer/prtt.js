@@ -63,6 +63,51 @@ function checkSun(sun) {
     color: sun.color.slice(), strength: sun.strength };
 }
 
+/** The most lamps a set's masks hold (core/light/lamp.py MAX_LAMPS). */
+const MAX_LAMPS = 4;
+
+/**
+ * The root's lamps, checked (the file is untrusted): [{name, kind, position,
+ * radius, power, color, axis, spotSize, spotBlend}] (core/light/lamp.py's conventions).
+ */
+function checkLamps(lamps) {
+  if (!Array.isArray(lamps) || lamps.length < 1 || lamps.length > MAX_LAMPS) {
+    throw new PRTTError(`${NAME}: lamps must be a list of 1 to ${MAX_LAMPS}`);
+  }
+  const v3 = (a) => Array.isArray(a) && a.length === 3 && a.every(Number.isFinite);
+  return lamps.map((lp, i) => {
+    const what = `${NAME}: lamp ${i}`;
+    if (!lp || !['POINT', 'SPOT'].includes(lp.kind)) throw new PRTTError(`${what}: kind must be POINT or SPOT`);
+    if (!v3(lp.position) || !v3(lp.axis)) throw new PRTTError(`${what}: position and axis must be 3 finite numbers`);
+    const n = Math.hypot(...lp.axis);
+    if (!(n > 0.999 && n < 1.001)) throw new PRTTError(`${what}: its axis must be a unit vector`);
+    const ok = (x, lo, hi) => Number.isFinite(x) && x >= lo && x <= hi;
+    if (!ok(lp.radius, 0, 1e4) || !ok(lp.power, 0, 1e12) || !ok(lp.spotSize, 0, Math.PI) || !ok(lp.spotBlend, 0, 1)
+        || !(v3(lp.color) && lp.color.every((c) => c >= 0))) {
+      throw new PRTTError(`${what}: radius, power, colour, spotSize and spotBlend must be finite and in range`);
+    }
+    return { name: String(lp.name || `Lamp ${i}`), kind: lp.kind, position: lp.position.slice(), radius: lp.radius,
+      power: lp.power, color: lp.color.slice(), axis: lp.axis.map((x) => x / n), spotSize: lp.spotSize,
+      spotBlend: lp.spotBlend };
+  });
+}
+
+/** The PRTTLamps block of checked lamps (core/preview/pack.lamp_block). */
+function lampBlock(lamps, data) {
+  data.fill(0);
+  data[0] = lamps.length;
+  lamps.forEach((lp, i) => {
+    const spot = lp.kind === 'SPOT';
+    const c = spot ? Math.cos(0.5 * lp.spotSize) : -2;
+    const width = (1 - c) * lp.spotBlend;
+    const smooth = spot ? (width > 0 ? Math.min(1 / width, 1e20) : 1e20) : 1;
+    const I = lp.color.map((x) => x * lp.power / (4 * Math.PI));
+    data.set([...lp.position, lp.radius], 4 + 4 * i);
+    data.set([...I, smooth], 20 + 4 * i);
+    data.set([...lp.axis, c], 36 + 4 * i);
+  });
+}
+
 /** A PRTT scene: its sets, light, mode and materials; draws with `render`. */
 class PRTTScene {
   constructor(ext, limits, sources) {
@@ -96,6 +141,12 @@ class PRTTScene {
     this.sunGroup = new THREE.UniformsGroup();
     this.sunGroup.setName(blockName('PRTTSun'));
     this.sunGroup.add(new THREE.Uniform(this.sunData));
+    this.lamps = null;              // the root's lamps, checked (drawn on the sets with their masks)
+    this.lampsOn = true;
+    this.lampData = new Float32Array(52);
+    this.lampGroup = new THREE.UniformsGroup();
+    this.lampGroup.setName(blockName('PRTTLamps'));
+    this.lampGroup.add(new THREE.Uniform(this.lampData));
     this.dummy = dummy2D();
     this.gaunt = null;
     this.materials = new Map();
@@ -146,6 +197,31 @@ class PRTTScene {
     }
   }
 
+  /**
+   * A lamp's colour (linear RGB) and power (W) live, by its name or index, as
+   * in Blender (its shadows stay the baked masks); ``on`` false leaves every lamp out.
+   */
+  setLamp(which, { color, power, on } = {}) {
+    if (!this.lamps) throw new PRTTError('this file has no lamps: its bake had no point or spot lamp');
+    const lp = typeof which === 'number' ? this.lamps[which] : this.lamps.find((x) => x.name === which);
+    if (!lp) throw new PRTTError(`no lamp ${which}; the file has ${this.lamps.map((x) => x.name).join(', ')}`);
+    if (color !== undefined) {
+      if (!(Array.isArray(color) && color.length === 3 && color.every((c) => Number.isFinite(c) && c >= 0))) {
+        throw new PRTTError('a lamp\'s colour must be 3 finite numbers, not negative');
+      }
+      lp.color = color.slice();
+    }
+    if (power !== undefined) {
+      if (!(Number.isFinite(power) && power >= 0)) throw new PRTTError('a lamp\'s power must be finite, not negative');
+      lp.power = power;
+    }
+    lampBlock(this.lamps, this.lampData);
+    if (on !== undefined && Boolean(on) !== this.lampsOn) {
+      this.lampsOn = Boolean(on);
+      this.setMode(this.mode);
+    }
+  }
+
   /** Switch the shading: 'tpfl' | 'tp' | 'diffuse', with or without the bounce. */
   setMode(mode, { bounces = this.bounces } = {}) {
     if (!MODES.includes(mode)) throw new PRTTError(`unknown mode ${mode}; use one of ${MODES.join(', ')}`);
@@ -160,6 +236,7 @@ class PRTTScene {
       s.transfer.dispose();
       if (s.bounce) s.bounce.dispose();
       if (s.sun) s.sun.dispose();
+      if (s.lamps) s.lamps.dispose();
       if (s.relight) {
         s.relight.target.dispose();
         s.relight.operator.dispose();
@@ -170,7 +247,7 @@ class PRTTScene {
     if (this.depth) this.depth.dispose();
     if (this.gaunt) this.gaunt.tex.dispose();
     this.dummy.dispose();
-    for (const g of [this.viewGroup, this.lightGroup, this.sunGroup]) g.dispose();
+    for (const g of [this.viewGroup, this.lightGroup, this.sunGroup, this.lampGroup]) g.dispose();
   }
 
   /** The depth pre-pass material: Blender's (shaders/prtt_depth_*.glsl), the same clip positions. */
@@ -208,10 +285,11 @@ class PRTTScene {
     const bounce = this.bounceTexture(s);
     const triple = this.mode === 'tp';
     const sun = Boolean(this.sunOn && this.sun && s.sun);
-    const key = `${this.mode}|${m.set}|${!!bounce}|${sun}|${m.matKey}`;
+    const lamps = Boolean(this.lampsOn && this.lamps && s.lamps);
+    const key = `${this.mode}|${m.set}|${!!bounce}|${sun}|${lamps}|${m.matKey}`;
     const cached = this.materials.get(key);
     if (cached) return cached;
-    const v = surfaceVariant(this.mode, this.bands, { bounce: !!bounce, display: !!this.display, sun,
+    const v = surfaceVariant(this.mode, this.bands, { bounce: !!bounce, display: !!this.display, sun, lamps,
       gauntNnz: triple ? this.gauntTexture().nnz : 0 });
     const units = v.samplers.length;
     if (units > this.limits.maxTextureUnits) {
@@ -229,6 +307,7 @@ class PRTTScene {
     if (triple) uniforms.gauntTex = { value: this.gauntTexture().tex };
     if (this.display) uniforms.displayLut = { value: this.display.texture };
     if (sun) uniforms.sunTex = { value: s.sun };
+    if (lamps) uniforms.lampTex = { value: s.lamps };
     const mat = new THREE.RawShaderMaterial({
       glslVersion: THREE.GLSL3, vertexShader, fragmentShader, uniforms,
       defines: { PRTT_ROUGHNESS_CHANNEL: 'g' },      // glTF packs roughness in G
@@ -237,7 +316,8 @@ class PRTTScene {
     const matGroup = new THREE.UniformsGroup();
     matGroup.setName(blockName('PRTTMaterial'));
     matGroup.add(new THREE.Uniform(m.block));
-    mat.uniformsGroups = [this.viewGroup, matGroup, this.lightGroup, ...(sun ? [this.sunGroup] : [])];
+    mat.uniformsGroups = [this.viewGroup, matGroup, this.lightGroup, ...(sun ? [this.sunGroup] : []),
+      ...(lamps ? [this.lampGroup] : [])];
     this.materials.set(key, mat);
     return mat;
   }
@@ -440,6 +520,7 @@ export class PRTTLoaderPlugin {
     const read = await fetchSources(files, this.shaderBase);
     const prtt = new PRTTScene(ext, limits, read);
     if (ext.sun) prtt.sun = checkSun(ext.sun);
+    if (ext.lamps) prtt.lamps = checkLamps(ext.lamps);
     const planned = declaredBytes(ext.sets);
     if (planned > MAX_SCENE_BYTES) {
       throw new PRTTError(`the file's textures unpack to ${Math.round(planned / 2 ** 20)} MiB, over the viewer's `
@@ -469,6 +550,19 @@ export class PRTTLoaderPlugin {
         }
         const buf = await parser.getDependency('bufferView', m.bufferView);
         entry.sun = maskTexture(new Uint8Array(buf), zstd, `set ${s.name} sun mask`, m, limits);
+      }
+      if (s.lamps && prtt.lamps) {
+        const m = s.lamps;
+        if (!m || !Number.isInteger(m.bufferView) || !Number.isInteger(m.width) || !Number.isInteger(m.height)
+            || m.width < 1 || m.height < 1) {
+          throw new PRTTError(`set ${s.name} lamp masks: the extension does not say where and how large they are`);
+        }
+        if (m.lamps !== prtt.lamps.length) {
+          throw new PRTTError(`set ${s.name} lamp masks: ${m.lamps} lamps, the file has ${prtt.lamps.length}`);
+        }
+        const buf = await parser.getDependency('bufferView', m.bufferView);
+        entry.lamps = maskTexture(new Uint8Array(buf), zstd, `set ${s.name} lamp masks`,
+          { ...m, format: m.format === 'RGBA8' ? 'RGBA8' : `${m.format} (lamp masks are RGBA8)` }, limits);
       }
       if (s.bounce) {
         entry.bounce = keepLayers(await payload(s.bounce, `set ${s.name} bounce`, 3 * fileK4), 3, fileK4, K4);
@@ -591,6 +685,7 @@ export class PRTTLoaderPlugin {
       prtt.sunOn = this.sunOn;
       prtt.setSun();                 // the block from the file's colour and strength
     }
+    if (prtt.lamps) lampBlock(prtt.lamps, prtt.lampData);
     prtt.setMode(this.mode, { bounces: this.bounces });
     gltf.userData.prtt = prtt;
   }

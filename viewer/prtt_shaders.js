@@ -47,6 +47,18 @@ struct PRTTSun {
 };
 `;
 
+// The lamps' block (shader_source.LAMP_TYPEDEFS): info (x the count), per lamp
+// position (xyz, w radius), intensity (rgb W/sr, w the spot's smoothstep scale),
+// spot (xyz axis, w cos half the cone; -2 for a point).
+const LAMP_TYPEDEFS = `
+struct PRTTLamps {
+  vec4 info;
+  vec4 position[4];
+  vec4 intensity[4];
+  vec4 spot[4];
+};
+`;
+
 const RELIGHT_TYPEDEFS = (n) => `
 struct PRTTRelight {
   vec4 light[${n}];
@@ -65,9 +77,12 @@ export function shSizes(bands) {
  * only). display: ending in the file's view transform (prtt_display.glsl;
  * SHAPER_LO/HI as core/shading/display.py), decoded back for the sRGB
  * encode of main(). sun: adding the sun's direct light with its mask
- * (PRTT_SUN: the sampler sunTex, the block PRTTSun sun).
+ * (PRTT_SUN: the sampler sunTex, the block PRTTSun sun). lamps: adding point
+ * and spot lamps' direct light with their masks (PRTT_LAMPS: the sampler
+ * lampTex, the block PRTTLamps lamps).
  */
-export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0, display = false, sun = false } = {}) {
+export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0, display = false, sun = false,
+  lamps = false } = {}) {
   if (!MODES.includes(mode)) throw new Error(`unknown mode ${mode}; use one of ${MODES.join(', ')}`);
   if (!(Number.isInteger(bands) && bands >= 1 && bands <= MAX_PREVIEW_BANDS)) {
     throw new Error(`the preview supports 1 to ${MAX_PREVIEW_BANDS} SH bands, got ${bands}`);
@@ -81,26 +96,28 @@ export function surfaceVariant(mode, bands, { bounce = false, gauntNnz = 0, disp
   if (mode === 'diffuse') defines.push(['PRTT_DIFFUSE', '1']);
   if (bounce) defines.push(['PRTT_BOUNCE', '1']);
   if (sun) defines.push(['PRTT_SUN', '1']);
+  if (lamps) defines.push(['PRTT_LAMPS', '1']);
   if (display) defines.push(['PRTT_DISPLAY', '1'], ['PRTT_SHAPER_LO', SHAPER_LO.toFixed(1)], ['PRTT_SHAPER_HI', SHAPER_HI.toFixed(1)]);
   const samplers = [[1, 'FLOAT_2D', 'baseTex'], [2, 'FLOAT_2D', 'roughTex']];
   if (bounce) samplers.push([4, 'FLOAT_2D_ARRAY', 'bounceTex']);
   if (triple) samplers.push([5, 'FLOAT_2D', 'gauntTex']);
   samplers.push([0, 'FLOAT_2D_ARRAY', 'transferTex'], [3, 'FLOAT_2D', 'normalTex']);
   if (sun) samplers.push([8, 'FLOAT_2D', 'sunTex']);
+  if (lamps) samplers.push([9, 'FLOAT_2D', 'lampTex']);
   if (display) samplers.push([7, 'FLOAT_3D', 'displayLut']);
   samplers.sort((a, b) => a[0] - b[0]);
   const lib = ['prtt_common.glsl', 'prtt_view.glsl', 'prtt_light.glsl', 'prtt_layering.glsl', 'prtt_shade.glsl'];
   return {
-    name: `prtt_${mode}_b${bands}${bounce ? '_bounce' : ''}${display ? '_display' : ''}${sun ? '_sun' : ''}`,
+    name: `prtt_${mode}_b${bands}${bounce ? '_bounce' : ''}${display ? '_display' : ''}${sun ? '_sun' : ''}${lamps ? '_lamps' : ''}`,
     defines,
-    typedefs: TYPEDEFS(3 * k * k4, k) + (sun ? SUN_TYPEDEFS : ''),
+    typedefs: TYPEDEFS(3 * k * k4, k) + (sun ? SUN_TYPEDEFS : '') + (lamps ? LAMP_TYPEDEFS : ''),
     vertexIn: [[0, 'VEC3', 'pos'], [1, 'VEC3', 'nor'], [2, 'VEC2', 'uv'], [3, 'VEC2', 'muv'], [4, 'VEC2', 'nuv'],
       [5, 'VEC4', 'tan']],
     interface: [['smooth', 'VEC3', 'wpos'], ['smooth', 'VEC3', 'wnor'], ['smooth', 'VEC4', 'wtan'],
       ['smooth', 'VEC2', 'prtt_uv'], ['smooth', 'VEC2', 'mat_uv'], ['smooth', 'VEC2', 'nm_uv']],
     samplers,
     uniformBufs: [[0, 'PRTTView', 'view'], [1, 'PRTTMaterial', 'material'], [2, 'PRTTLight', 'light'],
-      ...(sun ? [[3, 'PRTTSun', 'sun']] : [])],
+      ...(sun ? [[3, 'PRTTSun', 'sun']] : []), ...(lamps ? [[4, 'PRTTLamps', 'lamps']] : [])],
     pushConstants: [['MAT4', 'ModelMatrix'], ['MAT4', 'NormalMatrix']],
     vertexFiles: ['prtt_view.glsl', 'prtt_surface_vert.glsl'],
     fragmentFiles: [...lib, ...(display ? ['prtt_display.glsl'] : []), 'prtt_surface_frag.glsl'],

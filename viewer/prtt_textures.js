@@ -38,6 +38,8 @@ export function declaredBytes(sets) {
     if (m && [m.width, m.height].every((v) => Number.isInteger(v) && v > 0)) {
       total += m.width * m.height * (m.format === 'RGBA16F' ? 8 : 1);
     }
+    const lm = s && s.lamps;
+    if (lm && [lm.width, lm.height].every((v) => Number.isInteger(v) && v > 0)) total += lm.width * lm.height * 4;
   }
   return total;
 }
@@ -140,13 +142,17 @@ export function arrayTexture(bytes, zstd, what, { layers, width, height, encodin
  * fraction of the sun's disc per texel, or with sub-texel edges (format
  * RGBA16F) one RGBA16F KTX2 of (mask, d, valid, h), checked against the
  * extension's size and the browser's limits, as a 2D texture the GPU filters
- * bilinearly (prtt_shade.glsl sun_visible reads it: an R8 mask has b = 0).
+ * bilinearly (prtt_shade.glsl sun_visible reads it: an R8 mask has b = 0); or
+ * (format RGBA8) a set's lamp masks, channel i lamp i (lamp_light reads it).
  */
 export function maskTexture(bytes, zstd, what, { width, height, format = 'R8' }, limits) {
   const c = parseKTX2(bytes, what);
   const edges = format === 'RGBA16F';
-  if (!edges && format !== 'R8') throw new PRTTError(`${what}: unknown format ${format} (R8 or RGBA16F)`);
-  const vk = edges ? VK_FORMAT_R16G16B16A16_SFLOAT : VK_FORMAT_R8_UNORM;
+  const rgba8 = format === 'RGBA8';           // lamp masks: a lamp a channel
+  if (!edges && !rgba8 && format !== 'R8') {
+    throw new PRTTError(`${what}: unknown format ${format} (R8, RGBA8 or RGBA16F)`);
+  }
+  const vk = edges ? VK_FORMAT_R16G16B16A16_SFLOAT : rgba8 ? VK_FORMAT_R8G8B8A8_UNORM : VK_FORMAT_R8_UNORM;
   if (c.vkFormat !== vk || c.levels.length < 1) {
     throw new PRTTError(`${what}: not an ${format} texture (vkFormat ${c.vkFormat})`);
   }
@@ -158,7 +164,7 @@ export function maskTexture(bytes, zstd, what, { width, height, format = 'R8' },
     throw new PRTTError(`${what}: ${width}x${height} texels exceeds this browser's MAX_TEXTURE_SIZE `
       + `(${limits.maxTextureSize}); export a smaller bake`);
   }
-  const want = width * height * (edges ? 8 : 1);
+  const want = width * height * (edges ? 8 : rgba8 ? 4 : 1);
   if (want > MAX_TEXTURE_BYTES) {
     throw new PRTTError(`${what}: ${width}x${height} is ${(want / 2 ** 20).toFixed(0)} MiB, `
       + `over the viewer's ${MAX_TEXTURE_BYTES / 2 ** 20} MiB per texture`);
@@ -172,6 +178,8 @@ export function maskTexture(bytes, zstd, what, { width, height, format = 'R8' },
       if ((half[t] & 0x7c00) === 0x7c00) throw new PRTTError(`${what}: a value that is not finite (a damaged file)`);
     }
     tex = new THREE.DataTexture(half, width, height, THREE.RGBAFormat, THREE.HalfFloatType);
+  } else if (rgba8) {
+    tex = new THREE.DataTexture(new Uint8Array(data), width, height, THREE.RGBAFormat, THREE.UnsignedByteType);
   } else {
     tex = new THREE.DataTexture(new Uint8Array(data), width, height, THREE.RedFormat, THREE.UnsignedByteType);
     tex.unpackAlignment = 1;

@@ -47,7 +47,7 @@ import numpy as np
 
 from ...core.base.atomic import atomic_write
 from ...core.base.memory import MemoryLimitError, check_fits
-from ...core.io.exr_io import read_edge_exr, read_mask_exr
+from ...core.io.exr_io import read_edge_exr, read_lamp_exr, read_mask_exr
 from ...core.io.gltf_prtt import (
     ENCODINGS,
     NAME,
@@ -55,6 +55,8 @@ from ...core.io.gltf_prtt import (
     display_extension,
     environment_extension,
     file_payloads,
+    lamp_payload,
+    lamps_extension,
     material_extension,
     read_glb_json,
     root_extension,
@@ -422,14 +424,16 @@ def _set_files(ps: pp.PreviewScene, folder: str, info: dict) -> list:
     """Per texture set, in export order: (set name, its objects, transfer
     file, relightable file or None, baked bounce level files, (sun mask
     file, its edges' file or None) or None: only where the preview draws the
-    sun)."""
+    sun), the lamp mask file or None (where the preview draws lamps)."""
     out = []
     for set_name, objects in sorted(info["set_objects"].items()):
         pset = ps.sets.get(set_name)
         relight = pset.relight if pset is not None and pset.relight else None
         bounces = list(pset.bounces) if pset is not None and not relight and pset.bounces else []
         sun = (pset.sun, pset.sun_edge) if pset is not None and pset.sun and ps.sun is not None else None
-        out.append((set_name, objects, os.path.join(folder, f"{set_name}.transfer.exr"), relight, bounces, sun))
+        lamps = pset.lamps if pset is not None and pset.lamps and ps.lamps else None
+        out.append((set_name, objects, os.path.join(folder, f"{set_name}.transfer.exr"), relight, bounces, sun,
+                    lamps))
     return out
 
 
@@ -456,8 +460,8 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
     K = ps.bands * ps.bands
     sets, blobs, set_index = [], [], {}
     held = 0
-    for i, (set_name, objects, transfer, relight, bounces, sun) in enumerate(_set_files(ps, folder, info)):
-        _fits(set_payload_bytes(transfer, relight, bounces, K, encoding, sun),
+    for i, (set_name, objects, transfer, relight, bounces, sun, lamps) in enumerate(_set_files(ps, folder, info)):
+        _fits(set_payload_bytes(transfer, relight, bounces, K, encoding, sun, lamps),
               f"exporting texture set {set_name!r} (beside the {held / 2 ** 20:.0f} MiB of sets made before it)")
         made = file_payloads(transfer, encoding)
         meta = made["transfer"][1]
@@ -480,6 +484,9 @@ def _set_payloads(ps: pp.PreviewScene, folder: str, info: dict, notes: list,
                                       f"{mask.shape[1]}x{mask.shape[0]} sun mask; bake again")
             # rows top first, as every payload
             made["sun"] = sun_payload(mask[::-1], None if edges is None else edges[::-1])
+        if lamps:
+            masks = read_lamp_exr(lamps, len(ps.lamps))[0]
+            made["lamps"] = lamp_payload(masks[::-1])          # rows top first
         for key, (blob, meta) in made.items():
             entry[key] = meta
             blobs.append((("sets", i, key), blob))
@@ -604,7 +611,8 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
     root = root_extension(bands=bands, light=ps.light, light_description=status.light_description, sets=sets,
                           display=display, environment=environment,
                           default_material=_material_block(pp.PreviewMaterial(), normal=-1),
-                          sun=_sun(context, ps, sets))
+                          sun=_sun(context, ps, sets),
+                          lamps=lamps_extension(ps.lamps) if any("lamps" in s for s in sets) else None)
     materials, images = _material_params(ps)
     parts = _parts(info, {s["name"]: i for i, s in enumerate(sets)})
     generated = generated_uvs(folder) if any(p.uv == "generated" for p in parts) else {}
@@ -647,11 +655,6 @@ def export_glb(context, out: str, *, encoding: str = "half") -> dict:
         if stale:
             notes.append("the bounce textures are stale (" + ", ".join(stale) + "): exported as baked; bake "
                          "again to update them")
-    if ps.lamps:
-        # Said, not hidden: the page draws what the extension carries (issue 49: lamps come later).
-        notes.append(f"the baked point and spot lamps ({', '.join(repr(lp.name) for lp in ps.lamps)}) are drawn in "
-                     f"Blender, not yet on the page: the glTF carries them as plain KHR_lights_punctual lights, "
-                     f"without their shadow masks")
     return {"sets": len(sets), "objects": len(set_index), "bytes": os.path.getsize(out), "notes": notes,
             "images_encoded": dict(job.images_encoded), "exporter_log": job.log}
 

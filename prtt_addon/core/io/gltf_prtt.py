@@ -403,6 +403,48 @@ def sun_extension(*, name: str, direction, angle: float, color, strength: float)
             "irradiance": (float(strength) * c).round(9).tolist()}
 
 
+#: The lamps' masks' payload format: RGBA8 UNORM, channel i lamp i of the
+#: root's ``lamps``, q / 255 the visible fraction of its sphere (steps of
+#: 1/64: 8 bits hold them within 1/510); unused channels 0.
+LAMP_MASK_FORMAT = "RGBA8"
+
+
+def lamp_payload(masks: np.ndarray, *, supercompression: str = "zstd") -> tuple[bytes, dict]:
+    """A set's lamp masks (H, W, L), 1 <= L <= 4, in [0, 1], rows top first,
+    as a one-layer RGBA8 KTX2 (LAMP_MASK_FORMAT) and its JSON: width, height,
+    format, ``lamps`` L, bytes and ``maxError`` (the largest rounding)."""
+    m = np.asarray(masks, np.float32)
+    if m.ndim != 3 or not 1 <= m.shape[2] <= 4:
+        raise ValueError(f"lamp masks are (H, W, L) with 1 <= L <= 4, got {m.shape}")
+    if not (np.isfinite(m).all() and m.min(initial=0.0) >= 0.0 and m.max(initial=0.0) <= 1.0):
+        raise ValueError("lamp masks hold fractions 0 to 1")
+    H, W, L = m.shape
+    q = np.zeros((H, W, 4), np.uint8)
+    q[..., :L] = np.rint(m * 255.0).astype(np.uint8)
+    err = float(np.abs(q[..., :L].astype(np.float64) / 255.0 - m).max(initial=0.0))
+    blob, level_bytes = ktx2_bytes([q[None]], supercompression=supercompression, zstd_level=ZSTD_LEVEL,
+                                   keys={"PRTTkind": "lamp_mask"})
+    return blob, {"layers": 1, "width": int(W), "height": int(H), "format": LAMP_MASK_FORMAT, "lamps": int(L),
+                  "supercompression": supercompression, "bytes": len(blob),
+                  "uncompressedBytes": int(level_bytes[0][1]), "maxError": err}
+
+
+def lamps_extension(lamps) -> list:
+    """The root's ``lamps`` (core.light.lamp.Lamp's conventions, the bake
+    frame, in the masks' channel order): kind, name, position (m), radius
+    (m), power (W), linear color, intensity (W/sr: power color / 4 pi),
+    axis (a spot's unit direction of shining), spotSize (its full cone
+    angle, radians) and spotBlend."""
+    return [{"name": lp.name, "kind": lp.kind, "position": np.round(lp.position, 9).tolist(),
+             "radius": float(lp.radius), "power": float(lp.power), "color": np.round(lp.color, 9).tolist(),
+             "intensity": np.round(lp.intensity, 9).tolist(), "axis": np.round(lp.axis, 12).tolist(),
+             "spotSize": float(lp.spot_size), "spotBlend": float(lp.spot_blend)} for lp in lamps]
+
+
+#: Bytes a lamp texel costs at most while its payload is made (lamp_payload):
+#: four float32 masks read, their 8 bits, the RGBA8 texels and their KTX2.
+LAMP_MAKING_BYTES = 16 + 4 + 4 + 4.04
+
 #: Bytes a sun texel costs at most while its payload is made (sun_payload):
 #: the mask read (float32) and its 8 bits and their KTX2; with edges the
 #: three planes read (float32), the RGBA16F stack and its KTX2.
@@ -410,7 +452,7 @@ SUN_MAKING_BYTES = {False: 4 + 1 + 1.01, True: 4 + 12 + 8 + 8.08}
 
 
 def set_payload_bytes(transfer, relight, bounces: list, K: int, encoding: str = "half",
-                      sun: tuple | None = None) -> int:
+                      sun: tuple | None = None, lamps: str | None = None) -> int:
     """Bytes one texture set's payloads hold at most while they are made
     (:func:`file_payloads` of ``transfer`` and ``relight``, or
     :func:`bounce_files_payload` of ``bounces``), from the files' headers
@@ -419,7 +461,8 @@ def set_payload_bytes(transfer, relight, bounces: list, K: int, encoding: str = 
     more) and the set's other payloads' compressed bytes (at most
     :data:`STORED_BYTES` a value). ``sun`` (mask file, edge file or None):
     its payload's making (:data:`SUN_MAKING_BYTES` a texel) and stored
-    bytes, from the mask's header. The band exr_bands holds is checked when
+    bytes, from the mask's header; ``lamps`` (the lamp mask file or None) the
+    same with LAMP_MAKING_BYTES. The band exr_bands holds is checked when
     it starts."""
     values = [file_payload_values(p) for p in (transfer, relight) if p]
     bounce = bounce_files_values(bounces, K) if bounces else 0
@@ -429,6 +472,10 @@ def set_payload_bytes(transfer, relight, bounces: list, K: int, encoding: str = 
         H, W = texture_header(os.fspath(sun[0]))[2:4]
         making.append(H * W * SUN_MAKING_BYTES[bool(sun[1])])
         stored += H * W * (8.08 if sun[1] else 1.01)
+    if lamps:
+        H, W = texture_header(os.fspath(lamps))[2:4]
+        making.append(H * W * LAMP_MAKING_BYTES)
+        stored += H * W * 4.04
     return int(max(making) + stored)
 
 
@@ -484,7 +531,8 @@ def environment_extension(*, description: str, strength: float, rotation=(0.0, 0
 
 def root_extension(*, bands: int, light: np.ndarray, light_description: str, sets: list,
                    display: dict | None = None, environment: dict | None = None,
-                   default_material: dict | None = None, sun: dict | None = None) -> dict:
+                   default_material: dict | None = None, sun: dict | None = None,
+                   lamps: list | None = None) -> dict:
     """The root extension's JSON, ``sets`` each {"name", "resolution",
     "transfer": {..., "bufferView": <filled by the writer>}}. ``light``:
     (K, 3) RGB SH of the environment in the bake frame (Blender's World at
@@ -493,7 +541,8 @@ def root_extension(*, bands: int, light: np.ndarray, light_description: str, set
     (:func:`environment_extension`) when given; ``default_material``
     (:func:`material_extension`): what the preview shades a primitive without
     a material with (glTF's own default is metallic, which would draw it black);
-    ``sun`` (:func:`sun_extension`) when the bake has a sun's masks."""
+    ``sun`` (:func:`sun_extension`) when the bake has a sun's masks,
+    ``lamps`` (:func:`lamps_extension`) when it has lamps' masks."""
     L = np.asarray(light, np.float64)
     if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] != bands * bands:
         raise ValueError(f"light: expected ({bands * bands}, 3) SH coefficients, got {L.shape}")
@@ -508,4 +557,5 @@ def root_extension(*, bands: int, light: np.ndarray, light_description: str, set
         **({"environment": environment} if environment is not None else {}),
         **({"defaultMaterial": default_material} if default_material is not None else {}),
         **({"sun": sun} if sun is not None else {}),
+        **({"lamps": lamps} if lamps else {}),
     }
