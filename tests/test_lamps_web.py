@@ -30,7 +30,7 @@ def lamplit(tmp_path_factory):
     from prtt_addon.dev.bench.scene_build import environment_world, principled
     tmp = tmp_path_factory.mktemp("lampweb")
     bpy = addon_bpy()
-    import mathutils                   # Blender's, once bpy is imported
+    import mathutils  # Blender's, once bpy is imported
     floor = rs.floor(bpy, 6.0)
     floor.data.materials.append(principled("Floor", base_color=(0.45, 0.40, 0.33), roughness=0.35, specular=0.5))
     box = rs.add_object(bpy, "Box", rs.cube_mesh(bpy, "box"), location=(-0.6, 0.3, 0.5))

@@ -10,7 +10,7 @@ import pytest
 
 from prtt_addon.core.bake.estimators.raytrace import RayScene
 from prtt_addon.core.bake.estimators.sun_mask import disc_directions, disc_pattern, sun_mask
-from prtt_addon.core.light.sun import Sun, SunError
+from prtt_addon.core.light.sun import SUN_RAYS, Sun, SunError
 
 
 def _segment_visible(offset, radius):
@@ -96,7 +96,7 @@ def test_the_bake_writes_reuses_and_drops_the_masks(tmp_path):
     sun = Sun(direction=(0.5, 0.1, 0.8), angle=math.radians(3.0))
     out = str(tmp_path / "b")
     m = bake_scene(sc, out, st, sun=sun)
-    assert m["sun"]["files"] == ["floor.sun.exr", "box.sun.exr"] and m["sun"]["rays"] == 64
+    assert m["sun"]["files"] == ["floor.sun.exr", "box.sun.exr"] and m["sun"]["rays"] == SUN_RAYS == 256
     mask, attrs = read_mask_exr(os.path.join(out, "floor.sun.exr"))
     assert mask.shape == (48, 48) and 0.0 < mask.mean() < 1.0 and attrs["sun_key"] == m["sun"]["key"]
     t_sun, _ = read_sh_exr(os.path.join(out, "floor.transfer.exr"))

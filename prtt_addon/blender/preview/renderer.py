@@ -287,7 +287,7 @@ class Renderer:
             return gpu.types.GPUTexture((W, H), format="R16F", data=_buffer(tex)), 2 * H * W
 
         def lamps():
-            # (H, W, 4) a lamp's mask a channel, row 0 at the bottom; multiples of 1 / 64: exact in half
+            # (H, W, 4) a lamp's mask a channel, row 0 at the bottom; multiples of 1 / LAMP_RAYS: exact in half
             tex = np.ascontiguousarray(_load(s.load_lamp_texture, s.lamps), np.float32)
             H, W = tex.shape[:2]
             _check_limits(s.lamps, W, H, 1)

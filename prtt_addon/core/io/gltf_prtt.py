@@ -343,7 +343,7 @@ def bounce_files_payload(paths: list, K: int, encoding: str = "half",
 
 
 #: The sun mask's payload format: R8 UNORM, q / 255 the visible fraction of
-#: the disc (the mask's own steps are 1 / SUN_RAYS = 1/64: 8 bits hold them
+#: the disc (the mask's own steps are 1 / SUN_RAYS = 1/256: 8 bits hold them
 #: with at most 1/510 of rounding; a filtered edge texel rounds as any other).
 SUN_MASK_FORMAT = "R8"
 #: With sub-texel edges (core.bake.estimators.sun_edge): RGBA16F, the very

@@ -46,7 +46,7 @@ SPREAD_NODES = tuple((math.cos(k * math.pi / 6.0), math.sin(k * math.pi / 6.0) *
 #: Lamps a texture set's masks hold: one RGBA texture, one channel a lamp (Unity's shadowmask: four).
 MAX_LAMPS = 4
 #: Rays a texel traces to a lamp's sphere (as the sun's disc: core.light.sun.SUN_RAYS).
-LAMP_RAYS = 64
+LAMP_RAYS = 256
 KINDS = ("POINT", "SPOT")
 
 

@@ -13,7 +13,7 @@ The directions are one Owen-scrambled Sobol' (0,2) pattern, (u, v) ->
 (cos theta = 1 - u (1 - cos(angle / 2)), phi = 2 pi v), shifted per texel
 (Cranley-Patterson, hashed from the seed, the set and the texel), so
 neighbouring texels' errors are independent and a penumbra is smooth at 64
-rays (its steps 1/64). Every number is a hash of (seed, set, texel) and the
+rays (its steps 1/SUN_RAYS). Every number is a hash of (seed, set, texel) and the
 chunks write their own rows: the same mask for any thread count.
 
 Refinement (``grid``, the fine masks of Sun Shadow Detail): a mask 2-4 times
