@@ -165,9 +165,20 @@ def main(argv=None) -> int:
     p.add_argument("--size", default="320x180")
     p.add_argument("--samples", type=int, default=256, help="Cycles' samples a pixel")
     p.add_argument("--resolution", type=int, default=512, help="the atlas")
+    p.add_argument("--budget", action="store_true", help="what each lamp costs: the room baked with 0, 1, 2 and 4 "
+                   "lamps, the masks' seconds and bytes and the preview's frame time (bench/lamp_budget.py; no Cycles)")
     p.add_argument("--detail", default="1", help="Shadow Detail (sun_detail: the masks' texels per set texel a "
                    "side), comma-separated: a row each")
     a = p.parse_args(argv)
+    if a.budget:
+        from .lamp_budget import budget
+        res = 1024 if a.resolution == 512 else a.resolution
+        print(f"the room ({res}² atlas, no bounce) with point and spot lamps, preview frames at 1280x720:")
+        print(f"  {'lamps':>5}  {'bake s':>6}  {'masks s':>7}  {'mask bytes':>10}  {'TPFL ms':>7}  {'diffuse ms':>10}")
+        for r in budget(res):
+            print(f"  {r['lamps']:5d}  {r['bake_s']:6.2f}  {r['mask_s']:7.2f}  {r['mask_bytes']:10d}  "
+                  f"{r['tpfl_ms']:7.1f}  {r['diffuse_ms']:10.1f}", flush=True)
+        return 0
     w, h = (int(v) for v in a.size.split("x"))
     print(f"point and spot lamps over a box and a plank, {w}x{h}, Cycles {a.samples} samples, direct light, "
           f"atlas {a.resolution}², diffuse mode:")
