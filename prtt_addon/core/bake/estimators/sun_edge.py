@@ -45,6 +45,7 @@ import math
 
 import numpy as np
 
+from ...base.memory import check_fits
 from ...texels.dilate import grown_mask
 from ...texels.islands import island_labels
 from .raytrace import RayScene
@@ -91,12 +92,17 @@ def visible(tex):
     return np.where(use, profile(s), m)
 
 
-def edge_bytes(texels: int, pairs: int | None = None) -> int:
-    """Upper bound (bytes) of :func:`sun_edges` on a set of ``texels``: per
-    texel its rows, labels, planes and results (~120 B); per pair (at most
-    2 a texel) its points, normals and rays (~200 B)."""
-    pairs = 2 * texels if pairs is None else pairs
-    return 120 * texels + 200 * pairs
+#: Bytes a pair of texels across an edge holds in :func:`sun_edges`: its points, normals and rays.
+PAIR_BYTES = 200
+
+
+def edge_bytes(texels: int, pairs: int = 0) -> int:
+    """Bytes of :func:`sun_edges` on a set of ``texels``: per texel its rows,
+    labels, planes and results (~120 B), and PAIR_BYTES per pair across an
+    edge. The pairs are the mask's crossings, known once it is traced
+    (sun_edges checks their bytes then: the plan counts the texels'); at
+    most 2 a texel."""
+    return 120 * texels + PAIR_BYTES * pairs
 
 
 def sun_edges(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray, texel: np.ndarray, width: int,
@@ -143,6 +149,9 @@ def sun_edges(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray, texel:
     A, B = np.concatenate(a_rows), np.concatenate(b_rows)
     anchor, axis_of = np.concatenate(anchors), np.concatenate(axes)
     m = int(A.size)
+    # The pairs are known only now (the mask's crossings): their bytes are checked before they are made.
+    check_fits(PAIR_BYTES * m, f"the sun's shadow edges: {m} texel pairs across them",
+               advice="bake with --no-sun-edges, or at a lower resolution or Sun Shadow Detail")
     good = np.zeros(m, bool)
     lam = np.zeros(m)
     t_world = np.zeros(m)
