@@ -22,8 +22,8 @@ import numpy as np
 
 from ...base.errors import Cancelled
 from .raytrace import RayScene
-from .sampling import hash_unit, tangent_frames
-from .sun_mask import disc_pattern, escaping
+from .sampling import hash_unit
+from .sun_mask import cone_directions, disc_pattern, escaping
 
 #: The salt of the lamps' random numbers (apart from the sun's and the transfer's).
 _SALT = 0x1A4B
@@ -60,22 +60,18 @@ def lamp_mask(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray, ids: n
             raise Cancelled()
         r = rows.stop - rows.start
         m = idx.size
-        u = pattern[None, rows, :] + np.stack([hash_unit(seed, set_index, ids[idx], salt, 1),
-                                               hash_unit(seed, set_index, ids[idx], salt, 2)], -1)[:, None, :]
-        u %= 1.0
+        shift = np.stack([hash_unit(seed, set_index, ids[idx], salt, 1),
+                          hash_unit(seed, set_index, ids[idx], salt, 2)], axis=-1)
         s_max = sin_max[idx]
         cos_max = np.sqrt(np.maximum(0.0, 1.0 - s_max * s_max))
-        ct = 1.0 - u[..., 0] * (1.0 - cos_max[:, None])                       # (m, r)
+        d = cone_directions(l[idx], cos_max, pattern[rows], shift)
+        D = dist[idx][:, None]
+        # each ray's cos from the centre's direction, as cone_directions made it
+        ct = 1.0 - ((pattern[None, rows, 0] + shift[:, None, 0]) % 1.0) * (1.0 - cos_max[:, None])
         st = np.sqrt(np.maximum(0.0, 1.0 - ct * ct))
-        phi = 2.0 * np.pi * u[..., 1]
-        a = l[idx]
-        t, b = tangent_frames(a)
-        d = ((st * np.cos(phi))[..., None] * t[:, None, :] + (st * np.sin(phi))[..., None] * b[:, None, :]
-             + ct[..., None] * a[:, None, :])
         g = geo_normal[idx]
         above = np.einsum("mrc,mc->mr", d, g) > 0.0
         # The way to the sphere's near side along each ray, shortened a little (the lamp is not geometry).
-        D = dist[idx][:, None]
         far = D * ct - np.sqrt(np.maximum(0.0, R * R - (D * st) ** 2))
         tfar = np.where(above, (0.999 * far * rs.scale).astype(np.float32), np.float32(-1.0))
         org = np.repeat(rs.origins(position[idx], g), r, axis=0)

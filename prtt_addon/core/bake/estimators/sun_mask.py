@@ -75,15 +75,23 @@ def disc_directions(direction, angle: float, pattern: np.ndarray, shift: np.ndar
     """(m, R, 3) float64 unit directions over the disc about unit ``direction``
     (3,) of full angle ``angle`` (radians): ``pattern`` (R, 2) shifted by
     ``shift`` (m, 2) modulo 1, mapped uniformly in solid angle."""
-    d = np.asarray(direction, np.float64).reshape(1, 3)
+    return cone_directions(direction, math.cos(0.5 * angle), pattern, shift)
+
+
+def cone_directions(axis, cos_max, pattern: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """(m, R, 3) float64 unit directions uniform in solid angle over the cone
+    about unit ``axis`` ((3,), or (m, 3) one a point) of half-angle acos
+    ``cos_max`` (a number, or (m,)): ``pattern`` (R, 2) shifted by ``shift``
+    (m, 2) modulo 1, (u, v) -> (cos theta = 1 - u (1 - cos_max), phi = 2 pi v)."""
+    d = np.asarray(axis, np.float64).reshape(-1, 3)
     t, b = tangent_frames(d)
     u = (pattern[None, :, :] + shift[:, None, :]) % 1.0
-    cos_max = math.cos(0.5 * angle)
-    ct = 1.0 - u[..., 0] * (1.0 - cos_max)
+    c = np.asarray(cos_max, np.float64).reshape(-1, 1)
+    ct = 1.0 - u[..., 0] * (1.0 - c)
     st = np.sqrt(np.maximum(0.0, 1.0 - ct * ct))
     phi = 2.0 * math.pi * u[..., 1]
-    return ((st * np.cos(phi))[..., None] * t[0] + (st * np.sin(phi))[..., None] * b[0]
-            + ct[..., None] * d[0])
+    return ((st * np.cos(phi))[..., None] * t[:, None, :] + (st * np.sin(phi))[..., None] * b[:, None, :]
+            + ct[..., None] * d[:, None, :])
 
 
 def sun_mask(rs: RayScene, position: np.ndarray, geo_normal: np.ndarray, ids: np.ndarray, direction,

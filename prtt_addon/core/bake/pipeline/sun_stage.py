@@ -131,12 +131,8 @@ def _sun_mask_set(ctx: BakeContext, rays: RayScene, gb, inside, key: str, rings)
     H, W = gb.height, gb.width
     plane = np.zeros((1, H * W), np.float32)
     plane[0, gb.texel] = m
-    cov = np.zeros(H * W, bool)
-    cov[gb.texel] = True
-    if inside is not None and inside.any():
-        drop = gb.texel[inside]
-        plane[0, drop] = 0.0
-        cov[drop] = False
+    cov = _coverage(gb, inside)
+    plane[0, ~cov] = 0.0
     edges = None
     if st.sun_edges and sun.shadow:
         # Before the mask's dilation: the edges are found from the traced texels alone.
