@@ -63,6 +63,14 @@ function checkSun(sun) {
     color: sun.color.slice(), strength: sun.strength };
 }
 
+/** A uniform block ``struct`` (shader_source's typedefs) holding ``data`` (a Float32Array of its vec4s). */
+function uniformsGroup(struct, data) {
+  const group = new THREE.UniformsGroup();
+  group.setName(blockName(struct));
+  group.add(new THREE.Uniform(data));
+  return group;
+}
+
 /** The most lamps a set's masks hold (core/light/lamp.py MAX_LAMPS). */
 const MAX_LAMPS = 4;
 
@@ -126,27 +134,19 @@ class PRTTScene {
     this.sets = [];
     this.meshes = [];               // {mesh, set, primitive extension, material source, material ext}
     this.notes = [];
-    this.viewGroup = new THREE.UniformsGroup();
-    this.viewGroup.setName(blockName('PRTTView'));
     this.viewData = new Float32Array(24);
-    this.viewGroup.add(new THREE.Uniform(this.viewData));
-    this.lightGroup = new THREE.UniformsGroup();
-    this.lightGroup.setName(blockName('PRTTLight'));
+    this.viewGroup = uniformsGroup('PRTTView', this.viewData);
     this.lightData = lightBlock(this.light, this.bands);
-    this.lightGroup.add(new THREE.Uniform(this.lightData));
+    this.lightGroup = uniformsGroup('PRTTLight', this.lightData);
     this.relightDirty = true;
     this.sun = null;                // the root's sun, checked (drawn on the sets with a mask)
     this.sunOn = true;
     this.sunData = new Float32Array(8);
-    this.sunGroup = new THREE.UniformsGroup();
-    this.sunGroup.setName(blockName('PRTTSun'));
-    this.sunGroup.add(new THREE.Uniform(this.sunData));
+    this.sunGroup = uniformsGroup('PRTTSun', this.sunData);
     this.lamps = null;              // the root's lamps, checked (drawn on the sets with their masks)
     this.lampsOn = true;
     this.lampData = new Float32Array(52);
-    this.lampGroup = new THREE.UniformsGroup();
-    this.lampGroup.setName(blockName('PRTTLamps'));
-    this.lampGroup.add(new THREE.Uniform(this.lampData));
+    this.lampGroup = uniformsGroup('PRTTLamps', this.lampData);
     this.dummy = dummy2D();
     this.gaunt = null;
     this.materials = new Map();
@@ -313,9 +313,7 @@ class PRTTScene {
       defines: { PRTT_ROUGHNESS_CHANNEL: 'g' },      // glTF packs roughness in G
       side: THREE.DoubleSide,
     });
-    const matGroup = new THREE.UniformsGroup();
-    matGroup.setName(blockName('PRTTMaterial'));
-    matGroup.add(new THREE.Uniform(m.block));
+    const matGroup = uniformsGroup('PRTTMaterial', m.block);
     mat.uniformsGroups = [this.viewGroup, matGroup, this.lightGroup, ...(sun ? [this.sunGroup] : []),
       ...(lamps ? [this.lampGroup] : [])];
     this.materials.set(key, mat);
@@ -425,9 +423,7 @@ function relightPass(operator, width, height, K4, glossyBands, bands, read, limi
   const v = relightVariant(bands, glossyBands);
   const { vertexShader, fragmentShader } = relightSources(v, read);
   const block = new Float32Array(3 * K4 * 4);
-  const group = new THREE.UniformsGroup();
-  group.setName(blockName('PRTTRelight'));
-  group.add(new THREE.Uniform(block));
+  const group = uniformsGroup('PRTTRelight', block);
   const material = new THREE.RawShaderMaterial({
     glslVersion: THREE.GLSL3, vertexShader, fragmentShader, depthTest: false, depthWrite: false,
     uniforms: { relightTex: { value: operator }, out_colour: { value: 0 }, out_q: { value: 0 } },
@@ -530,38 +526,30 @@ export class PRTTLoaderPlugin {
     const zstd = new ZSTDDecoder();
     await zstd.init();
     prtt.notes.push(...fallback);
-    const payload = async (p, what, layers) => {
+    // A payload's bytes, once the extension says where they are and how large they make a texture.
+    const placed = async (p, what) => {
       if (!p || !Number.isInteger(p.bufferView) || !Number.isInteger(p.width) || !Number.isInteger(p.height)
           || p.width < 1 || p.height < 1) {
         throw new PRTTError(`${what}: the extension does not say where and how large it is`);
       }
-      const buf = await parser.getDependency('bufferView', p.bufferView);
-      return arrayTexture(new Uint8Array(buf), zstd, what, { layers, width: p.width, height: p.height,
-        encoding: p.encoding, scale: p.scale, offset: p.offset }, limits);
+      return new Uint8Array(await parser.getDependency('bufferView', p.bufferView));
     };
+    const payload = async (p, what, layers) => arrayTexture(await placed(p, what), zstd, what,
+      { layers, width: p.width, height: p.height, encoding: p.encoding, scale: p.scale, offset: p.offset }, limits);
     for (const s of ext.sets) {
       const transfer = await payload(s.transfer, `set ${s.name} transfer`, fileK4);
       const entry = { name: s.name, transfer: keepLayers(transfer, 1, fileK4, K4) };
       if (s.sun && prtt.sun) {
-        const m = s.sun;
-        if (!m || !Number.isInteger(m.bufferView) || !Number.isInteger(m.width) || !Number.isInteger(m.height)
-            || m.width < 1 || m.height < 1) {
-          throw new PRTTError(`set ${s.name} sun mask: the extension does not say where and how large it is`);
-        }
-        const buf = await parser.getDependency('bufferView', m.bufferView);
-        entry.sun = maskTexture(new Uint8Array(buf), zstd, `set ${s.name} sun mask`, m, limits);
+        const what = `set ${s.name} sun mask`;
+        entry.sun = maskTexture(await placed(s.sun, what), zstd, what, s.sun, limits);
       }
       if (s.lamps && prtt.lamps) {
-        const m = s.lamps;
-        if (!m || !Number.isInteger(m.bufferView) || !Number.isInteger(m.width) || !Number.isInteger(m.height)
-            || m.width < 1 || m.height < 1) {
-          throw new PRTTError(`set ${s.name} lamp masks: the extension does not say where and how large they are`);
-        }
+        const m = s.lamps, what = `set ${s.name} lamp masks`;
+        const bytes = await placed(m, what);
         if (m.lamps !== prtt.lamps.length) {
-          throw new PRTTError(`set ${s.name} lamp masks: ${m.lamps} lamps, the file has ${prtt.lamps.length}`);
+          throw new PRTTError(`${what}: ${m.lamps} lamps, the file has ${prtt.lamps.length}`);
         }
-        const buf = await parser.getDependency('bufferView', m.bufferView);
-        entry.lamps = maskTexture(new Uint8Array(buf), zstd, `set ${s.name} lamp masks`,
+        entry.lamps = maskTexture(bytes, zstd, what,
           { ...m, format: m.format === 'RGBA8' ? 'RGBA8' : `${m.format} (lamp masks are RGBA8)` }, limits);
       }
       if (s.bounce) {
